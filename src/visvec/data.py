@@ -1,0 +1,113 @@
+"""Data passed between the pipeline stages (frozen dataclasses, documented shapes)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from enum import StrEnum
+
+import numpy as np
+
+
+class Status(StrEnum):
+    """Outcome of one frame, as written in the ``status`` column."""
+
+    OK = "ok"
+    NO_TARGET = "no_target"
+    REJECTED = "rejected"
+    NOT_CONVERGED = "not_converged"
+    READ_ERROR = "read_error"
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One image from a source.
+
+    Attributes
+    ----------
+    index : int
+        0-based index of the frame in its source.
+    time_s : float
+        Exposure time of the frame in seconds.
+    image : (H, W) uint8 ndarray or None
+        Grey image; None when the frame could not be read (see ``error``).
+    name : str
+        File name or a description of where the frame came from.
+    error : str
+        Why the frame could not be read (empty when ``image`` is set).
+    """
+
+    index: int
+    time_s: float
+    image: np.ndarray | None
+    name: str = ""
+    error: str = ""
+
+
+@dataclass(frozen=True)
+class Detection:
+    """Triangle vertices found in one image.
+
+    Attributes
+    ----------
+    status : Status
+        ``OK`` when the vertices may be used.
+    points_px : (3, 2) float ndarray
+        Vertices in distorted pixel coordinates (u, v), the most acute first, the
+        other two in the order of the rig file.
+    points_n : (3, 2) float ndarray
+        The same vertices undistorted, in normalised image coordinates (x/z, y/z).
+    cov_n : (6, 6) float ndarray
+        Covariance of ``points_n.ravel()``.
+    warnings : tuple of str
+        Warning codes (for the ``warnings`` column).
+    reason : str
+        Why a non-ok detection was refused (also one of the warnings).
+    mean_brightness : float
+        Mean grey level of the image.
+    contour_px : (K, 2) float ndarray
+        Outline of the bright region found (for overlays).
+    """
+
+    status: Status
+    points_px: np.ndarray = field(default_factory=lambda: np.full((3, 2), np.nan))
+    points_n: np.ndarray = field(default_factory=lambda: np.full((3, 2), np.nan))
+    cov_n: np.ndarray = field(default_factory=lambda: np.full((6, 6), np.nan))
+    warnings: tuple[str, ...] = ()
+    reason: str = ""
+    mean_brightness: float = float("nan")
+    contour_px: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+
+    @property
+    def centroid_px(self) -> np.ndarray:
+        """(2,) ndarray: centroid of the three vertices in pixels."""
+        return self.points_px.mean(axis=0)
+
+
+@dataclass(frozen=True)
+class AttitudeSolution:
+    """An attitude estimate.
+
+    Attributes
+    ----------
+    status : Status
+    R_nb : (3, 3) ndarray
+        Body-to-lab rotation, x_N = R_nb x_B.
+    cov_b : (3, 3) ndarray
+        Covariance (rad^2) of the small rotation error eps in R_nb_true = R_nb exp([eps]x),
+        eps in body axes.
+    rms_px : float
+        RMS reprojection residual in pixels.
+    n_points : int
+        Number of image points used.
+    iterations : int
+        Solver iterations.
+    warnings : tuple of str
+    """
+
+    status: Status
+    R_nb: np.ndarray = field(default_factory=lambda: np.full((3, 3), np.nan))
+    cov_b: np.ndarray = field(default_factory=lambda: np.full((3, 3), np.nan))
+    rms_px: float = float("nan")
+    n_points: int = 0
+    iterations: int = 0
+    warnings: tuple[str, ...] = ()

@@ -1,0 +1,26 @@
+"""Exceptions raised on misuse: bad configuration, bad arguments, unopenable sources.
+
+Expected failures on a frame (no target, a rejected detection, no convergence) are
+never exceptions; they are a :class:`visvec.data.Status` on the result.
+"""
+
+from __future__ import annotations
+
+
+class VisvecError(Exception):
+    """Base class of every error visvec raises on purpose."""
+
+
+class ConfigError(VisvecError, ValueError):
+    """A rig or calibration file, or a parameter, is missing or has a wrong value.
+
+    The message names the file, the key, the value found and what was expected.
+    """
+
+
+class SourceError(VisvecError, OSError):
+    """A frame source (camera, video, folder, stream) cannot be opened or read at all."""
+
+
+class InputFileError(VisvecError, ValueError):
+    """A data file (truth, frames list, sidecar) has a bad row; the message names it."""

@@ -1,0 +1,346 @@
+"""The rig file (SPEC section 2): one TOML file describing one setup.
+
+:func:`load_rig` validates every key before any frame is read and raises
+:class:`~visvec.errors.ConfigError` naming the file, the key and what was expected.
+A calibration file has the same sections; the keys it names override the rig's.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from collections.abc import Mapping
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from visvec.camera import CameraModel
+from visvec.errors import ConfigError
+
+TARGET_KINDS = ("triangle", "markers", "lamps", "starfield")
+SUPPORTED_KINDS = ("triangle",)
+REFINE_METHODS = ("lines", "corners")
+
+
+@dataclass(frozen=True)
+class Mount:
+    """Camera pose: on the platform (t_B, R_BC) or in the lab (t_N, R_NC)."""
+
+    on: str
+    position_mm: np.ndarray
+    rotation: np.ndarray
+
+
+@dataclass(frozen=True)
+class TriangleTarget:
+    """A planar triangle on the ceiling; ``vertices_mm`` (3, 3) in N, most acute first."""
+
+    vertices_mm: np.ndarray
+    kind: str = "triangle"
+
+    @property
+    def centroid_mm(self) -> np.ndarray:
+        return self.vertices_mm.mean(axis=0)
+
+
+@dataclass(frozen=True)
+class DetectSettings:
+    """Detector settings (``[detect]``), all optional.
+
+    brightness_band : (lo, hi) grey levels; outside it a frame gets a brightness warning.
+    min_contrast : least grey-level step between board and triangle to accept.
+    refine : "lines" (edge-line fits, default) or "corners" (cv2.cornerSubPix).
+    pixel_sigma_floor : px, least per-point noise assumed in the covariance.
+    """
+
+    brightness_band: tuple[float, float] = (35.0, 220.0)
+    min_contrast: float = 8.0
+    refine: str = "lines"
+    pixel_sigma_floor: float = 0.02
+
+
+@dataclass(frozen=True)
+class ZeroTilt:
+    """Calibrated zero-tilt centroid for the "paper" estimator (``[zero_tilt]``)."""
+
+    centroid_px: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class Rig:
+    """One setup: camera, mount, target and settings."""
+
+    camera: CameraModel
+    mount: Mount
+    target: TriangleTarget
+    max_tilt_deg: float = 10.0
+    detect: DetectSettings = field(default_factory=DetectSettings)
+    zero_tilt: ZeroTilt = field(default_factory=ZeroTilt)
+    device: int | str | None = None
+    fps: float = 30.0
+    path: Path | None = None
+
+    @property
+    def t_b(self) -> np.ndarray:
+        """(3,) camera optical centre in B, mm."""
+        return self.mount.position_mm
+
+    @property
+    def R_bc(self) -> np.ndarray:
+        """(3, 3) camera-to-body rotation."""
+        return self.mount.rotation
+
+
+# --------------------------------------------------------------------------- parsing
+
+
+class _Section:
+    """Typed access to one TOML table that remembers which keys were read."""
+
+    def __init__(self, path: str, name: str, table: Mapping[str, Any]):
+        self.path, self.name, self.table = path, name, table
+        self.used: set[str] = set()
+
+    def _where(self, key: str) -> str:
+        return f"{self.path}: [{self.name}] {key}"
+
+    def has(self, key: str) -> bool:
+        return key in self.table
+
+    def get(self, key: str, default: Any = None, *, required: bool = False) -> Any:
+        self.used.add(key)
+        if key not in self.table:
+            if required:
+                raise ConfigError(f"{self._where(key)}: missing (required)")
+            return default
+        return self.table[key]
+
+    def number(self, key: str, default: float | None = None, *, required: bool = False,
+               positive: bool = False, lo: float | None = None,
+               hi: float | None = None) -> float | None:
+        v = self.get(key, default, required=required)
+        if v is None:
+            return None
+        if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+            raise ConfigError(f"{self._where(key)} = {v!r}: expected a finite number")
+        if positive and v <= 0:
+            raise ConfigError(f"{self._where(key)} = {v!r}: expected a number > 0")
+        if lo is not None and v < lo or hi is not None and v > hi:
+            raise ConfigError(f"{self._where(key)} = {v!r}: expected a number in [{lo}, {hi}]")
+        return float(v)
+
+    def array(self, key: str, shape: tuple[int, ...], default: Any = None, *,
+              required: bool = False) -> np.ndarray | None:
+        v = self.get(key, default, required=required)
+        if v is None:
+            return None
+        try:
+            a = np.array(v, dtype=float)
+        except (TypeError, ValueError):
+            a = None
+        if a is None or a.shape != shape or not np.all(np.isfinite(a)):
+            want = " x ".join(str(n) for n in shape)
+            raise ConfigError(
+                f"{self._where(key)} = {v!r}: expected {want} finite numbers"
+                + (" (rows of the matrix)" if len(shape) == 2 else "")
+            )
+        return a
+
+    def choice(self, key: str, options: tuple[str, ...], default: str | None = None,
+               *, required: bool = False) -> str | None:
+        v = self.get(key, default, required=required)
+        if v is None:
+            return None
+        if v not in options:
+            raise ConfigError(f"{self._where(key)} = {v!r}: expected one of {list(options)}")
+        return v
+
+    def check_unknown(self) -> None:
+        extra = sorted(set(self.table) - self.used)
+        if extra:
+            raise ConfigError(
+                f"{self.path}: [{self.name}] unknown key(s) {extra}; "
+                f"known: {sorted(self.used)}"
+            )
+
+
+def _read_toml(path: Path, what: str) -> dict[str, Any]:
+    try:
+        with open(path, "rb") as fh:
+            return tomllib.load(fh)
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: {what} file not found") from None
+    except IsADirectoryError:
+        raise ConfigError(f"{path}: is a folder, expected a {what} file (TOML)") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: not valid TOML ({exc})") from None
+
+
+def _merge(base: dict[str, Any], over: Mapping[str, Any]) -> dict[str, Any]:
+    out = {k: (dict(v) if isinstance(v, dict) else v) for k, v in base.items()}
+    for name, table in over.items():
+        if isinstance(table, dict) and isinstance(out.get(name), dict):
+            out[name].update(table)
+        else:
+            out[name] = table
+    return out
+
+
+def _rotation(sec: _Section, key: str) -> np.ndarray:
+    R = sec.array(key, (3, 3), required=True)
+    err = np.abs(R @ R.T - np.eye(3)).max()
+    if err > 1e-3 or np.linalg.det(R) < 0:
+        raise ConfigError(
+            f"{sec._where(key)}: expected a proper rotation matrix (orthonormal rows, "
+            f"det +1); got |R R^T - I| = {err:.2g}, det = {np.linalg.det(R):.3f}"
+        )
+    # Re-orthonormalise the few-digit matrices people type (nearest rotation, SVD).
+    U, _, Vt = np.linalg.svd(R)
+    return U @ Vt
+
+
+_SECTIONS = ("camera", "mount", "target", "platform", "detect", "zero_tilt", "source", "report")
+
+
+def load_rig(path: str | Path, calibration: str | Path | None = None) -> Rig:
+    """Read and validate a rig file, optionally overridden by a calibration file.
+
+    Raises
+    ------
+    ConfigError
+        On any missing or wrong key; the message names file, key and expectation.
+    """
+    path = Path(path)
+    raw = _read_toml(path, "rig")
+    src = str(path)
+    if calibration is not None:
+        cal = _read_toml(Path(calibration), "calibration")
+        bad = sorted(set(cal) - set(_SECTIONS))
+        if bad:
+            raise ConfigError(f"{calibration}: unknown section(s) {bad}")
+        raw = _merge(raw, cal)
+        src = f"{path} (+ {calibration})"
+    return rig_from_dict(raw, src, base_dir=path.parent)
+
+
+def rig_from_dict(raw: Mapping[str, Any], src: str = "<rig>",
+                  base_dir: Path | None = None) -> Rig:
+    """Build a :class:`Rig` from parsed TOML (see :func:`load_rig`)."""
+    unknown = sorted(set(raw) - set(_SECTIONS))
+    if unknown:
+        raise ConfigError(f"{src}: unknown section(s) {unknown}; expected {list(_SECTIONS[:5])}")
+    for name in ("camera", "mount", "target"):
+        if name not in raw:
+            raise ConfigError(f"{src}: [{name}] section missing (required)")
+        if not isinstance(raw[name], dict):
+            raise ConfigError(f"{src}: {name} must be a [table]")
+
+    cam = _Section(src, "camera", raw["camera"])
+    width = cam.number("width", required=True, positive=True)
+    height = cam.number("height", required=True, positive=True)
+    for k, v in (("width", width), ("height", height)):
+        if v != int(v):
+            raise ConfigError(f"{src}: [camera] {k} = {v}: expected a whole number of pixels")
+    camera = CameraModel(
+        width=int(width), height=int(height),
+        fx=cam.number("fx", required=True, positive=True),
+        fy=cam.number("fy", required=True, positive=True),
+        cx=cam.number("cx", required=True),
+        cy=cam.number("cy", required=True),
+        dist=cam.array("dist", (5,), default=[0.0] * 5),
+    )
+    device = cam.get("device")
+    if device is not None and not isinstance(device, int | str):
+        raise ConfigError(f"{src}: [camera] device = {device!r}: expected an index or a path/URL")
+    fps = cam.number("fps", 30.0, positive=True)
+    cam.check_unknown()
+
+    mnt = _Section(src, "mount", raw["mount"])
+    mount = Mount(
+        on=mnt.choice("on", ("platform", "lab"), required=True),
+        position_mm=mnt.array("position_mm", (3,), required=True),
+        rotation=_rotation(mnt, "rotation"),
+    )
+    mnt.check_unknown()
+
+    tgt = _Section(src, "target", raw["target"])
+    kind = tgt.choice("kind", TARGET_KINDS, required=True)
+    if kind not in SUPPORTED_KINDS:
+        raise ConfigError(
+            f"{src}: [target] kind = {kind!r}: not supported by this version of visvec "
+            f"(supported: {list(SUPPORTED_KINDS)})"
+        )
+    if mount.on != "platform":
+        raise ConfigError(
+            f"{src}: [mount] on = {mount.on!r}: a triangle target needs the camera "
+            "on the platform (on = \"platform\")"
+        )
+    verts = tgt.array("vertices_mm", (3, 3), required=True)
+    tgt.check_unknown()
+    _check_triangle(verts, src)
+    target = TriangleTarget(vertices_mm=verts)
+
+    plat = _Section(src, "platform", raw.get("platform", {}))
+    max_tilt = plat.number("max_tilt_deg", 10.0, positive=True, hi=45.0)
+    plat.check_unknown()
+
+    det = _Section(src, "detect", raw.get("detect", {}))
+    band = det.array("brightness_band", (2,), default=[35.0, 220.0])
+    if not 0 <= band[0] < band[1] <= 255:
+        raise ConfigError(f"{src}: [detect] brightness_band = {band.tolist()}: expected "
+                          "[lo, hi] with 0 <= lo < hi <= 255")
+    detect = DetectSettings(
+        brightness_band=(float(band[0]), float(band[1])),
+        min_contrast=det.number("min_contrast", 8.0, positive=True),
+        refine=det.choice("refine", REFINE_METHODS, "lines"),
+        pixel_sigma_floor=det.number("pixel_sigma_floor", 0.02, lo=0.0, hi=5.0),
+    )
+    det.check_unknown()
+
+    zt = _Section(src, "zero_tilt", raw.get("zero_tilt", {}))
+    zero = ZeroTilt(centroid_px=zt.array("centroid_px", (2,)))
+    zt.get("residual_px")
+    zt.check_unknown()
+
+    rig = Rig(camera=camera, mount=mount, target=target, max_tilt_deg=max_tilt,
+              detect=detect, zero_tilt=zero, device=device, fps=fps,
+              path=Path(src.split(" (+")[0]) if base_dir is not None else None)
+    _check_visible(rig, src)
+    return rig
+
+
+def _check_triangle(v: np.ndarray, src: str) -> None:
+    """Refuse a triangle that is degenerate, not level, or whose first vertex is not the
+    most acute."""
+    e = [np.linalg.norm(v[(i + 1) % 3] - v[(i + 2) % 3]) for i in range(3)]
+    area = 0.5 * np.linalg.norm(np.cross(v[1] - v[0], v[2] - v[0]))
+    if area < 1e-3 * max(e) ** 2:
+        raise ConfigError(f"{src}: [target] vertices_mm: the three vertices are (nearly) "
+                          "collinear; expected a triangle")
+    if np.ptp(v[:, 2]) > 1e-6 * max(e) + 1e-9 and np.ptp(v[:, 2]) > 1.0:
+        raise ConfigError(f"{src}: [target] vertices_mm: the vertices must lie on a level "
+                          f"ceiling (equal z); z spans {np.ptp(v[:, 2]):.1f} mm")
+    if v[0, 2] <= 0:
+        raise ConfigError(f"{src}: [target] vertices_mm: z = {v[0, 2]} mm; expected the "
+                          "target above the centre of rotation (z > 0)")
+    # the side opposite the most acute vertex is the shortest
+    if not (e[0] < e[1] and e[0] < e[2]):
+        raise ConfigError(
+            f"{src}: [target] vertices_mm: the first vertex must be the most acute one "
+            f"(opposite the shortest side); side lengths are {[round(x, 1) for x in e]} mm"
+        )
+
+
+def _check_visible(rig: Rig, src: str) -> None:
+    """The target must be in front of the camera at zero attitude."""
+    p_c = (rig.target.vertices_mm - rig.t_b) @ rig.R_bc
+    if np.any(p_c[:, 2] <= 0):
+        raise ConfigError(f"{src}: [mount] rotation: the target is behind the camera at zero "
+                          "attitude; expected the boresight (third column) to point at it")
+
+
+def with_overrides(rig: Rig, **kw: Any) -> Rig:
+    """A copy of ``rig`` with fields replaced (used by calibration and simulation)."""
+    return replace(rig, **kw)

@@ -1,0 +1,115 @@
+"""Rotation conventions of visvec (SPEC section 1), in radians.
+
+R_nb maps body to lab coordinates. Euler angles are intrinsic Z-Y-X:
+R_nb = Rz(yaw) Ry(pitch) Rx(roll). Quaternions are scalar-first with w >= 0.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def rot_x(a: float) -> np.ndarray:
+    """(3, 3) rotation about axis 1 by ``a`` radians."""
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+
+
+def rot_y(a: float) -> np.ndarray:
+    """(3, 3) rotation about axis 2 by ``a`` radians."""
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+def rot_z(a: float) -> np.ndarray:
+    """(3, 3) rotation about axis 3 by ``a`` radians."""
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def euler_to_matrix(yaw: float, pitch: float, roll: float) -> np.ndarray:
+    """R_nb = Rz(yaw) Ry(pitch) Rx(roll), angles in radians."""
+    return rot_z(yaw) @ rot_y(pitch) @ rot_x(roll)
+
+
+def matrix_to_euler(R_nb: np.ndarray) -> tuple[float, float, float]:
+    """(yaw, pitch, roll) in radians of a rotation matrix; yaw in (-pi, pi]."""
+    pitch = float(np.arcsin(np.clip(-R_nb[2, 0], -1.0, 1.0)))
+    yaw = float(np.arctan2(R_nb[1, 0], R_nb[0, 0]))
+    roll = float(np.arctan2(R_nb[2, 1], R_nb[2, 2]))
+    if yaw <= -np.pi:
+        yaw += 2 * np.pi
+    return yaw, pitch, roll
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    """(3, 3) cross-product matrix [v]x with [v]x w = v x w."""
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def expmap(w: np.ndarray) -> np.ndarray:
+    """Rotation matrix exp([w]x) of a rotation vector (Rodrigues' formula).
+
+    Uses the series expansion below 1e-8 rad, where sin(t)/t loses precision.
+    """
+    t = float(np.sqrt(w @ w))
+    K = skew(w)
+    if t < 1e-8:
+        return np.eye(3) + K + 0.5 * K @ K
+    return np.eye(3) + (np.sin(t) / t) * K + ((1.0 - np.cos(t)) / (t * t)) * K @ K
+
+
+def matrix_to_quat(R: np.ndarray) -> np.ndarray:
+    """Scalar-first unit quaternion (w, x, y, z), w >= 0, of a rotation matrix.
+
+    Shepperd's method: pick the largest of the four squared components to divide by.
+    """
+    tr = R[0, 0] + R[1, 1] + R[2, 2]
+    cand = np.array([tr, R[0, 0], R[1, 1], R[2, 2]])
+    i = int(np.argmax(cand))
+    if i == 0:
+        w = 0.5 * np.sqrt(1.0 + tr)
+        q = np.array([w, (R[2, 1] - R[1, 2]) / (4 * w), (R[0, 2] - R[2, 0]) / (4 * w),
+                      (R[1, 0] - R[0, 1]) / (4 * w)])
+    elif i == 1:
+        x = 0.5 * np.sqrt(1.0 + 2 * R[0, 0] - tr)
+        q = np.array([(R[2, 1] - R[1, 2]) / (4 * x), x, (R[0, 1] + R[1, 0]) / (4 * x),
+                      (R[0, 2] + R[2, 0]) / (4 * x)])
+    elif i == 2:
+        y = 0.5 * np.sqrt(1.0 + 2 * R[1, 1] - tr)
+        q = np.array([(R[0, 2] - R[2, 0]) / (4 * y), (R[0, 1] + R[1, 0]) / (4 * y), y,
+                      (R[1, 2] + R[2, 1]) / (4 * y)])
+    else:
+        z = 0.5 * np.sqrt(1.0 + 2 * R[2, 2] - tr)
+        q = np.array([(R[1, 0] - R[0, 1]) / (4 * z), (R[0, 2] + R[2, 0]) / (4 * z),
+                      (R[1, 2] + R[2, 1]) / (4 * z), z])
+    q /= np.linalg.norm(q)
+    return -q if q[0] < 0 else q
+
+
+def quat_to_matrix(q: np.ndarray) -> np.ndarray:
+    """Rotation matrix of a scalar-first quaternion (normalised first)."""
+    w, x, y, z = np.asarray(q, dtype=float) / np.linalg.norm(q)
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def euler_rates_from_body(yaw: float, pitch: float, roll: float) -> np.ndarray:
+    """(3, 3) Jacobian d(yaw, pitch, roll) / d eps for R_nb exp([eps]x), eps in body axes.
+
+    The body-axis angular increment of Z-Y-X angles is
+    eps = [droll - sin(pitch) dyaw,
+           cos(roll) dpitch + sin(roll) cos(pitch) dyaw,
+           -sin(roll) dpitch + cos(roll) cos(pitch) dyaw];
+    this returns the inverse of that map, ordered (yaw, pitch, roll). Singular at
+    pitch = +-90 deg, far outside an air bearing's range.
+    """
+    del yaw
+    sr, cr = np.sin(roll), np.cos(roll)
+    sp, cp = np.sin(pitch), np.cos(pitch)
+    # columns: d/d(yaw, pitch, roll) of eps
+    E = np.array([[-sp, 0.0, 1.0], [sr * cp, cr, 0.0], [cr * cp, -sr, 0.0]])
+    return np.linalg.inv(E)

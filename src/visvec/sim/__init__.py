@@ -1,0 +1,1 @@
+"""Synthetic scenes: rendering of the rig's target at known attitudes."""

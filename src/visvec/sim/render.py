@@ -1,0 +1,160 @@
+"""Physically based rendering of the triangle scene seen by the platform camera.
+
+Each pixel's ray is traced through the rig's camera model (distortion included) to
+the ceiling plane, shaded, and pixels on a boundary are super-sampled for partial
+coverage; then defocus blur, shot and read noise and 8-bit quantisation are applied.
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+
+import cv2
+import numpy as np
+
+from visvec.camera import CameraModel
+from visvec.rig import Rig
+from visvec.sim.scene import Scene
+
+# labels of what a ray hits
+_CEILING, _BOARD, _TRIANGLE, _LIGHT, _OCCLUDER = 0, 1, 2, 3, 4
+
+
+@lru_cache(maxsize=4)
+def _ray_grid(width: int, height: int, fx: float, fy: float, cx: float, cy: float,
+              dist: tuple[float, ...]) -> np.ndarray:
+    """(H + 2, W + 2, 2) normalised undistorted coordinates of pixel centres -1..W."""
+    cam = CameraModel(width, height, fx, fy, cx, cy, np.array(dist))
+    u, v = np.meshgrid(np.arange(-1, width + 1, dtype=float),
+                       np.arange(-1, height + 1, dtype=float))
+    xy = cam.undistort(np.column_stack([u.ravel(), v.ravel()]))
+    return xy.reshape(height + 2, width + 2, 2)
+
+
+def _rays_at(grid: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Bilinear interpolation of the ray grid at sub-pixel positions (N,) -> (N, 2)."""
+    gu, gv = u + 1.0, v + 1.0
+    i0 = np.clip(np.floor(gv).astype(int), 0, grid.shape[0] - 2)
+    j0 = np.clip(np.floor(gu).astype(int), 0, grid.shape[1] - 2)
+    a, b = (gu - j0)[:, None], (gv - i0)[:, None]
+    return ((1 - a) * (1 - b) * grid[i0, j0] + a * (1 - b) * grid[i0, j0 + 1]
+            + (1 - a) * b * grid[i0 + 1, j0] + a * b * grid[i0 + 1, j0 + 1])
+
+
+class _Shader:
+    """Traces normalised camera rays into the lab and returns (label, radiance)."""
+
+    def __init__(self, rig: Rig, scene: Scene, R_nb: np.ndarray):
+        self.scene = scene
+        self.R_nc = R_nb @ rig.R_bc
+        self.c_n = R_nb @ rig.t_b
+        v = rig.target.vertices_mm
+        self.z_ceiling = float(v[:, 2].mean())
+        self.tri = v[:, :2]
+        self.centre = v[:, :2].mean(axis=0)
+        # inward edge normals of the triangle in the ceiling plane
+        orient = np.sign(np.cross(self.tri[1] - self.tri[0], self.tri[2] - self.tri[0]))
+        self.edges = []
+        for i in range(3):
+            a, b = self.tri[i], self.tri[(i + 1) % 3]
+            t = (b - a) / np.linalg.norm(b - a)
+            n = orient * np.array([-t[1], t[0]])
+            self.edges.append((n, float(n @ a)))
+
+    def __call__(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        sc = self.scene
+        d = np.column_stack([xy, np.ones(len(xy))]) @ self.R_nc.T
+        dz = d[:, 2]
+        up = dz > 1e-9
+        s = np.where(up, (self.z_ceiling - self.c_n[2]) / np.where(up, dz, 1.0), np.nan)
+        X = self.c_n[0] + s * d[:, 0]
+        Y = self.c_n[1] + s * d[:, 1]
+        g = sc.gradient_dir
+        illum = 1.0 + sc.gradient_per_m * ((X - self.centre[0]) * g[0]
+                                           + (Y - self.centre[1]) * g[1]) / 1000.0
+        label = np.full(len(xy), _CEILING, dtype=np.int8)
+        rad = sc.ceiling_level * illum
+        bx, by = sc.board_mm[0] / 2, sc.board_mm[1] / 2
+        on_board = (np.abs(X - self.centre[0]) <= bx) & (np.abs(Y - self.centre[1]) <= by)
+        label[on_board] = _BOARD
+        rad = np.where(on_board, sc.board_level * illum, rad)
+        if sc.show_triangle:
+            inside = np.ones(len(xy), dtype=bool)
+            for n, c in self.edges:
+                inside &= (n[0] * X + n[1] * Y) >= c
+            label[inside] = _TRIANGLE
+            rad = np.where(inside, (sc.board_level + sc.contrast) * illum, rad)
+        for lamp in sc.lights:
+            lit = (X - lamp.x_mm) ** 2 + (Y - lamp.y_mm) ** 2 <= lamp.radius_mm ** 2
+            label[lit] = _LIGHT
+            rad = np.where(lit, lamp.level, rad)
+        if sc.occluder is not None:
+            o = sc.occluder
+            so = (o.z_mm - self.c_n[2]) / np.where(up, dz, 1.0)
+            Xo = self.c_n[0] + so * d[:, 0]
+            Yo = self.c_n[1] + so * d[:, 1]
+            rr = (Xo - o.x_mm) ** 2 + (Yo - o.y_mm) ** 2
+            hit = up & (so > 0) & (rr <= o.radius_mm ** 2)
+            label[hit] = _OCCLUDER
+            # soft shading like a head or shoulder: brighter toward its middle
+            rad = np.where(hit, o.level * (1.1 - 0.3 * rr / o.radius_mm ** 2), rad)
+        label[~up] = _CEILING
+        rad = np.where(up, rad, 0.0)
+        return label, rad
+
+
+def render_clean(rig: Rig, R_nb: np.ndarray, scene: Scene) -> np.ndarray:
+    """Noise-free radiance image (H, W) float64 of the scene at attitude ``R_nb``.
+
+    Pixels whose 3x3 neighbourhood holds more than one surface are averaged over
+    ``scene.supersample``^2 sub-pixel rays (box pixel response).
+    """
+    cam = rig.camera
+    grid = _ray_grid(cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy,
+                     tuple(float(k) for k in cam.dist))
+    shade = _Shader(rig, scene, R_nb)
+    centres = grid[1:-1, 1:-1].reshape(-1, 2)
+    label, rad = shade(centres)
+    label = label.reshape(cam.height, cam.width)
+    img = rad.reshape(cam.height, cam.width)
+    lab8 = label.astype(np.uint8)
+    k = np.ones((3, 3), np.uint8)
+    mixed = cv2.dilate(lab8, k) != cv2.erode(lab8, k)
+    rows, cols = np.nonzero(mixed)
+    n = max(1, int(scene.supersample))
+    if len(rows) and n > 1:
+        off = (np.arange(n) + 0.5) / n - 0.5
+        ou, ov = np.meshgrid(off, off)
+        su = (cols[:, None] + ou.ravel()[None, :]).ravel()
+        sv = (rows[:, None] + ov.ravel()[None, :]).ravel()
+        _, srad = shade(_rays_at(grid, su, sv))
+        img[rows, cols] = srad.reshape(-1, n * n).mean(axis=1)
+    return img
+
+
+def render_frame(rig: Rig, R_nb: np.ndarray, scene: Scene,
+                 rng: np.random.Generator | int | None = None) -> np.ndarray:
+    """One 8-bit grey frame (H, W) of the scene at attitude ``R_nb``.
+
+    Parameters
+    ----------
+    rig : Rig
+        Camera model, mount and target (the *true* geometry of the simulated lab).
+    R_nb : (3, 3) ndarray
+        True attitude.
+    scene : Scene
+        Photometry, clutter and noise.
+    rng : numpy Generator or seed
+        Source of the noise.
+    """
+    rng = np.random.default_rng(rng)
+    img = render_clean(rig, R_nb, scene) * scene.exposure
+    if scene.blur_sigma_px > 0:
+        img = cv2.GaussianBlur(img, (0, 0), scene.blur_sigma_px)
+    if scene.shot_gain > 0:
+        # shot noise: variance = signal * gain (grey levels^2)
+        img = img + rng.standard_normal(img.shape) * np.sqrt(np.maximum(img, 0.0)
+                                                              * scene.shot_gain)
+    if scene.noise_sigma > 0:
+        img = img + rng.standard_normal(img.shape) * scene.noise_sigma
+    return np.clip(np.rint(img), 0, 255).astype(np.uint8)

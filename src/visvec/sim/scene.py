@@ -1,0 +1,58 @@
+"""What a simulated ceiling looks like, apart from the rig itself."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+
+@dataclass(frozen=True)
+class Light:
+    """A round ceiling light, centre (x_mm, y_mm) on the ceiling plane, radius in mm."""
+
+    x_mm: float
+    y_mm: float
+    radius_mm: float = 120.0
+    level: float = 255.0
+
+
+@dataclass(frozen=True)
+class Occluder:
+    """Something between camera and ceiling (a person leaning over): a disc at height
+    ``z_mm`` in N, centre (x_mm, y_mm), radius in mm."""
+
+    x_mm: float
+    y_mm: float
+    z_mm: float = 1300.0
+    radius_mm: float = 250.0
+    level: float = 120.0
+
+
+@dataclass(frozen=True)
+class Scene:
+    """Photometry and clutter of a simulated frame (grey levels 0..255).
+
+    board_mm : (along n1, along n2) size of the black board, centred on the triangle.
+    board_level, contrast : board grey level, and the triangle's step above it.
+    ceiling_level : grey level of the ceiling around the board.
+    gradient_per_m : relative change of illumination per metre along ``gradient_dir``.
+    noise_sigma : Gaussian read noise (grey levels).
+    shot_gain : grey levels per photo-electron; > 0 adds shot noise (0 = none).
+    blur_sigma_px : Gaussian defocus blur.
+    exposure : multiplies every radiance before clipping (over-exposure > 1).
+    show_triangle : False renders the board without a triangle.
+    """
+
+    board_mm: tuple[float, float] = (1219.2, 914.4)
+    board_level: float = 70.0
+    contrast: float = 28.0
+    ceiling_level: float = 150.0
+    gradient_per_m: float = 0.15
+    gradient_dir: tuple[float, float] = (0.6, 0.8)
+    noise_sigma: float = 2.0
+    shot_gain: float = 0.0
+    blur_sigma_px: float = 0.6
+    exposure: float = 1.0
+    show_triangle: bool = True
+    lights: tuple[Light, ...] = field(default_factory=tuple)
+    occluder: Occluder | None = None
+    supersample: int = 8
