@@ -117,9 +117,16 @@ class _Section:
             return default
         return self.table[key]
 
-    def number(self, key: str, default: float | None = None, *, required: bool = False,
-               positive: bool = False, lo: float | None = None,
-               hi: float | None = None) -> float | None:
+    def number(
+        self,
+        key: str,
+        default: float | None = None,
+        *,
+        required: bool = False,
+        positive: bool = False,
+        lo: float | None = None,
+        hi: float | None = None,
+    ) -> float | None:
         v = self.get(key, default, required=required)
         if v is None:
             return None
@@ -131,8 +138,9 @@ class _Section:
             raise ConfigError(f"{self._where(key)} = {v!r}: expected a number in [{lo}, {hi}]")
         return float(v)
 
-    def array(self, key: str, shape: tuple[int, ...], default: Any = None, *,
-              required: bool = False) -> np.ndarray | None:
+    def array(
+        self, key: str, shape: tuple[int, ...], default: Any = None, *, required: bool = False
+    ) -> np.ndarray | None:
         v = self.get(key, default, required=required)
         if v is None:
             return None
@@ -148,8 +156,14 @@ class _Section:
             )
         return a
 
-    def choice(self, key: str, options: tuple[str, ...], default: str | None = None,
-               *, required: bool = False) -> str | None:
+    def choice(
+        self,
+        key: str,
+        options: tuple[str, ...],
+        default: str | None = None,
+        *,
+        required: bool = False,
+    ) -> str | None:
         v = self.get(key, default, required=required)
         if v is None:
             return None
@@ -161,8 +175,7 @@ class _Section:
         extra = sorted(set(self.table) - self.used)
         if extra:
             raise ConfigError(
-                f"{self.path}: [{self.name}] unknown key(s) {extra}; "
-                f"known: {sorted(self.used)}"
+                f"{self.path}: [{self.name}] unknown key(s) {extra}; known: {sorted(self.used)}"
             )
 
 
@@ -225,8 +238,7 @@ def load_rig(path: str | Path, calibration: str | Path | None = None) -> Rig:
     return rig_from_dict(raw, src, base_dir=path.parent)
 
 
-def rig_from_dict(raw: Mapping[str, Any], src: str = "<rig>",
-                  base_dir: Path | None = None) -> Rig:
+def rig_from_dict(raw: Mapping[str, Any], src: str = "<rig>", base_dir: Path | None = None) -> Rig:
     """Build a :class:`Rig` from parsed TOML (see :func:`load_rig`)."""
     unknown = sorted(set(raw) - set(_SECTIONS))
     if unknown:
@@ -244,7 +256,8 @@ def rig_from_dict(raw: Mapping[str, Any], src: str = "<rig>",
         if v != int(v):
             raise ConfigError(f"{src}: [camera] {k} = {v}: expected a whole number of pixels")
     camera = CameraModel(
-        width=int(width), height=int(height),
+        width=int(width),
+        height=int(height),
         fx=cam.number("fx", required=True, positive=True),
         fy=cam.number("fy", required=True, positive=True),
         cx=cam.number("cx", required=True),
@@ -275,7 +288,7 @@ def rig_from_dict(raw: Mapping[str, Any], src: str = "<rig>",
     if mount.on != "platform":
         raise ConfigError(
             f"{src}: [mount] on = {mount.on!r}: a triangle target needs the camera "
-            "on the platform (on = \"platform\")"
+            'on the platform (on = "platform")'
         )
     verts = tgt.array("vertices_mm", (3, 3), required=True)
     tgt.check_unknown()
@@ -289,8 +302,10 @@ def rig_from_dict(raw: Mapping[str, Any], src: str = "<rig>",
     det = _Section(src, "detect", raw.get("detect", {}))
     band = det.array("brightness_band", (2,), default=[35.0, 220.0])
     if not 0 <= band[0] < band[1] <= 255:
-        raise ConfigError(f"{src}: [detect] brightness_band = {band.tolist()}: expected "
-                          "[lo, hi] with 0 <= lo < hi <= 255")
+        raise ConfigError(
+            f"{src}: [detect] brightness_band = {band.tolist()}: expected "
+            "[lo, hi] with 0 <= lo < hi <= 255"
+        )
     detect = DetectSettings(
         brightness_band=(float(band[0]), float(band[1])),
         min_contrast=det.number("min_contrast", 8.0, positive=True),
@@ -304,9 +319,17 @@ def rig_from_dict(raw: Mapping[str, Any], src: str = "<rig>",
     zt.get("residual_px")
     zt.check_unknown()
 
-    rig = Rig(camera=camera, mount=mount, target=target, max_tilt_deg=max_tilt,
-              detect=detect, zero_tilt=zero, device=device, fps=fps,
-              path=Path(src.split(" (+")[0]) if base_dir is not None else None)
+    rig = Rig(
+        camera=camera,
+        mount=mount,
+        target=target,
+        max_tilt_deg=max_tilt,
+        detect=detect,
+        zero_tilt=zero,
+        device=device,
+        fps=fps,
+        path=Path(src.split(" (+")[0]) if base_dir is not None else None,
+    )
     _check_visible(rig, src)
     return rig
 
@@ -317,14 +340,20 @@ def _check_triangle(v: np.ndarray, src: str) -> None:
     e = [np.linalg.norm(v[(i + 1) % 3] - v[(i + 2) % 3]) for i in range(3)]
     area = 0.5 * np.linalg.norm(np.cross(v[1] - v[0], v[2] - v[0]))
     if area < 1e-3 * max(e) ** 2:
-        raise ConfigError(f"{src}: [target] vertices_mm: the three vertices are (nearly) "
-                          "collinear; expected a triangle")
+        raise ConfigError(
+            f"{src}: [target] vertices_mm: the three vertices are (nearly) "
+            "collinear; expected a triangle"
+        )
     if np.ptp(v[:, 2]) > 1e-6 * max(e) + 1e-9 and np.ptp(v[:, 2]) > 1.0:
-        raise ConfigError(f"{src}: [target] vertices_mm: the vertices must lie on a level "
-                          f"ceiling (equal z); z spans {np.ptp(v[:, 2]):.1f} mm")
+        raise ConfigError(
+            f"{src}: [target] vertices_mm: the vertices must lie on a level "
+            f"ceiling (equal z); z spans {np.ptp(v[:, 2]):.1f} mm"
+        )
     if v[0, 2] <= 0:
-        raise ConfigError(f"{src}: [target] vertices_mm: z = {v[0, 2]} mm; expected the "
-                          "target above the centre of rotation (z > 0)")
+        raise ConfigError(
+            f"{src}: [target] vertices_mm: z = {v[0, 2]} mm; expected the "
+            "target above the centre of rotation (z > 0)"
+        )
     # the side opposite the most acute vertex is the shortest
     if not (e[0] < e[1] and e[0] < e[2]):
         raise ConfigError(
@@ -337,8 +366,10 @@ def _check_visible(rig: Rig, src: str) -> None:
     """The target must be in front of the camera at zero attitude."""
     p_c = (rig.target.vertices_mm - rig.t_b) @ rig.R_bc
     if np.any(p_c[:, 2] <= 0):
-        raise ConfigError(f"{src}: [mount] rotation: the target is behind the camera at zero "
-                          "attitude; expected the boresight (third column) to point at it")
+        raise ConfigError(
+            f"{src}: [mount] rotation: the target is behind the camera at zero "
+            "attitude; expected the boresight (third column) to point at it"
+        )
 
 
 def with_overrides(rig: Rig, **kw: Any) -> Rig:

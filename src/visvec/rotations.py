@@ -69,20 +69,44 @@ def matrix_to_quat(R: np.ndarray) -> np.ndarray:
     i = int(np.argmax(cand))
     if i == 0:
         w = 0.5 * np.sqrt(1.0 + tr)
-        q = np.array([w, (R[2, 1] - R[1, 2]) / (4 * w), (R[0, 2] - R[2, 0]) / (4 * w),
-                      (R[1, 0] - R[0, 1]) / (4 * w)])
+        q = np.array(
+            [
+                w,
+                (R[2, 1] - R[1, 2]) / (4 * w),
+                (R[0, 2] - R[2, 0]) / (4 * w),
+                (R[1, 0] - R[0, 1]) / (4 * w),
+            ]
+        )
     elif i == 1:
         x = 0.5 * np.sqrt(1.0 + 2 * R[0, 0] - tr)
-        q = np.array([(R[2, 1] - R[1, 2]) / (4 * x), x, (R[0, 1] + R[1, 0]) / (4 * x),
-                      (R[0, 2] + R[2, 0]) / (4 * x)])
+        q = np.array(
+            [
+                (R[2, 1] - R[1, 2]) / (4 * x),
+                x,
+                (R[0, 1] + R[1, 0]) / (4 * x),
+                (R[0, 2] + R[2, 0]) / (4 * x),
+            ]
+        )
     elif i == 2:
         y = 0.5 * np.sqrt(1.0 + 2 * R[1, 1] - tr)
-        q = np.array([(R[0, 2] - R[2, 0]) / (4 * y), (R[0, 1] + R[1, 0]) / (4 * y), y,
-                      (R[1, 2] + R[2, 1]) / (4 * y)])
+        q = np.array(
+            [
+                (R[0, 2] - R[2, 0]) / (4 * y),
+                (R[0, 1] + R[1, 0]) / (4 * y),
+                y,
+                (R[1, 2] + R[2, 1]) / (4 * y),
+            ]
+        )
     else:
         z = 0.5 * np.sqrt(1.0 + 2 * R[2, 2] - tr)
-        q = np.array([(R[1, 0] - R[0, 1]) / (4 * z), (R[0, 2] + R[2, 0]) / (4 * z),
-                      (R[1, 2] + R[2, 1]) / (4 * z), z])
+        q = np.array(
+            [
+                (R[1, 0] - R[0, 1]) / (4 * z),
+                (R[0, 2] + R[2, 0]) / (4 * z),
+                (R[1, 2] + R[2, 1]) / (4 * z),
+                z,
+            ]
+        )
     q /= np.linalg.norm(q)
     return -q if q[0] < 0 else q
 
@@ -90,11 +114,13 @@ def matrix_to_quat(R: np.ndarray) -> np.ndarray:
 def quat_to_matrix(q: np.ndarray) -> np.ndarray:
     """Rotation matrix of a scalar-first quaternion (normalised first)."""
     w, x, y, z = np.asarray(q, dtype=float) / np.linalg.norm(q)
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ])
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
 
 
 def euler_rates_from_body(yaw: float, pitch: float, roll: float) -> np.ndarray:

@@ -21,12 +21,14 @@ _CEILING, _BOARD, _TRIANGLE, _LIGHT, _OCCLUDER = 0, 1, 2, 3, 4
 
 
 @lru_cache(maxsize=4)
-def _ray_grid(width: int, height: int, fx: float, fy: float, cx: float, cy: float,
-              dist: tuple[float, ...]) -> np.ndarray:
+def _ray_grid(
+    width: int, height: int, fx: float, fy: float, cx: float, cy: float, dist: tuple[float, ...]
+) -> np.ndarray:
     """(H + 2, W + 2, 2) normalised undistorted coordinates of pixel centres -1..W."""
     cam = CameraModel(width, height, fx, fy, cx, cy, np.array(dist))
-    u, v = np.meshgrid(np.arange(-1, width + 1, dtype=float),
-                       np.arange(-1, height + 1, dtype=float))
+    u, v = np.meshgrid(
+        np.arange(-1, width + 1, dtype=float), np.arange(-1, height + 1, dtype=float)
+    )
     xy = cam.undistort(np.column_stack([u.ravel(), v.ravel()]))
     return xy.reshape(height + 2, width + 2, 2)
 
@@ -37,8 +39,12 @@ def _rays_at(grid: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
     i0 = np.clip(np.floor(gv).astype(int), 0, grid.shape[0] - 2)
     j0 = np.clip(np.floor(gu).astype(int), 0, grid.shape[1] - 2)
     a, b = (gu - j0)[:, None], (gv - i0)[:, None]
-    return ((1 - a) * (1 - b) * grid[i0, j0] + a * (1 - b) * grid[i0, j0 + 1]
-            + (1 - a) * b * grid[i0 + 1, j0] + a * b * grid[i0 + 1, j0 + 1])
+    return (
+        (1 - a) * (1 - b) * grid[i0, j0]
+        + a * (1 - b) * grid[i0, j0 + 1]
+        + (1 - a) * b * grid[i0 + 1, j0]
+        + a * b * grid[i0 + 1, j0 + 1]
+    )
 
 
 class _Shader:
@@ -70,8 +76,12 @@ class _Shader:
         X = self.c_n[0] + s * d[:, 0]
         Y = self.c_n[1] + s * d[:, 1]
         g = sc.gradient_dir
-        illum = 1.0 + sc.gradient_per_m * ((X - self.centre[0]) * g[0]
-                                           + (Y - self.centre[1]) * g[1]) / 1000.0
+        illum = (
+            1.0
+            + sc.gradient_per_m
+            * ((X - self.centre[0]) * g[0] + (Y - self.centre[1]) * g[1])
+            / 1000.0
+        )
         label = np.full(len(xy), _CEILING, dtype=np.int8)
         rad = sc.ceiling_level * illum
         bx, by = sc.board_mm[0] / 2, sc.board_mm[1] / 2
@@ -85,7 +95,7 @@ class _Shader:
             label[inside] = _TRIANGLE
             rad = np.where(inside, (sc.board_level + sc.contrast) * illum, rad)
         for lamp in sc.lights:
-            lit = (X - lamp.x_mm) ** 2 + (Y - lamp.y_mm) ** 2 <= lamp.radius_mm ** 2
+            lit = (X - lamp.x_mm) ** 2 + (Y - lamp.y_mm) ** 2 <= lamp.radius_mm**2
             label[lit] = _LIGHT
             rad = np.where(lit, lamp.level, rad)
         if sc.occluder is not None:
@@ -94,10 +104,10 @@ class _Shader:
             Xo = self.c_n[0] + so * d[:, 0]
             Yo = self.c_n[1] + so * d[:, 1]
             rr = (Xo - o.x_mm) ** 2 + (Yo - o.y_mm) ** 2
-            hit = up & (so > 0) & (rr <= o.radius_mm ** 2)
+            hit = up & (so > 0) & (rr <= o.radius_mm**2)
             label[hit] = _OCCLUDER
             # soft shading like a head or shoulder: brighter toward its middle
-            rad = np.where(hit, o.level * (1.1 - 0.3 * rr / o.radius_mm ** 2), rad)
+            rad = np.where(hit, o.level * (1.1 - 0.3 * rr / o.radius_mm**2), rad)
         label[~up] = _CEILING
         rad = np.where(up, rad, 0.0)
         return label, rad
@@ -110,8 +120,9 @@ def render_clean(rig: Rig, R_nb: np.ndarray, scene: Scene) -> np.ndarray:
     ``scene.supersample``^2 sub-pixel rays (box pixel response).
     """
     cam = rig.camera
-    grid = _ray_grid(cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy,
-                     tuple(float(k) for k in cam.dist))
+    grid = _ray_grid(
+        cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy, tuple(float(k) for k in cam.dist)
+    )
     shade = _Shader(rig, scene, R_nb)
     centres = grid[1:-1, 1:-1].reshape(-1, 2)
     label, rad = shade(centres)
@@ -132,8 +143,9 @@ def render_clean(rig: Rig, R_nb: np.ndarray, scene: Scene) -> np.ndarray:
     return img
 
 
-def render_frame(rig: Rig, R_nb: np.ndarray, scene: Scene,
-                 rng: np.random.Generator | int | None = None) -> np.ndarray:
+def render_frame(
+    rig: Rig, R_nb: np.ndarray, scene: Scene, rng: np.random.Generator | int | None = None
+) -> np.ndarray:
     """One 8-bit grey frame (H, W) of the scene at attitude ``R_nb``.
 
     Parameters
@@ -153,8 +165,7 @@ def render_frame(rig: Rig, R_nb: np.ndarray, scene: Scene,
         img = cv2.GaussianBlur(img, (0, 0), scene.blur_sigma_px)
     if scene.shot_gain > 0:
         # shot noise: variance = signal * gain (grey levels^2)
-        img = img + rng.standard_normal(img.shape) * np.sqrt(np.maximum(img, 0.0)
-                                                              * scene.shot_gain)
+        img = img + rng.standard_normal(img.shape) * np.sqrt(np.maximum(img, 0.0) * scene.shot_gain)
     if scene.noise_sigma > 0:
         img = img + rng.standard_normal(img.shape) * scene.noise_sigma
     return np.clip(np.rint(img), 0, 255).astype(np.uint8)

@@ -1,0 +1,122 @@
+"""Coarse search for the triangle: a bright, triangular region enclosed by the dark board.
+
+The paper ran goodFeaturesToTrack over the whole frame, where the board's own corners,
+ceiling lights and clutter win over the triangle's corners. Here the triangle is found
+first, as a bright connected component at one of several grey-level thresholds (a cheap
+maximally-stable-region search), then corners are looked for on it only.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """A bright triangular region, in full-resolution pixels.
+
+    corners_px : (3, 2) ndarray, vertices of the enclosing triangle
+    contour_px : (K, 2) ndarray, outline of the region
+    area_px : float, pixel count of the region
+    level : float, threshold (grey level) it was found at
+    touches_border : bool
+    """
+
+    corners_px: np.ndarray
+    contour_px: np.ndarray
+    area_px: float
+    level: float
+    touches_border: bool
+    fill: float
+
+
+def _levels(small: np.ndarray, n: int) -> np.ndarray:
+    lo, hi = np.percentile(small, (1.0, 99.0))
+    if hi - lo < 4:
+        return np.zeros(0)
+    return np.linspace(lo, hi, n + 2)[1:-1]
+
+
+def iter_candidates(
+    image: np.ndarray,
+    expected_area_px: float,
+    *,
+    scale: int = 1,
+    levels: np.ndarray | None = None,
+    n_levels: int = 12,
+    area_tol: float = 0.45,
+) -> Iterator[Candidate]:
+    """Bright triangular components whose area is near ``expected_area_px``.
+
+    Parameters
+    ----------
+    image : (H, W) uint8 ndarray
+    expected_area_px : float
+        Area of the triangle in full-resolution pixels at zero attitude.
+    scale : int
+        Work on the image shrunk by this factor (area averaging), for speed.
+    levels : ndarray, optional
+        Thresholds to try in this order (grey levels); by default ``n_levels`` spread
+        over the histogram, those in its darker middle (where the board-to-triangle step
+        usually lies) first.
+    area_tol : float
+        Relative tolerance on the area.
+
+    Yields
+    ------
+    Candidate, level by level, the most triangular first within a level.
+    """
+    small = (
+        image
+        if scale == 1
+        else cv2.resize(
+            image, (image.shape[1] // scale, image.shape[0] // scale), interpolation=cv2.INTER_AREA
+        )
+    )
+    h, w = small.shape
+    a_exp = expected_area_px / scale**2
+    a_lo, a_hi = a_exp * (1 - area_tol), a_exp * (1 + area_tol)
+    if levels is None:
+        levels = _levels(small, n_levels)
+        start = np.percentile(small, 35.0)
+        levels = levels[np.argsort(np.abs(levels - start))]
+    for level in levels:
+        _, binary = cv2.threshold(small, float(level), 255, cv2.THRESH_BINARY)
+        n, labels, stats, _ = cv2.connectedComponentsWithStats(binary, connectivity=8)
+        areas = stats[1:, cv2.CC_STAT_AREA]
+        found = []
+        for k in np.nonzero((areas >= a_lo) & (areas <= a_hi))[0] + 1:
+            x, y, bw, bh = stats[k, :4]
+            roi = (labels[y : y + bh, x : x + bw] == k).astype(np.uint8)
+            cnts, _ = cv2.findContours(roi, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+            cnt = max(cnts, key=cv2.contourArea)
+            if len(cnt) < 6:
+                continue
+            area_c = cv2.contourArea(cnt)
+            ok, tri = cv2.minEnclosingTriangle(cnt.astype(np.float32))
+            if not ok:
+                continue
+            tri_area = abs(cv2.contourArea(tri))
+            fill = area_c / tri_area if tri_area > 0 else 0.0
+            if fill < 0.8:
+                continue
+            touches = bool(x == 0 or y == 0 or x + bw == w or y + bh == h)
+            off = np.array([x, y], dtype=float)
+            corners = (tri.reshape(3, 2) + off + 0.5) * scale - 0.5
+            contour = (cnt.reshape(-1, 2) + off + 0.5) * scale - 0.5
+            found.append(
+                Candidate(
+                    corners,
+                    contour,
+                    float(areas[k - 1]) * scale**2,
+                    float(level),
+                    touches,
+                    float(fill),
+                )
+            )
+        found.sort(key=lambda c: (c.touches_border, -c.fill))
+        yield from found

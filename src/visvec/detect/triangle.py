@@ -1,0 +1,290 @@
+"""The triangle detector: region search, sub-pixel vertices, identification, checks.
+
+Follows the paper (Virginia Tech Visual Vector Sensor, Sec. IV.B-D): three corners
+with a minimum separation, the most acute vertex first, the centroid, and an area
+check against the known triangle. Made robust: the triangle is found as a region
+first (see :mod:`visvec.detect.candidates`), vertices come from edge-line fits
+(:mod:`visvec.detect.edges`) or cornerSubPix, and shape, angles, contrast, the dark
+surround, saturation and the field-of-view edge are checked so that a wrong triangle
+is rejected with a reason.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from visvec.data import Detection, Status
+from visvec.detect.candidates import Candidate, iter_candidates
+from visvec.detect.edges import fit_edges, intersect
+from visvec.geometry import project_target
+from visvec.rig import Rig
+
+# Tolerances of the shape checks (relative, or degrees), chosen to pass every tilt
+# within max_tilt_deg of the paper's geometry with a wide margin.
+AREA_TOL = 0.30
+SIDE_RATIO_TOL = 0.06
+APEX_ANGLE_TOL_DEG = 4.0
+MAX_VERIFICATIONS = 4
+REGION_AREA_TOL = 0.08
+EDGE_OUTLIER_MAX = 0.25
+BORDER_MARGIN_PX = 3.0
+SATURATED_MAX = 0.2
+CORNER_SIGMA_PX = 0.15  # per-coordinate noise assumed for cornerSubPix vertices
+
+
+def _angles(p: np.ndarray) -> np.ndarray:
+    """(3,) interior angles (rad) of the triangle with vertices p (3, 2)."""
+    out = np.zeros(3)
+    for i in range(3):
+        a, b = p[(i + 1) % 3] - p[i], p[(i + 2) % 3] - p[i]
+        c = a @ b / (np.linalg.norm(a) * np.linalg.norm(b))
+        out[i] = np.arccos(np.clip(c, -1.0, 1.0))
+    return out
+
+
+def _signed_area(p: np.ndarray) -> float:
+    a, b = p[1] - p[0], p[2] - p[0]
+    return 0.5 * float(a[0] * b[1] - a[1] * b[0])
+
+
+class TriangleDetector:
+    """Finds the rig's triangle in frames of the rig's camera.
+
+    Parameters
+    ----------
+    rig : Rig
+        Camera model, target geometry and detector settings.
+
+    Notes
+    -----
+    Keeps the last good detection's threshold so that a tracked sequence tries one
+    grey level before searching the whole histogram.
+    """
+
+    def __init__(self, rig: Rig):
+        self.rig = rig
+        cam = rig.camera
+        self.expected_px = project_target(rig, np.eye(3))
+        xy = cam.undistort(self.expected_px) * cam.fx
+        self.expected_area = abs(_signed_area(xy))
+        self.expected_sign = np.sign(_signed_area(xy))
+        sides = np.array([np.linalg.norm(xy[(i + 1) % 3] - xy[(i + 2) % 3]) for i in range(3)])
+        self.expected_side_ratio = sides / sides.sum()
+        self.expected_apex_deg = float(np.degrees(_angles(xy)[0]))
+        # search on a shrunk image where the triangle is about 40 px tall
+        height_px = (
+            float(
+                np.ptp(self.expected_px @ np.array([1.0, 0.0]))
+                + np.ptp(self.expected_px @ np.array([0.0, 1.0]))
+            )
+            / 1.5
+        )
+        self.scale = max(1, int(height_px // 40))
+        # the paper's minimum corner distance, 45 px at 320x240, scaled with resolution
+        self.min_corner_distance = 45.0 * cam.width / 320.0
+        self._last_level: float | None = None
+        self._last_points: np.ndarray | None = None
+
+    def reset(self) -> None:
+        """Forget the previous frame (start of a new, unrelated sequence)."""
+        self._last_level = None
+        self._last_points = None
+
+    # ------------------------------------------------------------------ public
+    def detect(self, image: np.ndarray) -> Detection:
+        """Detection of the triangle in one (H, W) uint8 image (never raises on content)."""
+        s = self.rig.detect
+        mean = float(image.mean())
+        warnings: list[str] = []
+        if mean < s.brightness_band[0]:
+            warnings.append("low_brightness")
+        elif mean > s.brightness_band[1]:
+            warnings.append("high_brightness")
+
+        levels = None if self._last_level is None else np.array([self._last_level])
+        reason, contour = "", np.zeros((0, 2))
+        for attempt in range(2):
+            tried = 0
+            for cand in iter_candidates(image, self.expected_area, scale=self.scale, levels=levels):
+                det = self._verify(image, cand, warnings, mean)
+                if det.status is Status.OK:
+                    self._last_level = cand.level
+                    self._last_points = det.points_px
+                    return det
+                if not reason or reason == "partly_out_of_view":
+                    reason, contour = det.reason, det.contour_px
+                tried += 1
+                if tried >= MAX_VERIFICATIONS:
+                    break
+            if levels is None:
+                break
+            levels = None  # the tracked level failed: search the whole histogram
+        if self._last_points is not None and not np.all(
+            self.rig.camera.in_image(self._last_points, 0.05 * self.rig.camera.width)
+        ):
+            # the triangle was leaving the field of view in the last frame
+            reason = "partly_out_of_view"
+        self._last_level = None
+        self._last_points = None
+        if not reason:
+            return Detection(
+                Status.NO_TARGET,
+                warnings=tuple(warnings + ["no_triangle"]),
+                reason="no_triangle",
+                mean_brightness=mean,
+            )
+        return Detection(
+            Status.REJECTED,
+            warnings=tuple(warnings + [reason]),
+            reason=reason,
+            mean_brightness=mean,
+            contour_px=contour,
+        )
+
+    # ------------------------------------------------------------------ steps
+    def _reject(
+        self,
+        reason: str,
+        warnings: list[str],
+        mean: float,
+        cand: Candidate,
+        pts: np.ndarray | None = None,
+    ) -> Detection:
+        return Detection(
+            Status.REJECTED,
+            points_px=pts if pts is not None else np.full((3, 2), np.nan),
+            warnings=tuple(warnings + [reason]),
+            reason=reason,
+            mean_brightness=mean,
+            contour_px=cand.contour_px,
+        )
+
+    def _verify(
+        self, image: np.ndarray, cand: Candidate, warnings: list[str], mean: float
+    ) -> Detection:
+        rig, cam, s = self.rig, self.rig.camera, self.rig.detect
+        if cand.touches_border:
+            return self._reject("partly_out_of_view", warnings, mean, cand)
+        # saturation inside the region: edges are clipped, positions biased
+        mask = np.zeros(image.shape, np.uint8)
+        cv2.fillPoly(mask, [np.rint(cand.contour_px).astype(np.int32)], 1)
+        inner = cv2.erode(mask, np.ones((5, 5), np.uint8))
+        vals = image[inner.astype(bool)]
+        if vals.size and np.mean(vals >= 254) > SATURATED_MAX:
+            return self._reject("overexposed", warnings, mean, cand)
+
+        if s.refine == "corners":
+            pts_px, cov, fit_contrast, outliers, level_mid = self._corners(image, cand, mask)
+            if pts_px is None:
+                return self._reject("corners_not_found", warnings, mean, cand)
+            xy = cam.undistort(pts_px) * cam.fx
+        else:
+            fit = fit_edges(image, cand.corners_px, cam, sigma_floor=s.pixel_sigma_floor)
+            xy, cov = intersect(fit)
+            pts_px = cam.distort(xy / cam.fx)
+            fit_contrast, outliers = fit.contrast.min(), fit.outlier_fraction.max()
+            level_mid = float(np.mean(fit.mid_level))
+        if not np.all(np.isfinite(xy)):
+            return self._reject("degenerate_triangle", warnings, mean, cand)
+        if fit_contrast < s.min_contrast:
+            return self._reject("low_contrast", warnings, mean, cand, pts_px)
+        if outliers > EDGE_OUTLIER_MAX:
+            return self._reject("edge_obstructed", warnings, mean, cand, pts_px)
+
+        # identification: the most acute vertex first, then the rig's handedness
+        ang = np.degrees(_angles(xy))
+        order = np.argsort(ang)
+        apex = int(order[0])
+        others = [i for i in range(3) if i != apex]
+        perm = [apex, *others]
+        if np.sign(_signed_area(xy[perm])) != self.expected_sign:
+            perm = [apex, others[1], others[0]]
+        p = np.asarray(perm)
+        xy, pts_px = xy[p], pts_px[p]
+        idx = np.ravel(np.column_stack([2 * p, 2 * p + 1]))
+        cov = cov[np.ix_(idx, idx)]
+        cov_n = cov / cam.fx**2
+
+        # shape checks against the known triangle
+        area = abs(_signed_area(xy))
+        if abs(area / self.expected_area - 1.0) > AREA_TOL:
+            return self._reject("area_mismatch", warnings, mean, cand, pts_px)
+        sides = np.array([np.linalg.norm(xy[(i + 1) % 3] - xy[(i + 2) % 3]) for i in range(3)])
+        if np.max(np.abs(sides / sides.sum() - self.expected_side_ratio)) > SIDE_RATIO_TOL:
+            return self._reject("shape_mismatch", warnings, mean, cand, pts_px)
+        if abs(ang[apex] - self.expected_apex_deg) > APEX_ANGLE_TOL_DEG:
+            return self._reject("angle_mismatch", warnings, mean, cand, pts_px)
+        # the region found must be the whole triangle: an occluder or a light touching
+        # it changes the region's area against the fitted vertices'
+        if not self._region_matches(image, pts_px, level_mid):
+            return self._reject("obstructed", warnings, mean, cand, pts_px)
+        # the surround must be the dark board
+        if not self._dark_surround(image, pts_px, s.min_contrast):
+            return self._reject("no_dark_surround", warnings, mean, cand, pts_px)
+        w = list(warnings)
+        if not np.all(cam.in_image(pts_px, BORDER_MARGIN_PX + 0.02 * cam.width)):
+            w.append("near_fov_edge")
+        return Detection(
+            Status.OK,
+            points_px=pts_px,
+            points_n=xy / cam.fx,
+            cov_n=cov_n,
+            warnings=tuple(w),
+            mean_brightness=mean,
+            contour_px=cand.contour_px,
+        )
+
+    def _region_matches(self, image: np.ndarray, pts_px: np.ndarray, level: float) -> bool:
+        """Pixels above the board/triangle mid-level near the triangle fill it, no more.
+
+        An occluder over the triangle, or a light or clutter touching it, changes the
+        bright area against the area of the fitted triangle.
+        """
+        c = pts_px.mean(axis=0)
+        big = c + (pts_px - c) * 1.2
+        x0, y0 = np.maximum(np.floor(big.min(axis=0)).astype(int), 0)
+        x1, y1 = np.ceil(big.max(axis=0)).astype(int) + 1
+        roi = image[y0:y1, x0:x1]
+        mask = np.zeros(roi.shape, np.uint8)
+        cv2.fillPoly(mask, [np.rint(big - [x0, y0]).astype(np.int32)], 1)
+        bright = float(np.count_nonzero((roi > level) & (mask > 0)))
+        area = abs(_signed_area(pts_px))
+        return abs(bright / max(area, 1.0) - 1.0) <= REGION_AREA_TOL
+
+    def _dark_surround(self, image: np.ndarray, pts_px: np.ndarray, min_contrast: float) -> bool:
+        """Mean of a band just outside the triangle is darker than a band inside it."""
+        c = pts_px.mean(axis=0)
+        outer = c + (pts_px - c) * 1.25
+        inner = c + (pts_px - c) * 0.75
+        h, w = image.shape
+        if not np.all(self.rig.camera.in_image(outer)):
+            return True  # cannot tell near the image edge; other checks apply
+        m_out = np.zeros((h, w), np.uint8)
+        m_tri = np.zeros((h, w), np.uint8)
+        m_in = np.zeros((h, w), np.uint8)
+        cv2.fillPoly(m_out, [np.rint(outer).astype(np.int32)], 1)
+        cv2.fillPoly(m_tri, [np.rint(c + (pts_px - c) * 1.08).astype(np.int32)], 1)
+        cv2.fillPoly(m_in, [np.rint(inner).astype(np.int32)], 1)
+        ring = (m_out > 0) & (m_tri == 0)
+        return float(image[m_in > 0].mean()) - float(image[ring].mean()) >= 0.5 * min_contrast
+
+    def _corners(self, image: np.ndarray, cand: Candidate, mask: np.ndarray):
+        """The paper's corners: goodFeaturesToTrack on the region, then cornerSubPix."""
+        cam = self.rig.camera
+        m = cv2.dilate(mask, np.ones((9, 9), np.uint8))
+        pts = cv2.goodFeaturesToTrack(
+            image, 3, 0.01, self.min_corner_distance * 0.5, mask=m, blockSize=5
+        )
+        if pts is None or len(pts) < 3:
+            return None, None, 0.0, 1.0, 0.0
+        crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 40, 1e-3)
+        win = max(2, int(round(3 * cam.width / 320)))
+        pts = cv2.cornerSubPix(image, pts.astype(np.float32), (win, win), (-1, -1), crit)
+        pts_px = pts.reshape(3, 2).astype(float)
+        cov = np.eye(6) * (CORNER_SIGMA_PX * cam.fx / cam.fx) ** 2
+        inside = image[mask.astype(bool)].astype(float)
+        ring = image[(cv2.dilate(mask, np.ones((7, 7), np.uint8)) - mask).astype(bool)]
+        contrast = float(np.median(inside) - np.median(ring)) if ring.size else 0.0
+        mid = float(np.median(inside) + np.median(ring)) / 2 if ring.size else 0.0
+        return pts_px, cov, contrast, 0.0, mid

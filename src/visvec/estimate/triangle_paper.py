@@ -1,0 +1,75 @@
+"""The "paper" estimator, as published (kept for comparison).
+
+Virginia Tech Visual Vector Sensor (Sec. IV.E-G): the rotation angle from the
+centroid-to-acute-vertex vector against the camera axes (Eq. 1); the centroid's offset
+from the calibrated zero-tilt centroid (Eqs. 2-3), rotated by the rotation angle into
+the triangle-aligned e frame (Eq. 4); the offsets turned into lengths with the pixel /
+length ratio at the target and into tilt angles about n1 and n2 with the distance to the
+target (Eqs. 5-6, right triangles). Small-angle geometry; the camera's lever arm and the
+lens distortion are ignored, as in the paper. Distances come from the rig file.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from visvec.data import AttitudeSolution, Detection, Status
+from visvec.geometry import project_target
+from visvec.rig import Rig
+from visvec.rotations import euler_rates_from_body, matrix_to_euler, rot_x, rot_y, rot_z
+
+
+def zero_tilt_centroid(rig: Rig) -> np.ndarray:
+    """(2,) calibrated zero-tilt centroid, or the rig's prediction without calibration."""
+    if rig.zero_tilt.centroid_px is not None:
+        return rig.zero_tilt.centroid_px
+    return project_target(rig, np.eye(3)).mean(axis=0)
+
+
+def paper_attitude(points_px: np.ndarray, rig: Rig, z0: np.ndarray) -> np.ndarray:
+    """R_nb from the three vertices (3, 2) in pixels by the paper's equations."""
+    cam = rig.camera
+    c = points_px.mean(axis=0)
+    # Eq. (1): rotation angle from the centroid -> acute vertex vector (camera axes
+    # taken into the body frame through the mount rotation)
+    d = points_px[0] - c
+    v_b = rig.R_bc @ np.array([d[0] / cam.fx, d[1] / cam.fy, 0.0])
+    theta = np.arctan2(-v_b[1], v_b[0])
+    # Eqs. (2)-(3): centroid relative to the zero-tilt centroid
+    z = c - z0
+    s_b = rig.R_bc @ np.array([z[0] / cam.fx, z[1] / cam.fy, 0.0])
+    # Eq. (4): rotate by the rotation angle into the triangle-aligned e frame
+    e = rot_z(theta)[:2, :2] @ s_b[:2]
+    # Eqs. (5)-(6): pixel/length ratio at the target, then the right triangle with the
+    # distance L from the centre of rotation to the target
+    L = float(rig.target.vertices_mm[:, 2].mean())
+    h = float(rig.t_b[2])
+    lateral = e * (L - h)
+    tilt_n1 = np.arctan2(lateral[1], L)
+    tilt_n2 = np.arctan2(-lateral[0], L)
+    return rot_x(tilt_n1) @ rot_y(tilt_n2) @ rot_z(theta)
+
+
+def solve_paper(det: Detection, rig: Rig, R_nb_guess: np.ndarray | None = None) -> AttitudeSolution:
+    """The paper's attitude with a covariance propagated from the vertex covariance."""
+    del R_nb_guess
+    z0 = zero_tilt_centroid(rig)
+    pts = det.points_px
+    R_nb = paper_attitude(pts, rig, z0)
+    e0 = np.array(matrix_to_euler(R_nb))
+    # numerical propagation of the vertex covariance (pixels ~ fx * normalised)
+    cov_px = det.cov_n * rig.camera.fx**2
+    J = np.zeros((3, 6))
+    h = 1e-3
+    for k in range(6):
+        dp = np.zeros(6)
+        dp[k] = h
+        ep = np.array(matrix_to_euler(paper_attitude(pts + dp.reshape(3, 2), rig, z0)))
+        em = np.array(matrix_to_euler(paper_attitude(pts - dp.reshape(3, 2), rig, z0)))
+        diff = ep - em
+        diff[0] = (diff[0] + np.pi) % (2 * np.pi) - np.pi
+        J[:, k] = diff / (2 * h)
+    cov_e = J @ cov_px @ J.T
+    E = np.linalg.inv(euler_rates_from_body(*e0))
+    cov_b = E @ cov_e @ E.T
+    return AttitudeSolution(Status.OK, R_nb=R_nb, cov_b=cov_b, rms_px=0.0, n_points=3, iterations=0)
