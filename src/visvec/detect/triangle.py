@@ -104,7 +104,7 @@ class TriangleDetector:
 
         levels = None if self._last_level is None else np.array([self._last_level])
         reason, contour = "", np.zeros((0, 2))
-        for attempt in range(2):
+        for _attempt in range(2):
             tried = 0
             for cand in iter_candidates(image, self.expected_area, scale=self.scale, levels=levels):
                 det = self._verify(image, cand, warnings, mean)
@@ -163,7 +163,7 @@ class TriangleDetector:
     def _verify(
         self, image: np.ndarray, cand: Candidate, warnings: list[str], mean: float
     ) -> Detection:
-        rig, cam, s = self.rig, self.rig.camera, self.rig.detect
+        cam, s = self.rig.camera, self.rig.detect
         if cand.touches_border:
             return self._reject("partly_out_of_view", warnings, mean, cand)
         # saturation inside the region: edges are clipped, positions biased

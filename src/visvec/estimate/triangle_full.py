@@ -107,7 +107,8 @@ def solve_full(det: Detection, rig: Rig, R_nb_guess: np.ndarray | None = None) -
             return AttitudeSolution(Status.NOT_CONVERGED, warnings=("no_initial_solution",))
     converged = False
     it = 0
-    for it in range(1, MAX_ITERATIONS + 1):
+    while it < MAX_ITERATIONS:
+        it += 1
         r, J = residuals_and_jacobian(R_cn, t_c, p_n, xy)
         JtW = J.T @ W
         d = -np.linalg.solve(JtW @ J, JtW @ r)
