@@ -26,6 +26,16 @@ AREA_TOL = 0.30
 SIDE_RATIO_TOL = 0.06
 APEX_ANGLE_TOL_DEG = 4.0
 MAX_VERIFICATIONS = 4
+# reasons meaning "this region is not the triangle" (as opposed to "the triangle, unusable")
+NOT_THE_TARGET = frozenset(
+    {
+        "area_mismatch",
+        "shape_mismatch",
+        "angle_mismatch",
+        "degenerate_triangle",
+        "corners_not_found",
+    }
+)
 REGION_AREA_TOL = 0.08
 EDGE_OUTLIER_MAX = 0.25
 BORDER_MARGIN_PX = 3.0
@@ -112,7 +122,9 @@ class TriangleDetector:
                     self._last_level = cand.level
                     self._last_points = det.points_px
                     return det
-                if not reason or reason == "partly_out_of_view":
+                # a region that is not the triangle's shape says nothing; one that is
+                # but fails a later check is the triangle, unusable for that reason
+                if det.reason not in NOT_THE_TARGET and not reason:
                     reason, contour = det.reason, det.contour_px
                 tried += 1
                 if tried >= MAX_VERIFICATIONS:
@@ -120,13 +132,14 @@ class TriangleDetector:
             if levels is None:
                 break
             levels = None  # the tracked level failed: search the whole histogram
-        if self._last_points is not None and not np.all(
-            self.rig.camera.in_image(self._last_points, 0.05 * self.rig.camera.width)
-        ):
-            # the triangle was leaving the field of view in the last frame
-            reason = "partly_out_of_view"
+        last = self._last_points
         self._last_level = None
         self._last_points = None
+        if not reason and last is not None:
+            # the triangle was there in the last frame: it left the view or something
+            # is in front of it
+            near_edge = not np.all(self.rig.camera.in_image(last, 0.05 * self.rig.camera.width))
+            reason = "partly_out_of_view" if near_edge else "obstructed"
         if not reason:
             return Detection(
                 Status.NO_TARGET,
@@ -164,17 +177,9 @@ class TriangleDetector:
         self, image: np.ndarray, cand: Candidate, warnings: list[str], mean: float
     ) -> Detection:
         cam, s = self.rig.camera, self.rig.detect
-        if cand.touches_border:
-            return self._reject("partly_out_of_view", warnings, mean, cand)
-        # saturation inside the region: edges are clipped, positions biased
-        mask = np.zeros(image.shape, np.uint8)
-        cv2.fillPoly(mask, [np.rint(cand.contour_px).astype(np.int32)], 1)
-        inner = cv2.erode(mask, np.ones((5, 5), np.uint8))
-        vals = image[inner.astype(bool)]
-        if vals.size and np.mean(vals >= 254) > SATURATED_MAX:
-            return self._reject("overexposed", warnings, mean, cand)
-
         if s.refine == "corners":
+            mask = np.zeros(image.shape, np.uint8)
+            cv2.fillPoly(mask, [np.rint(cand.contour_px).astype(np.int32)], 1)
             pts_px, cov, fit_contrast, outliers, level_mid = self._corners(image, cand, mask)
             if pts_px is None:
                 return self._reject("corners_not_found", warnings, mean, cand)
@@ -187,10 +192,6 @@ class TriangleDetector:
             level_mid = float(np.mean(fit.mid_level))
         if not np.all(np.isfinite(xy)):
             return self._reject("degenerate_triangle", warnings, mean, cand)
-        if fit_contrast < s.min_contrast:
-            return self._reject("low_contrast", warnings, mean, cand, pts_px)
-        if outliers > EDGE_OUTLIER_MAX:
-            return self._reject("edge_obstructed", warnings, mean, cand, pts_px)
 
         # identification: the most acute vertex first, then the rig's handedness
         ang = np.degrees(_angles(xy))
@@ -215,8 +216,26 @@ class TriangleDetector:
             return self._reject("shape_mismatch", warnings, mean, cand, pts_px)
         if abs(ang[apex] - self.expected_apex_deg) > APEX_ANGLE_TOL_DEG:
             return self._reject("angle_mismatch", warnings, mean, cand, pts_px)
+        # it is the triangle's shape; now, is it usable?
+        if fit_contrast < s.min_contrast:
+            return self._reject("low_contrast", warnings, mean, cand, pts_px)
+        if outliers > EDGE_OUTLIER_MAX:
+            return self._reject("edge_obstructed", warnings, mean, cand, pts_px)
+        # saturation inside: the edges are clipped and their positions biased
+        c = pts_px.mean(axis=0)
+        inner = np.rint(c + (pts_px - c) * 0.8).astype(np.int32)
+        x0, y0 = np.maximum(inner.min(axis=0), 0)
+        x1, y1 = inner.max(axis=0) + 1
+        roi = image[y0:y1, x0:x1]
+        m = np.zeros(roi.shape, np.uint8)
+        cv2.fillPoly(m, [inner - [x0, y0]], 1)
+        vals = roi[m > 0]
+        if vals.size and np.mean(vals >= 254) > SATURATED_MAX:
+            return self._reject("overexposed", warnings, mean, cand, pts_px)
         # the region found must be the whole triangle: an occluder or a light touching
         # it changes the region's area against the fitted vertices'
+        if cand.touches_border:
+            return self._reject("partly_out_of_view", warnings, mean, cand, pts_px)
         if not self._region_matches(image, pts_px, level_mid):
             return self._reject("obstructed", warnings, mean, cand, pts_px)
         # the surround must be the dark board

@@ -1,0 +1,1 @@
+"""Calibration: zero-tilt offsets of the triangle rig, camera intrinsics."""

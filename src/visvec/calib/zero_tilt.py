@@ -1,0 +1,181 @@
+"""Zero-tilt calibration of the triangle rig from frames taken with the platform level.
+
+For the "full" estimator: the target's horizontal offset from the rotation axis
+(dx, dy in N) and the camera's mounting tilt (small rotations about b1 and b2), jointly
+with each frame's unknown yaw, by weighted least squares on the vertex positions
+(scipy.optimize.least_squares). A camera rotation about b3 cannot be told from a yaw
+offset without a yaw reference and is not estimated; nor can a sideways camera offset be
+told from a camera tilt (the target is one plane), so the rig's camera position is kept.
+
+For the "paper" estimator: the zero-tilt centroid, the centre of the circle the
+triangle's centroid traces as the level platform turns (Kasa's algebraic circle fit; the
+mean when the yaws do not spread).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from visvec.data import Detection
+from visvec.errors import InputFileError
+from visvec.rig import Rig
+from visvec.rotations import rot_x, rot_y, rot_z
+
+MIN_FRAMES = 3
+MIN_YAW_SPREAD_DEG = 60.0
+
+
+@dataclass(frozen=True)
+class ZeroTiltResult:
+    """Estimated offsets with 1-sigma uncertainties.
+
+    target_offset_mm : (2,) and sigma_target_offset_mm : (2,)
+    camera_tilt_deg : (2,) rotation of the camera about b1 then b2, and its sigma
+    centroid_px : (2,) zero-tilt centroid for the paper estimator, and its sigma
+    yaw_deg : (K,) each frame's yaw
+    residual_px : (K,) RMS vertex residual per frame
+    rms_px : float, overall
+    """
+
+    target_offset_mm: np.ndarray
+    sigma_target_offset_mm: np.ndarray
+    camera_tilt_deg: np.ndarray
+    sigma_camera_tilt_deg: np.ndarray
+    centroid_px: np.ndarray
+    sigma_centroid_px: np.ndarray
+    yaw_deg: np.ndarray
+    residual_px: np.ndarray
+    rms_px: float
+    converged: bool
+
+    def apply(self, rig: Rig) -> Rig:
+        """The rig with the calibration applied."""
+        v = rig.target.vertices_mm.copy()
+        v[:, :2] += self.target_offset_mm
+        a = np.radians(self.camera_tilt_deg)
+        R_bc = rot_x(a[0]) @ rot_y(a[1]) @ rig.R_bc
+        return replace(
+            rig,
+            target=replace(rig.target, vertices_mm=v),
+            mount=replace(rig.mount, rotation=R_bc),
+            zero_tilt=replace(rig.zero_tilt, centroid_px=self.centroid_px),
+        )
+
+
+def _model(params: np.ndarray, rig: Rig, n: int) -> np.ndarray:
+    """(n, 3, 2) normalised projections for params = [dx, dy, a, b, yaw_1..yaw_n]."""
+    dx, dy, a, b = params[:4]
+    v = rig.target.vertices_mm + np.array([dx, dy, 0.0])
+    R_bc = rot_x(a) @ rot_y(b) @ rig.R_bc
+    t_c = -R_bc.T @ rig.t_b
+    out = np.empty((n, 3, 2))
+    for k, yaw in enumerate(params[4:]):
+        p = v @ (R_bc.T @ rot_z(yaw).T).T + t_c
+        out[k] = p[:, :2] / p[:, 2:3]
+    return out
+
+
+def _initial_yaw(det: Detection, rig: Rig) -> float:
+    d = det.points_px[0] - det.points_px.mean(axis=0)
+    cam = rig.camera
+    v_b = rig.R_bc @ np.array([d[0] / cam.fx, d[1] / cam.fy, 0.0])
+    return float(np.arctan2(-v_b[1], v_b[0]))
+
+
+def circle_centre(pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Centre (2,) of the circle through (K, 2) points and its standard error (2,).
+
+    Kasa's fit: x^2 + y^2 = 2 a x + 2 b y + c, linear least squares.
+    """
+    A = np.column_stack([2 * pts, np.ones(len(pts))])
+    rhs = (pts**2).sum(axis=1)
+    sol, *_ = np.linalg.lstsq(A, rhs, rcond=None)
+    res = rhs - A @ sol
+    dof = max(len(pts) - 3, 1)
+    r = np.sqrt(max(sol[2] + sol[0] ** 2 + sol[1] ** 2, 0.0))
+    s2 = (res @ res) / dof / max(4 * r * r, 1e-9)
+    cov = s2 * np.linalg.inv(A.T @ A) * 4 * max(r * r, 1e-9)
+    return sol[:2], np.sqrt(np.diag(cov)[:2])
+
+
+def calibrate_zero_tilt(dets: list[Detection], rig: Rig) -> ZeroTiltResult:
+    """Zero-tilt offsets from ok detections of frames taken with the platform level.
+
+    Raises
+    ------
+    InputFileError
+        Fewer than 3 usable frames, or yaws spread over less than 60 degrees (then the
+        target offset cannot be told from the camera tilt).
+    """
+    n = len(dets)
+    if n < MIN_FRAMES:
+        raise InputFileError(
+            f"zero-tilt calibration needs at least {MIN_FRAMES} frames with "
+            f"the triangle found; got {n}"
+        )
+    yaw0 = np.array([_initial_yaw(d, rig) for d in dets])
+    spread = np.degrees(np.ptp(np.unwrap(np.sort(yaw0))))
+    if spread < MIN_YAW_SPREAD_DEG:
+        raise InputFileError(
+            f"zero-tilt calibration needs frames at yaws spread over at least "
+            f"{MIN_YAW_SPREAD_DEG:.0f} deg (turn the level platform between frames); "
+            f"these span {spread:.1f} deg"
+        )
+    meas = np.stack([d.points_n for d in dets])
+    # whitening: residuals scaled by the Cholesky factor of each frame's inverse covariance
+    Ls = [np.linalg.cholesky(np.linalg.inv(d.cov_n)).T for d in dets]
+
+    def fun(p: np.ndarray) -> np.ndarray:
+        r = (_model(p, rig, n) - meas).reshape(n, 6)
+        return np.concatenate([L @ ri for L, ri in zip(Ls, r, strict=True)])
+
+    x0 = np.concatenate([[0.0, 0.0, 0.0, 0.0], yaw0])
+    scale = np.concatenate([[10.0, 10.0, 0.01, 0.01], np.full(n, 0.01)])
+    sol = least_squares(
+        fun, x0, x_scale=scale, method="trf", xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=200
+    )
+    J = sol.jac
+    dof = max(6 * n - len(x0), 1)
+    chi2 = float(sol.fun @ sol.fun)
+    cov = np.linalg.pinv(J.T @ J) * max(1.0, chi2 / dof)
+    sig = np.sqrt(np.diag(cov))
+    r = (_model(sol.x, rig, n) - meas) * rig.camera.fx
+    per_frame = np.sqrt((r**2).reshape(n, 6).mean(axis=1))
+    cents = np.stack([d.points_px.mean(axis=0) for d in dets])
+    cen, cen_sig = circle_centre(cents) if n >= 3 else (cents.mean(axis=0), np.zeros(2))
+    return ZeroTiltResult(
+        target_offset_mm=sol.x[:2],
+        sigma_target_offset_mm=sig[:2],
+        camera_tilt_deg=np.degrees(sol.x[2:4]),
+        sigma_camera_tilt_deg=np.degrees(sig[2:4]),
+        centroid_px=cen,
+        sigma_centroid_px=cen_sig,
+        yaw_deg=np.degrees((sol.x[4:] + np.pi) % (2 * np.pi) - np.pi),
+        residual_px=per_frame,
+        rms_px=float(np.sqrt(np.mean(r**2))),
+        converged=bool(sol.success),
+    )
+
+
+def calibration_sections(res: ZeroTiltResult, rig: Rig) -> dict[str, dict[str, object]]:
+    """Sections of the calibration file that overrides the rig."""
+    cal = res.apply(rig)
+    return {
+        "mount": {"rotation": np.round(cal.R_bc, 12)},
+        "target": {"vertices_mm": np.round(cal.target.vertices_mm, 4)},
+        "zero_tilt": {
+            "centroid_px": np.round(res.centroid_px, 4),
+            "residual_px": round(res.rms_px, 5),
+        },
+        "report": {
+            "frames": len(res.yaw_deg),
+            "target_offset_mm": np.round(res.target_offset_mm, 4),
+            "sigma_target_offset_mm": np.round(res.sigma_target_offset_mm, 4),
+            "camera_tilt_deg": np.round(res.camera_tilt_deg, 5),
+            "sigma_camera_tilt_deg": np.round(res.sigma_camera_tilt_deg, 5),
+            "sigma_centroid_px": np.round(res.sigma_centroid_px, 4),
+        },
+    }

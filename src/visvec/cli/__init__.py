@@ -1,0 +1,1 @@
+"""The `visvec` command line (click). Commands parse, call the library, format."""

@@ -1,0 +1,125 @@
+"""Options and the frame loop shared by the commands."""
+
+from __future__ import annotations
+
+import contextlib
+import sys
+from pathlib import Path
+
+import click
+import cv2
+
+from visvec.output import ATTITUDE_COLUMNS, AttitudeRow
+from visvec.pipeline import METHODS, TrianglePipeline
+from visvec.rig import Rig, load_rig
+from visvec.sinks import open_sink
+
+
+def rig_options(f):
+    """--rig and --calibration."""
+    f = click.option(
+        "--calibration",
+        "calibration",
+        type=click.Path(dir_okay=False),
+        help="Calibration file (from `visvec calibrate`) overriding the rig.",
+    )(f)
+    f = click.option(
+        "--rig",
+        "rig_path",
+        required=True,
+        type=click.Path(dir_okay=False),
+        help="Rig file (TOML), see configs/.",
+    )(f)
+    return f
+
+
+def output_options(f):
+    """--out, --format, --method, --overlay, --max-frames."""
+    f = click.option(
+        "--max-frames",
+        type=click.IntRange(min=1),
+        default=None,
+        help="Stop after this many frames.",
+    )(f)
+    f = click.option(
+        "--overlay",
+        type=click.Path(file_okay=False),
+        default=None,
+        help="Write each frame with the detection drawn on it to this folder.",
+    )(f)
+    f = click.option(
+        "--method",
+        type=click.Choice(METHODS),
+        default="full",
+        show_default=True,
+        help="Estimator: 'full' (camera model, lever arm) or 'paper'.",
+    )(f)
+    f = click.option(
+        "--format",
+        "fmt",
+        type=click.Choice(["csv", "jsonl"]),
+        default="csv",
+        show_default=True,
+        help="Row format.",
+    )(f)
+    f = click.option(
+        "--out",
+        type=click.Path(dir_okay=False),
+        default=None,
+        help="Output file (default: standard output).",
+    )(f)
+    return f
+
+
+def load(rig_path: str, calibration: str | None) -> Rig:
+    return load_rig(rig_path, calibration)
+
+
+@contextlib.contextmanager
+def open_out(path: str | None):
+    if path is None:
+        yield sys.stdout
+    else:
+        Path(path).parent.mkdir(parents=True, exist_ok=True)
+        with open(path, "w", newline="") as fh:
+            yield fh
+
+
+def run_frames(
+    rig: Rig,
+    frames,
+    *,
+    out: str | None,
+    fmt: str,
+    method: str,
+    overlay: str | None,
+    max_frames: int | None,
+) -> list[AttitudeRow]:
+    """Process frames, writing each row as it is made; Ctrl-C ends the loop cleanly."""
+    pipe = TrianglePipeline(rig, method)
+    rows: list[AttitudeRow] = []
+    ov = Path(overlay) if overlay else None
+    if ov is not None:
+        ov.mkdir(parents=True, exist_ok=True)
+    with open_out(out) as stream:
+        sink = open_sink(fmt, stream, ATTITUDE_COLUMNS)
+        try:
+            for frame in frames:
+                row = pipe.process(frame)
+                sink.write(row.as_dict())
+                rows.append(row)
+                if row.status == "read_error":
+                    click.echo(
+                        f"visvec: frame {frame.index}: {frame.error or pipe.check_frame(frame)}",
+                        err=True,
+                    )
+                if ov is not None and frame.image is not None:
+                    from visvec.overlay import draw_overlay
+
+                    img = draw_overlay(frame.image, pipe.last_detection, row)
+                    cv2.imwrite(str(ov / f"overlay_{frame.index:06d}.png"), img)
+                if max_frames is not None and len(rows) >= max_frames:
+                    break
+        except KeyboardInterrupt:
+            click.echo(f"visvec: interrupted after {len(rows)} frames; all rows written", err=True)
+    return rows

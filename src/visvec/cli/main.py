@@ -1,0 +1,66 @@
+"""Entry point: the `visvec` command group and its exit codes (SPEC section 3).
+
+0 success; 2 bad usage, rig or calibration file; 3 a source that cannot be opened or
+read at all; 1 anything unexpected (one line, the traceback only with --debug).
+"""
+
+from __future__ import annotations
+
+import sys
+
+import click
+
+from visvec import __version__
+from visvec.errors import ConfigError, InputFileError, SourceError
+
+
+class VisvecGroup(click.Group):
+    def invoke(self, ctx: click.Context):
+        debug = bool(ctx.params.get("debug"))
+        try:
+            return super().invoke(ctx)
+        except (ConfigError, InputFileError) as exc:
+            click.echo(f"visvec: error: {exc}", err=True)
+            sys.exit(2)
+        except SourceError as exc:
+            click.echo(f"visvec: error: {exc}", err=True)
+            sys.exit(3)
+        except (click.ClickException, click.exceptions.Exit, click.Abort, SystemExit):
+            raise
+        except KeyboardInterrupt:
+            sys.exit(0)
+        except Exception as exc:  # noqa: BLE001 - the last resort promised by the SPEC
+            if debug:
+                raise
+            click.echo(
+                f"visvec: unexpected error: {type(exc).__name__}: {exc} "
+                "(run with --debug for the traceback)",
+                err=True,
+            )
+            sys.exit(1)
+
+
+@click.group(cls=VisvecGroup, context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(__version__, prog_name="visvec")
+@click.option("--debug", is_flag=True, help="Show tracebacks of unexpected errors.")
+def cli(debug: bool) -> None:
+    """visvec: camera attitude sensor for air-bearing spacecraft simulators.
+
+    Units are mm and degrees; see the README for the frames and the rig file.
+    """
+
+
+def _register() -> None:
+    from visvec.cli import batch, calibrate, simulate, track
+
+    cli.add_command(track.track)
+    cli.add_command(batch.batch)
+    cli.add_command(calibrate.calibrate)
+    cli.add_command(simulate.simulate)
+
+
+_register()
+
+
+def main() -> None:
+    cli(prog_name="visvec")

@@ -1,0 +1,40 @@
+"""`visvec track`: rows from a live camera, a video file or a stream URL."""
+
+from __future__ import annotations
+
+import click
+
+from visvec.cli.common import load, output_options, rig_options, run_frames
+from visvec.sources import open_source
+
+
+@click.command()
+@rig_options
+@click.option(
+    "--camera",
+    "camera",
+    default=None,
+    help="Camera index, video file or stream URL (default: the rig's device).",
+)
+@click.option(
+    "--retry-s",
+    type=click.FloatRange(min=0),
+    default=5.0,
+    show_default=True,
+    help="How long to retry a camera that stops delivering frames before exit 3.",
+)
+@output_options
+def track(rig_path, calibration, camera, retry_s, out, fmt, method, overlay, max_frames):
+    """Stream one attitude row per frame, flushed row by row, until the source ends,
+    --max-frames, or Ctrl-C."""
+    rig = load(rig_path, calibration)
+    spec = camera if camera is not None else rig.device
+    if spec is None:
+        raise click.UsageError("no --camera given and the rig's [camera] has no device")
+    src = open_source(
+        spec if isinstance(spec, int) else str(spec),
+        fps=rig.fps,
+        max_frames=max_frames,
+        retry_s=retry_s,
+    )
+    run_frames(rig, src, out=out, fmt=fmt, method=method, overlay=overlay, max_frames=max_frames)

@@ -1,0 +1,64 @@
+"""Drawings of detections on frames, for a person to look at."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from visvec.data import Detection, Status
+from visvec.output import AttitudeRow
+
+_GREEN, _RED, _BLUE, _YELLOW, _GREY = (
+    (60, 200, 60),
+    (40, 40, 230),
+    (230, 120, 30),
+    (0, 220, 230),
+    (160, 160, 160),
+)
+
+
+def draw_overlay(
+    image: np.ndarray, det: Detection | None, row: AttitudeRow, scale: int | None = None
+) -> np.ndarray:
+    """BGR picture of ``image`` with the region outline, vertices (the acute one red),
+    centroid, lab axes n1 (toward the acute vertex) and n2, and the row's numbers."""
+    if scale is None:
+        scale = max(1, int(round(800 / max(image.shape[1], 1))))
+    big = cv2.resize(image, None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST)
+    out = cv2.cvtColor(big, cv2.COLOR_GRAY2BGR)
+    sh = 4
+
+    def P(p: np.ndarray) -> tuple[int, int]:
+        q = (np.asarray(p) + 0.5) * scale - 0.5
+        return int(round(q[0] * (1 << sh))), int(round(q[1] * (1 << sh)))
+
+    if det is not None and len(det.contour_px):
+        pts = np.array([P(p) for p in det.contour_px], np.int32)
+        cv2.polylines(out, [pts], True, _GREY, 1, cv2.LINE_AA, sh)
+    if det is not None and np.all(np.isfinite(det.points_px)):
+        v = det.points_px
+        color = _GREEN if det.status is Status.OK else _YELLOW
+        cv2.polylines(out, [np.array([P(p) for p in v], np.int32)], True, color, 1, cv2.LINE_AA, sh)
+        c = v.mean(axis=0)
+        cv2.arrowedLine(out, P(c), P(v[0]), _RED, 2, cv2.LINE_AA, sh, 0.08)
+        n2 = v[1] - v[2]
+        n2 = n2 / max(np.linalg.norm(n2), 1e-9) * np.linalg.norm(v[0] - c) * 0.6
+        cv2.arrowedLine(out, P(c), P(c + n2), _BLUE, 2, cv2.LINE_AA, sh, 0.1)
+        for k, p in enumerate(v):
+            cv2.circle(out, P(p), 6 << sh, _RED if k == 0 else color, 1, cv2.LINE_AA, sh)
+        cv2.drawMarker(
+            out, tuple(int(x) >> sh for x in P(c)), _YELLOW, cv2.MARKER_CROSS, 14, 1, cv2.LINE_AA
+        )
+    text = [f"frame {row.frame}  {row.status}"]
+    if row.ok:
+        y, p, r = row.euler_deg
+        sy, sp, sr = row.sigma_deg
+        text.append(f"yaw {y:8.3f} +- {sy:.3f}")
+        text.append(f"pitch {p:6.3f} +- {sp:.3f}   roll {r:6.3f} +- {sr:.3f}")
+    if row.warnings:
+        text.append(" ".join(row.warnings))
+    for i, t in enumerate(text):
+        org = (8, 22 + 20 * i)
+        cv2.putText(out, t, org, cv2.FONT_HERSHEY_SIMPLEX, 0.55, (0, 0, 0), 3, cv2.LINE_AA)
+        cv2.putText(out, t, org, cv2.FONT_HERSHEY_SIMPLEX, 0.55, (255, 255, 255), 1, cv2.LINE_AA)
+    return out

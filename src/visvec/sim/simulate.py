@@ -1,0 +1,169 @@
+"""`visvec simulate`: frames of the rig's target at known attitudes, with truth.csv."""
+
+from __future__ import annotations
+
+import csv
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from visvec.rig import Rig
+from visvec.rotations import euler_to_matrix, matrix_to_euler, matrix_to_quat, rot_x, rot_y
+from visvec.sim.render import render_frame
+from visvec.sim.scene import Light, Occluder, Scene
+
+TRUTH_COLUMNS = (
+    "frame",
+    "file",
+    "time_s",
+    "yaw_deg",
+    "pitch_deg",
+    "roll_deg",
+    "qw",
+    "qx",
+    "qy",
+    "qz",
+)
+
+
+def random_attitudes(
+    n: int, max_tilt_deg: float, rng: np.random.Generator, motion: str = "random"
+) -> np.ndarray:
+    """(n, 3) yaw, pitch, roll in radians.
+
+    ``random``: yaw uniform over the circle, pitch and roll uniform within +-max_tilt.
+    ``sweep``: a smooth motion like a recording (slow yaw turn, tilt wobble).
+    ``level``: pitch = roll = 0 at yaws spread over the circle (for zero-tilt
+    calibration).
+    """
+    m = np.radians(max_tilt_deg)
+    if motion == "random":
+        return np.column_stack(
+            [rng.uniform(-np.pi, np.pi, n), rng.uniform(-m, m, n), rng.uniform(-m, m, n)]
+        )
+    if motion == "level":
+        yaw = np.linspace(-np.pi, np.pi, n, endpoint=False) + rng.uniform(0, 2 * np.pi / n)
+        return np.column_stack([(yaw + np.pi) % (2 * np.pi) - np.pi, np.zeros(n), np.zeros(n)])
+    if motion == "sweep":
+        t = np.linspace(0.0, 1.0, n)
+        ph = rng.uniform(0, 2 * np.pi, 2)
+        yaw = (rng.uniform(-np.pi, np.pi) + 2.0 * np.pi * 0.8 * t + np.pi) % (2 * np.pi) - np.pi
+        return np.column_stack(
+            [
+                yaw,
+                0.8 * m * np.sin(2 * np.pi * 1.3 * t + ph[0]),
+                0.8 * m * np.sin(2 * np.pi * 0.9 * t + ph[1]),
+            ]
+        )
+    raise ValueError(f"motion = {motion!r}: expected 'random', 'sweep' or 'level'")
+
+
+def true_rig(
+    rig: Rig,
+    target_offset_mm: tuple[float, float] = (0.0, 0.0),
+    camera_askew_deg: tuple[float, float] = (0.0, 0.0),
+) -> Rig:
+    """The lab as it really is: the target shifted on the ceiling and the camera tilted
+    on its mount (about b1 and b2) against what the rig file says."""
+    v = rig.target.vertices_mm.copy()
+    v[:, 0] += target_offset_mm[0]
+    v[:, 1] += target_offset_mm[1]
+    a = np.radians(camera_askew_deg)
+    R_bc = rot_x(a[0]) @ rot_y(a[1]) @ rig.R_bc
+    return replace(
+        rig, target=replace(rig.target, vertices_mm=v), mount=replace(rig.mount, rotation=R_bc)
+    )
+
+
+@dataclass(frozen=True)
+class Clutter:
+    """Scenario switches of `visvec simulate` (fractions of frames affected)."""
+
+    lights: float = 0.0
+    occluder: float = 0.0
+
+
+def scene_for_frame(base: Scene, clutter: Clutter, rig: Rig, rng: np.random.Generator) -> Scene:
+    """The base scene, with ceiling lights and a person leaning over for some frames."""
+    sc = base
+    c = rig.target.centroid_mm
+    if rng.random() < clutter.lights:
+        lights = []
+        for _ in range(rng.integers(1, 4)):
+            ang = rng.uniform(0, 2 * np.pi)
+            r = rng.uniform(750.0, 1100.0)
+            lights.append(
+                Light(c[0] + r * np.cos(ang), c[1] + r * np.sin(ang), rng.uniform(80.0, 150.0))
+            )
+        sc = replace(sc, lights=tuple(lights))
+    if rng.random() < clutter.occluder:
+        ang = rng.uniform(0, 2 * np.pi)
+        r = rng.uniform(0.0, 300.0)
+        sc = replace(
+            sc,
+            occluder=Occluder(
+                c[0] * 0.6 + r * np.cos(ang),
+                c[1] * 0.6 + r * np.sin(ang),
+                z_mm=rng.uniform(1000.0, 1500.0),
+                radius_mm=rng.uniform(80.0, 220.0),
+                level=rng.uniform(60.0, 200.0),
+            ),
+        )
+    return sc
+
+
+def simulate(
+    rig: Rig,
+    out_dir: str | Path,
+    n_frames: int,
+    *,
+    scene: Scene = Scene(),
+    seed: int = 0,
+    max_tilt_deg: float = 5.0,
+    motion: str = "random",
+    fps: float | None = None,
+    clutter: Clutter = Clutter(),
+    render_rig: Rig | None = None,
+    progress: Callable[[int], None] | None = None,
+) -> Path:
+    """Render ``n_frames`` frames into ``out_dir`` and write ``out_dir/truth.csv``.
+
+    Parameters
+    ----------
+    rig : Rig
+        The rig (its camera gives the image size).
+    render_rig : Rig, optional
+        The true geometry to render with (see :func:`true_rig`); ``rig`` by default.
+
+    Returns
+    -------
+    Path of truth.csv.
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(seed)
+    fps = fps or rig.fps
+    eul = random_attitudes(n_frames, max_tilt_deg, rng, motion)
+    world = render_rig or rig
+    truth = out / "truth.csv"
+    width = max(4, len(str(n_frames - 1)))
+    with open(truth, "w", newline="") as fh:
+        w = csv.writer(fh, lineterminator="\n")
+        w.writerow(TRUTH_COLUMNS)
+        for i, (yaw, pitch, roll) in enumerate(eul):
+            R = euler_to_matrix(yaw, pitch, roll)
+            sc = scene_for_frame(scene, clutter, world, rng)
+            img = render_frame(world, R, sc, rng)
+            name = f"frame_{i:0{width}d}.png"
+            cv2.imwrite(str(out / name), img)
+            e = np.degrees(matrix_to_euler(R))
+            q = matrix_to_quat(R)
+            w.writerow(
+                [i, name, f"{i / fps:.6f}", *(f"{x:.9f}" for x in e), *(f"{x:.12f}" for x in q)]
+            )
+            if progress is not None:
+                progress(i)
+    return truth

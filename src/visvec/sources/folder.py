@@ -1,0 +1,104 @@
+"""A folder of images in natural sort order, with times from a sidecar CSV if present."""
+
+from __future__ import annotations
+
+import csv
+import re
+from collections.abc import Iterator
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from visvec.data import Frame
+from visvec.errors import InputFileError, SourceError
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm")
+# a sidecar with columns file,time_s gives each frame's time; truth.csv from
+# `visvec simulate` has them too
+SIDECARS = ("times.csv", "truth.csv")
+
+
+def natural_key(name: str) -> list:
+    """Sort key that orders frame2 before frame10."""
+    return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", name)]
+
+
+def to_gray(image: np.ndarray) -> np.ndarray:
+    """8-bit grey image from grey, BGR or BGRA input of 8 or 16 bits."""
+    if image.dtype == np.uint16:
+        image = (image >> 8).astype(np.uint8)
+    elif image.dtype != np.uint8:
+        image = np.clip(image, 0, 255).astype(np.uint8)
+    if image.ndim == 3:
+        code = cv2.COLOR_BGRA2GRAY if image.shape[2] == 4 else cv2.COLOR_BGR2GRAY
+        image = cv2.cvtColor(image, code)
+    return image
+
+
+def read_sidecar(path: Path) -> dict[str, float]:
+    """file name -> time_s from a CSV with columns ``file`` and ``time_s``."""
+    out: dict[str, float] = {}
+    with open(path, newline="") as fh:
+        reader = csv.DictReader(fh)
+        if not reader.fieldnames or not {"file", "time_s"} <= set(reader.fieldnames):
+            return out
+        for line, row in enumerate(reader, start=2):
+            try:
+                out[row["file"]] = float(row["time_s"])
+            except (TypeError, ValueError):
+                raise InputFileError(
+                    f"{path}: line {line}: time_s = {row.get('time_s')!r}, expected a number"
+                ) from None
+    return out
+
+
+class FolderSource:
+    """Frames from the image files of a folder (natural sort order).
+
+    Parameters
+    ----------
+    path : folder
+    fps : float
+        Frame rate for ``time_s = index / fps`` when there is no sidecar time.
+    files : list of Path, optional
+        Use these files instead of the folder's listing.
+
+    Raises
+    ------
+    SourceError
+        If the folder does not exist or holds no image.
+    """
+
+    def __init__(self, path: str | Path, fps: float = 30.0, files: list[Path] | None = None):
+        self.path = Path(path)
+        if files is None:
+            if not self.path.is_dir():
+                raise SourceError(f"{self.path}: no such folder")
+            files = [
+                p for p in self.path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file()
+            ]
+            files.sort(key=lambda p: natural_key(p.name))
+        if not files:
+            raise SourceError(f"{self.path}: no images ({', '.join(IMAGE_SUFFIXES)}) found")
+        self.files = files
+        self.fps = fps
+        self.times: dict[str, float] = {}
+        for name in SIDECARS:
+            side = self.path / name
+            if side.is_file():
+                self.times = read_sidecar(side)
+                if self.times:
+                    break
+
+    def __len__(self) -> int:
+        return len(self.files)
+
+    def __iter__(self) -> Iterator[Frame]:
+        for i, f in enumerate(self.files):
+            t = self.times.get(f.name, i / self.fps)
+            img = cv2.imread(str(f), cv2.IMREAD_UNCHANGED)
+            if img is None or img.size == 0:
+                yield Frame(i, t, None, f.name, error=f"{f.name}: cannot decode the image")
+                continue
+            yield Frame(i, t, to_gray(img), f.name)

@@ -1,0 +1,27 @@
+"""Pick the source for a command-line PATH / camera argument."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from visvec.errors import SourceError
+from visvec.sources.folder import IMAGE_SUFFIXES, FolderSource
+from visvec.sources.video import VideoSource
+
+
+def open_source(
+    spec: str | int, fps: float = 30.0, max_frames: int | None = None, retry_s: float = 5.0
+):
+    """A camera index ("0"), a folder of images, a single image, a video file or a URL."""
+    if isinstance(spec, int) or (isinstance(spec, str) and spec.isdigit()):
+        return VideoSource(int(spec), fps=fps, retry_s=retry_s, max_frames=max_frames)
+    if "://" in spec:
+        return VideoSource(spec, fps=fps, retry_s=retry_s, max_frames=max_frames)
+    p = Path(spec)
+    if p.is_dir():
+        return FolderSource(p, fps=fps)
+    if not p.exists():
+        raise SourceError(f"{p}: no such file or folder")
+    if p.suffix.lower() in IMAGE_SUFFIXES:
+        return FolderSource(p.parent, fps=fps, files=[p])
+    return VideoSource(str(p), fps=fps, retry_s=retry_s, max_frames=max_frames)

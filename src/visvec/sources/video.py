@@ -1,0 +1,88 @@
+"""Cameras, video files and stream URLs through cv2.VideoCapture."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator
+
+import cv2
+
+from visvec.data import Frame
+from visvec.errors import SourceError
+from visvec.sources.folder import to_gray
+
+
+class VideoSource:
+    """Frames from a camera index, a video file or a stream URL.
+
+    Parameters
+    ----------
+    spec : int or str
+        Camera index, file path or URL.
+    fps : float
+        Frame rate used for times when the source gives none.
+    retry_s : float
+        A live camera that stops delivering frames is retried for this long before
+        :class:`SourceError` is raised. Files simply end.
+    max_frames : int, optional
+
+    Raises
+    ------
+    SourceError
+        If the source cannot be opened.
+    """
+
+    def __init__(
+        self,
+        spec: int | str,
+        fps: float = 30.0,
+        retry_s: float = 5.0,
+        max_frames: int | None = None,
+    ):
+        self.spec = spec
+        self.live = isinstance(spec, int) or "://" in str(spec)
+        self.cap = cv2.VideoCapture(spec)
+        if not self.cap.isOpened():
+            kind = "camera" if isinstance(spec, int) else "video or stream"
+            raise SourceError(f"{spec}: cannot open the {kind}")
+        src_fps = self.cap.get(cv2.CAP_PROP_FPS)
+        self.fps = src_fps if src_fps and src_fps > 0 and not isinstance(spec, int) else fps
+        self.retry_s = retry_s
+        self.max_frames = max_frames
+        self._t0: float | None = None
+
+    def __iter__(self) -> Iterator[Frame]:
+        i = 0
+        try:
+            while self.max_frames is None or i < self.max_frames:
+                ok, img = self.cap.read()
+                if not ok:
+                    if not self.live:
+                        return
+                    img = self._retry()
+                now = time.monotonic()
+                if self._t0 is None:
+                    self._t0 = now
+                if self.live:
+                    t = now - self._t0
+                else:
+                    ms = self.cap.get(cv2.CAP_PROP_POS_MSEC)
+                    t = ms / 1000.0 if ms and ms > 0 else i / self.fps
+                if img is None or img.size == 0:
+                    yield Frame(i, t, None, f"{self.spec}#{i}", error="empty frame")
+                else:
+                    yield Frame(i, t, to_gray(img), f"{self.spec}#{i}")
+                i += 1
+        finally:
+            self.cap.release()
+
+    def _retry(self):
+        deadline = time.monotonic() + self.retry_s
+        while time.monotonic() < deadline:
+            time.sleep(0.05)
+            ok, img = self.cap.read()
+            if ok:
+                return img
+        raise SourceError(
+            f"{self.spec}: the camera stopped delivering frames (retried for {self.retry_s:g} s)"
+        )
