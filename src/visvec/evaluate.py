@@ -53,7 +53,8 @@ class ErrorStats:
 
     def lines(self) -> list[str]:
         out = [
-            f"frames {self.n_frames}, ok {self.n_ok} ({100 * self.n_ok / max(self.n_frames, 1):.1f}%)"
+            f"frames {self.n_frames}, ok {self.n_ok} "
+            f"({100 * self.n_ok / max(self.n_frames, 1):.1f}%)"
         ]
         if self.n_ok:
             for name, i in (("yaw", 0), ("pitch", 1), ("roll", 2)):

@@ -120,12 +120,12 @@ def simulate(
     out_dir: str | Path,
     n_frames: int,
     *,
-    scene: Scene = Scene(),
+    scene: Scene | None = None,
     seed: int = 0,
     max_tilt_deg: float = 5.0,
     motion: str = "random",
     fps: float | None = None,
-    clutter: Clutter = Clutter(),
+    clutter: Clutter | None = None,
     render_rig: Rig | None = None,
     progress: Callable[[int], None] | None = None,
 ) -> Path:
@@ -142,6 +142,8 @@ def simulate(
     -------
     Path of truth.csv.
     """
+    scene = Scene() if scene is None else scene
+    clutter = Clutter() if clutter is None else clutter
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(seed)
