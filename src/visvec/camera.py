@@ -11,8 +11,6 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-_UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-12)
-
 
 @dataclass(frozen=True)
 class CameraModel:
@@ -83,8 +81,32 @@ class CameraModel:
         if not self.has_distortion:
             out = (uv[:, 0, :] - [self.cx, self.cy]) / [self.fx, self.fy]
             return out
-        out = cv2.undistortPointsIter(uv, self.K, self.dist, None, None, _UNDISTORT_CRITERIA)
-        return out.reshape(-1, 2)
+        xy = cv2.undistortPoints(uv, self.K, self.dist).reshape(-1, 2)
+        # OpenCV's fixed-point iteration stops early with strong distortion; finish with
+        # Newton steps on distort(xy) = uv (analytic 2x2 Jacobian per point)
+        target = uv.reshape(-1, 2)
+        for _ in range(3):
+            r = self.distort(xy) - target
+            J = self._distort_jacobian(xy)
+            det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
+            dx = (J[:, 1, 1] * r[:, 0] - J[:, 0, 1] * r[:, 1]) / det
+            dy = (-J[:, 1, 0] * r[:, 0] + J[:, 0, 0] * r[:, 1]) / det
+            xy = xy - np.column_stack([dx, dy])
+        return xy
+
+    def _distort_jacobian(self, xy: np.ndarray) -> np.ndarray:
+        """(N, 2, 2) d(u, v) / d(x, y) of :meth:`distort`."""
+        x, y = xy[:, 0], xy[:, 1]
+        k1, k2, p1, p2, k3 = self.dist
+        r2 = x * x + y * y
+        radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        drad = k1 + r2 * (2 * k2 + 3 * k3 * r2)  # d radial / d r2
+        J = np.empty((len(x), 2, 2))
+        J[:, 0, 0] = self.fx * (radial + 2 * x * x * drad + 2 * p1 * y + 6 * p2 * x)
+        J[:, 0, 1] = self.fx * (2 * x * y * drad + 2 * p1 * x + 2 * p2 * y)
+        J[:, 1, 0] = self.fy * (2 * x * y * drad + 2 * p1 * x + 2 * p2 * y)
+        J[:, 1, 1] = self.fy * (radial + 2 * y * y * drad + 6 * p1 * y + 2 * p2 * x)
+        return J
 
     def in_image(self, uv: np.ndarray, margin: float = 0.0) -> np.ndarray:
         """(N,) bool: pixel positions at least ``margin`` px inside the image."""

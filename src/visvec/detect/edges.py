@@ -37,6 +37,8 @@ class EdgeFit:
     outlier_fraction : (3,)
     contrast : (3,) median triangle-minus-board grey-level step on each edge
     mid_level : (3,) mean of the board and triangle grey levels along each edge
+    end_gaps_px : (3, 2) length of edge with no usable profile next to each end
+        (vertex i+1, vertex i+2) beyond the planned corner clearance
     """
 
     normals: np.ndarray
@@ -48,6 +50,12 @@ class EdgeFit:
     outlier_fraction: np.ndarray
     contrast: np.ndarray
     mid_level: np.ndarray
+    end_gaps_px: np.ndarray
+
+    def vertex_gaps(self) -> np.ndarray:
+        """(3,) for each vertex, the longer unsupported stretch of its two edges (px)."""
+        g = self.end_gaps_px
+        return np.array([max(g[(v + 1) % 3, 1], g[(v + 2) % 3, 0]) for v in range(3)])
 
 
 def _profiles(
@@ -217,6 +225,7 @@ def fit_edges(
         normals, offsets, centres = np.zeros((3, 2)), np.zeros(3), np.zeros((3, 2))
         spreads, counts, sigmas = np.zeros(3), np.zeros(3), np.zeros(3)
         outl, contrast, mid = np.zeros(3), np.zeros(3), np.zeros(3)
+        gaps = np.zeros((3, 2))
         inside = corners.mean(axis=0)
         # near a vertex of angle alpha the other edge is d sin(alpha) away: keep the
         # profiles (and the blur around them) clear of it
@@ -248,8 +257,15 @@ def fit_edges(
             normals[i], offsets[i], centres[i] = n, o, c
             spreads[i], counts[i], sigmas[i] = s, keep.sum(), sig
             outl[i] = 1.0 - keep.sum() / len(e)
+            # how far the inlier edge points stop short of the two ends of the edge
+            idx = np.nonzero(good)[0][keep] if good.sum() >= 5 else np.nonzero(keep)[0]
+            along = (bases[idx] + off - a) @ d
+            length = float(np.linalg.norm(b - a))
+            gaps[i] = (along.min() - trims[(i + 1) % 3],
+                       length - trims[(i + 2) % 3] - along.max()) if len(idx) else (length,) * 2
             contrast[i] = float(np.median(h))
-        fit = EdgeFit(normals, offsets, centres, spreads, counts, sigmas, outl, contrast, mid)
+        fit = EdgeFit(normals, offsets, centres, spreads, counts, sigmas, outl, contrast, mid,
+                      gaps)
         width = float(np.median(widths))
         corners = camera.distort(intersect(fit)[0] / f)
     return fit

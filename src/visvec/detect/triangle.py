@@ -26,6 +26,8 @@ AREA_TOL = 0.30
 SIDE_RATIO_TOL = 0.06
 APEX_ANGLE_TOL_DEG = 4.0
 MAX_VERIFICATIONS = 4
+VERTEX_GAP_MIN_PX = 3.0
+VERTEX_GAP_FRACTION = 0.05
 # reasons meaning "this region is not the triangle" (as opposed to "the triangle, unusable")
 NOT_THE_TARGET = frozenset(
     {
@@ -184,11 +186,13 @@ class TriangleDetector:
             if pts_px is None:
                 return self._reject("corners_not_found", warnings, mean, cand)
             xy = cam.undistort(pts_px) * cam.fx
+            vertex_gap = 0.0
         else:
             fit = fit_edges(image, cand.corners_px, cam, sigma_floor=s.pixel_sigma_floor)
             xy, cov = intersect(fit)
             pts_px = cam.distort(xy / cam.fx)
             fit_contrast, outliers = fit.contrast.min(), fit.outlier_fraction.max()
+            vertex_gap = float(fit.vertex_gaps().max())
             level_mid = float(np.mean(fit.mid_level))
         if not np.all(np.isfinite(xy)):
             return self._reject("degenerate_triangle", warnings, mean, cand)
@@ -221,6 +225,9 @@ class TriangleDetector:
             return self._reject("low_contrast", warnings, mean, cand, pts_px)
         if outliers > EDGE_OUTLIER_MAX:
             return self._reject("edge_obstructed", warnings, mean, cand, pts_px)
+        # a vertex whose edges stop short of it is extrapolated: something covers it
+        if vertex_gap > max(VERTEX_GAP_MIN_PX, VERTEX_GAP_FRACTION * np.sqrt(area)):
+            return self._reject("obstructed", warnings, mean, cand, pts_px)
         # saturation inside: the edges are clipped and their positions biased
         c = pts_px.mean(axis=0)
         inner = np.rint(c + (pts_px - c) * 0.8).astype(np.int32)

@@ -59,7 +59,8 @@ class _Shader:
         self.tri = v[:, :2]
         self.centre = v[:, :2].mean(axis=0)
         # inward edge normals of the triangle in the ceiling plane
-        orient = np.sign(np.cross(self.tri[1] - self.tri[0], self.tri[2] - self.tri[0]))
+        a, b = self.tri[1] - self.tri[0], self.tri[2] - self.tri[0]
+        orient = np.sign(a[0] * b[1] - a[1] * b[0])
         self.edges = []
         for i in range(3):
             a, b = self.tri[i], self.tri[(i + 1) % 3]

@@ -1,0 +1,148 @@
+"""Round trips through the renderer and the triangle detector, and its refusals."""
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from visvec.data import Status
+from visvec.detect import TriangleDetector
+from visvec.geometry import project_target
+from visvec.rotations import euler_to_matrix
+from visvec.sim.render import render_frame
+from visvec.sim.scene import Light, Occluder, Scene
+
+# noise-free vertices must land within this of the truth (px): the renderer's
+# partial-pixel coverage and the edge fits agree to a few thousandths of a pixel
+NOISE_FREE_TOL_PX = 0.05
+# with the paper's noise (sigma 2 grey levels, contrast 28) at 640x480
+NOISY_RMS_TOL_PX = 0.12
+
+
+def _attitudes(n, seed, tilt_deg=5.0):
+    r = np.random.default_rng(seed)
+    return [euler_to_matrix(r.uniform(-np.pi, np.pi), *np.radians(r.uniform(-tilt_deg,
+                                                                              tilt_deg, 2)))
+            for _ in range(n)]
+
+
+@pytest.mark.parametrize("rig_name", ["rig640", "rig320"])
+def test_noise_free_round_trip_vertices(request, rig_name):
+    rig = request.getfixturevalue(rig_name)
+    det = TriangleDetector(rig)
+    for k, R in enumerate(_attitudes(4, 1)):
+        img = render_frame(rig, R, Scene(noise_sigma=0.0), rng=k)
+        d = det.detect(img)
+        assert d.status is Status.OK, d.reason
+        err = np.abs(d.points_px - project_target(rig, R))
+        assert err.max() < NOISE_FREE_TOL_PX
+
+
+def test_noisy_vertices_and_their_covariance(rig640):
+    det = TriangleDetector(rig640)
+    errs, z = [], []
+    for k, R in enumerate(_attitudes(12, 2)):
+        d = det.detect(render_frame(rig640, R, Scene(), rng=100 + k))
+        assert d.status is Status.OK
+        e = (d.points_px - project_target(rig640, R)).ravel()
+        errs.append(e)
+        z.append(e / (np.sqrt(np.diag(d.cov_n)) * rig640.camera.fx))
+    assert np.sqrt(np.mean(np.square(errs))) < NOISY_RMS_TOL_PX
+    # the predicted sigma is honest: normalised errors have roughly unit spread
+    zr = np.sqrt(np.mean(np.square(z)))
+    assert 0.6 < zr < 1.5, zr
+
+
+def test_most_acute_vertex_first_and_handedness(rig640):
+    R = euler_to_matrix(np.radians(120.0), 0.0, 0.0)
+    d = TriangleDetector(rig640).detect(render_frame(rig640, R, Scene(noise_sigma=0), rng=0))
+    truth = project_target(rig640, R)
+    # the order matches the rig file's, not just the set of points
+    assert np.abs(d.points_px - truth).max() < NOISE_FREE_TOL_PX
+
+
+def test_lens_distortion_is_modelled(rig640):
+    cam = replace(rig640.camera, dist=np.array([-0.25, 0.07, 0.0, 0.0, 0.0]))
+    rig = replace(rig640, camera=cam)
+    R = euler_to_matrix(0.4, np.radians(4.0), np.radians(-3.0))
+    d = TriangleDetector(rig).detect(render_frame(rig, R, Scene(noise_sigma=0), rng=0))
+    assert d.status is Status.OK
+    assert np.abs(d.points_px - project_target(rig, R)).max() < NOISE_FREE_TOL_PX
+
+
+@pytest.mark.parametrize(
+    "scene, status, reason",
+    [
+        (Scene(show_triangle=False), Status.NO_TARGET, "no_triangle"),
+        (Scene(contrast=3.0, noise_sigma=1.0), None, None),
+        (Scene(exposure=3.0), Status.REJECTED, "overexposed"),
+        # a dark head over the acute vertex, a bright one over a base edge
+        (Scene(occluder=Occluder(214.0, 0.0, 1300.0, 40.0, 50.0)), None, None),
+        (Scene(occluder=Occluder(-107.0, 0.0, 1300.0, 45.0, 200.0)), None, None),
+    ],
+)
+def test_bad_scenes_are_never_ok(rig640, scene, status, reason):
+    R = euler_to_matrix(0.3, 0.02, -0.01)
+    d = TriangleDetector(rig640).detect(render_frame(rig640, R, scene, rng=3))
+    assert d.status is not Status.OK
+    if status is not None:
+        assert d.status is status
+        assert reason in d.warnings
+
+
+def test_occluder_inside_the_triangle_leaves_it_exact(rig640):
+    # something bright entirely inside the triangle, clear of its edges, changes nothing
+    sc = Scene(noise_sigma=0.0, occluder=Occluder(0.0, 0.0, 1300.0, 40.0, 200.0))
+    d = TriangleDetector(rig640).detect(render_frame(rig640, np.eye(3), sc, rng=3))
+    if d.status is Status.OK:
+        assert np.abs(d.points_px - project_target(rig640, np.eye(3))).max() < NOISE_FREE_TOL_PX
+
+
+def test_lights_in_view_do_not_disturb(rig640):
+    R = euler_to_matrix(-1.0, 0.03, 0.02)
+    sc = Scene(lights=(Light(700.0, 500.0), Light(-650.0, -600.0, 150.0)))
+    d = TriangleDetector(rig640).detect(render_frame(rig640, R, sc, rng=4))
+    assert d.status is Status.OK
+    assert np.abs(d.points_px - project_target(rig640, R)).max() < 0.3
+
+
+def test_triangle_leaving_the_view_is_rejected_with_reason(rig640):
+    det = TriangleDetector(rig640)
+    # tilts that move the triangle to the image edge step by step
+    seen_ok, last = False, None
+    for tilt in np.radians(np.arange(0.0, 26.0, 2.0)):
+        d = det.detect(render_frame(rig640, euler_to_matrix(0.0, tilt, 0.0), Scene(), rng=5))
+        seen_ok |= d.status is Status.OK
+        last = d
+        if d.status is not Status.OK:
+            break
+    assert seen_ok
+    assert last.status is Status.REJECTED
+    assert "partly_out_of_view" in last.warnings
+
+
+def test_brightness_warning(rig640):
+    sc = Scene(board_level=12.0, contrast=20.0, ceiling_level=25.0)
+    d = TriangleDetector(rig640).detect(render_frame(rig640, np.eye(3), sc, rng=6))
+    assert "low_brightness" in d.warnings
+
+
+def test_corner_refinement_alternative(rig640):
+    rig = replace(rig640, detect=replace(rig640.detect, refine="corners"))
+    R = euler_to_matrix(0.5, 0.01, 0.02)
+    d = TriangleDetector(rig).detect(render_frame(rig, R, Scene(), rng=7))
+    assert d.status is Status.OK
+    assert np.abs(d.points_px - project_target(rig, R)).max() < 1.5
+
+
+def test_detector_never_crashes_on_arbitrary_images(rig320):
+    det = TriangleDetector(rig320)
+    r = np.random.default_rng(0)
+    imgs = [np.zeros((240, 320), np.uint8), np.full((240, 320), 255, np.uint8),
+            r.integers(0, 256, (240, 320), dtype=np.uint8)]
+    blobs = np.zeros((240, 320), np.uint8)
+    blobs[50:120, 60:200] = 200
+    imgs.append(blobs)
+    for img in imgs:
+        d = det.detect(img)
+        assert d.status is not Status.OK

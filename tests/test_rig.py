@@ -1,0 +1,84 @@
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from visvec.errors import ConfigError, VisvecError
+from visvec.rig import load_rig
+
+from conftest import CONFIGS
+
+GOOD = (CONFIGS / "triangle.toml").read_text()
+
+
+def write(tmp_path: Path, text: str) -> Path:
+    p = tmp_path / "rig.toml"
+    p.write_text(text)
+    return p
+
+
+def test_example_configs_load():
+    for name in ("triangle.toml", "triangle-320.toml"):
+        rig = load_rig(CONFIGS / name)
+        assert rig.camera.width in (320, 640)
+        assert rig.target.vertices_mm.shape == (3, 3)
+        np.testing.assert_allclose(rig.R_bc, np.eye(3))
+
+
+@pytest.mark.parametrize(
+    "old, new, words",
+    [
+        ("fx = 600.0", "", ["[camera] fx", "missing"]),
+        ("fx = 600.0", 'fx = "wide"', ["[camera] fx", "expected a finite number"]),
+        ("fx = 600.0", "fx = -5.0", ["[camera] fx", "> 0"]),
+        ("width = 640", "width = 640.5", ["[camera] width", "whole number"]),
+        ('kind = "triangle"', 'kind = "hexagon"', ["[target] kind", "expected one of"]),
+        ('kind = "triangle"', 'kind = "markers"', ["[target] kind", "not supported"]),
+        ('on = "platform"', 'on = "ceiling"', ["[mount] on", "expected one of"]),
+        ("rotation = [[1, 0, 0], [0, 1, 0], [0, 0, 1]]",
+         "rotation = [[1, 0, 0], [0, 2, 0], [0, 0, 1]]", ["[mount] rotation", "rotation"]),
+        ("rotation = [[1, 0, 0], [0, 1, 0], [0, 0, 1]]",
+         "rotation = [[1, 0], [0, 1]]", ["[mount] rotation", "3 x 3"]),
+        ("vertices_mm = [[372.5, 0.0, 2150.0], [-186.3, 190.5, 2150.0], [-186.3, -190.5, 2150.0]]",
+         "vertices_mm = [[-186.3, 190.5, 2150.0], [372.5, 0.0, 2150.0], [-186.3, -190.5, 2150.0]]",
+         ["[target] vertices_mm", "most acute"]),
+        ("vertices_mm = [[372.5, 0.0, 2150.0], [-186.3, 190.5, 2150.0], [-186.3, -190.5, 2150.0]]",
+         "vertices_mm = [[0.0, 0.0, 2150.0], [1.0, 0.0, 2150.0], [2.0, 0.0, 2150.0]]",
+         ["[target] vertices_mm", "collinear"]),
+        ("max_tilt_deg = 10.0", "max_tilt_deg = 10.0\nmax_tilt = 3", ["[platform]", "unknown key",
+                                                                   "max_tilt"]),
+        ('refine = "lines"', 'refine = "magic"', ["[detect] refine", "expected one of"]),
+        ("[platform]", "[plaftorm]", ["unknown section", "plaftorm"]),
+        ("rotation = [[1, 0, 0], [0, 1, 0], [0, 0, 1]]",
+         "rotation = [[1, 0, 0], [0, -1, 0], [0, 0, -1]]", ["behind the camera"]),
+    ],
+)
+def test_bad_rig_is_refused_with_file_key_and_expectation(tmp_path, old, new, words):
+    assert old in GOOD
+    p = write(tmp_path, GOOD.replace(old, new, 1))
+    with pytest.raises(ConfigError) as exc:
+        load_rig(p)
+    msg = str(exc.value)
+    assert str(p) in msg
+    for w in words:
+        assert w in msg, msg
+    assert isinstance(exc.value, VisvecError) and isinstance(exc.value, ValueError)
+
+
+def test_missing_file_and_bad_toml(tmp_path):
+    with pytest.raises(ConfigError, match="not found"):
+        load_rig(tmp_path / "nope.toml")
+    with pytest.raises(ConfigError, match="not valid TOML"):
+        load_rig(write(tmp_path, "[camera\nwidth = 3"))
+
+
+def test_calibration_file_overrides_named_keys(tmp_path):
+    rig_p = write(tmp_path, GOOD)
+    cal = tmp_path / "cal.toml"
+    cal.write_text("[zero_tilt]\ncentroid_px = [321.0, 240.5]\n[camera]\nfx = 612.0\n")
+    rig = load_rig(rig_p, cal)
+    assert rig.camera.fx == 612.0 and rig.camera.fy == 600.0
+    np.testing.assert_allclose(rig.zero_tilt.centroid_px, [321.0, 240.5])
+    cal.write_text("[bogus]\nx = 1\n")
+    with pytest.raises(ConfigError, match=r"cal.toml: unknown section"):
+        load_rig(rig_p, cal)
