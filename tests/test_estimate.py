@@ -100,7 +100,9 @@ def test_paper_estimator_yaw_and_tilt_signs(rig640):
         sol = solve_paper(_detection(rig640, R), rig640)
         y, p, r = matrix_to_euler(sol.R_nb)
         assert abs((y - yaw + np.pi) % (2 * np.pi) - np.pi) < 1e-9
-        assert abs(p) < 1e-6 and abs(r) < 1e-6
+        # the example triangle's centroid is 0.03 mm off the axis (rounded vertices):
+        # the paper's method cannot model that and reads ~2e-5 rad of tilt
+        assert abs(p) < 1e-4 and abs(r) < 1e-4
     # a small tilt is seen with the right sign and roughly the right size
     R = euler_to_matrix(0.0, np.radians(2.0), np.radians(-1.0))
     y, p, r = np.degrees(matrix_to_euler(solve_paper(_detection(rig640, R), rig640).R_nb))
