@@ -5,14 +5,16 @@ from visvec.camera import CameraModel
 
 
 def _cam():
-    return CameraModel(640, 480, 610.0, 605.0, 322.0, 241.0,
-                       np.array([-0.28, 0.08, 0.001, -0.0005, 0.02]))
+    return CameraModel(
+        640, 480, 610.0, 605.0, 322.0, 241.0, np.array([-0.28, 0.08, 0.001, -0.0005, 0.02])
+    )
 
 
 def test_distort_matches_cv2_project_points(rng):
     cam = _cam()
-    p = np.column_stack([rng.uniform(-400, 400, 50), rng.uniform(-300, 300, 50),
-                         rng.uniform(800, 2000, 50)])
+    p = np.column_stack(
+        [rng.uniform(-400, 400, 50), rng.uniform(-300, 300, 50), rng.uniform(800, 2000, 50)]
+    )
     ref, _ = cv2.projectPoints(p, np.zeros(3), np.zeros(3), cam.K, cam.dist)
     np.testing.assert_allclose(cam.project(p), ref.reshape(-1, 2), atol=1e-9)
 

@@ -21,9 +21,10 @@ NOISY_RMS_TOL_PX = 0.12
 
 def _attitudes(n, seed, tilt_deg=5.0):
     r = np.random.default_rng(seed)
-    return [euler_to_matrix(r.uniform(-np.pi, np.pi), *np.radians(r.uniform(-tilt_deg,
-                                                                              tilt_deg, 2)))
-            for _ in range(n)]
+    return [
+        euler_to_matrix(r.uniform(-np.pi, np.pi), *np.radians(r.uniform(-tilt_deg, tilt_deg, 2)))
+        for _ in range(n)
+    ]
 
 
 @pytest.mark.parametrize("rig_name", ["rig640", "rig320"])
@@ -138,8 +139,11 @@ def test_corner_refinement_alternative(rig640):
 def test_detector_never_crashes_on_arbitrary_images(rig320):
     det = TriangleDetector(rig320)
     r = np.random.default_rng(0)
-    imgs = [np.zeros((240, 320), np.uint8), np.full((240, 320), 255, np.uint8),
-            r.integers(0, 256, (240, 320), dtype=np.uint8)]
+    imgs = [
+        np.zeros((240, 320), np.uint8),
+        np.full((240, 320), 255, np.uint8),
+        r.integers(0, 256, (240, 320), dtype=np.uint8),
+    ]
     blobs = np.zeros((240, 320), np.uint8)
     blobs[50:120, 60:200] = 200
     imgs.append(blobs)

@@ -58,8 +58,14 @@ def test_closed_form_start_is_exact_on_exact_points(rig640, yaw_deg):
 
 
 def test_full_recovers_attitude_with_lever_arm_and_tilted_mount(rig640):
-    rig = replace(rig640, mount=replace(rig640.mount, position_mm=np.array([80.0, -40.0, 300.0]),
-                                        rotation=euler_to_matrix(0.3, 0.05, 0.02)))
+    rig = replace(
+        rig640,
+        mount=replace(
+            rig640.mount,
+            position_mm=np.array([80.0, -40.0, 300.0]),
+            rotation=euler_to_matrix(0.3, 0.05, 0.02),
+        ),
+    )
     for e in ([1.0, 0.1, -0.12], [-2.5, -0.15, 0.0], [3.1, 0.0, 0.17]):
         R = euler_to_matrix(*e)
         sol = solve_full(_detection(rig, R), rig)

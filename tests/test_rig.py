@@ -2,11 +2,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import CONFIGS
 
 from visvec.errors import ConfigError, VisvecError
 from visvec.rig import load_rig
-
-from conftest import CONFIGS
 
 GOOD = (CONFIGS / "triangle.toml").read_text()
 
@@ -35,22 +34,38 @@ def test_example_configs_load():
         ('kind = "triangle"', 'kind = "hexagon"', ["[target] kind", "expected one of"]),
         ('kind = "triangle"', 'kind = "markers"', ["[target] kind", "not supported"]),
         ('on = "platform"', 'on = "ceiling"', ["[mount] on", "expected one of"]),
-        ("rotation = [[1, 0, 0], [0, 1, 0], [0, 0, 1]]",
-         "rotation = [[1, 0, 0], [0, 2, 0], [0, 0, 1]]", ["[mount] rotation", "rotation"]),
-        ("rotation = [[1, 0, 0], [0, 1, 0], [0, 0, 1]]",
-         "rotation = [[1, 0], [0, 1]]", ["[mount] rotation", "3 x 3"]),
-        ("vertices_mm = [[372.5, 0.0, 2150.0], [-186.3, 190.5, 2150.0], [-186.3, -190.5, 2150.0]]",
-         "vertices_mm = [[-186.3, 190.5, 2150.0], [372.5, 0.0, 2150.0], [-186.3, -190.5, 2150.0]]",
-         ["[target] vertices_mm", "most acute"]),
-        ("vertices_mm = [[372.5, 0.0, 2150.0], [-186.3, 190.5, 2150.0], [-186.3, -190.5, 2150.0]]",
-         "vertices_mm = [[0.0, 0.0, 2150.0], [1.0, 0.0, 2150.0], [2.0, 0.0, 2150.0]]",
-         ["[target] vertices_mm", "collinear"]),
-        ("max_tilt_deg = 10.0", "max_tilt_deg = 10.0\nmax_tilt = 3", ["[platform]", "unknown key",
-                                                                   "max_tilt"]),
+        (
+            "rotation = [[1, 0, 0], [0, 1, 0], [0, 0, 1]]",
+            "rotation = [[1, 0, 0], [0, 2, 0], [0, 0, 1]]",
+            ["[mount] rotation", "rotation"],
+        ),
+        (
+            "rotation = [[1, 0, 0], [0, 1, 0], [0, 0, 1]]",
+            "rotation = [[1, 0], [0, 1]]",
+            ["[mount] rotation", "3 x 3"],
+        ),
+        (
+            "vertices_mm = [[372.5, 0.0, 2150.0], [-186.3, 190.5, 2150.0], [-186.3, -190.5, 2150.0]]",
+            "vertices_mm = [[-186.3, 190.5, 2150.0], [372.5, 0.0, 2150.0], [-186.3, -190.5, 2150.0]]",
+            ["[target] vertices_mm", "most acute"],
+        ),
+        (
+            "vertices_mm = [[372.5, 0.0, 2150.0], [-186.3, 190.5, 2150.0], [-186.3, -190.5, 2150.0]]",
+            "vertices_mm = [[0.0, 0.0, 2150.0], [1.0, 0.0, 2150.0], [2.0, 0.0, 2150.0]]",
+            ["[target] vertices_mm", "collinear"],
+        ),
+        (
+            "max_tilt_deg = 10.0",
+            "max_tilt_deg = 10.0\nmax_tilt = 3",
+            ["[platform]", "unknown key", "max_tilt"],
+        ),
         ('refine = "lines"', 'refine = "magic"', ["[detect] refine", "expected one of"]),
         ("[platform]", "[plaftorm]", ["unknown section", "plaftorm"]),
-        ("rotation = [[1, 0, 0], [0, 1, 0], [0, 0, 1]]",
-         "rotation = [[1, 0, 0], [0, -1, 0], [0, 0, -1]]", ["behind the camera"]),
+        (
+            "rotation = [[1, 0, 0], [0, 1, 0], [0, 0, 1]]",
+            "rotation = [[1, 0, 0], [0, -1, 0], [0, 0, -1]]",
+            ["behind the camera"],
+        ),
     ],
 )
 def test_bad_rig_is_refused_with_file_key_and_expectation(tmp_path, old, new, words):

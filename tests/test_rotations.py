@@ -38,14 +38,16 @@ def test_euler_convention_is_intrinsic_zyx():
     R = euler_to_matrix(np.pi / 2, 0.0, 0.0)
     np.testing.assert_allclose(R @ [1, 0, 0], [0, 1, 0], atol=1e-15)
     # quaternion of a 90 deg yaw about z
-    np.testing.assert_allclose(matrix_to_quat(R), [np.sqrt(0.5), 0, 0, np.sqrt(0.5)],
-                               atol=1e-15)
+    np.testing.assert_allclose(matrix_to_quat(R), [np.sqrt(0.5), 0, 0, np.sqrt(0.5)], atol=1e-15)
 
 
 def test_expmap_small_and_large_angles():
     w = np.array([1e-10, -2e-10, 3e-10])
-    np.testing.assert_allclose(expmap(w), np.eye(3) + np.array(
-        [[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]]), atol=1e-19)
+    np.testing.assert_allclose(
+        expmap(w),
+        np.eye(3) + np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]]),
+        atol=1e-19,
+    )
     R = expmap(np.array([0.0, 0.0, np.pi / 2]))
     np.testing.assert_allclose(R, euler_to_matrix(np.pi / 2, 0, 0), atol=1e-15)
 

@@ -261,11 +261,13 @@ def fit_edges(
             idx = np.nonzero(good)[0][keep] if good.sum() >= 5 else np.nonzero(keep)[0]
             along = (bases[idx] + off - a) @ d
             length = float(np.linalg.norm(b - a))
-            gaps[i] = (along.min() - trims[(i + 1) % 3],
-                       length - trims[(i + 2) % 3] - along.max()) if len(idx) else (length,) * 2
+            gaps[i] = (
+                (along.min() - trims[(i + 1) % 3], length - trims[(i + 2) % 3] - along.max())
+                if len(idx)
+                else (length,) * 2
+            )
             contrast[i] = float(np.median(h))
-        fit = EdgeFit(normals, offsets, centres, spreads, counts, sigmas, outl, contrast, mid,
-                      gaps)
+        fit = EdgeFit(normals, offsets, centres, spreads, counts, sigmas, outl, contrast, mid, gaps)
         width = float(np.median(widths))
         corners = camera.distort(intersect(fit)[0] / f)
     return fit

@@ -1,0 +1,156 @@
+"""Zero-tilt and camera calibration."""
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+from conftest import CONFIGS, shared
+
+from visvec.calib.camera import calibrate_camera
+from visvec.calib.zero_tilt import calibrate_zero_tilt, circle_centre
+from visvec.cli.main import cli
+from visvec.data import Detection, Status
+from visvec.errors import InputFileError
+from visvec.geometry import lab_to_camera
+from visvec.rotations import euler_to_matrix
+from visvec.sim.simulate import true_rig
+
+
+def _level_detections(rig, world, yaws, sigma_px=0.03, rng=None):
+    dets = []
+    for y in yaws:
+        p = lab_to_camera(world, euler_to_matrix(y, 0.0, 0.0), world.target.vertices_mm)
+        xy = p[:, :2] / p[:, 2:3]
+        if rng is not None:
+            xy = xy + rng.standard_normal(xy.shape) * sigma_px / rig.camera.fx
+        dets.append(
+            Detection(
+                Status.OK,
+                points_px=rig.camera.distort(xy),
+                points_n=xy,
+                cov_n=np.eye(6) * (sigma_px / rig.camera.fx) ** 2,
+            )
+        )
+    return dets
+
+
+def test_zero_tilt_recovers_target_offset_and_camera_tilt(rig640, rng):
+    world = true_rig(rig640, (15.0, -6.0), (0.7, -0.4))
+    dets = _level_detections(rig640, world, np.radians(np.arange(-180, 180, 30)), rng=rng)
+    res = calibrate_zero_tilt(dets, rig640)
+    assert res.converged
+    np.testing.assert_allclose(
+        res.target_offset_mm, [15.0, -6.0], atol=4 * res.sigma_target_offset_mm.max() + 0.05
+    )
+    np.testing.assert_allclose(
+        res.camera_tilt_deg, [0.7, -0.4], atol=4 * res.sigma_camera_tilt_deg.max() + 1e-3
+    )
+    assert res.rms_px < 0.1
+    # applied, the calibrated rig reproduces the true one
+    cal = res.apply(rig640)
+    np.testing.assert_allclose(cal.target.vertices_mm, world.target.vertices_mm, atol=0.5)
+
+
+def test_zero_tilt_needs_spread_yaws(rig640):
+    dets = _level_detections(rig640, rig640, np.radians([0.0, 5.0, 10.0, 15.0]))
+    with pytest.raises(InputFileError, match="spread over at least 60 deg"):
+        calibrate_zero_tilt(dets, rig640)
+    with pytest.raises(InputFileError, match="at least 3 frames"):
+        calibrate_zero_tilt(dets[:2], rig640)
+
+
+def test_circle_centre():
+    a = np.linspace(0, 2 * np.pi, 9)[:-1]
+    pts = np.column_stack([3.0 + 2.0 * np.cos(a), -1.0 + 2.0 * np.sin(a)])
+    c, s = circle_centre(pts)
+    np.testing.assert_allclose(c, [3.0, -1.0], atol=1e-12)
+
+
+def test_calibrate_zero_tilt_cli_end_to_end(tmp_path):
+    rig_p = CONFIGS / "triangle-320.toml"
+    frames = tmp_path / "level"
+    r = CliRunner().invoke(
+        cli,
+        [
+            "simulate",
+            "--rig",
+            str(rig_p),
+            "--out",
+            str(frames),
+            "--frames",
+            "8",
+            "--motion",
+            "level",
+            "--target-offset-mm",
+            "15",
+            "0",
+            "--camera-askew-deg",
+            "0.5",
+            "0.5",
+        ],
+    )
+    assert r.exit_code == 0, r.output
+    cal = tmp_path / "cal.toml"
+    r = CliRunner().invoke(
+        cli, ["calibrate", "zero-tilt", str(frames), "--rig", str(rig_p), "--out", str(cal)]
+    )
+    assert r.exit_code == 0, r.output
+    assert "target offset from the axis: dx +1" in r.output
+    text = cal.read_text()
+    assert "[mount]" in text and "[target]" in text and "[zero_tilt]" in text
+    r = CliRunner().invoke(
+        cli,
+        [
+            "batch",
+            str(frames),
+            "--rig",
+            str(rig_p),
+            "--calibration",
+            str(cal),
+            "--truth",
+            str(frames / "truth.csv"),
+        ],
+    )
+    assert r.exit_code == 0
+    # level frames read level after calibration
+    import csv
+    import io
+
+    rows = list(csv.DictReader(io.StringIO(r.stdout)))
+    assert all(abs(float(x["roll_deg"])) < 0.05 and abs(float(x["pitch_deg"])) < 0.05 for x in rows)
+
+
+def test_camera_calibration_reproduces_opencv_reference():
+    d = shared("opencv_chessboard")
+    files = [d / f"left{i:02d}.jpg" for i in (1, 2, 3, 4, 5, 6, 7, 8, 9, 11, 12, 13, 14)]
+    cal = calibrate_camera(files, (9, 6), 1.0, recipe="opencv-test")
+    # reference_values.json, reference A: fx 532.80992189, rms 0.196334638 (tol 0.01)
+    assert abs(cal.K[0, 0] - 532.80992189) < 0.5
+    assert abs(cal.rms_px - 0.196334638) < 0.01
+    ref = np.array([[532.80992189, 0.0, 342.4952186], [0.0, 532.93346422, 233.8879292], [0, 0, 1]])
+    assert np.abs(cal.K - ref).sum() < 10.0
+
+
+def test_camera_calibration_cli_names_outlier_view(tmp_path):
+    d = shared("opencv_chessboard")
+    out = tmp_path / "cam.toml"
+    r = CliRunner().invoke(
+        cli,
+        [
+            "calibrate",
+            "camera",
+            str(d / "left*.jpg"),
+            "--pattern",
+            "9x6",
+            "--square-mm",
+            "25",
+            "--out",
+            str(out),
+        ],
+    )
+    assert r.exit_code == 0, r.output
+    assert "left02.jpg" in r.output and "outlier" in r.output
+    assert "[camera]" in out.read_text() and "fx = 536.0" in out.read_text()
+    r = CliRunner().invoke(
+        cli, ["calibrate", "camera", str(d), "--pattern", "nine", "--square-mm", "25"]
+    )
+    assert r.exit_code == 2 and "COLSxROWS" in r.output

@@ -1,0 +1,213 @@
+"""The command line: exit codes, messages, row streaming, bad input."""
+
+import csv
+import io
+import json
+import shutil
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from click.testing import CliRunner
+from conftest import CONFIGS, ROOT
+
+from visvec.cli.common import run_frames
+from visvec.cli.main import cli
+from visvec.data import Frame
+from visvec.errors import SourceError
+from visvec.rig import load_rig
+from visvec.sources import VideoSource
+
+RIG = str(CONFIGS / "triangle.toml")
+SAMPLES = ROOT / "data" / "sample_frames"
+
+
+def run(*args):
+    return CliRunner().invoke(cli, [str(a) for a in args], catch_exceptions=False)
+
+
+def rows_of(text):
+    return list(csv.DictReader(io.StringIO(text)))
+
+
+def test_batch_on_sample_frames_with_truth(tmp_path):
+    out = tmp_path / "rows.csv"
+    r = run("batch", SAMPLES, "--rig", RIG, "--out", out, "--truth", SAMPLES / "truth.csv")
+    assert r.exit_code == 0, r.output
+    rows = rows_of(out.read_text())
+    assert len(rows) == len(list(SAMPLES.glob("*.png")))
+    assert list(rows[0]) == [
+        "frame",
+        "time_s",
+        "status",
+        "yaw_deg",
+        "pitch_deg",
+        "roll_deg",
+        "qw",
+        "qx",
+        "qy",
+        "qz",
+        "sigma_yaw_deg",
+        "sigma_pitch_deg",
+        "sigma_roll_deg",
+        "rms_px",
+        "n_points",
+        "latency_ms",
+        "warnings",
+    ]
+    assert all(row["status"] == "ok" for row in rows)
+    truth = {int(t["frame"]): t for t in csv.DictReader(open(SAMPLES / "truth.csv"))}
+    for row in rows:
+        t = truth[int(row["frame"])]
+        dyaw = (float(row["yaw_deg"]) - float(t["yaw_deg"]) + 180) % 360 - 180
+        assert abs(dyaw) < 0.1
+        assert abs(float(row["roll_deg"]) - float(t["roll_deg"])) < 0.02
+        assert float(row["time_s"]) == pytest.approx(float(t["time_s"]))
+    assert "yaw: rms" in r.output and "frames 12, ok 12" in r.output
+
+
+def test_jsonl_format_has_the_csv_keys(tmp_path):
+    r = run("batch", SAMPLES, "--rig", RIG, "--format", "jsonl", "--max-frames", "2")
+    assert r.exit_code == 0
+    lines = [json.loads(x) for x in r.output.strip().splitlines()]
+    assert len(lines) == 2 and lines[0]["status"] == "ok" and "sigma_roll_deg" in lines[0]
+
+
+def test_bad_rig_exit_2_before_any_frame(tmp_path):
+    bad = tmp_path / "bad.toml"
+    bad.write_text(Path(RIG).read_text().replace("fy = 600.0", ""))
+    out = tmp_path / "rows.csv"
+    r = run("batch", SAMPLES, "--rig", bad, "--out", out)
+    assert r.exit_code == 2
+    assert "bad.toml" in r.output and "[camera] fy" in r.output and "missing" in r.output
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("what", ["missing_folder", "empty_folder", "missing_video"])
+def test_unopenable_sources_exit_3(tmp_path, what):
+    path = {
+        "missing_folder": tmp_path / "nope",
+        "empty_folder": tmp_path,
+        "missing_video": tmp_path / "rec.avi",
+    }[what]
+    r = run("batch", path, "--rig", RIG)
+    assert r.exit_code == 3
+    assert str(path) in r.output
+
+
+def test_camera_that_cannot_be_opened_exit_3():
+    r = run("track", "--rig", RIG, "--camera", "97")
+    assert r.exit_code == 3
+    assert "97" in r.output and "cannot open" in r.output
+
+
+def test_bad_frames_are_read_error_rows_and_the_run_goes_on(tmp_path):
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    names = sorted(p.name for p in SAMPLES.glob("*.png"))[:3]
+    for n in names:
+        shutil.copy(SAMPLES / n, folder / n)
+    (folder / names[1]).write_bytes(b"not a png")  # unreadable
+    (folder / "frame_9.png").write_bytes(b"")  # empty
+    cv2.imwrite(str(folder / "frame_99.png"), np.zeros((100, 100), np.uint8))  # wrong size
+    r = run("batch", folder, "--rig", RIG)
+    assert r.exit_code == 0
+    rows = rows_of(r.stdout)
+    assert [x["status"] for x in rows] == ["ok", "read_error", "ok", "read_error", "read_error"]
+    assert rows[1]["yaw_deg"] == ""
+    assert "cannot decode" in r.stderr and "expected 640x480" in r.stderr
+
+
+def test_natural_sort_and_sidecar_times(tmp_path):
+    names = sorted(p.name for p in SAMPLES.glob("*.png"))[:3]
+    for i, n in zip((10, 2, 1), names, strict=True):
+        shutil.copy(SAMPLES / n, tmp_path / f"img{i}.png")
+    (tmp_path / "times.csv").write_text("file,time_s\nimg1.png,5.0\nimg2.png,5.5\nimg10.png,7.25\n")
+    rows = rows_of(run("batch", tmp_path, "--rig", RIG).stdout)
+    assert [float(x["time_s"]) for x in rows] == [5.0, 5.5, 7.25]
+
+
+def test_ctrl_c_ends_cleanly_with_every_row_written(tmp_path):
+    rig = load_rig(RIG)
+    img = cv2.imread(str(sorted(SAMPLES.glob("*.png"))[0]), cv2.IMREAD_GRAYSCALE)
+
+    def frames():
+        for i in range(3):
+            yield Frame(i, i / 30, img, f"f{i}")
+        raise KeyboardInterrupt
+
+    out = tmp_path / "rows.csv"
+    rows = run_frames(
+        rig, frames(), out=str(out), fmt="csv", method="full", overlay=None, max_frames=None
+    )
+    assert len(rows) == 3
+    assert len(rows_of(out.read_text())) == 3
+
+
+def test_camera_that_stops_delivering_is_retried_then_raises(monkeypatch):
+    class DeadCap:
+        def read(self):
+            return False, None
+
+        def isOpened(self):
+            return True
+
+        def get(self, prop):
+            return 0.0
+
+        def release(self):
+            pass
+
+    monkeypatch.setattr(cv2, "VideoCapture", lambda spec: DeadCap())
+    src = VideoSource(0, retry_s=0.2)
+    with pytest.raises(SourceError, match="stopped delivering"):
+        next(iter(src))
+
+
+def test_overlay_and_paper_method(tmp_path):
+    ov = tmp_path / "ov"
+    r = run(
+        "batch", SAMPLES, "--rig", RIG, "--method", "paper", "--overlay", ov, "--max-frames", "2"
+    )
+    assert r.exit_code == 0
+    assert len(list(ov.glob("*.png"))) == 2
+    assert all(x["status"] == "ok" for x in rows_of(r.stdout))
+
+
+def test_simulate_writes_frames_and_truth(tmp_path):
+    r = run(
+        "simulate",
+        "--rig",
+        CONFIGS / "triangle-320.toml",
+        "--out",
+        tmp_path / "s",
+        "--frames",
+        "3",
+        "--seed",
+        "4",
+    )
+    assert r.exit_code == 0
+    truth = list(csv.DictReader(open(tmp_path / "s" / "truth.csv")))
+    assert [t["file"] for t in truth] == ["frame_0000.png", "frame_0001.png", "frame_0002.png"]
+    img = cv2.imread(str(tmp_path / "s" / "frame_0000.png"), cv2.IMREAD_UNCHANGED)
+    assert img.shape == (240, 320) and img.dtype == np.uint8
+
+
+def test_unexpected_error_is_one_line_exit_1(monkeypatch):
+    import visvec.cli.batch as b
+
+    def boom(*a, **k):
+        raise RuntimeError("kaboom")
+
+    monkeypatch.setattr(b, "run_frames", boom)
+    r = CliRunner().invoke(cli, ["batch", str(SAMPLES), "--rig", RIG])
+    assert r.exit_code == 1
+    assert "kaboom" in r.output and "Traceback" not in r.output
+
+
+def test_truth_file_with_bad_row(tmp_path):
+    t = tmp_path / "t.csv"
+    t.write_text("frame,yaw_deg,pitch_deg,roll_deg\n0,1,2,3\n1,x,2,3\n")
+    r = run("batch", SAMPLES, "--rig", RIG, "--truth", t)
+    assert r.exit_code == 2 and "line 3" in r.output
