@@ -8,6 +8,8 @@ from visvec.errors import ConfigError, VisvecError
 from visvec.rig import load_rig
 
 GOOD = (CONFIGS / "triangle.toml").read_text()
+VERTS = "vertices_mm = [[372.5, 0.0, 2150.0], [-186.3, 190.5, 2150.0], [-186.3, -190.5, 2150.0]]"
+SWAPPED = "vertices_mm = [[-186.3, 190.5, 2150.0], [372.5, 0.0, 2150.0], [-186.3, -190.5, 2150.0]]"
 
 
 def write(tmp_path: Path, text: str) -> Path:
@@ -45,12 +47,12 @@ def test_example_configs_load():
             ["[mount] rotation", "3 x 3"],
         ),
         (
-            "vertices_mm = [[372.5, 0.0, 2150.0], [-186.3, 190.5, 2150.0], [-186.3, -190.5, 2150.0]]",
-            "vertices_mm = [[-186.3, 190.5, 2150.0], [372.5, 0.0, 2150.0], [-186.3, -190.5, 2150.0]]",
+            VERTS,
+            SWAPPED,
             ["[target] vertices_mm", "most acute"],
         ),
         (
-            "vertices_mm = [[372.5, 0.0, 2150.0], [-186.3, 190.5, 2150.0], [-186.3, -190.5, 2150.0]]",
+            VERTS,
             "vertices_mm = [[0.0, 0.0, 2150.0], [1.0, 0.0, 2150.0], [2.0, 0.0, 2150.0]]",
             ["[target] vertices_mm", "collinear"],
         ),
