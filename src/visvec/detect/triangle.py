@@ -97,32 +97,55 @@ class TriangleDetector:
         self.min_corner_distance = 45.0 * cam.width / 320.0
         self._last_level: float | None = None
         self._last_points: np.ndarray | None = None
+        self._prev_points: np.ndarray | None = None
+
+    def _tracked_candidate(self, pts: np.ndarray) -> Candidate:
+        inside = bool(np.all(self.rig.camera.in_image(pts, 2.0)))
+        return Candidate(
+            corners_px=pts,
+            contour_px=pts,
+            area_px=abs(_signed_area(pts)),
+            level=self._last_level or 0.0,
+            touches_border=not inside,
+            fill=1.0,
+        )
 
     def reset(self) -> None:
         """Forget the previous frame (start of a new, unrelated sequence)."""
         self._last_level = None
         self._last_points = None
+        self._prev_points = None
 
     # ------------------------------------------------------------------ public
     def detect(self, image: np.ndarray) -> Detection:
         """Detection of the triangle in one (H, W) uint8 image (never raises on content)."""
         s = self.rig.detect
-        mean = float(image.mean())
+        mean = float(cv2.mean(image)[0])
         warnings: list[str] = []
         if mean < s.brightness_band[0]:
             warnings.append("low_brightness")
         elif mean > s.brightness_band[1]:
             warnings.append("high_brightness")
 
-        levels = None if self._last_level is None else np.array([self._last_level])
         reason, contour = "", np.zeros((0, 2))
+        if self._last_points is not None:
+            # tracking: refine straight from the last frame's vertices; any failed check
+            # falls back to the full search below
+            pred = self._last_points
+            if self._prev_points is not None:
+                pred = 2.0 * self._last_points - self._prev_points  # constant velocity
+            det = self._verify(image, self._tracked_candidate(pred), warnings, mean)
+            if det.status is Status.OK:
+                self._prev_points, self._last_points = self._last_points, det.points_px
+                return det
+        levels = None if self._last_level is None else np.array([self._last_level])
         for _attempt in range(2):
             tried = 0
             for cand in iter_candidates(image, self.expected_area, scale=self.scale, levels=levels):
                 det = self._verify(image, cand, warnings, mean)
                 if det.status is Status.OK:
                     self._last_level = cand.level
-                    self._last_points = det.points_px
+                    self._prev_points, self._last_points = None, det.points_px
                     return det
                 # a region that is not the triangle's shape says nothing; one that is
                 # but fails a later check is the triangle, unusable for that reason
@@ -135,8 +158,7 @@ class TriangleDetector:
                 break
             levels = None  # the tracked level failed: search the whole histogram
         last = self._last_points
-        self._last_level = None
-        self._last_points = None
+        self.reset()
         if not reason and last is not None:
             # the triangle was there in the last frame: it left the view or something
             # is in front of it
@@ -221,6 +243,8 @@ class TriangleDetector:
         if abs(ang[apex] - self.expected_apex_deg) > APEX_ANGLE_TOL_DEG:
             return self._reject("angle_mismatch", warnings, mean, cand, pts_px)
         # it is the triangle's shape; now, is it usable?
+        if cand.touches_border or not np.all(cam.in_image(pts_px, 1.0)):
+            return self._reject("partly_out_of_view", warnings, mean, cand, pts_px)
         if fit_contrast < s.min_contrast:
             return self._reject("low_contrast", warnings, mean, cand, pts_px)
         if outliers > EDGE_OUTLIER_MAX:
@@ -241,8 +265,6 @@ class TriangleDetector:
             return self._reject("overexposed", warnings, mean, cand, pts_px)
         # the region found must be the whole triangle: an occluder or a light touching
         # it changes the region's area against the fitted vertices'
-        if cand.touches_border:
-            return self._reject("partly_out_of_view", warnings, mean, cand, pts_px)
         if not self._region_matches(image, pts_px, level_mid):
             return self._reject("obstructed", warnings, mean, cand, pts_px)
         # the surround must be the dark board
@@ -282,18 +304,19 @@ class TriangleDetector:
         """Mean of a band just outside the triangle is darker than a band inside it."""
         c = pts_px.mean(axis=0)
         outer = c + (pts_px - c) * 1.25
-        inner = c + (pts_px - c) * 0.75
-        h, w = image.shape
         if not np.all(self.rig.camera.in_image(outer)):
             return True  # cannot tell near the image edge; other checks apply
-        m_out = np.zeros((h, w), np.uint8)
-        m_tri = np.zeros((h, w), np.uint8)
-        m_in = np.zeros((h, w), np.uint8)
-        cv2.fillPoly(m_out, [np.rint(outer).astype(np.int32)], 1)
-        cv2.fillPoly(m_tri, [np.rint(c + (pts_px - c) * 1.08).astype(np.int32)], 1)
-        cv2.fillPoly(m_in, [np.rint(inner).astype(np.int32)], 1)
-        ring = (m_out > 0) & (m_tri == 0)
-        return float(image[m_in > 0].mean()) - float(image[ring].mean()) >= 0.5 * min_contrast
+        x0, y0 = np.floor(outer.min(axis=0)).astype(int)
+        x1, y1 = np.ceil(outer.max(axis=0)).astype(int) + 1
+        roi = image[y0:y1, x0:x1]
+        o = np.array([x0, y0])
+        m = np.zeros(roi.shape, np.uint8)
+        cv2.fillPoly(m, [np.rint(outer - o).astype(np.int32)], 1)
+        cv2.fillPoly(m, [np.rint(c + (pts_px - c) * 1.08 - o).astype(np.int32)], 0)
+        cv2.fillPoly(m, [np.rint(c + (pts_px - c) * 0.75 - o).astype(np.int32)], 2)
+        ring = cv2.mean(roi, (m == 1).astype(np.uint8))[0]
+        inner = cv2.mean(roi, (m == 2).astype(np.uint8))[0]
+        return inner - ring >= 0.5 * min_contrast
 
     def _corners(self, image: np.ndarray, cand: Candidate, mask: np.ndarray):
         """The paper's corners: goodFeaturesToTrack on the region, then cornerSubPix."""

@@ -22,10 +22,10 @@ import numpy as np
 from visvec.data import AttitudeSolution, Detection, Status
 from visvec.geometry import camera_offset_c
 from visvec.rig import Rig
-from visvec.rotations import expmap, skew
+from visvec.rotations import expmap
 
 MAX_ITERATIONS = 15
-STEP_TOL_RAD = 1e-11
+STEP_TOL_RAD = 1e-10
 # chi-square with 3 degrees of freedom (6 coordinates, 3 parameters): a detection that
 # cannot be the rig's triangle under any attitude is refused (P(false refusal) = 1e-4).
 CHI2_REJECT = 21.1
@@ -43,16 +43,21 @@ def residuals_and_jacobian(
     """
     q = p_n @ R_cn.T
     p = q + t_c
-    z = p[:, 2]
-    proj = p[:, :2] / z[:, None]
+    iz = 1.0 / p[:, 2]
+    proj = p[:, :2] * iz[:, None]
     r = (proj - xy).ravel()
-    J = np.empty((2 * len(p), 3))
-    for i in range(len(p)):
-        dproj = np.array(
-            [[1.0 / z[i], 0.0, -proj[i, 0] / z[i]], [0.0, 1.0 / z[i], -proj[i, 1] / z[i]]]
-        )
-        J[2 * i : 2 * i + 2] = -dproj @ skew(q[i])
-    return r, J
+    # row k of -(dproj/dp) [q]x is -a_k^T [q]x = (q x a_k)^T, with the rows of dproj/dp
+    # a_u = (1, 0, -u) / z and a_v = (0, 1, -v) / z
+    qx, qy, qz = q[:, 0], q[:, 1], q[:, 2]
+    u, v = proj[:, 0], proj[:, 1]
+    J = np.empty((len(p), 2, 3))
+    J[:, 0, 0] = -qy * u * iz
+    J[:, 0, 1] = (qz + qx * u) * iz
+    J[:, 0, 2] = -qy * iz
+    J[:, 1, 0] = -(qy * v + qz) * iz
+    J[:, 1, 1] = qx * v * iz
+    J[:, 1, 2] = qx * iz
+    return r, J.reshape(-1, 3)
 
 
 def initial_rotation(t_c: np.ndarray, p_n: np.ndarray, xy: np.ndarray) -> np.ndarray | None:
