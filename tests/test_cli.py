@@ -211,3 +211,18 @@ def test_truth_file_with_bad_row(tmp_path):
     t.write_text("frame,yaw_deg,pitch_deg,roll_deg\n0,1,2,3\n1,x,2,3\n")
     r = run("batch", SAMPLES, "--rig", RIG, "--truth", t)
     assert r.exit_code == 2 and "line 3" in r.output
+
+
+def test_public_api_docstring_example_runs():
+    import os
+
+    from visvec.api import FolderSource, TrianglePipeline, load_rig
+
+    cwd = os.getcwd()
+    os.chdir(ROOT)
+    try:
+        rig = load_rig("configs/triangle.toml")
+        rows = list(TrianglePipeline(rig).run(FolderSource("data/sample_frames")))
+    finally:
+        os.chdir(cwd)
+    assert len(rows) == 12 and all(r.ok for r in rows)

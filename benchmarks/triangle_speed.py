@@ -1,0 +1,74 @@
+"""Speed of detect + estimate at 640x480 on one core, against PNG decoding of the same
+frames, measured in the same run.
+
+A 30 fps-like recording: 300 frames of a smooth sweep (yaw turning, tilts wobbling).
+"tracking" processes them in order (each frame starts from the last one's vertices);
+"cold" forgets the previous frame every time (lost-in-space on every frame).
+
+    python benchmarks/triangle_speed.py
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import argparse  # noqa: E402
+import time  # noqa: E402
+
+import cv2  # noqa: E402
+import numpy as np  # noqa: E402
+
+from _common import CONFIGS, command, save_json  # noqa: E402
+from visvec.bench.triangle import Case, machine, render_cases  # noqa: E402
+from visvec.data import Frame  # noqa: E402
+from visvec.pipeline import TrianglePipeline  # noqa: E402
+from visvec.rig import load_rig  # noqa: E402
+from visvec.sim.scene import Scene  # noqa: E402
+from visvec.sim.simulate import random_attitudes  # noqa: E402
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--frames", type=int, default=300)
+    ap.add_argument("--repeats", type=int, default=5)
+    args = ap.parse_args()
+    cv2.setNumThreads(1)
+    rig = load_rig(CONFIGS / "triangle.toml")
+    eul = random_attitudes(args.frames, 5.0, np.random.default_rng(3), "sweep")
+    # the sweep turns 0.8 rev over the sequence: about 1 deg of yaw per frame at 300 frames
+    cases = [Case(e, Scene(), k) for k, e in enumerate(eul)]
+    images = render_cases(rig, cases)
+    pngs = [cv2.imencode(".png", im)[1] for im in images]
+    res = {"command": command(), "machine": machine(), "date": time.strftime("%Y-%m-%d"),
+           "frames": args.frames, "repeats": args.repeats}
+    times = {"tracking": [], "cold": [], "png_decode": []}
+    for _ in range(args.repeats):
+        for mode in ("tracking", "cold"):
+            pipe = TrianglePipeline(rig)
+            for i, im in enumerate(images):
+                if mode == "cold":
+                    pipe.detector.reset()
+                t = time.perf_counter()
+                row = pipe.process(Frame(i, 0.0, im))
+                times[mode].append(time.perf_counter() - t)
+                assert row.ok, (mode, i, row.warnings)
+        for p in pngs:
+            t = time.perf_counter()
+            cv2.imdecode(p, cv2.IMREAD_GRAYSCALE)
+            times["png_decode"].append(time.perf_counter() - t)
+    for k, v in times.items():
+        v = np.array(v) * 1000
+        res[k] = {"median_ms": round(float(np.median(v)), 3),
+                  "p90_ms": round(float(np.percentile(v, 90)), 3)}
+    dec = res["png_decode"]["median_ms"]
+    for k in ("tracking", "cold"):
+        res[k]["ratio_to_png_decode"] = round(res[k]["median_ms"] / dec, 2)
+    print(res)
+    print(save_json("triangle_speed", res))
+
+
+if __name__ == "__main__":
+    main()

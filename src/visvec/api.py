@@ -1,0 +1,53 @@
+"""The public API of visvec.
+
+>>> from visvec.api import load_rig, TrianglePipeline, FolderSource
+>>> rig = load_rig("configs/triangle.toml")
+>>> rows = list(TrianglePipeline(rig).run(FolderSource("data/sample_frames")))
+"""
+
+from visvec.calib.camera import calibrate_camera
+from visvec.calib.zero_tilt import calibrate_zero_tilt
+from visvec.camera import CameraModel
+from visvec.data import AttitudeSolution, Detection, Frame, Status
+from visvec.detect import TriangleDetector
+from visvec.errors import ConfigError, InputFileError, SourceError, VisvecError
+from visvec.estimate import solve_full, solve_paper
+from visvec.output import ATTITUDE_COLUMNS, AttitudeRow
+from visvec.pipeline import TrianglePipeline
+from visvec.rig import Rig, load_rig
+from visvec.sim.render import render_frame
+from visvec.sim.scene import Light, Occluder, Scene
+from visvec.sim.simulate import simulate, true_rig
+from visvec.sources import FolderSource, SyntheticSource, VideoSource, open_source
+
+__all__ = [
+    "ATTITUDE_COLUMNS",
+    "AttitudeRow",
+    "AttitudeSolution",
+    "CameraModel",
+    "ConfigError",
+    "Detection",
+    "FolderSource",
+    "Frame",
+    "InputFileError",
+    "Light",
+    "Occluder",
+    "Rig",
+    "Scene",
+    "SourceError",
+    "Status",
+    "SyntheticSource",
+    "TriangleDetector",
+    "TrianglePipeline",
+    "VideoSource",
+    "VisvecError",
+    "calibrate_camera",
+    "calibrate_zero_tilt",
+    "load_rig",
+    "open_source",
+    "render_frame",
+    "simulate",
+    "solve_full",
+    "solve_paper",
+    "true_rig",
+]

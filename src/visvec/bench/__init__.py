@@ -1,0 +1,1 @@
+"""Helpers for the benchmark scripts in benchmarks/ (Monte Carlo over rendered frames)."""

@@ -1,0 +1,142 @@
+"""Monte Carlo runs of the triangle pipeline over rendered frames with known truth."""
+
+from __future__ import annotations
+
+import os
+import platform
+import subprocess
+from collections.abc import Sequence
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from visvec.data import Frame, Status
+from visvec.pipeline import TrianglePipeline
+from visvec.rig import Rig
+from visvec.rotations import euler_to_matrix
+from visvec.sim.render import render_frame
+from visvec.sim.scene import Scene
+
+
+@dataclass(frozen=True)
+class Case:
+    """One rendered frame to process: true attitude (yaw, pitch, roll rad) and scene."""
+
+    euler: np.ndarray
+    scene: Scene
+    seed: int
+
+
+def _render(args: tuple[Rig, Case]) -> np.ndarray:
+    rig, case = args
+    return render_frame(rig, euler_to_matrix(*case.euler), case.scene, case.seed)
+
+
+def render_cases(world: Rig, cases: Sequence[Case], workers: int | None = None) -> list[np.ndarray]:
+    """Render every case with the true rig ``world``, in parallel."""
+    workers = workers or os.cpu_count() or 1
+    with ProcessPoolExecutor(workers) as ex:
+        return list(ex.map(_render, [(world, c) for c in cases], chunksize=4))
+
+
+@dataclass
+class Outcome:
+    """Rows of one estimator over a set of frames, against the truth."""
+
+    status: list[str] = field(default_factory=list)
+    warnings: list[tuple[str, ...]] = field(default_factory=list)
+    err_deg: list[np.ndarray] = field(default_factory=list)  # ok rows: (yaw, pitch, roll)
+    sigma_deg: list[np.ndarray] = field(default_factory=list)
+
+    @property
+    def n(self) -> int:
+        return len(self.status)
+
+    @property
+    def n_ok(self) -> int:
+        return len(self.err_deg)
+
+    def rms(self) -> np.ndarray:
+        e = np.array(self.err_deg).reshape(-1, 3)
+        return np.sqrt(np.mean(e**2, axis=0)) if len(e) else np.full(3, np.nan)
+
+    def mean(self) -> np.ndarray:
+        e = np.array(self.err_deg).reshape(-1, 3)
+        return e.mean(axis=0) if len(e) else np.full(3, np.nan)
+
+    def n_outside(self, k: float = 3.0) -> int:
+        """ok rows with any axis error beyond k sigma (a wrong answer)."""
+        e = np.abs(np.array(self.err_deg).reshape(-1, 3))
+        s = np.array(self.sigma_deg).reshape(-1, 3)
+        return int(np.sum(np.any(e > k * s, axis=1)))
+
+    def summary(self) -> dict:
+        return {
+            "frames": self.n,
+            "ok": self.n_ok,
+            "ok_fraction": self.n_ok / max(self.n, 1),
+            "rms_deg": dict(
+                zip(("yaw", "pitch", "roll"), self.rms().round(5).tolist(), strict=True)
+            ),
+            "mean_deg": dict(
+                zip(("yaw", "pitch", "roll"), self.mean().round(5).tolist(), strict=True)
+            ),
+            "ok_outside_3sigma": self.n_outside(3.0),
+            "statuses": {s: self.status.count(s) for s in sorted(set(self.status))},
+        }
+
+
+def evaluate(
+    rig: Rig, images: Sequence[np.ndarray], cases: Sequence[Case], method: str, track: bool = False
+) -> Outcome:
+    """Run the pipeline (estimation rig ``rig``) on ``images`` and compare with the truth."""
+    pipe = TrianglePipeline(rig, method)
+    out = Outcome()
+    for i, (img, case) in enumerate(zip(images, cases, strict=True)):
+        if not track:
+            pipe.detector.reset()
+        row = pipe.process(Frame(i, i / 30.0, img))
+        out.status.append(str(row.status))
+        out.warnings.append(row.warnings)
+        if row.status is Status.OK:
+            e = row.euler_deg - np.degrees(case.euler)
+            e[0] = (e[0] + 180.0) % 360.0 - 180.0
+            out.err_deg.append(e)
+            out.sigma_deg.append(row.sigma_deg)
+    return out
+
+
+def random_cases(n: int, scene: Scene, seed: int, max_tilt_deg: float = 5.0) -> list[Case]:
+    r = np.random.default_rng(seed)
+    m = np.radians(max_tilt_deg)
+    return [
+        Case(
+            np.array([r.uniform(-np.pi, np.pi), r.uniform(-m, m), r.uniform(-m, m)]),
+            scene,
+            int(seed * 100003 + k),
+        )
+        for k in range(n)
+    ]
+
+
+def with_refine(rig: Rig, refine: str) -> Rig:
+    return replace(rig, detect=replace(rig.detect, refine=refine))
+
+
+def machine() -> str:
+    """One line describing the machine the benchmark ran on."""
+    cpu = platform.processor() or platform.machine()
+    try:
+        out = subprocess.run(["lscpu"], capture_output=True, text=True, timeout=5).stdout
+        for line in out.splitlines():
+            if line.startswith("Model name:"):
+                cpu = line.split(":", 1)[1].strip()
+    except (OSError, subprocess.SubprocessError):
+        pass
+    import cv2
+
+    return (
+        f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}, "
+        f"numpy {np.__version__}, OpenCV {cv2.__version__}"
+    )
