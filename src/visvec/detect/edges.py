@@ -24,6 +24,8 @@ from visvec.camera import CameraModel
 EDGE_VARIANCE_INFLATION = 2.5
 # Gauss-Newton steps of the matched (erf) edge refinement
 GN_STEPS = 1
+# when tracking, profiles are re-centred if the vertices move more than this (px)
+TRACK_RECENTRE_PX = 0.75
 
 
 @dataclass(frozen=True)
@@ -41,6 +43,7 @@ class EdgeFit:
     mid_level : (3,) mean of the board and triangle grey levels along each edge
     end_gaps_px : (3, 2) length of edge with no usable profile next to each end
         (vertex i+1, vertex i+2) beyond the planned corner clearance
+    width : (3,) RMS blur width of each edge (px)
     """
 
     normals: np.ndarray
@@ -53,6 +56,7 @@ class EdgeFit:
     contrast: np.ndarray
     mid_level: np.ndarray
     end_gaps_px: np.ndarray
+    width: np.ndarray
 
     def vertex_gaps(self) -> np.ndarray:
         """(3,) for each vertex, the longer unsupported stretch of its two edges (px)."""
@@ -245,6 +249,7 @@ def fit_edges(
     half: float = 4.0,
     step: float = 0.5,
     trim: float = 0.06,
+    width: np.ndarray | None = None,
 ) -> EdgeFit:
     """Fit the three edges of the triangle whose coarse corners are ``corners_px`` (3, 2).
 
@@ -252,6 +257,10 @@ def fit_edges(
     every pixel across the lines of the first pass, centred on them (symmetric about
     the edge) and only as long as the measured blur needs. Lines are in ideal
     (undistorted) pixels: f * (normalised coordinates), f = fx.
+
+    With ``width`` (3,), the blur widths of a previous fit, the corners are taken to be
+    good to a pixel (tracking): the sparse pass is skipped, and repeated only if the
+    vertices then move by more than ``TRACK_RECENTRE_PX``.
     """
     lo = np.floor(corners_px.min(axis=0) - half - 3).astype(int)
     hi = np.ceil(corners_px.max(axis=0) + half + 3).astype(int)
@@ -261,10 +270,16 @@ def fit_edges(
     off = lo.astype(float)
     f = camera.fx
     corners = corners_px.astype(float)
-    width = np.full(3, half / 3.0)
+    tracked = width is not None
+    width = np.full(3, half / 3.0) if width is None else np.asarray(width, float)
     fit = None
-    for npass in range(2):
-        if npass == 1:
+    passes = [1] if tracked else [0, 1]
+    k = 0
+    while k < len(passes):
+        npass = passes[k]
+        k += 1
+        start = corners
+        if npass >= 1:
             half = step * np.ceil(float(np.clip(3.0 * np.median(width) + 0.75, 1.5, half)) / step)
         # near a vertex of angle alpha the other edge is d sin(alpha) away: keep the
         # profiles (and the blur around them) clear of it
@@ -276,7 +291,7 @@ def fit_edges(
         bases, normals, gid, t, along, vals, ends = _sample(
             roi, corners, off, half, step, trims, 2.0 if npass == 0 else 1.0
         )
-        e, h, mid = _positions(vals, t, gid, half, step, width if npass == 1 else None)
+        e, h, mid = _positions(vals, t, gid, half, step, width if npass >= 1 else None)
         if npass == 0:
             width = _widths(vals, e, gid, half, step)
         pts_px = bases + e[:, None] * normals
@@ -306,9 +321,21 @@ def fit_edges(
                 else (length, length)
             )
         fit = EdgeFit(
-            normals_l, offsets, centres, spreads, counts, sigmas, outl, contrast, mid, gaps
+            normals_l,
+            offsets,
+            centres,
+            spreads,
+            counts,
+            sigmas,
+            outl,
+            contrast,
+            mid,
+            gaps,
+            width.copy(),
         )
         corners = camera.distort(intersect(fit, with_cov=False)[0] / f)
+        if tracked and len(passes) == 1 and np.abs(corners - start).max() > TRACK_RECENTRE_PX:
+            passes.append(1)  # the prediction was off: centre the profiles once more
     return fit
 
 

@@ -26,6 +26,7 @@ AREA_TOL = 0.30
 SIDE_RATIO_TOL = 0.06
 APEX_ANGLE_TOL_DEG = 4.0
 MAX_VERIFICATIONS = 4
+TRACKED = 2.0  # Candidate.fill marking a candidate predicted from the last frame
 VERTEX_GAP_MIN_PX = 3.0
 VERTEX_GAP_FRACTION = 0.05
 # reasons meaning "this region is not the triangle" (as opposed to "the triangle, unusable")
@@ -98,6 +99,8 @@ class TriangleDetector:
         self._last_level: float | None = None
         self._last_points: np.ndarray | None = None
         self._prev_points: np.ndarray | None = None
+        self._last_width: np.ndarray | None = None
+        self._fit_width: np.ndarray | None = None
 
     def _tracked_candidate(self, pts: np.ndarray) -> Candidate:
         inside = bool(np.all(self.rig.camera.in_image(pts, 2.0)))
@@ -107,7 +110,7 @@ class TriangleDetector:
             area_px=abs(_signed_area(pts)),
             level=self._last_level or 0.0,
             touches_border=not inside,
-            fill=1.0,
+            fill=TRACKED,
         )
 
     def reset(self) -> None:
@@ -115,6 +118,7 @@ class TriangleDetector:
         self._last_level = None
         self._last_points = None
         self._prev_points = None
+        self._last_width = None
 
     # ------------------------------------------------------------------ public
     def detect(self, image: np.ndarray) -> Detection:
@@ -137,6 +141,7 @@ class TriangleDetector:
             det = self._verify(image, self._tracked_candidate(pred), warnings, mean)
             if det.status is Status.OK:
                 self._prev_points, self._last_points = self._last_points, det.points_px
+                self._last_width = self._fit_width
                 return det
         levels = None if self._last_level is None else np.array([self._last_level])
         for _attempt in range(2):
@@ -146,6 +151,7 @@ class TriangleDetector:
                 if det.status is Status.OK:
                     self._last_level = cand.level
                     self._prev_points, self._last_points = None, det.points_px
+                    self._last_width = self._fit_width
                     return det
                 # a region that is not the triangle's shape says nothing; one that is
                 # but fails a later check is the triangle, unusable for that reason
@@ -210,7 +216,14 @@ class TriangleDetector:
             xy = cam.undistort(pts_px) * cam.fx
             vertex_gap = 0.0
         else:
-            fit = fit_edges(image, cand.corners_px, cam, sigma_floor=s.pixel_sigma_floor)
+            fit = fit_edges(
+                image,
+                cand.corners_px,
+                cam,
+                sigma_floor=s.pixel_sigma_floor,
+                width=self._last_width if cand.fill == TRACKED else None,
+            )
+            self._fit_width = fit.width
             xy, cov = intersect(fit)
             pts_px = cam.distort(xy / cam.fx)
             fit_contrast, outliers = fit.contrast.min(), fit.outlier_fraction.max()

@@ -25,7 +25,7 @@ from visvec.rig import Rig
 from visvec.rotations import expmap
 
 MAX_ITERATIONS = 15
-STEP_TOL_RAD = 1e-10
+STEP_TOL_RAD = 1e-8  # 0.002 arcsec
 # chi-square with 3 degrees of freedom (6 coordinates, 3 parameters): a detection that
 # cannot be the rig's triangle under any attitude is refused (P(false refusal) = 1e-4).
 CHI2_REJECT = 21.1

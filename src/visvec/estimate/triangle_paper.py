@@ -7,6 +7,9 @@ the triangle-aligned e frame (Eq. 4); the offsets turned into lengths with the p
 length ratio at the target and into tilt angles about n1 and n2 with the distance to the
 target (Eqs. 5-6, right triangles). Small-angle geometry; the camera's lever arm and the
 lens distortion are ignored, as in the paper. Distances come from the rig file.
+The uncertainty adds the method's model error on each frame (its difference from the
+full camera model on the same vertices) to the propagated vertex noise, and a frame the
+full model refuses (no attitude explains the vertices) is refused here too.
 """
 
 from __future__ import annotations
@@ -14,6 +17,7 @@ from __future__ import annotations
 import numpy as np
 
 from visvec.data import AttitudeSolution, Detection, Status
+from visvec.estimate.triangle_full import solve_full
 from visvec.geometry import project_target
 from visvec.rig import Rig
 from visvec.rotations import euler_rates_from_body, matrix_to_euler, rot_x, rot_y, rot_z
@@ -70,6 +74,28 @@ def solve_paper(det: Detection, rig: Rig, R_nb_guess: np.ndarray | None = None) 
         diff[0] = (diff[0] + np.pi) % (2 * np.pi) - np.pi
         J[:, k] = diff / (2 * h)
     cov_e = J @ cov_px @ J.T
+    # The published method is small-angle and ignores the lever arm and the lens, so its
+    # error is mostly model error, not noise. Its size on this frame is measured against
+    # the full camera model on the same vertices and added to the covariance, so that the
+    # reported sigma covers it (the paper gives no uncertainty at all).
+    full = solve_full(det, rig)
+    warnings: tuple[str, ...] = ()
+    if full.status is Status.OK:
+        d = np.array(matrix_to_euler(full.R_nb)) - e0
+        d[0] = (d[0] + np.pi) % (2 * np.pi) - np.pi
+        cov_e = cov_e + np.diag(d**2)
+    else:
+        warnings = ("model_error_unknown",)
     E = np.linalg.inv(euler_rates_from_body(*e0))
     cov_b = E @ cov_e @ E.T
-    return AttitudeSolution(Status.OK, R_nb=R_nb, cov_b=cov_b, rms_px=0.0, n_points=3, iterations=0)
+    rms = full.rms_px if full.status is Status.OK else float("nan")
+    status = full.status if full.status is not Status.OK else Status.OK
+    return AttitudeSolution(
+        status,
+        R_nb=R_nb,
+        cov_b=cov_b,
+        rms_px=rms,
+        n_points=3,
+        iterations=0,
+        warnings=warnings + full.warnings,
+    )
