@@ -226,3 +226,17 @@ def test_public_api_docstring_example_runs():
     finally:
         os.chdir(cwd)
     assert len(rows) == 12 and all(r.ok for r in rows)
+
+
+def test_batch_on_a_video_file_uses_its_clock(tmp_path):
+    video = tmp_path / "rec.avi"
+    w = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 10, (640, 480), False)
+    assert w.isOpened()
+    for f in sorted(SAMPLES.glob("*.png"))[:3]:
+        w.write(cv2.imread(str(f), cv2.IMREAD_GRAYSCALE))
+    w.release()
+    r = run("batch", video, "--rig", RIG)
+    assert r.exit_code == 0
+    rows = rows_of(r.stdout)
+    assert [float(x["time_s"]) for x in rows] == pytest.approx([0.0, 0.1, 0.2])
+    assert all(x["status"] == "ok" for x in rows)

@@ -2,12 +2,17 @@
 
 from dataclasses import replace
 
+import cv2
 import numpy as np
 import pytest
+from conftest import CONFIGS
+from hypothesis import example, given, settings
+from hypothesis import strategies as st
 
 from visvec.data import Status
 from visvec.detect import TriangleDetector
 from visvec.geometry import project_target
+from visvec.rig import load_rig
 from visvec.rotations import euler_to_matrix
 from visvec.sim.render import render_frame
 from visvec.sim.scene import Light, Occluder, Scene
@@ -17,6 +22,9 @@ from visvec.sim.scene import Light, Occluder, Scene
 NOISE_FREE_TOL_PX = 0.05
 # with the paper's noise (sigma 2 grey levels, contrast 28) at 640x480
 NOISY_RMS_TOL_PX = 0.12
+
+
+_DET320 = TriangleDetector(load_rig(CONFIGS / "triangle-320.toml"))
 
 
 def _attitudes(n, seed, tilt_deg=5.0):
@@ -150,3 +158,22 @@ def test_detector_never_crashes_on_arbitrary_images(rig320):
     for img in imgs:
         d = det.detect(img)
         assert d.status is not Status.OK
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(0, 6), st.integers(0, 255))
+@example(0, 0, 0)
+def test_detector_never_crashes_or_reports_clutter(seed, n_shapes, background):
+    """Random polygons and noise on a flat background: never an exception, never ok
+    without a triangle of the right size, shape and surround."""
+    r = np.random.default_rng(seed)
+    img = np.full((240, 320), background, np.uint8)
+    for _ in range(n_shapes):
+        pts = r.uniform([0, 0], [320, 240], (r.integers(3, 6), 2)).astype(np.int32)
+        cv2.fillPoly(img, [pts], int(r.integers(0, 256)))
+    img = np.clip(img + r.normal(0, 2, img.shape), 0, 255).astype(np.uint8)
+    d = _DET320.detect(img)
+    assert d.status in (Status.OK, Status.NO_TARGET, Status.REJECTED)
+    if d.status is Status.OK:
+        # only a real triangle of the rig's shape may pass: check it is one
+        assert np.all(np.isfinite(d.points_px))
