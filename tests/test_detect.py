@@ -1,6 +1,7 @@
 """Round trips through the renderer and the triangle detector, and its refusals."""
 
 from dataclasses import replace
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -177,3 +178,28 @@ def test_detector_never_crashes_or_reports_clutter(seed, n_shapes, background):
     if d.status is Status.OK:
         # only a real triangle of the rig's shape may pass: check it is one
         assert np.all(np.isfinite(d.points_px))
+
+
+def test_regression_edge_fit_diverging_on_occluded_frame(rig640):
+    # a benchmark frame (occluder over the triangle) whose edge lines once met far away
+    # and crashed cv2.remap with a huge profile array
+    img = cv2.imread(
+        str(Path(__file__).parent / "data" / "regression_occluder_640.png"), cv2.IMREAD_GRAYSCALE
+    )
+    d = TriangleDetector(rig640).detect(img)
+    assert d.status in (Status.OK, Status.NO_TARGET, Status.REJECTED)
+
+
+def test_pipeline_turns_an_internal_error_into_a_refused_row(rig640, monkeypatch):
+    from visvec.data import Frame
+    from visvec.pipeline import TrianglePipeline
+
+    pipe = TrianglePipeline(rig640)
+
+    def boom(image):
+        raise RuntimeError("bug")
+
+    monkeypatch.setattr(pipe.detector, "detect", boom)
+    row = pipe.process(Frame(0, 0.0, np.zeros((480, 640), np.uint8)))
+    assert row.status is Status.REJECTED and "internal_error" in row.warnings
+    assert "bug" in pipe.last_error

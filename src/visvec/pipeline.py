@@ -34,6 +34,7 @@ class TrianglePipeline:
         self.detector = TriangleDetector(rig)
         self.solve = ESTIMATORS[method]
         self.last_detection: Detection | None = None
+        self.last_error = ""
         self.last_solution: AttitudeSolution | None = None
 
     def check_frame(self, frame: Frame) -> str:
@@ -61,13 +62,23 @@ class TrianglePipeline:
             return attitude_row(
                 frame.index, frame.time_s, None, Status.READ_ERROR, ("read_error",), _ms(t_in)
             )
-        det = self.detector.detect(frame.image)
-        self.last_detection = det
-        if det.status is not Status.OK:
+        self.last_error = ""
+        try:
+            det = self.detector.detect(frame.image)
+            self.last_detection = det
+            if det.status is not Status.OK:
+                return attitude_row(
+                    frame.index, frame.time_s, None, det.status, det.warnings, _ms(t_in)
+                )
+            sol = self.solve(det, self.rig)
+        except Exception as exc:  # noqa: BLE001 - one bad frame must not end the run
+            # a bug met on this frame's content: refuse the frame, keep the run going, and
+            # keep the message for the caller to report
+            self.last_error = f"{type(exc).__name__}: {exc}"
+            self.detector.reset()
             return attitude_row(
-                frame.index, frame.time_s, None, det.status, det.warnings, _ms(t_in)
+                frame.index, frame.time_s, None, Status.REJECTED, ("internal_error",), _ms(t_in)
             )
-        sol = self.solve(det, self.rig)
         self.last_solution = sol
         warnings = det.warnings + sol.warnings
         status = sol.status

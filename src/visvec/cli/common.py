@@ -113,6 +113,12 @@ def run_frames(
                         f"visvec: frame {frame.index}: {frame.error or pipe.check_frame(frame)}",
                         err=True,
                     )
+                if pipe.last_error:
+                    click.echo(
+                        f"visvec: frame {frame.index}: internal error, frame refused "
+                        f"({pipe.last_error}); please report it",
+                        err=True,
+                    )
                 if ov is not None and frame.image is not None:
                     from visvec.overlay import draw_overlay
 

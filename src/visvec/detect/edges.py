@@ -10,7 +10,7 @@ are the intersections of the lines, with a covariance from the fit residuals.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -24,6 +24,8 @@ from visvec.camera import CameraModel
 EDGE_VARIANCE_INFLATION = 2.5
 # Gauss-Newton steps of the matched (erf) edge refinement
 GN_STEPS = 1
+# cv2.remap takes at most 32767 rows; no real edge needs more than this many profiles
+MAX_PROFILES_PER_EDGE = 4000
 # when tracking, profiles are re-centred if the vertices move more than this (px)
 TRACK_RECENTRE_PX = 0.75
 
@@ -44,6 +46,7 @@ class EdgeFit:
     end_gaps_px : (3, 2) length of edge with no usable profile next to each end
         (vertex i+1, vertex i+2) beyond the planned corner clearance
     width : (3,) RMS blur width of each edge (px)
+    ok : False when the lines do not make a triangle near the given corners
     """
 
     normals: np.ndarray
@@ -57,6 +60,7 @@ class EdgeFit:
     mid_level: np.ndarray
     end_gaps_px: np.ndarray
     width: np.ndarray
+    ok: bool = True
 
     def vertex_gaps(self) -> np.ndarray:
         """(3,) for each vertex, the longer unsupported stretch of its two edges (px)."""
@@ -153,7 +157,7 @@ def _sample(
             n_in = -n_in
         s0 = min(trims[(i + 1) % 3], 0.4 * length)
         s1 = length - min(trims[(i + 2) % 3], 0.4 * length)
-        m = max(4, int((s1 - s0) / spacing))
+        m = int(np.clip((s1 - s0) / spacing, 4, MAX_PROFILES_PER_EDGE))
         s = np.linspace(s0, s1, m)
         bases.append(a + s[:, None] * d)
         normals.append(np.broadcast_to(n_in, (m, 2)))
@@ -333,7 +337,12 @@ def fit_edges(
             gaps,
             width.copy(),
         )
-        corners = camera.distort(intersect(fit, with_cov=False)[0] / f)
+        new = camera.distort(intersect(fit, with_cov=False)[0] / f)
+        size = float(_side_lengths(corners).max())
+        if not np.all(np.isfinite(new)) or np.abs(new - corners).max() > 0.25 * size + 3.0:
+            # near-parallel lines from a region that is not a clean triangle: stop here
+            return replace(fit, ok=False)
+        corners = new
         if tracked and len(passes) == 1 and np.abs(corners - start).max() > TRACK_RECENTRE_PX:
             passes.append(1)  # the prediction was off: centre the profiles once more
     return fit

@@ -34,6 +34,7 @@ NOT_THE_TARGET = frozenset(
     {
         "area_mismatch",
         "shape_mismatch",
+        "edge_fit_failed",
         "angle_mismatch",
         "degenerate_triangle",
         "corners_not_found",
@@ -224,6 +225,8 @@ class TriangleDetector:
                 width=self._last_width if cand.fill == TRACKED else None,
             )
             self._fit_width = fit.width
+            if not fit.ok:
+                return self._reject("edge_fit_failed", warnings, mean, cand)
             xy, cov = intersect(fit)
             pts_px = cam.distort(xy / cam.fx)
             fit_contrast, outliers = fit.contrast.min(), fit.outlier_fraction.max()
