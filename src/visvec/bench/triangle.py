@@ -71,6 +71,12 @@ class Outcome:
         s = np.array(self.sigma_deg).reshape(-1, 3)
         return int(np.sum(np.any(e > k * s, axis=1)))
 
+    def max_abs_z(self) -> float:
+        """Largest |error| / sigma over the ok rows and axes."""
+        if not self.err_deg:
+            return float("nan")
+        return float(np.max(np.abs(np.array(self.err_deg)) / np.array(self.sigma_deg)))
+
     def summary(self) -> dict:
         return {
             "frames": self.n,
@@ -83,6 +89,10 @@ class Outcome:
                 zip(("yaw", "pitch", "roll"), self.mean().round(5).tolist(), strict=True)
             ),
             "ok_outside_3sigma": self.n_outside(3.0),
+            "ok_outside_5sigma": self.n_outside(5.0),
+            "max_abs_z": round(self.max_abs_z(), 2),
+            # a Gaussian 3-axis estimate falls outside 3 sigma on some axis in 0.81% of rows
+            "expected_outside_3sigma_if_gaussian": round(0.0081 * self.n_ok, 2),
             "statuses": {s: self.status.count(s) for s in sorted(set(self.status))},
         }
 

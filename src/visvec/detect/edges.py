@@ -19,9 +19,11 @@ from scipy.special import erf
 from visvec.camera import CameraModel
 
 # Variance inflation of the edge-point residuals for correlated neighbouring profiles
-# (profiles 1 px apart, bilinear sampling); calibrated by simulation so that vertex
+# (profiles 1.5 px apart, bilinear sampling); calibrated by simulation so that vertex
 # errors divided by their predicted sigma have unit RMS.
-EDGE_VARIANCE_INFLATION = 2.5
+EDGE_VARIANCE_INFLATION = 2.1
+# spacing of the edge profiles along the edge in the fine pass (px)
+PROFILE_SPACING_PX = 1.5
 # Gauss-Newton steps of the matched (erf) edge refinement
 GN_STEPS = 1
 # cv2.remap takes at most 32767 rows; no real edge needs more than this many profiles
@@ -293,7 +295,7 @@ def fit_edges(
             / np.sin(np.clip(_corner_angles(corners), 0.2, None)),
         )
         bases, normals, gid, t, along, vals, ends = _sample(
-            roi, corners, off, half, step, trims, 2.0 if npass == 0 else 1.0
+            roi, corners, off, half, step, trims, 2.0 if npass == 0 else PROFILE_SPACING_PX
         )
         e, h, mid = _positions(vals, t, gid, half, step, width if npass >= 1 else None)
         if npass == 0:
