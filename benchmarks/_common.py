@@ -20,6 +20,11 @@ def save_json(name: str, data: dict) -> Path:
 
 
 def command() -> str:
-    return "python " + " ".join([str(Path(sys.argv[0]).relative_to(ROOT))
-                                 if Path(sys.argv[0]).is_absolute() else sys.argv[0],
-                                 *sys.argv[1:]])
+    return "python " + " ".join(
+        [
+            str(Path(sys.argv[0]).relative_to(ROOT))
+            if Path(sys.argv[0]).is_absolute()
+            else sys.argv[0],
+            *sys.argv[1:],
+        ]
+    )

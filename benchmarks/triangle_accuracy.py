@@ -18,10 +18,11 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
-from _common import CONFIGS, OUT, command, save_json
 from visvec.bench.triangle import evaluate, machine, random_cases, render_cases, with_refine
 from visvec.rig import load_rig
 from visvec.sim.scene import Scene
+
+from _common import CONFIGS, OUT, command, save_json
 
 
 def main() -> None:
@@ -30,16 +31,19 @@ def main() -> None:
     args = ap.parse_args()
     results = {"command": command(), "machine": machine(), "date": time.strftime("%Y-%m-%d")}
     fig, axes = plt.subplots(2, 3, figsize=(13, 7))
-    for row, (name, cfg) in enumerate((("320x240", "triangle-320.toml"),
-                                       ("640x480", "triangle.toml"))):
+    for row, (name, cfg) in enumerate(
+        (("320x240", "triangle-320.toml"), ("640x480", "triangle.toml"))
+    ):
         rig = load_rig(CONFIGS / cfg)
         cases = random_cases(args.frames, Scene(), seed=11 + row)
         t0 = time.time()
         images = render_cases(rig, cases)
         res = {"render_s": round(time.time() - t0, 1)}
-        for label, r, method in (("full", rig, "full"),
-                                 ("full_cornersubpix", with_refine(rig, "corners"), "full"),
-                                 ("paper", rig, "paper")):
+        for label, r, method in (
+            ("full", rig, "full"),
+            ("full_cornersubpix", with_refine(rig, "corners"), "full"),
+            ("paper", rig, "paper"),
+        ):
             out = evaluate(r, images, cases, method)
             res[label] = out.summary()
             print(name, label, res[label])

@@ -15,11 +15,12 @@ from dataclasses import replace
 
 import numpy as np
 
-from _common import CONFIGS, command, save_json
 from visvec.bench.triangle import Case, evaluate, machine, render_cases
 from visvec.rig import load_rig
 from visvec.sim.scene import Light, Occluder, Scene
 from visvec.sim.simulate import true_rig
+
+from _common import CONFIGS, command, save_json
 
 
 def scenario_cases(kind: str, n: int, rig, seed: int) -> tuple[list[Case], object]:
@@ -35,11 +36,17 @@ def scenario_cases(kind: str, n: int, rig, seed: int) -> tuple[list[Case], objec
             z = r.uniform(900.0, 1600.0)
             f = (z - 150.0) / (c[2] - 150.0)
             off = r.uniform(-350.0, 350.0, 2)
-            sc = replace(sc, occluder=Occluder(f * off[0], f * off[1], z,
-                                               r.uniform(40.0, 160.0), r.uniform(30.0, 220.0)))
+            sc = replace(
+                sc,
+                occluder=Occluder(
+                    f * off[0], f * off[1], z, r.uniform(40.0, 160.0), r.uniform(30.0, 220.0)
+                ),
+            )
         elif kind == "lights":
-            lights = tuple(Light(*(r.uniform(-1400, 1400, 2)), r.uniform(60, 160))
-                           for _ in range(r.integers(1, 5)))
+            lights = tuple(
+                Light(*(r.uniform(-1400, 1400, 2)), r.uniform(60, 160))
+                for _ in range(r.integers(1, 5))
+            )
             sc = replace(sc, lights=lights)
         elif kind == "low_contrast":
             sc = replace(sc, contrast=r.uniform(3.0, 9.0))
@@ -62,8 +69,16 @@ def main() -> None:
     for cfg in ("triangle-320.toml", "triangle.toml"):
         rig = load_rig(CONFIGS / cfg)
         res = {}
-        for s, kind in enumerate(("occluder", "lights", "low_contrast", "overexposed",
-                                  "no_triangle", "partly_out_of_view")):
+        for s, kind in enumerate(
+            (
+                "occluder",
+                "lights",
+                "low_contrast",
+                "overexposed",
+                "no_triangle",
+                "partly_out_of_view",
+            )
+        ):
             cases, world = scenario_cases(kind, args.frames, rig, 100 + s)
             images = render_cases(world, cases)
             est_rig = world if kind == "partly_out_of_view" else rig

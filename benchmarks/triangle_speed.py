@@ -22,13 +22,14 @@ import time  # noqa: E402
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-from _common import CONFIGS, command, save_json  # noqa: E402
 from visvec.bench.triangle import Case, machine, render_cases  # noqa: E402
 from visvec.data import Frame  # noqa: E402
 from visvec.pipeline import TrianglePipeline  # noqa: E402
 from visvec.rig import load_rig  # noqa: E402
 from visvec.sim.scene import Scene  # noqa: E402
 from visvec.sim.simulate import random_attitudes  # noqa: E402
+
+from _common import CONFIGS, command, save_json  # noqa: E402
 
 
 def main() -> None:
@@ -44,8 +45,13 @@ def main() -> None:
     cases = [Case(e, Scene(), k) for k, e in enumerate(eul)]
     images = render_cases(rig, cases)
     pngs = [cv2.imencode(".png", im)[1] for im in images]
-    res = {"command": command(), "machine": machine(), "date": time.strftime("%Y-%m-%d"),
-           "frames": args.frames, "repeats": args.repeats}
+    res = {
+        "command": command(),
+        "machine": machine(),
+        "date": time.strftime("%Y-%m-%d"),
+        "frames": args.frames,
+        "repeats": args.repeats,
+    }
     times = {"tracking": [], "cold": [], "png_decode": []}
     n_ok = {"tracking": 0, "cold": 0}
     for _ in range(args.repeats):
@@ -64,8 +70,10 @@ def main() -> None:
             times["png_decode"].append(time.perf_counter() - t)
     for k, v in times.items():
         v = np.array(v) * 1000
-        res[k] = {"median_ms": round(float(np.median(v)), 3),
-                  "p90_ms": round(float(np.percentile(v, 90)), 3)}
+        res[k] = {
+            "median_ms": round(float(np.median(v)), 3),
+            "p90_ms": round(float(np.percentile(v, 90)), 3),
+        }
     for k, v in n_ok.items():
         res[k]["ok_fraction"] = round(v / (args.frames * args.repeats), 4)
     dec = res["png_decode"]["median_ms"]

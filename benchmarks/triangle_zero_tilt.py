@@ -11,7 +11,6 @@ import time
 
 import numpy as np
 
-from _common import CONFIGS, command, save_json
 from visvec.bench.triangle import Case, evaluate, machine, random_cases, render_cases
 from visvec.calib.zero_tilt import calibrate_zero_tilt
 from visvec.data import Frame, Status
@@ -19,6 +18,8 @@ from visvec.pipeline import TrianglePipeline
 from visvec.rig import load_rig
 from visvec.sim.scene import Scene
 from visvec.sim.simulate import true_rig
+
+from _common import CONFIGS, command, save_json
 
 ASKEW = 0.7 / np.sqrt(2.0)  # 0.7 deg in all, about an axis between b1 and b2
 
@@ -28,8 +29,12 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=200)
     ap.add_argument("--level", type=int, default=12)
     args = ap.parse_args()
-    results = {"command": command(), "machine": machine(), "date": time.strftime("%Y-%m-%d"),
-               "truth": {"target_offset_mm": [15.0, 0.0], "camera_askew_deg": [ASKEW, ASKEW]}}
+    results = {
+        "command": command(),
+        "machine": machine(),
+        "date": time.strftime("%Y-%m-%d"),
+        "truth": {"target_offset_mm": [15.0, 0.0], "camera_askew_deg": [ASKEW, ASKEW]},
+    }
     for cfg in ("triangle-320.toml", "triangle.toml"):
         rig = load_rig(CONFIGS / cfg)
         world = true_rig(rig, (15.0, 0.0), (ASKEW, ASKEW))
@@ -47,12 +52,16 @@ def main() -> None:
         cal_rig = cal.apply(rig)
         cases = random_cases(args.frames, Scene(), seed=31)
         imgs = render_cases(world, cases)
-        res = {"calibration": {
-            "target_offset_mm": cal.target_offset_mm.round(3).tolist(),
-            "sigma_target_offset_mm": cal.sigma_target_offset_mm.round(3).tolist(),
-            "camera_tilt_deg": cal.camera_tilt_deg.round(4).tolist(),
-            "sigma_camera_tilt_deg": cal.sigma_camera_tilt_deg.round(4).tolist(),
-            "rms_px": round(cal.rms_px, 4), "frames": len(dets)}}
+        res = {
+            "calibration": {
+                "target_offset_mm": cal.target_offset_mm.round(3).tolist(),
+                "sigma_target_offset_mm": cal.sigma_target_offset_mm.round(3).tolist(),
+                "camera_tilt_deg": cal.camera_tilt_deg.round(4).tolist(),
+                "sigma_camera_tilt_deg": cal.sigma_camera_tilt_deg.round(4).tolist(),
+                "rms_px": round(cal.rms_px, 4),
+                "frames": len(dets),
+            }
+        }
         for label, r in (("uncalibrated", rig), ("calibrated", cal_rig)):
             for method in ("full", "paper"):
                 res[f"{label}/{method}"] = evaluate(r, imgs, cases, method).summary()

@@ -3,7 +3,6 @@
 import numpy as np
 import pytest
 from click.testing import CliRunner
-from conftest import CONFIGS, shared
 
 from visvec.calib.camera import calibrate_camera
 from visvec.calib.zero_tilt import calibrate_zero_tilt, circle_centre
@@ -13,6 +12,8 @@ from visvec.errors import InputFileError
 from visvec.geometry import lab_to_camera
 from visvec.rotations import euler_to_matrix
 from visvec.sim.simulate import true_rig
+
+from conftest import CONFIGS, shared
 
 
 def _level_detections(rig, world, yaws, sigma_px=0.03, rng=None):

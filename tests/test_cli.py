@@ -10,7 +10,6 @@ import cv2
 import numpy as np
 import pytest
 from click.testing import CliRunner
-from conftest import CONFIGS, ROOT
 
 from visvec.cli.common import run_frames
 from visvec.cli.main import cli
@@ -18,6 +17,8 @@ from visvec.data import Frame
 from visvec.errors import SourceError
 from visvec.rig import load_rig
 from visvec.sources import VideoSource
+
+from conftest import CONFIGS, ROOT
 
 RIG = str(CONFIGS / "triangle.toml")
 SAMPLES = ROOT / "data" / "sample_frames"

@@ -6,7 +6,6 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from conftest import CONFIGS
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
@@ -17,6 +16,8 @@ from visvec.rig import load_rig
 from visvec.rotations import euler_to_matrix
 from visvec.sim.render import render_frame
 from visvec.sim.scene import Light, Occluder, Scene
+
+from conftest import CONFIGS
 
 # noise-free vertices must land within this of the truth (px): the renderer's
 # partial-pixel coverage and the edge fits agree to a few thousandths of a pixel

@@ -2,10 +2,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import CONFIGS
 
 from visvec.errors import ConfigError, VisvecError
 from visvec.rig import load_rig
+
+from conftest import CONFIGS
 
 GOOD = (CONFIGS / "triangle.toml").read_text()
 VERTS = "vertices_mm = [[372.5, 0.0, 2150.0], [-186.3, 190.5, 2150.0], [-186.3, -190.5, 2150.0]]"

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 from dataclasses import replace
 
 import click
@@ -117,9 +118,7 @@ def simulate(
         show_triangle=not no_triangle,
     )
     world = true_rig(rig, tuple(target_offset_mm), tuple(camera_askew_deg))
-    with click.progressbar(
-        length=n_frames, label="rendering", file=click.get_text_stream("stderr")
-    ) as bar:
+    with click.progressbar(length=n_frames, label="rendering", file=sys.stderr) as bar:
         truth = run_simulation(
             rig,
             out_dir,
