@@ -30,7 +30,7 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=300)
     args = ap.parse_args()
     results = {"command": command(), "machine": machine(), "date": time.strftime("%Y-%m-%d")}
-    fig, axes = plt.subplots(2, 3, figsize=(13, 7))
+    fig, axes = plt.subplots(2, 4, figsize=(16, 7))
     for row, (name, cfg) in enumerate(
         (("320x240", "triangle-320.toml"), ("640x480", "triangle.toml"))
     ):
@@ -47,13 +47,33 @@ def main() -> None:
             out = evaluate(r, images, cases, method)
             res[label] = out.summary()
             print(name, label, res[label])
-            if label in ("full", "paper"):
-                e = np.array(out.err_deg)
-                for k, ax in enumerate(axes[row]):
-                    ax.hist(e[:, k], bins=40, alpha=0.6, label=label)
-        for k, ax in enumerate(axes[row]):
-            ax.set_title(f"{name}: {('yaw', 'pitch', 'roll')[k]} error (deg)")
-            ax.legend()
+            e = np.array(out.err_deg)
+            if label == "full":
+                z = e / np.array(out.sigma_deg)
+                for k in range(3):
+                    axes[row, k].hist(e[:, k], bins=40, color="C0")
+                    axes[row, 3].hist(
+                        z[:, k],
+                        bins=np.linspace(-4, 4, 33),
+                        histtype="step",
+                        density=True,
+                        label=("yaw", "pitch", "roll")[k],
+                    )
+                x = np.linspace(-4, 4, 200)
+                axes[row, 3].plot(
+                    x, np.exp(-x * x / 2) / np.sqrt(2 * np.pi), "k--", label="N(0, 1)"
+                )
+                axes[row, 3].set_title(f"{name}: full, error / sigma")
+                axes[row, 3].legend(fontsize=8)
+                rms_full = out.rms()
+            if label == "paper":
+                rms_paper = out.rms()
+        for k in range(3):
+            axes[row, k].set_title(
+                f"{name}: {('yaw', 'pitch', 'roll')[k]} error, full (deg)\n"
+                f"RMS {rms_full[k]:.4f} (paper: {rms_paper[k]:.4f})",
+                fontsize=9,
+            )
         results[name] = res
     fig.tight_layout()
     OUT.mkdir(exist_ok=True)

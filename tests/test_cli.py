@@ -241,3 +241,28 @@ def test_batch_on_a_video_file_uses_its_clock(tmp_path):
     rows = rows_of(r.stdout)
     assert [float(x["time_s"]) for x in rows] == pytest.approx([0.0, 0.1, 0.2])
     assert all(x["status"] == "ok" for x in rows)
+
+
+def test_track_reads_a_stream_url(tmp_path):
+    import functools
+    import http.server
+    import threading
+
+    video = tmp_path / "rec.avi"
+    w = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 10, (640, 480), False)
+    for f in sorted(SAMPLES.glob("*.png"))[:3]:
+        w.write(cv2.imread(str(f), cv2.IMREAD_GRAYSCALE))
+    w.release()
+    handler = functools.partial(http.server.SimpleHTTPRequestHandler, directory=str(tmp_path))
+    httpd = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
+    threading.Thread(target=httpd.serve_forever, daemon=True).start()
+    try:
+        url = f"http://127.0.0.1:{httpd.server_address[1]}/rec.avi"
+        r = run("track", "--rig", RIG, "--camera", url, "--retry-s", "0.5")
+    finally:
+        httpd.shutdown()
+    if r.exit_code == 3 and "cannot open" in r.output:
+        pytest.skip("this OpenCV build cannot read HTTP streams")
+    assert r.exit_code == 0, r.output
+    rows = rows_of(r.stdout)
+    assert len(rows) == 3 and all(x["status"] == "ok" for x in rows)

@@ -39,11 +39,12 @@ def zero_tilt(frames, rig_path, calibration, out):
     --method full), zero-tilt centroid (for --method paper)."""
     rig = load(rig_path, calibration)
     pipe = TrianglePipeline(rig, "full")
-    dets, bad = [], 0
+    dets, names, bad = [], [], 0
     for frame in open_source(frames, fps=rig.fps, retry_s=0.0):
         row = pipe.process(frame)
         if pipe.last_detection is not None and pipe.last_detection.status is Status.OK:
             dets.append(pipe.last_detection)
+            names.append(frame.name or f"frame {frame.index}")
         else:
             bad += 1
             click.echo(
@@ -70,6 +71,9 @@ def zero_tilt(frames, rig_path, calibration, out):
     click.echo(
         f"  residual: rms {res.rms_px:.4f} px, worst frame {float(np.max(res.residual_px)):.4f} px"
     )
+    click.echo("  per frame (yaw found, rms vertex residual):")
+    for name, yaw, r in zip(names, res.yaw_deg, res.residual_px, strict=True):
+        click.echo(f"    {name}: yaw {yaw:+9.3f} deg, {r:.4f} px")
     if not res.converged:
         click.echo("visvec: error: the calibration did not converge; nothing written", err=True)
         raise SystemExit(1)

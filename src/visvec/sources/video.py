@@ -57,8 +57,9 @@ class VideoSource:
             while self.max_frames is None or i < self.max_frames:
                 ok, img = self.cap.read()
                 if not ok:
-                    if not self.live:
-                        return
+                    count = self.cap.get(cv2.CAP_PROP_FRAME_COUNT)
+                    if not self.live or (count and count > 0 and i >= count):
+                        return  # a file (or a stream of known length) has ended
                     img = self._retry()
                 now = time.monotonic()
                 if self._t0 is None:
