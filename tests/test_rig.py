@@ -35,7 +35,8 @@ def test_example_configs_load():
         ("fx = 600.0", "fx = -5.0", ["[camera] fx", "> 0"]),
         ("width = 640", "width = 640.5", ["[camera] width", "whole number"]),
         ('kind = "triangle"', 'kind = "hexagon"', ["[target] kind", "expected one of"]),
-        ('kind = "triangle"', 'kind = "markers"', ["[target] kind", "not supported"]),
+        ('kind = "triangle"', 'kind = "lamps"', ["[target] kind", "not supported"]),
+        ('kind = "triangle"', 'kind = "markers"', ["[mount] on", "fixed in the lab"]),
         ('on = "platform"', 'on = "ceiling"', ["[mount] on", "expected one of"]),
         (
             "rotation = [[1, 0, 0], [0, 1, 0], [0, 0, 1]]",
@@ -100,3 +101,37 @@ def test_calibration_file_overrides_named_keys(tmp_path):
     cal.write_text("[bogus]\nx = 1\n")
     with pytest.raises(ConfigError, match=r"cal.toml: unknown section"):
         load_rig(rig_p, cal)
+
+
+MARKERS = (CONFIGS / "markers.toml").read_text()
+
+
+def test_markers_rig_loads():
+    rig = load_rig(CONFIGS / "markers.toml")
+    assert rig.kind == "markers" and rig.target.points_b.shape == (21, 3)
+    assert rig.target.reference_id == 20
+    # pattern 1 is turned 90 deg about b3: its second LED (40, 0, 0) lands at +40 along b2
+    np.testing.assert_allclose(rig.target.points_b[6], [-80.0, 135.0, 150.0])
+
+
+@pytest.mark.parametrize(
+    "old, new, words",
+    [
+        ("reference_id = 20", "reference_id = 21", ["[target] reference_id", "0..20"]),
+        ("reference_id = 20", 'reference_id = "top"', ["[target] reference_id"]),
+        ("points_mm = [[0.0, 0.0, 0.0]]", "points_mm = [[0.0, 0.0]]",
+         ["[target.patterns[4]] points_mm", "[x, y, z]"]),
+        ("points_mm = [[0.0, 0.0, 0.0]]", "points_mm = [[0.0, 0.0, 0.0]]\ncolour = 'green'",
+         ["[target.patterns[4]]", "unknown key", "colour"]),
+        ("position_mm = [-175.0, -150.0, 150.0]", "position_mm = [95.0, 70.0, 150.0]",
+         ["markers 0 and 20 are at the same place"]),
+        ('on = "lab"', 'on = "platform"', ["[mount] on", "fixed in the lab"]),
+    ],
+)
+def test_bad_markers_rig(tmp_path, old, new, words):
+    assert old in MARKERS
+    p = write(tmp_path, MARKERS.replace(old, new, 1))
+    with pytest.raises(ConfigError) as exc:
+        load_rig(p)
+    for w in words:
+        assert w in str(exc.value), str(exc.value)

@@ -20,7 +20,7 @@ from visvec.camera import CameraModel
 from visvec.errors import ConfigError
 
 TARGET_KINDS = ("triangle", "markers", "lamps", "starfield")
-SUPPORTED_KINDS = ("triangle",)
+SUPPORTED_KINDS = ("triangle", "markers")
 REFINE_METHODS = ("lines", "corners")
 
 
@@ -46,6 +46,39 @@ class TriangleTarget:
 
 
 @dataclass(frozen=True)
+class Pattern:
+    """A rigid board of markers: origin ``position_mm`` (3,) and rotation R_B,board (3, 3)
+    in B, and the markers' coordinates ``points_mm`` (K, 3) in the board frame."""
+
+    position_mm: np.ndarray
+    rotation: np.ndarray
+    points_mm: np.ndarray
+
+    @property
+    def points_b(self) -> np.ndarray:
+        """(K, 3) marker positions in B."""
+        return self.points_mm @ self.rotation.T + self.position_mm
+
+
+@dataclass(frozen=True)
+class MarkerTarget:
+    """Markers on the platform; ids run 0..M-1 in file order across patterns.
+
+    reference_id : the id of a reference marker set apart from the others (the STASIS
+        layout's identification aid), or None.
+    """
+
+    patterns: tuple[Pattern, ...]
+    reference_id: int | None = None
+    kind: str = "markers"
+
+    @property
+    def points_b(self) -> np.ndarray:
+        """(M, 3) all marker positions in B."""
+        return np.vstack([p.points_b for p in self.patterns])
+
+
+@dataclass(frozen=True)
 class DetectSettings:
     """Detector settings (``[detect]``), all optional.
 
@@ -53,12 +86,20 @@ class DetectSettings:
     min_contrast : least grey-level step between board and triangle to accept.
     refine : "lines" (edge-line fits, default) or "corners" (cv2.cornerSubPix).
     pixel_sigma_floor : px, least per-point noise assumed in the covariance.
+    threshold : markers: grey level above which a pixel belongs to a spot (0 = automatic:
+        background median + 6 robust sigmas, at least 20).
+    centroid_sigma_px : markers: 1-sigma noise of a spot centroid, used in the covariance.
+    min_spot_px, max_spot_px : markers: accepted spot areas (pixels).
     """
 
     brightness_band: tuple[float, float] = (35.0, 220.0)
     min_contrast: float = 8.0
     refine: str = "lines"
     pixel_sigma_floor: float = 0.02
+    threshold: float = 0.0
+    centroid_sigma_px: float = 0.1
+    min_spot_px: int = 3
+    max_spot_px: int = 400
 
 
 @dataclass(frozen=True)
@@ -74,7 +115,7 @@ class Rig:
 
     camera: CameraModel
     mount: Mount
-    target: TriangleTarget
+    target: TriangleTarget | MarkerTarget
     max_tilt_deg: float = 10.0
     detect: DetectSettings = field(default_factory=DetectSettings)
     zero_tilt: ZeroTilt = field(default_factory=ZeroTilt)
@@ -83,13 +124,27 @@ class Rig:
     path: Path | None = None
 
     @property
+    def kind(self) -> str:
+        return self.target.kind
+
+    @property
     def t_b(self) -> np.ndarray:
-        """(3,) camera optical centre in B, mm."""
+        """(3,) camera optical centre in B, mm (camera on the platform)."""
         return self.mount.position_mm
 
     @property
     def R_bc(self) -> np.ndarray:
-        """(3, 3) camera-to-body rotation."""
+        """(3, 3) camera-to-body rotation (camera on the platform)."""
+        return self.mount.rotation
+
+    @property
+    def t_n(self) -> np.ndarray:
+        """(3,) camera optical centre in N, mm (camera fixed in the lab)."""
+        return self.mount.position_mm
+
+    @property
+    def R_nc(self) -> np.ndarray:
+        """(3, 3) camera-to-lab rotation (camera fixed in the lab)."""
         return self.mount.rotation
 
 
@@ -285,18 +340,13 @@ def rig_from_dict(raw: Mapping[str, Any], src: str = "<rig>", base_dir: Path | N
             f"{src}: [target] kind = {kind!r}: not supported by this version of visvec "
             f"(supported: {list(SUPPORTED_KINDS)})"
         )
-    if mount.on != "platform":
-        raise ConfigError(
-            f"{src}: [mount] on = {mount.on!r}: a triangle target needs the camera "
-            'on the platform (on = "platform")'
-        )
-    verts = tgt.array("vertices_mm", (3, 3), required=True)
-    tgt.check_unknown()
-    _check_triangle(verts, src)
-    target = TriangleTarget(vertices_mm=verts)
+    if kind == "triangle":
+        target = _triangle_target(tgt, mount, src)
+    else:
+        target = _marker_target(tgt, mount, src)
 
     plat = _Section(src, "platform", raw.get("platform", {}))
-    max_tilt = plat.number("max_tilt_deg", 10.0, positive=True, hi=45.0)
+    max_tilt = plat.number("max_tilt_deg", 10.0, positive=True, hi=60.0)
     plat.check_unknown()
 
     det = _Section(src, "detect", raw.get("detect", {}))
@@ -311,6 +361,10 @@ def rig_from_dict(raw: Mapping[str, Any], src: str = "<rig>", base_dir: Path | N
         min_contrast=det.number("min_contrast", 8.0, positive=True),
         refine=det.choice("refine", REFINE_METHODS, "lines"),
         pixel_sigma_floor=det.number("pixel_sigma_floor", 0.02, lo=0.0, hi=5.0),
+        threshold=det.number("threshold", 0.0, lo=0.0, hi=65535.0),
+        centroid_sigma_px=det.number("centroid_sigma_px", 0.1, positive=True, hi=10.0),
+        min_spot_px=int(det.number("min_spot_px", 3, positive=True)),
+        max_spot_px=int(det.number("max_spot_px", 400, positive=True)),
     )
     det.check_unknown()
 
@@ -362,8 +416,74 @@ def _check_triangle(v: np.ndarray, src: str) -> None:
         )
 
 
+def _triangle_target(tgt: _Section, mount: Mount, src: str) -> TriangleTarget:
+    if mount.on != "platform":
+        raise ConfigError(
+            f"{src}: [mount] on = {mount.on!r}: a triangle target needs the camera "
+            'on the platform (on = "platform")'
+        )
+    verts = tgt.array("vertices_mm", (3, 3), required=True)
+    tgt.check_unknown()
+    _check_triangle(verts, src)
+    return TriangleTarget(vertices_mm=verts)
+
+
+def _marker_target(tgt: _Section, mount: Mount, src: str) -> MarkerTarget:
+    if mount.on != "lab":
+        raise ConfigError(
+            f"{src}: [mount] on = {mount.on!r}: a markers target needs the camera fixed "
+            'in the lab (on = "lab")'
+        )
+    pats = tgt.get("patterns", required=True)
+    if not isinstance(pats, list) or not pats or not all(isinstance(p, dict) for p in pats):
+        raise ConfigError(f"{src}: [target] patterns: expected one or more "
+                          "[[target.patterns]] tables")
+    patterns = []
+    for i, raw in enumerate(pats):
+        sec = _Section(src, f"target.patterns[{i}]", raw)
+        pts = sec.get("points_mm", required=True)
+        try:
+            arr = np.array(pts, dtype=float)
+        except (TypeError, ValueError):
+            arr = None
+        if arr is None or arr.ndim != 2 or arr.shape[1] != 3 or len(arr) == 0 or not np.all(
+                np.isfinite(arr)):
+            raise ConfigError(f"{src}: [target.patterns[{i}]] points_mm = {pts!r}: expected "
+                              "a list of [x, y, z] marker positions (mm)")
+        patterns.append(Pattern(sec.array("position_mm", (3,), default=[0.0, 0.0, 0.0]),
+                                _rotation(sec, "rotation") if sec.has("rotation")
+                                else np.eye(3), arr))
+        sec.get("rotation")
+        sec.check_unknown()
+    n = sum(len(p.points_mm) for p in patterns)
+    ref = tgt.get("reference_id")
+    if ref is not None and (isinstance(ref, bool) or not isinstance(ref, int)
+                            or not 0 <= ref < n):
+        raise ConfigError(f"{src}: [target] reference_id = {ref!r}: expected a marker id "
+                          f"0..{n - 1}")
+    tgt.check_unknown()
+    target = MarkerTarget(tuple(patterns), ref)
+    pts = target.points_b
+    if n < 4:
+        raise ConfigError(f"{src}: [target] patterns: {n} markers; at least 4 are needed")
+    d = np.linalg.norm(pts[:, None] - pts[None], axis=2) + np.eye(n) * 1e9
+    if d.min() < 1e-6:
+        i, j = np.unravel_index(np.argmin(d), d.shape)
+        raise ConfigError(f"{src}: [target] patterns: markers {i} and {j} are at the same "
+                          "place")
+    return target
+
+
 def _check_visible(rig: Rig, src: str) -> None:
     """The target must be in front of the camera at zero attitude."""
+    if rig.kind == "markers":
+        p_c = (rig.target.points_b - rig.t_n) @ rig.R_nc
+        if np.any(p_c[:, 2] <= 0):
+            raise ConfigError(
+                f"{src}: [mount] rotation: markers are behind the camera at zero attitude; "
+                "expected the boresight (third column of R_NC) to point at the platform"
+            )
+        return
     p_c = (rig.target.vertices_mm - rig.t_b) @ rig.R_bc
     if np.any(p_c[:, 2] <= 0):
         raise ConfigError(
