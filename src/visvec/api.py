@@ -13,7 +13,7 @@ from visvec.detect import TriangleDetector
 from visvec.errors import ConfigError, InputFileError, SourceError, VisvecError
 from visvec.estimate import solve_full, solve_paper
 from visvec.output import ATTITUDE_COLUMNS, AttitudeRow
-from visvec.pipeline import TrianglePipeline
+from visvec.pipeline import MarkerPipeline, TrianglePipeline, make_pipeline
 from visvec.rig import Rig, load_rig
 from visvec.sim.render import render_frame
 from visvec.sim.scene import Light, Occluder, Scene
@@ -39,6 +39,8 @@ __all__ = [
     "SyntheticSource",
     "TriangleDetector",
     "TrianglePipeline",
+    "MarkerPipeline",
+    "make_pipeline",
     "VideoSource",
     "VisvecError",
     "calibrate_camera",

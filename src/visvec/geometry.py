@@ -25,3 +25,14 @@ def camera_offset_c(rig: Rig) -> np.ndarray:
     R_CN = R_BC^T R_NB^T is unknown.
     """
     return -rig.R_bc.T @ rig.t_b
+
+
+def markers_to_camera(rig: Rig, R_nb: np.ndarray, m_b: np.ndarray) -> np.ndarray:
+    """Body points (N, 3) seen by a camera fixed in the lab:
+    P_C = R_NC^T (R_NB M_B - t_N)."""
+    return (m_b @ R_nb.T - rig.t_n) @ rig.R_nc
+
+
+def lab_camera_offset_c(rig: Rig) -> np.ndarray:
+    """(3,) t_c in P_C = R_CB M_B + t_c for a camera fixed in the lab: t_c = -R_NC^T t_N."""
+    return -rig.R_nc.T @ rig.t_n

@@ -5,7 +5,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from visvec.data import Detection, Status
+from visvec.data import Status
 from visvec.output import AttitudeRow
 
 _GREEN, _RED, _BLUE, _YELLOW, _GREY = (
@@ -18,10 +18,22 @@ _GREEN, _RED, _BLUE, _YELLOW, _GREY = (
 
 
 def draw_overlay(
-    image: np.ndarray, det: Detection | None, row: AttitudeRow, scale: int | None = None
+    image: np.ndarray,
+    det: object | None,
+    row: AttitudeRow,
+    rig: object | None = None,
+    scale: int | None = None,
 ) -> np.ndarray:
-    """BGR picture of ``image`` with the region outline, vertices (the acute one red),
-    centroid, lab axes n1 (toward the acute vertex) and n2, and the row's numbers."""
+    """BGR picture of ``image`` with the detection drawn and the row's numbers.
+
+    Triangle: the region outline, vertices (the acute one red), centroid, lab axes n1
+    (toward the acute vertex, red) and n2 (blue). Markers: each spot circled, green with
+    its marker id when identified, red when not; brightened so the dark frame shows.
+    """
+    from visvec.pipeline import MarkerDetection
+
+    if isinstance(det, MarkerDetection):
+        return _text(_draw_markers(image, det, rig), row)
     if scale is None:
         scale = max(1, int(round(800 / max(image.shape[1], 1))))
     big = cv2.resize(image, None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST)
@@ -49,6 +61,10 @@ def draw_overlay(
         cv2.drawMarker(
             out, tuple(int(x) >> sh for x in P(c)), _YELLOW, cv2.MARKER_CROSS, 14, 1, cv2.LINE_AA
         )
+    return _text(out, row)
+
+
+def _text(out: np.ndarray, row: AttitudeRow) -> np.ndarray:
     text = [f"frame {row.frame}  {row.status}"]
     if row.ok:
         y, p, r = row.euler_deg
@@ -61,4 +77,25 @@ def draw_overlay(
         org = (8, 22 + 20 * i)
         cv2.putText(out, t, org, cv2.FONT_HERSHEY_SIMPLEX, 0.55, (0, 0, 0), 3, cv2.LINE_AA)
         cv2.putText(out, t, org, cv2.FONT_HERSHEY_SIMPLEX, 0.55, (255, 255, 255), 1, cv2.LINE_AA)
+    return out
+
+
+def _draw_markers(image: np.ndarray, det, rig) -> np.ndarray:
+    bright = cv2.convertScaleAbs(image, alpha=4.0)
+    out = cv2.cvtColor(bright, cv2.COLOR_GRAY2BGR)
+    for (u, v), k in zip(det.spots.centroids_px, det.ids, strict=True):
+        c = (int(round(u)), int(round(v)))
+        color = _GREEN if k >= 0 else _RED
+        cv2.circle(out, c, 14, color, 2, cv2.LINE_AA)
+        if k >= 0:
+            cv2.putText(
+                out,
+                str(int(k)),
+                (c[0] + 16, c[1] - 10),
+                cv2.FONT_HERSHEY_SIMPLEX,
+                0.9,
+                color,
+                2,
+                cv2.LINE_AA,
+            )
     return out

@@ -436,8 +436,9 @@ def _marker_target(tgt: _Section, mount: Mount, src: str) -> MarkerTarget:
         )
     pats = tgt.get("patterns", required=True)
     if not isinstance(pats, list) or not pats or not all(isinstance(p, dict) for p in pats):
-        raise ConfigError(f"{src}: [target] patterns: expected one or more "
-                          "[[target.patterns]] tables")
+        raise ConfigError(
+            f"{src}: [target] patterns: expected one or more [[target.patterns]] tables"
+        )
     patterns = []
     for i, raw in enumerate(pats):
         sec = _Section(src, f"target.patterns[{i}]", raw)
@@ -446,21 +447,32 @@ def _marker_target(tgt: _Section, mount: Mount, src: str) -> MarkerTarget:
             arr = np.array(pts, dtype=float)
         except (TypeError, ValueError):
             arr = None
-        if arr is None or arr.ndim != 2 or arr.shape[1] != 3 or len(arr) == 0 or not np.all(
-                np.isfinite(arr)):
-            raise ConfigError(f"{src}: [target.patterns[{i}]] points_mm = {pts!r}: expected "
-                              "a list of [x, y, z] marker positions (mm)")
-        patterns.append(Pattern(sec.array("position_mm", (3,), default=[0.0, 0.0, 0.0]),
-                                _rotation(sec, "rotation") if sec.has("rotation")
-                                else np.eye(3), arr))
+        if (
+            arr is None
+            or arr.ndim != 2
+            or arr.shape[1] != 3
+            or len(arr) == 0
+            or not np.all(np.isfinite(arr))
+        ):
+            raise ConfigError(
+                f"{src}: [target.patterns[{i}]] points_mm = {pts!r}: expected "
+                "a list of [x, y, z] marker positions (mm)"
+            )
+        patterns.append(
+            Pattern(
+                sec.array("position_mm", (3,), default=[0.0, 0.0, 0.0]),
+                _rotation(sec, "rotation") if sec.has("rotation") else np.eye(3),
+                arr,
+            )
+        )
         sec.get("rotation")
         sec.check_unknown()
     n = sum(len(p.points_mm) for p in patterns)
     ref = tgt.get("reference_id")
-    if ref is not None and (isinstance(ref, bool) or not isinstance(ref, int)
-                            or not 0 <= ref < n):
-        raise ConfigError(f"{src}: [target] reference_id = {ref!r}: expected a marker id "
-                          f"0..{n - 1}")
+    if ref is not None and (isinstance(ref, bool) or not isinstance(ref, int) or not 0 <= ref < n):
+        raise ConfigError(
+            f"{src}: [target] reference_id = {ref!r}: expected a marker id 0..{n - 1}"
+        )
     tgt.check_unknown()
     target = MarkerTarget(tuple(patterns), ref)
     pts = target.points_b
@@ -469,8 +481,7 @@ def _marker_target(tgt: _Section, mount: Mount, src: str) -> MarkerTarget:
     d = np.linalg.norm(pts[:, None] - pts[None], axis=2) + np.eye(n) * 1e9
     if d.min() < 1e-6:
         i, j = np.unravel_index(np.argmin(d), d.shape)
-        raise ConfigError(f"{src}: [target] patterns: markers {i} and {j} are at the same "
-                          "place")
+        raise ConfigError(f"{src}: [target] patterns: markers {i} and {j} are at the same place")
     return target
 
 

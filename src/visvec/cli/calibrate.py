@@ -13,7 +13,7 @@ from visvec.calib.tomlout import dumps
 from visvec.calib.zero_tilt import calibrate_zero_tilt, calibration_sections
 from visvec.cli.common import load, rig_options
 from visvec.data import Status
-from visvec.errors import SourceError
+from visvec.errors import ConfigError, SourceError
 from visvec.pipeline import TrianglePipeline
 from visvec.sources import open_source
 from visvec.sources.folder import IMAGE_SUFFIXES, natural_key
@@ -38,6 +38,10 @@ def zero_tilt(frames, rig_path, calibration, out):
     several yaws: target offset from the rotation axis and camera mounting tilt (for
     --method full), zero-tilt centroid (for --method paper)."""
     rig = load(rig_path, calibration)
+    if rig.kind != "triangle":
+        raise ConfigError(
+            f"{rig_path}: [target] kind = {rig.kind!r}: zero-tilt calibration is for triangle rigs"
+        )
     pipe = TrianglePipeline(rig, "full")
     dets, names, bad = [], [], 0
     for frame in open_source(frames, fps=rig.fps, retry_s=0.0):

@@ -10,7 +10,7 @@ import click
 import cv2
 
 from visvec.output import ATTITUDE_COLUMNS, AttitudeRow
-from visvec.pipeline import METHODS, TrianglePipeline
+from visvec.pipeline import METHODS, make_pipeline
 from visvec.rig import Rig, load_rig
 from visvec.sinks import open_sink
 
@@ -96,7 +96,7 @@ def run_frames(
     max_frames: int | None,
 ) -> list[AttitudeRow]:
     """Process frames, writing each row as it is made; Ctrl-C ends the loop cleanly."""
-    pipe = TrianglePipeline(rig, method)
+    pipe = make_pipeline(rig, method)
     rows: list[AttitudeRow] = []
     ov = Path(overlay) if overlay else None
     if ov is not None:
@@ -122,7 +122,7 @@ def run_frames(
                 if ov is not None and frame.image is not None:
                     from visvec.overlay import draw_overlay
 
-                    img = draw_overlay(frame.image, pipe.last_detection, row)
+                    img = draw_overlay(frame.image, pipe.last_detection, row, rig)
                     cv2.imwrite(str(ov / f"overlay_{frame.index:06d}.png"), img)
                 if max_frames is not None and len(rows) >= max_frames:
                     break

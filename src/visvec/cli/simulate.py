@@ -8,6 +8,7 @@ from dataclasses import replace
 import click
 
 from visvec.cli.common import load, rig_options
+from visvec.sim.markers import SpotScene
 from visvec.sim.scene import Scene
 from visvec.sim.simulate import Clutter, true_rig
 from visvec.sim.simulate import simulate as run_simulation
@@ -76,6 +77,13 @@ from visvec.sim.simulate import simulate as run_simulation
 )
 @click.option("--no-triangle", is_flag=True, help="Render the board without the triangle.")
 @click.option(
+    "--reflections",
+    type=click.IntRange(min=0),
+    default=0,
+    show_default=True,
+    help="Markers: stray reflection spots per frame.",
+)
+@click.option(
     "--target-offset-mm",
     nargs=2,
     type=float,
@@ -104,11 +112,20 @@ def simulate(
     lights,
     occluder,
     no_triangle,
+    reflections,
     target_offset_mm,
     camera_askew_deg,
 ):
     """Render frames of the rig's target at known attitudes; write OUT/truth.csv."""
     rig = load(rig_path, calibration)
+    if rig.kind != "triangle" and (
+        lights or occluder or no_triangle or any(target_offset_mm) or any(camera_askew_deg)
+    ):
+        raise click.UsageError(
+            "--lights, --occluder, --no-triangle, --target-offset-mm and "
+            "--camera-askew-deg apply to triangle rigs only"
+        )
+    spots = SpotScene(noise_sigma=noise, reflections=reflections)
     scene = replace(
         Scene(),
         noise_sigma=noise,
@@ -129,6 +146,7 @@ def simulate(
             motion=motion,
             clutter=Clutter(lights=lights, occluder=occluder),
             render_rig=world,
+            spot_scene=spots,
             progress=lambda i: bar.update(1),
         )
     click.echo(f"wrote {n_frames} frames and {truth}", err=True)

@@ -12,6 +12,7 @@ import numpy as np
 
 from visvec.rig import Rig
 from visvec.rotations import euler_to_matrix, matrix_to_euler, matrix_to_quat, rot_x, rot_y
+from visvec.sim.markers import SpotScene, render_markers
 from visvec.sim.render import render_frame
 from visvec.sim.scene import Light, Occluder, Scene
 
@@ -67,7 +68,11 @@ def true_rig(
     camera_askew_deg: tuple[float, float] = (0.0, 0.0),
 ) -> Rig:
     """The lab as it really is: the target shifted on the ceiling and the camera tilted
-    on its mount (about b1 and b2) against what the rig file says."""
+    on its mount (about b1 and b2) against what the rig file says (triangle rigs)."""
+    if rig.kind != "triangle":
+        if any(target_offset_mm) or any(camera_askew_deg):
+            raise ValueError("target offset and camera askew apply to triangle rigs only")
+        return rig
     v = rig.target.vertices_mm.copy()
     v[:, 0] += target_offset_mm[0]
     v[:, 1] += target_offset_mm[1]
@@ -127,6 +132,7 @@ def simulate(
     fps: float | None = None,
     clutter: Clutter | None = None,
     render_rig: Rig | None = None,
+    spot_scene: SpotScene | None = None,
     progress: Callable[[int], None] | None = None,
 ) -> Path:
     """Render ``n_frames`` frames into ``out_dir`` and write ``out_dir/truth.csv``.
@@ -157,8 +163,11 @@ def simulate(
         w.writerow(TRUTH_COLUMNS)
         for i, (yaw, pitch, roll) in enumerate(eul):
             R = euler_to_matrix(yaw, pitch, roll)
-            sc = scene_for_frame(scene, clutter, world, rng)
-            img = render_frame(world, R, sc, rng)
+            if world.kind == "markers":
+                img = render_markers(world, R, spot_scene or SpotScene(), rng)
+            else:
+                sc = scene_for_frame(scene, clutter, world, rng)
+                img = render_frame(world, R, sc, rng)
             name = f"frame_{i:0{width}d}.png"
             cv2.imwrite(str(out / name), img)
             e = np.degrees(matrix_to_euler(R))

@@ -1,0 +1,170 @@
+"""Which spot is which marker.
+
+Tracking: the markers are projected at the last attitude and each takes the nearest
+spot within a gate (one-to-one). Lost: attitude hypotheses on a grid (yaw over the circle,
+tilts within the rig's range; with a reference marker, the STASIS scheme narrows yaw:
+the spot farthest from the mean of all spots is the reference, Sec. 3.2) are scored by
+how many projected markers land near a spot; the best few are refined by alternating
+matching and the constrained solve with shrinking gates. A layout that more than one
+distinct attitude explains as well is refused as ambiguous: a wrong identification must
+never become an ok row.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from visvec.estimate.markers import solve_markers
+from visvec.geometry import lab_camera_offset_c
+from visvec.rig import Rig
+from visvec.rotations import euler_to_matrix
+
+GRID_YAW_STEP_DEG = 2.0
+GRID_TILT_STEP_DEG = 4.0
+COARSE_GATE_PX = 45.0
+REFINE_GATES_PX = (40.0, 12.0, 5.0)
+TOP_HYPOTHESES = 6
+AMBIGUITY_DEG = 0.5
+
+
+@dataclass(frozen=True)
+class Identification:
+    """ids : (N,) marker id of each spot, -1 for a spot that is no marker;
+    R_nb : attitude found while identifying (None if none); reason when it failed."""
+
+    ids: np.ndarray
+    R_nb: np.ndarray | None
+    reason: str = ""
+
+
+def _angle(Ra: np.ndarray, Rb: np.ndarray) -> float:
+    return float(np.arccos(np.clip((np.trace(Ra.T @ Rb) - 1) / 2, -1.0, 1.0)))
+
+
+class MarkerIdentifier:
+    """Identifies spots (in undistorted normalised coordinates) as the rig's markers."""
+
+    def __init__(self, rig: Rig, sigma_px: float):
+        self.rig = rig
+        self.sigma_px = sigma_px
+        self.f = rig.camera.fx
+        self.X = rig.target.points_b
+        self.t_c = lab_camera_offset_c(rig)
+        self.R_cn = rig.R_nc.T
+
+    def project(self, R_nb: np.ndarray) -> np.ndarray:
+        """(M, 2) normalised image positions of all markers at attitude R_nb."""
+        p = self.X @ (self.R_cn @ R_nb).T + self.t_c
+        return p[:, :2] / p[:, 2:3]
+
+    def match(self, xy: np.ndarray, pred: np.ndarray, gate_px: float) -> np.ndarray:
+        """(N,) marker id per spot: mutual nearest neighbours within the gate, else -1."""
+        ids = np.full(len(xy), -1)
+        if len(xy) == 0:
+            return ids
+        g = gate_px / self.f
+        tree = cKDTree(xy)
+        d, j = tree.query(pred, distance_upper_bound=g)
+        back_d, back_i = cKDTree(pred).query(xy, distance_upper_bound=g)
+        for m, (dist, s) in enumerate(zip(d, j, strict=True)):
+            if np.isfinite(dist) and back_i[s] == m:
+                ids[s] = m
+        return ids
+
+    def refine(
+        self, xy: np.ndarray, R_nb: np.ndarray, gates=REFINE_GATES_PX
+    ) -> tuple[np.ndarray, np.ndarray | None]:
+        """Alternate matching and solving with shrinking gates from ``R_nb``."""
+        ids = np.full(len(xy), -1)
+        R = R_nb
+        for gate in gates:
+            ids = self.match(xy, self.project(R), gate)
+            sel = ids >= 0
+            if sel.sum() < 4:
+                return ids, None
+            sol = solve_markers(xy[sel], ids[sel], self.rig, self.sigma_px, R)
+            if sol.status.value not in ("ok", "rejected"):
+                return ids, None
+            R = sol.R_nb
+        ids = self.match(xy, self.project(R), max(5.0 * self.sigma_px, 1.0))
+        return ids, R
+
+    def reference_yaws(self, xy: np.ndarray) -> np.ndarray | None:
+        """Yaws to search when the rig has a reference marker (STASIS Sec. 3.2: the
+        reference LED is the spot farthest from the mean of all spots): a window about
+        the yaw that puts it there, for each of the three farthest spots (a stray spot
+        can be the farthest)."""
+        ref = self.rig.target.reference_id
+        if ref is None or len(xy) < 4:
+            return None
+        c = xy.mean(axis=0)
+        far = np.argsort(-np.linalg.norm(xy - c, axis=1))[:3]
+        zero = self.project(np.eye(3))
+        yaw_model = np.arctan2(*(zero[ref] - zero.mean(axis=0))[::-1])
+        # the image of a yaw turn turns one way or the other depending on the mount
+        sgn = np.sign(np.linalg.det(self.R_cn[:2, :2])) or 1.0
+        window = np.radians(np.arange(-20.0, 20.1, GRID_YAW_STEP_DEG))
+        return np.concatenate(
+            [sgn * (np.arctan2(*(xy[k] - c)[::-1]) - yaw_model) + window for k in far]
+        )
+
+    def hypotheses(self, xy: np.ndarray, yaws: np.ndarray | None = None) -> list[np.ndarray]:
+        """Best grid attitudes by the count of markers landing near a spot."""
+        t = np.radians(self.rig.max_tilt_deg)
+        st = np.radians(GRID_TILT_STEP_DEG)
+        tilts = np.arange(-np.ceil(t / st), np.ceil(t / st) + 1) * st
+        if yaws is None:
+            yaws = np.radians(np.arange(-180.0, 180.0, GRID_YAW_STEP_DEG))
+        Y, P, Rr = np.meshgrid(yaws, tilts, tilts, indexing="ij")
+        Rs = np.stack(
+            [
+                euler_to_matrix(y, p, r)
+                for y, p, r in zip(Y.ravel(), P.ravel(), Rr.ravel(), strict=True)
+            ]
+        )
+        p = np.einsum("hij,mj->hmi", np.einsum("ij,hjk->hik", self.R_cn, Rs), self.X)
+        p = p + self.t_c
+        proj = p[..., :2] / p[..., 2:3]
+        d, _ = cKDTree(xy).query(proj.reshape(-1, 2), distance_upper_bound=COARSE_GATE_PX / self.f)
+        score = np.isfinite(d).reshape(len(Rs), -1).sum(axis=1)
+        order = np.argsort(-score)
+        picked: list[np.ndarray] = []
+        for h in order:
+            if len(picked) >= TOP_HYPOTHESES or score[h] < 4:
+                break
+            if all(_angle(Rs[h], q) > np.radians(8.0) for q in picked):
+                picked.append(Rs[h])
+        return picked
+
+    def identify(self, xy: np.ndarray, R_last: np.ndarray | None = None) -> Identification:
+        """Marker ids of the spots ``xy`` (N, 2), tracking from ``R_last`` if given."""
+        none = np.full(len(xy), -1)
+        if len(xy) < 4:
+            return Identification(none, None, "too_few_spots")
+        if R_last is not None:
+            ids, R = self.refine(xy, R_last, gates=(15.0, 5.0))
+            if R is not None and (ids >= 0).sum() >= 4:
+                return Identification(ids, R)
+        results = []
+        ref_yaws = self.reference_yaws(xy)
+        for yaws in (ref_yaws, None) if ref_yaws is not None else (None,):
+            for R0 in self.hypotheses(xy, yaws):
+                ids, R = self.refine(xy, R0)
+                if R is not None:
+                    results.append((int((ids >= 0).sum()), ids, R))
+            n_all = min(len(xy), len(self.X))
+            if results and max(r[0] for r in results) >= 0.8 * n_all:
+                break  # the reference scheme found (nearly) every marker: done
+        if not results:
+            return Identification(none, None, "not_identified")
+        results.sort(key=lambda t: -t[0])
+        n_best, ids, R = results[0]
+        for n, _, R2 in results[1:]:
+            if n >= n_best - 1 and _angle(R, R2) > np.radians(AMBIGUITY_DEG):
+                return Identification(none, None, "ambiguous_layout")
+        if n_best < 4:
+            return Identification(none, None, "not_identified")
+        return Identification(ids, R)

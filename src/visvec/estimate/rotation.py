@@ -1,0 +1,122 @@
+"""Rotation-only pose with a known translation: the core of the attitude estimators.
+
+Both target kinds reduce to one model. A point X with known coordinates appears in the
+camera at
+
+    P_C = R X + t_c,                                                    (1)
+
+with t_c known and only the rotation R unknown: for the triangle (camera on the
+platform) R = R_CN, X = P_N, t_c = -R_BC^T t_B; for markers (camera in the lab)
+R = R_CB = R_NC^T R_NB, X = M_B, t_c = -R_NC^T t_N. Because every point turns about the
+one centre of rotation, three parameters describe the pose, not six (the premise of
+the STASIS paper, Sec. 2.4). R is found in closed form from bearings (depths from
+|P_C - t_c| = |X|, then an SVD Procrustes fit), then refined by Gauss-Newton on a
+multiplicative update R <- exp([d]x) R minimising the Mahalanobis distance of the
+undistorted normalised image points (STASIS Eqs. 13-17, with the analytic Jacobian of
+Appendix A written for this update; d is the paper's minimal quaternion vector to
+first order, d = 4 p for its Eqs. 14-15). The covariance of d is the inverse normal
+matrix.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from visvec.rotations import expmap
+
+MAX_ITERATIONS = 15
+STEP_TOL_RAD = 1e-8  # 0.002 arcsec
+
+
+@dataclass(frozen=True)
+class RotationFit:
+    """Result of :func:`fit_rotation`.
+
+    R : (3, 3) rotation of Eq. (1); cov_d : (3, 3) covariance of the left increment d
+    (rad^2, camera axes), not scaled by the residuals; chi2 : Mahalanobis residual;
+    r : (2N,) final residuals (normalised units); iterations; converged.
+    """
+
+    R: np.ndarray
+    cov_d: np.ndarray
+    chi2: float
+    r: np.ndarray
+    iterations: int
+    converged: bool
+
+
+def residuals_and_jacobian(
+    R_cn: np.ndarray, t_c: np.ndarray, p_n: np.ndarray, xy: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Residuals (2N,) of normalised projections and their Jacobian (2N, 3) with respect
+    to a left rotation increment d (R_CN <- exp([d]x) R_CN).
+
+    With q = R_CN P_N and p = q + t_c: dp/dd = -[q]x, and the pinhole projection
+    (x/z, y/z) has d/dp = [[1/z, 0, -x/z^2], [0, 1/z, -y/z^2]].
+    """
+    q = p_n @ R_cn.T
+    p = q + t_c
+    iz = 1.0 / p[:, 2]
+    proj = p[:, :2] * iz[:, None]
+    r = (proj - xy).ravel()
+    # row k of -(dproj/dp) [q]x is -a_k^T [q]x = (q x a_k)^T, with the rows of dproj/dp
+    # a_u = (1, 0, -u) / z and a_v = (0, 1, -v) / z
+    qx, qy, qz = q[:, 0], q[:, 1], q[:, 2]
+    u, v = proj[:, 0], proj[:, 1]
+    J = np.empty((len(p), 2, 3))
+    J[:, 0, 0] = -qy * u * iz
+    J[:, 0, 1] = (qz + qx * u) * iz
+    J[:, 0, 2] = -qy * iz
+    J[:, 1, 0] = -(qy * v + qz) * iz
+    J[:, 1, 1] = qx * v * iz
+    J[:, 1, 2] = qx * iz
+    return r, J.reshape(-1, 3)
+
+
+def initial_rotation(t_c: np.ndarray, p_n: np.ndarray, xy: np.ndarray) -> np.ndarray | None:
+    """Closed-form R_CN from bearings, given the known camera offset t_c.
+
+    Each bearing b (unit vector of (x, y, 1)) meets P_C = lambda b with
+    |lambda b - t_c| = |P_N|, the positive root
+    lambda = b.t + sqrt((b.t)^2 - |t|^2 + |P|^2); then R_CN maps P_N to
+    lambda b - t_c for all three, solved by SVD (Kabsch, with the det < 0 branch
+    corrected to a proper rotation).
+    """
+    b = np.column_stack([xy, np.ones(len(xy))])
+    b /= np.linalg.norm(b, axis=1)[:, None]
+    bt = b @ t_c
+    disc = bt**2 - t_c @ t_c + np.einsum("ij,ij->i", p_n, p_n)
+    if np.any(disc < 0):
+        return None
+    v = (bt + np.sqrt(disc))[:, None] * b - t_c
+    H = p_n.T @ v
+    U, _, Vt = np.linalg.svd(H)
+    d = np.sign(np.linalg.det(Vt.T @ U.T)) or 1.0
+    return Vt.T @ np.diag([1.0, 1.0, d]) @ U.T
+
+
+def fit_rotation(
+    t_c: np.ndarray, X: np.ndarray, xy: np.ndarray, W: np.ndarray, R0: np.ndarray | None = None
+) -> RotationFit | None:
+    """Gauss-Newton for R in Eq. (1) from points X (N, 3) seen at normalised xy (N, 2)
+    with weight (inverse covariance) W (2N, 2N). Starts from R0, or from the closed form.
+    None when no start exists (a bearing that cannot reach its point)."""
+    R = R0 if R0 is not None else initial_rotation(t_c, X, xy)
+    if R is None:
+        return None
+    converged = False
+    it = 0
+    while it < MAX_ITERATIONS:
+        it += 1
+        r, J = residuals_and_jacobian(R, t_c, X, xy)
+        JtW = J.T @ W
+        d = -np.linalg.solve(JtW @ J, JtW @ r)
+        R = expmap(d) @ R
+        if np.sqrt(d @ d) < STEP_TOL_RAD:
+            converged = True
+            break
+    r, J = residuals_and_jacobian(R, t_c, X, xy)
+    N = J.T @ W @ J
+    return RotationFit(R, np.linalg.inv(N), float(r @ W @ r), r, it, converged)
