@@ -119,12 +119,21 @@ def test_markers_rig_loads():
     [
         ("reference_id = 20", "reference_id = 21", ["[target] reference_id", "0..20"]),
         ("reference_id = 20", 'reference_id = "top"', ["[target] reference_id"]),
-        ("points_mm = [[0.0, 0.0, 0.0]]", "points_mm = [[0.0, 0.0]]",
-         ["[target.patterns[4]] points_mm", "[x, y, z]"]),
-        ("points_mm = [[0.0, 0.0, 0.0]]", "points_mm = [[0.0, 0.0, 0.0]]\ncolour = 'green'",
-         ["[target.patterns[4]]", "unknown key", "colour"]),
-        ("position_mm = [-175.0, -150.0, 150.0]", "position_mm = [95.0, 70.0, 150.0]",
-         ["markers 0 and 20 are at the same place"]),
+        (
+            "points_mm = [[0.0, 0.0, 0.0]]",
+            "points_mm = [[0.0, 0.0]]",
+            ["[target.patterns[4]] points_mm", "[x, y, z]"],
+        ),
+        (
+            "points_mm = [[0.0, 0.0, 0.0]]",
+            "points_mm = [[0.0, 0.0, 0.0]]\ncolour = 'green'",
+            ["[target.patterns[4]]", "unknown key", "colour"],
+        ),
+        (
+            "position_mm = [-175.0, -150.0, 150.0]",
+            "position_mm = [95.0, 70.0, 150.0]",
+            ["markers 0 and 20 are at the same place"],
+        ),
         ('on = "lab"', 'on = "platform"', ["[mount] on", "fixed in the lab"]),
     ],
 )

@@ -1,0 +1,184 @@
+"""LED markers: centroids, identification, the constrained solver, PnP baselines."""
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from visvec.data import Frame, Status
+from visvec.detect.markers import MarkerIdentifier
+from visvec.detect.spots import find_spots
+from visvec.estimate.markers import solve_markers
+from visvec.estimate.pnp import PNP_FLAGS, solve_pnp
+from visvec.geometry import markers_to_camera
+from visvec.pipeline import MarkerPipeline
+from visvec.rig import Pattern, load_rig
+from visvec.rotations import euler_to_matrix, matrix_to_euler
+from visvec.sim.markers import SpotScene, add_spot, render_markers
+
+from conftest import CONFIGS
+
+ARCSEC = np.radians(1 / 3600)
+# the issue's requirement on simulated spots
+CENTROID_BIAS_TOL_PX = 0.05
+
+
+@pytest.fixture(scope="module")
+def mrig():
+    return load_rig(CONFIGS / "markers.toml")
+
+
+def _angle(Ra, Rb):
+    return np.arccos(np.clip((np.trace(Ra.T @ Rb) - 1) / 2, -1, 1))
+
+
+def _exact(rig, R, sigma_px=0.0, rng=None, ids=None):
+    ids = np.arange(len(rig.target.points_b)) if ids is None else ids
+    p = markers_to_camera(rig, R, rig.target.points_b[ids])
+    xy = p[:, :2] / p[:, 2:3]
+    if sigma_px and rng is not None:
+        xy = xy + rng.standard_normal(xy.shape) * sigma_px / rig.camera.fx
+    return xy, ids
+
+
+@pytest.mark.parametrize("psf", [0.7, 1.2, 2.0])
+def test_wcom_centroid_bias_below_tolerance(psf):
+    r = np.random.default_rng(1)
+    errs = []
+    for _ in range(200):
+        img = np.zeros((40, 40))
+        u, v = 20 + r.uniform(-0.5, 0.5, 2)
+        add_spot(img, u, v, 2500.0, psf)
+        img = np.clip(np.rint(img + 2 + r.standard_normal(img.shape)), 0, 255).astype(np.uint8)
+        s = find_spots(img)
+        assert len(s) == 1
+        errs.append(s.centroids_px[0] - [u, v])
+    e = np.array(errs)
+    assert np.all(np.abs(e.mean(axis=0)) < CENTROID_BIAS_TOL_PX / 5)
+    # the bias at any sub-pixel phase is below the tolerance: so is every single error
+    assert np.abs(e).max() < CENTROID_BIAS_TOL_PX
+
+
+def test_constrained_solver_exact_and_covariance(mrig, rng):
+    R = euler_to_matrix(1.1, 0.2, -0.3)
+    xy, ids = _exact(mrig, R)
+    sol = solve_markers(xy, ids, mrig, 0.12)
+    assert sol.status is Status.OK and _angle(sol.R_nb, R) < 0.01 * ARCSEC
+    errs = []
+    for _ in range(300):
+        xy, ids = _exact(mrig, R, 0.12, rng)
+        s = solve_markers(xy, ids, mrig, 0.12)
+        errs.append(np.array(matrix_to_euler(s.R_nb)) - matrix_to_euler(R))
+    emp = np.std(errs, axis=0)
+    from visvec.rotations import euler_rates_from_body
+
+    J = euler_rates_from_body(*matrix_to_euler(R))
+    pred = np.sqrt(np.diag(J @ s.cov_b @ J.T))
+    ratio = pred / emp
+    assert np.all(ratio > 0.85) and np.all(ratio < 1.3), ratio
+
+
+def test_identification_lost_and_tracking(mrig):
+    ident = MarkerIdentifier(mrig, 0.12)
+    for k, e in enumerate([(2.5, 0.3, -0.2), (-1.0, -0.35, 0.1), (0.2, 0.0, 0.38)]):
+        R = euler_to_matrix(*e)
+        xy, ids = _exact(mrig, R)
+        perm = np.random.default_rng(k).permutation(len(ids))
+        res = ident.identify(xy[perm])
+        assert res.R_nb is not None, res.reason
+        np.testing.assert_array_equal(res.ids, ids[perm])
+        # tracking from a nearby attitude
+        res2 = ident.identify(xy[perm], euler_to_matrix(e[0] + 0.01, e[1], e[2] - 0.01))
+        np.testing.assert_array_equal(res2.ids, ids[perm])
+
+
+def test_symmetric_layout_is_refused_not_misidentified(mrig):
+    # four identical boards turned 90 deg about the axis, no reference LED: every
+    # quarter turn explains the spots equally well
+    board = mrig.target.patterns[0].points_mm
+    pats = tuple(
+        Pattern(
+            np.array([np.cos(a) * 100, np.sin(a) * 100, 150.0]), euler_to_matrix(a, 0, 0), board
+        )
+        for a in np.radians([0, 90, 180, 270])
+    )
+    rig = replace(mrig, target=replace(mrig.target, patterns=pats, reference_id=None))
+    xy, _ = _exact(rig, euler_to_matrix(0.4, 0.05, 0.02))
+    res = MarkerIdentifier(rig, 0.12).identify(xy)
+    assert res.R_nb is None and res.reason == "ambiguous_layout"
+
+
+def test_pipeline_rendered_frames_with_reflection_and_hidden_led(mrig):
+    pipe = MarkerPipeline(mrig)
+    R = euler_to_matrix(-0.7, 0.15, 0.1)
+    img = render_markers(mrig, R, SpotScene(reflections=2, hidden=(3,)), rng=5)
+    row = pipe.process(Frame(0, 0.0, img))
+    assert row.ok, row.warnings
+    assert row.n_points == 20
+    assert "missing_markers" in row.warnings and "extra_spots" in row.warnings
+    err = np.abs(row.euler_deg - np.degrees(matrix_to_euler(R)))
+    assert np.all(err < 3 * row.sigma_deg + 1e-4)
+
+
+def test_pipeline_refuses_frames_without_enough_markers(mrig):
+    pipe = MarkerPipeline(mrig)
+    img = render_markers(mrig, np.eye(3), SpotScene(hidden=tuple(range(18))), rng=1)
+    row = pipe.process(Frame(0, 0.0, img))
+    assert not row.ok
+    dark = np.full((1536, 2048), 2, np.uint8)
+    row = pipe.process(Frame(1, 0.0, dark))
+    assert row.status is Status.NO_TARGET
+
+
+@pytest.mark.parametrize("method", list(PNP_FLAGS))
+def test_pnp_baselines_agree_on_exact_points(mrig, method):
+    R = euler_to_matrix(0.8, 0.1, -0.12)
+    xy, ids = _exact(mrig, R)
+    uv = mrig.camera.distort(xy)
+    sol = solve_pnp(uv, ids, mrig, method, 0.12)
+    assert sol.status is Status.OK
+    assert _angle(sol.R_nb, R) < 5 * ARCSEC
+    assert np.all(np.isfinite(sol.cov_b))
+
+
+def test_markers_cli_batch(tmp_path):
+    from click.testing import CliRunner
+
+    from visvec.cli.main import cli
+
+    rig = str(CONFIGS / "markers.toml")
+    out = tmp_path / "sim"
+    r = CliRunner().invoke(
+        cli,
+        [
+            "simulate",
+            "--rig",
+            rig,
+            "--out",
+            str(out),
+            "--frames",
+            "3",
+            "--motion",
+            "sweep",
+            "--max-tilt-deg",
+            "15",
+        ],
+    )
+    assert r.exit_code == 0, r.output
+    r = CliRunner().invoke(
+        cli,
+        [
+            "batch",
+            str(out),
+            "--rig",
+            rig,
+            "--truth",
+            str(out / "truth.csv"),
+            "--method",
+            "pnp-sqpnp",
+        ],
+    )
+    assert r.exit_code == 0, r.output
+    assert "frames 3, ok 3" in r.output
+    r = CliRunner().invoke(cli, ["batch", str(out), "--rig", rig, "--method", "paper"])
+    assert r.exit_code == 2 and "expected one of" in r.output
