@@ -110,8 +110,12 @@ def test_markers_rig_loads():
     rig = load_rig(CONFIGS / "markers.toml")
     assert rig.kind == "markers" and rig.target.points_b.shape == (21, 3)
     assert rig.target.reference_id == 20
-    # pattern 1 is turned 90 deg about b3: its second LED (40, 0, 0) lands at +40 along b2
-    np.testing.assert_allclose(rig.target.points_b[6], [-80.0, 135.0, 150.0])
+    # marker 6 is pattern 1's second LED, (40, 0, 0) in the board turned 35 deg about b3
+    pat = rig.target.patterns[1]
+    c, s = np.cos(np.radians(35.0)), np.sin(np.radians(35.0))
+    np.testing.assert_allclose(
+        rig.target.points_b[6], pat.position_mm + [40.0 * c, 40.0 * s, 0.0], atol=1e-4
+    )
 
 
 @pytest.mark.parametrize(
@@ -130,8 +134,8 @@ def test_markers_rig_loads():
             ["[target.patterns[4]]", "unknown key", "colour"],
         ),
         (
-            "position_mm = [-175.0, -150.0, 150.0]",
-            "position_mm = [95.0, 70.0, 150.0]",
+            "position_mm = [-80.0, -200.0, 150.0]",
+            "position_mm = [103.21, 96.68, 150.0]",
             ["markers 0 and 20 are at the same place"],
         ),
         ('on = "lab"', 'on = "platform"', ["[mount] on", "fixed in the lab"]),

@@ -11,6 +11,7 @@ import math
 import tomllib
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 from pathlib import Path
 from typing import Any
 
@@ -72,7 +73,7 @@ class MarkerTarget:
     reference_id: int | None = None
     kind: str = "markers"
 
-    @property
+    @cached_property
     def points_b(self) -> np.ndarray:
         """(M, 3) all marker positions in B."""
         return np.vstack([p.points_b for p in self.patterns])

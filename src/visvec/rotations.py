@@ -52,11 +52,21 @@ def expmap(w: np.ndarray) -> np.ndarray:
 
     Uses the series expansion below 1e-8 rad, where sin(t)/t loses precision.
     """
-    t = float(np.sqrt(w @ w))
-    K = skew(w)
-    if t < 1e-8:
-        return np.eye(3) + K + 0.5 * K @ K
-    return np.eye(3) + (np.sin(t) / t) * K + ((1.0 - np.cos(t)) / (t * t)) * K @ K
+    x, y, z = float(w[0]), float(w[1]), float(w[2])
+    t2 = x * x + y * y + z * z
+    if t2 < 1e-16:
+        a, b = 1.0, 0.5
+    else:
+        t = np.sqrt(t2)
+        a, b = np.sin(t) / t, (1.0 - np.cos(t)) / t2
+    # I + a K + b K^2 with K = [w]x, written out (K^2 = w w^T - t^2 I)
+    return np.array(
+        [
+            [1.0 - b * (y * y + z * z), b * x * y - a * z, b * x * z + a * y],
+            [b * x * y + a * z, 1.0 - b * (x * x + z * z), b * y * z - a * x],
+            [b * x * z - a * y, b * y * z + a * x, 1.0 - b * (x * x + y * y)],
+        ]
+    )
 
 
 def matrix_to_quat(R: np.ndarray) -> np.ndarray:

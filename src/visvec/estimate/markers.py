@@ -54,7 +54,7 @@ def solve_markers(
     X = rig.target.points_b[ids]
     t_c = lab_camera_offset_c(rig)
     s_n = sigma_px / rig.camera.fx
-    W = np.eye(2 * K) / s_n**2
+    W = 1.0 / s_n**2  # independent centroids with equal noise
     R0 = rig.R_nc.T @ R_nb_guess if R_nb_guess is not None else None
     fit = fit_rotation(t_c, X, xy_n, W, R0)
     if fit is None:

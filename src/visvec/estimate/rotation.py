@@ -27,7 +27,9 @@ import numpy as np
 from visvec.rotations import expmap
 
 MAX_ITERATIONS = 15
-STEP_TOL_RAD = 1e-8  # 0.002 arcsec
+# Gauss-Newton converges about quadratically here (small residuals): after a step
+# shorter than this the remaining error is of the order of its square, 1e-12 rad
+STEP_TOL_RAD = 1e-6
 
 
 @dataclass(frozen=True)
@@ -75,26 +77,46 @@ def residuals_and_jacobian(
     return r, J.reshape(-1, 3)
 
 
+def _procrustes(X: np.ndarray, V: np.ndarray) -> np.ndarray:
+    """Rotation R minimising sum |V_i - R X_i|^2 (Kabsch by SVD, the det < 0 branch
+    corrected to a proper rotation)."""
+    U, _, Vt = np.linalg.svd(X.T @ V)
+    d = np.sign(np.linalg.det(Vt.T @ U.T)) or 1.0
+    return Vt.T @ np.diag([1.0, 1.0, d]) @ U.T
+
+
 def initial_rotation(t_c: np.ndarray, p_n: np.ndarray, xy: np.ndarray) -> np.ndarray | None:
-    """Closed-form R_CN from bearings, given the known camera offset t_c.
+    """Closed-form R from bearings, given the known offset t_c of Eq. (1).
 
     Each bearing b (unit vector of (x, y, 1)) meets P_C = lambda b with
-    |lambda b - t_c| = |P_N|, the positive root
-    lambda = b.t + sqrt((b.t)^2 - |t|^2 + |P|^2); then R_CN maps P_N to
-    lambda b - t_c for all three, solved by SVD (Kabsch, with the det < 0 branch
-    corrected to a proper rotation).
+    |lambda b - t_c| = |X|: lambda = b.t +- sqrt((b.t)^2 - |t|^2 + |X|^2). Then R maps X
+    to lambda b - t_c for all points (Procrustes). When the points lie beyond the centre
+    of rotation as seen from the camera (a ceiling target) only the + root is in front;
+    when they lie on a sphere around it seen from afar (markers on top of the platform)
+    both are, and the near one (-) is usually right: both branches are solved and the
+    one that reprojects better is kept. A slightly negative discriminant (a grazing ray
+    and noise) is clamped to zero.
     """
     b = np.column_stack([xy, np.ones(len(xy))])
     b /= np.linalg.norm(b, axis=1)[:, None]
     bt = b @ t_c
     disc = bt**2 - t_c @ t_c + np.einsum("ij,ij->i", p_n, p_n)
-    if np.any(disc < 0):
+    if np.any(disc < -1e-3 * (t_c @ t_c + 1.0)):
         return None
-    v = (bt + np.sqrt(disc))[:, None] * b - t_c
-    H = p_n.T @ v
-    U, _, Vt = np.linalg.svd(H)
-    d = np.sign(np.linalg.det(Vt.T @ U.T)) or 1.0
-    return Vt.T @ np.diag([1.0, 1.0, d]) @ U.T
+    root = np.sqrt(np.maximum(disc, 0.0))
+    best, best_cost = None, np.inf
+    for sign in (1.0, -1.0):
+        lam = bt + sign * root
+        if np.any(lam <= 0):
+            continue
+        R = _procrustes(p_n, lam[:, None] * b - t_c)
+        p = p_n @ R.T + t_c
+        if np.any(p[:, 2] <= 0):
+            continue
+        cost = float(np.sum((p[:, :2] / p[:, 2:3] - xy) ** 2))
+        if cost < best_cost:
+            best, best_cost = R, cost
+    return best
 
 
 def fit_rotation(
@@ -108,15 +130,21 @@ def fit_rotation(
         return None
     converged = False
     it = 0
+    scalar = np.ndim(W) == 0
     while it < MAX_ITERATIONS:
         it += 1
         r, J = residuals_and_jacobian(R, t_c, X, xy)
-        JtW = J.T @ W
+        JtW = J.T if scalar else J.T @ W  # a scalar weight cancels in the step
         d = -np.linalg.solve(JtW @ J, JtW @ r)
         R = expmap(d) @ R
-        if np.sqrt(d @ d) < STEP_TOL_RAD:
+        if d @ d < STEP_TOL_RAD**2:
             converged = True
+            # the residual after this last small step, to second order in it
+            r = r + J @ d
             break
-    r, J = residuals_and_jacobian(R, t_c, X, xy)
+    else:
+        r, J = residuals_and_jacobian(R, t_c, X, xy)
+    if scalar:
+        return RotationFit(R, np.linalg.inv(J.T @ J) / W, float(r @ r) * W, r, it, converged)
     N = J.T @ W @ J
     return RotationFit(R, np.linalg.inv(N), float(r @ W @ r), r, it, converged)
