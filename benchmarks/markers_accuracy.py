@@ -96,7 +96,7 @@ def speed(rig, n_frames=200):
     imgs = [render_markers(rig, euler_to_matrix(*e), SpotScene(), rng=k) for k, e in enumerate(eul)]
     pipe = MarkerPipeline(rig)
     t_pipe = []
-    for rep in range(3):
+    for _rep in range(3):
         pipe.reset()
         for i, im in enumerate(imgs):
             t = time.perf_counter()
