@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 import tomllib
 from collections.abc import Mapping
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
 from typing import Any
@@ -502,8 +502,3 @@ def _check_visible(rig: Rig, src: str) -> None:
             f"{src}: [mount] rotation: the target is behind the camera at zero "
             "attitude; expected the boresight (third column) to point at it"
         )
-
-
-def with_overrides(rig: Rig, **kw: Any) -> Rig:
-    """A copy of ``rig`` with fields replaced (used by calibration and simulation)."""
-    return replace(rig, **kw)

@@ -24,6 +24,8 @@ class Candidate:
     area_px : float, pixel count of the region
     level : float, threshold (grey level) it was found at
     touches_border : bool
+    fill : float, area over the area of the minimum enclosing triangle
+    tracked : bool, predicted from the last frame rather than found
     """
 
     corners_px: np.ndarray
@@ -32,6 +34,7 @@ class Candidate:
     level: float
     touches_border: bool
     fill: float
+    tracked: bool = False
 
 
 def _levels(small: np.ndarray, n: int) -> np.ndarray:

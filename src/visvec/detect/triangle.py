@@ -26,7 +26,6 @@ AREA_TOL = 0.30
 SIDE_RATIO_TOL = 0.06
 APEX_ANGLE_TOL_DEG = 4.0
 MAX_VERIFICATIONS = 4
-TRACKED = 2.0  # Candidate.fill marking a candidate predicted from the last frame
 VERTEX_GAP_MIN_PX = 3.0
 VERTEX_GAP_FRACTION = 0.05
 # reasons meaning "this region is not the triangle" (as opposed to "the triangle, unusable")
@@ -114,7 +113,8 @@ class TriangleDetector:
             area_px=abs(_signed_area(pts)),
             level=self._last_level or 0.0,
             touches_border=not inside,
-            fill=TRACKED,
+            fill=1.0,
+            tracked=True,
         )
 
     def reset(self) -> None:
@@ -225,7 +225,7 @@ class TriangleDetector:
                 cand.corners_px,
                 cam,
                 sigma_floor=s.pixel_sigma_floor,
-                width=self._last_width if cand.fill == TRACKED else None,
+                width=self._last_width if cand.tracked else None,
             )
             self._fit_width = fit.width
             if not fit.ok:

@@ -10,24 +10,14 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from visvec.output import ATTITUDE_COLUMNS
 from visvec.rig import Rig
 from visvec.rotations import euler_to_matrix, matrix_to_euler, matrix_to_quat, rot_x, rot_y
 from visvec.sim.markers import SpotScene, render_markers
 from visvec.sim.render import render_frame
 from visvec.sim.scene import Light, Occluder, Scene
 
-TRUTH_COLUMNS = (
-    "frame",
-    "file",
-    "time_s",
-    "yaw_deg",
-    "pitch_deg",
-    "roll_deg",
-    "qw",
-    "qx",
-    "qy",
-    "qz",
-)
+TRUTH_COLUMNS = ("frame", "file", "time_s", *ATTITUDE_COLUMNS[3:10])
 
 
 def random_attitudes(
