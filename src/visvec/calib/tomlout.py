@@ -31,6 +31,16 @@ def dumps(sections: Mapping[str, Mapping[str, object]], header: str = "") -> str
         if lines:
             lines.append("")
         lines.append(f"[{name}]")
+        arrays = {
+            k: v
+            for k, v in table.items()
+            if isinstance(v, list) and v and all(isinstance(t, Mapping) for t in v)
+        }
         for k, v in table.items():
-            lines.append(f"{k} = {_value(v)}")
+            if k not in arrays:
+                lines.append(f"{k} = {_value(v)}")
+        for k, tables in arrays.items():  # arrays of tables: [[name.key]]
+            for t in tables:
+                lines += ["", f"[[{name}.{k}]]"]
+                lines += [f"{kk} = {_value(vv)}" for kk, vv in t.items()]
     return "\n".join(lines) + "\n"

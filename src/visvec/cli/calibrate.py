@@ -9,11 +9,15 @@ import click
 import numpy as np
 
 from visvec.calib.camera import RECIPES, calibrate_camera, camera_section, parse_pattern
+from visvec.calib.system import Observations, calibrate_system, initial_attitudes
+from visvec.calib.system import calibration_sections as system_sections
 from visvec.calib.tomlout import dumps
 from visvec.calib.zero_tilt import calibrate_zero_tilt, calibration_sections
 from visvec.cli.common import load, rig_options
 from visvec.data import Status
-from visvec.errors import ConfigError, SourceError
+from visvec.detect.markers import MarkerIdentifier
+from visvec.detect.spots import find_spots
+from visvec.errors import ConfigError, InputFileError, SourceError
 from visvec.pipeline import TrianglePipeline
 from visvec.sources import open_source
 from visvec.sources.folder import IMAGE_SUFFIXES, natural_key
@@ -147,3 +151,73 @@ def camera(frames, pattern, square_mm, recipe, out):
         click.echo(f"wrote {out}")
     else:
         click.echo(text)
+
+
+CAL_GATE_PX = 10.0
+
+
+@calibrate.command("system")
+@click.argument("frames", type=click.Path())
+@rig_options
+@click.option(
+    "--out",
+    required=True,
+    type=click.Path(dir_okay=False),
+    help="Calibration file to write (use with --calibration).",
+)
+@click.option("--max-iterations", type=click.IntRange(min=1), default=30, show_default=True)
+def system(frames, rig_path, calibration, out, max_iterations):
+    """Self-calibrate a markers rig from FRAMES (a folder or video of the platform moved
+    through many attitudes): intrinsics, camera position, pattern poses (STASIS
+    Sec. 2.5). Prints a report like the paper's Table 2."""
+    rig = load(rig_path, calibration)
+    if rig.kind != "markers":
+        raise ConfigError(
+            f"{rig_path}: [target] kind = {rig.kind!r}: system calibration is for markers rigs"
+        )
+    # the rig is only roughly known yet: identify with a free translation (which absorbs
+    # errors of the camera distance and focal length) and a wide final gate (markers are
+    # about 100 px apart, so 10 px cannot confuse two of them)
+    ident = MarkerIdentifier(
+        rig, rig.detect.centroid_sigma_px, final_gate_px=CAL_GATE_PX, six_dof=True
+    )
+    d = rig.detect
+    fr, mk, uv = [], [], []
+    n_used = 0
+    for frame in open_source(frames, fps=rig.fps, retry_s=0.0):
+        if frame.image is None or frame.image.shape != (rig.camera.height, rig.camera.width):
+            click.echo(f"frame {frame.index}: skipped (unreadable or wrong size)", err=True)
+            continue
+        spots = find_spots(frame.image, d.threshold, d.min_spot_px, d.max_spot_px)
+        res = ident.identify(
+            rig.camera.undistort(spots.centroids_px) if len(spots) else np.zeros((0, 2))
+        )
+        sel = res.ids >= 0
+        if res.R_nb is None or sel.sum() < 6:
+            click.echo(f"frame {frame.index}: skipped (markers not identified)", err=True)
+            continue
+        fr += [n_used] * int(sel.sum())
+        mk += res.ids[sel].tolist()
+        uv.append(spots.centroids_px[sel])
+        n_used += 1
+    if n_used == 0:
+        raise InputFileError(f"{frames}: no frame with identified markers")
+    fr_a, mk_a, uv_a = np.array(fr), np.array(mk), np.vstack(uv)
+    obs = Observations(fr_a, mk_a, uv_a, initial_attitudes(rig, fr_a, mk_a, uv_a))
+    res = calibrate_system(rig, obs, max_iterations)
+    click.echo(f"system calibration from {n_used} frames, {len(mk_a)} marker positions")
+    for line in res.report():
+        click.echo(line)
+    if not res.converged:
+        click.echo(
+            f"visvec: error: the calibration did not converge ({res.message}); "
+            f"residual rms {res.rms_px:.3f} px; nothing written",
+            err=True,
+        )
+        raise SystemExit(1)
+    header = (
+        f"visvec system calibration, {datetime.now(UTC):%Y-%m-%d %H:%M} UTC\n"
+        f"rig {rig_path}, frames {frames} ({n_used} used)"
+    )
+    Path(out).write_text(dumps(system_sections(res), header))
+    click.echo(f"wrote {out}")

@@ -5,8 +5,8 @@ spot within a gate (one-to-one). Lost: attitude hypotheses on a grid (yaw over t
 tilts within the rig's range; with a reference marker, the STASIS scheme narrows yaw:
 the spot farthest from the mean of all spots is the reference, Sec. 3.2) are scored by
 how many projected markers land near a spot; the best few are refined by alternating
-matching and the constrained solve with shrinking gates. A layout that more than one
-distinct attitude explains as well is refused as ambiguous: a wrong identification must
+matching and the constrained solve with shrinking gates. A layout that two
+different identifications explain as well is refused as ambiguous: a wrong identification must
 never become an ok row.
 """
 
@@ -14,6 +14,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -27,7 +28,6 @@ GRID_TILT_STEP_DEG = 4.0
 COARSE_GATE_PX = 45.0
 REFINE_GATES_PX = (40.0, 12.0, 5.0)
 TOP_HYPOTHESES = 6
-AMBIGUITY_DEG = 0.5
 
 
 @dataclass(frozen=True)
@@ -40,6 +40,19 @@ class Identification:
     reason: str = ""
 
 
+def _similarity(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """2-D similarity (A = s R, b) minimising |dst - (A src + b)|^2 (Umeyama 1991, with
+    the reflection branch excluded)."""
+    ms, md = src.mean(axis=0), dst.mean(axis=0)
+    S, D = src - ms, dst - md
+    U, sv, Vt = np.linalg.svd(D.T @ S)
+    d = np.sign(np.linalg.det(U @ Vt)) or 1.0
+    R = U @ np.diag([1.0, d]) @ Vt
+    scale = (sv[0] + d * sv[1]) / max((S**2).sum(), 1e-300)
+    A = scale * R
+    return A, md - A @ ms
+
+
 def _angle(Ra: np.ndarray, Rb: np.ndarray) -> float:
     return float(np.arccos(np.clip((np.trace(Ra.T @ Rb) - 1) / 2, -1.0, 1.0)))
 
@@ -47,9 +60,17 @@ def _angle(Ra: np.ndarray, Rb: np.ndarray) -> float:
 class MarkerIdentifier:
     """Identifies spots (in undistorted normalised coordinates) as the rig's markers."""
 
-    def __init__(self, rig: Rig, sigma_px: float):
+    def __init__(
+        self, rig: Rig, sigma_px: float, final_gate_px: float | None = None, six_dof: bool = False
+    ):
         self.rig = rig
+        # six_dof: refine with a free translation (solvePnP) instead of the constraint,
+        # for rigs whose camera distance and body offset are still rough (calibration)
+        self.six_dof = six_dof
         self.sigma_px = sigma_px
+        # the last matching gate: 5 sigma of the centroid noise when the rig is right; a
+        # calibration run whose rig is still rough passes a wider one
+        self.final_gate_px = final_gate_px or max(5.0 * sigma_px, 1.0)
         self.f = rig.camera.fx
         self.X = rig.target.points_b
         self.t_c = lab_camera_offset_c(rig)
@@ -78,10 +99,12 @@ class MarkerIdentifier:
         self, xy: np.ndarray, R_nb: np.ndarray, gates=REFINE_GATES_PX
     ) -> tuple[np.ndarray, np.ndarray | None]:
         """Alternate matching and solving with shrinking gates from ``R_nb``."""
+        if self.six_dof:
+            return self._refine_six_dof(xy, R_nb, gates)
         ids = np.full(len(xy), -1)
         R = R_nb
         for gate in gates:
-            ids = self.match(xy, self.project(R), gate)
+            ids = self.match(xy, self.project(R), max(gate, self.final_gate_px))
             sel = ids >= 0
             if sel.sum() < 4:
                 return ids, None
@@ -89,8 +112,40 @@ class MarkerIdentifier:
             if sol.status.value not in ("ok", "rejected"):
                 return ids, None
             R = sol.R_nb
-        ids = self.match(xy, self.project(R), max(5.0 * self.sigma_px, 1.0))
+        ids = self.match(xy, self.project(R), self.final_gate_px)
         return ids, R
+
+    def _refine_six_dof(self, xy, R_nb, gates):
+        """Matching for a rig still roughly known: the predicted image is aligned to the
+        spots by a 2-D similarity (which absorbs errors of scale, principal point and
+        small rotations; Umeyama's least-squares fit), re-matched with shrinking gates,
+        and the attitude is then taken from a six-parameter PnP."""
+        # the rotation first (the grid start can be tens of pixels off), with the
+        # constraint, whose fit stays close although the scale is off
+        R = R_nb
+        for gate in (gates[0], 30.0):
+            ids = self.match(xy, self.project(R), gate)
+            sel = ids >= 0
+            if sel.sum() < 4:
+                return ids, None
+            sol = solve_markers(xy[sel], ids[sel], self.rig, self.sigma_px, R)
+            if sol.R_nb is None or not np.all(np.isfinite(sol.R_nb)):
+                return ids, None
+            R = sol.R_nb
+        pred = self.project(R)
+        A, b = np.eye(2), np.zeros(2)
+        for gate in (30.0, 20.0, self.final_gate_px):
+            ids = self.match(xy, pred @ A.T + b, gate)
+            sel = ids >= 0
+            if sel.sum() < 4:
+                return ids, None
+            A, b = _similarity(pred[ids[sel]], xy[sel])
+        ok, rvec, _ = cv2.solvePnP(
+            self.X[ids[sel]], xy[sel].astype(np.float64), np.eye(3), None, flags=cv2.SOLVEPNP_SQPNP
+        )
+        if not ok:
+            return ids, None
+        return ids, self.rig.R_nc @ cv2.Rodrigues(rvec)[0]
 
     def reference_yaws(self, xy: np.ndarray) -> np.ndarray | None:
         """Yaws to search when the rig has a reference marker (STASIS Sec. 3.2: the
@@ -162,8 +217,10 @@ class MarkerIdentifier:
             return Identification(none, None, "not_identified")
         results.sort(key=lambda t: -t[0])
         n_best, ids, R = results[0]
-        for n, _, R2 in results[1:]:
-            if n >= n_best - 1 and _angle(R, R2) > np.radians(AMBIGUITY_DEG):
+        for n, ids2, _ in results[1:]:
+            # another explanation nearly as good that names some spot differently
+            both = (ids >= 0) & (ids2 >= 0)
+            if n >= n_best - 1 and np.any(ids[both] != ids2[both]):
                 return Identification(none, None, "ambiguous_layout")
         if n_best < 4:
             return Identification(none, None, "not_identified")

@@ -94,15 +94,14 @@ def initial_rotation(t_c: np.ndarray, p_n: np.ndarray, xy: np.ndarray) -> np.nda
     of rotation as seen from the camera (a ceiling target) only the + root is in front;
     when they lie on a sphere around it seen from afar (markers on top of the platform)
     both are, and the near one (-) is usually right: both branches are solved and the
-    one that reprojects better is kept. A slightly negative discriminant (a grazing ray
-    and noise) is clamped to zero.
+    one that reprojects better is kept. A negative discriminant (a grazing ray, noise, or
+    a geometry that is off) is clamped to zero: the start is then approximate and
+    Gauss-Newton finishes the job.
     """
     b = np.column_stack([xy, np.ones(len(xy))])
     b /= np.linalg.norm(b, axis=1)[:, None]
     bt = b @ t_c
     disc = bt**2 - t_c @ t_c + np.einsum("ij,ij->i", p_n, p_n)
-    if np.any(disc < -1e-3 * (t_c @ t_c + 1.0)):
-        return None
     root = np.sqrt(np.maximum(disc, 0.0))
     best, best_cost = None, np.inf
     for sign in (1.0, -1.0):

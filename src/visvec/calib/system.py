@@ -1,0 +1,359 @@
+"""Batch self-calibration of a marker rig from frames at unknown attitudes (STASIS
+Sec. 2.5, Eqs. 18-24).
+
+Unknowns: the intrinsics (fx, fy, cx, cy, k1, k2, k3; p1, p2 kept as the rig says, as
+in the paper's radial-only model), the camera's position t_N (the centre of rotation
+seen from the camera), the first pattern's position in B (the paper's body offset), each
+further pattern's pose in B, and every frame's attitude. The first pattern's rotation
+and the camera's rotation R_NC fix the orientation gauges of B and N.
+
+The problem is solved by Gauss-Newton (Eq. 20) with Levenberg-Marquardt damping. The
+Jacobian is sparse (each frame's residuals depend on the shared parameters and on its
+own attitude only, the paper's Appendix B structure): it is taken by central
+differences with one residual evaluation pair per shared parameter and one pair per
+attitude axis for all frames at once, a few dozen evaluations however many frames.
+The covariance is sigma^2 (J^T J)^-1 with sigma^2 from the final residual
+(Eqs. 22-24).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+from scipy.sparse import csr_matrix
+
+from visvec.camera import CameraModel
+from visvec.errors import InputFileError
+from visvec.rig import Mount, Pattern, Rig
+
+
+def _rotvec_to_matrix(w: np.ndarray) -> np.ndarray:
+    """(K, 3) rotation vectors -> (K, 3, 3) matrices (Rodrigues, vectorised)."""
+    t = np.linalg.norm(w, axis=1)
+    small = t < 1e-12
+    ts = np.where(small, 1.0, t)
+    a = np.where(small, 1.0, np.sin(ts) / ts)
+    b = np.where(small, 0.5, (1 - np.cos(ts)) / ts**2)
+    K = np.zeros((len(w), 3, 3))
+    K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -w[:, 2], w[:, 1], -w[:, 0]
+    K[:, 1, 0], K[:, 2, 0], K[:, 2, 1] = w[:, 2], -w[:, 1], w[:, 0]
+    return np.eye(3) + a[:, None, None] * K + b[:, None, None] * K @ K
+
+
+@dataclass(frozen=True)
+class Observations:
+    """Identified marker centroids of many frames: frame index (L,), marker id (L,),
+    pixel position (L, 2), and the initial attitude of each frame (F, 3, 3)."""
+
+    frame: np.ndarray
+    marker: np.ndarray
+    uv: np.ndarray
+    R0: np.ndarray
+
+
+@dataclass(frozen=True)
+class SystemCalibration:
+    """Result: the calibrated rig, parameter values and 1-sigma, residual statistics."""
+
+    rig: Rig
+    names: list[str]
+    values: np.ndarray
+    sigmas: np.ndarray
+    residual_std_px: float
+    mean_abs_px: float
+    rms_px: float
+    iterations: int
+    converged: bool
+    message: str
+    attitudes: np.ndarray  # (F, 3, 3)
+    attitude_sigma_deg: np.ndarray  # (F, 3) about body axes
+
+    def report(self) -> list[str]:
+        """Lines like the paper's Table 2."""
+        out = [
+            f"residual std {self.residual_std_px:.4f} px, mean absolute error "
+            f"{self.mean_abs_px:.4f} px, rms {self.rms_px:.4f} px, "
+            f"{self.iterations} iterations"
+        ]
+        for n, v, s in zip(self.names, self.values, self.sigmas, strict=True):
+            out.append(f"  {n:<28} {v:>14.6f} +- {s:.6f}")
+        return out
+
+
+class _Model:
+    def __init__(self, rig: Rig, obs: Observations):
+        self.rig = rig
+        self.obs = obs
+        self.pats = rig.target.patterns
+        self.pat_of = np.concatenate(
+            [np.full(len(p.points_mm), j) for j, p in enumerate(self.pats)]
+        )
+        self.local = np.vstack([p.points_mm for p in self.pats])
+        self.F = len(obs.R0)
+        cam = rig.camera
+        self.p12 = cam.dist[2:4]
+        names = [
+            "fx",
+            "fy",
+            "cx",
+            "cy",
+            "k1",
+            "k2",
+            "k3",
+            "t_N x mm",
+            "t_N y mm",
+            "t_N z mm",
+            "pattern0 x mm",
+            "pattern0 y mm",
+            "pattern0 z mm",
+        ]
+        for j in range(1, len(self.pats)):
+            names += [f"pattern{j} rot{a} deg" for a in "xyz"]
+            names += [f"pattern{j} {a} mm" for a in "xyz"]
+        self.names = names
+        self.n_global = len(names)
+
+    def x0(self) -> np.ndarray:
+        cam, rig = self.rig.camera, self.rig
+        g = [
+            cam.fx,
+            cam.fy,
+            cam.cx,
+            cam.cy,
+            cam.dist[0],
+            cam.dist[1],
+            cam.dist[4],
+            *rig.t_n,
+            *self.pats[0].position_mm,
+        ]
+        for p in self.pats[1:]:
+            g += [0.0, 0.0, 0.0, *p.position_mm]
+        return np.concatenate([np.array(g, float), np.zeros(3 * self.F)])
+
+    def unpack(self, x: np.ndarray):
+        fx, fy, cx, cy, k1, k2, k3 = x[:7]
+        t_n = x[7:10]
+        pos = [x[10:13]]
+        rot = [self.pats[0].rotation]
+        k = 13
+        for p in self.pats[1:]:
+            w = np.radians(x[k : k + 3])
+            rot.append(_rotvec_to_matrix(w[None])[0] @ p.rotation)
+            pos.append(x[k + 3 : k + 6])
+            k += 6
+        att = self.obs.R0 @ _rotvec_to_matrix(x[self.n_global :].reshape(-1, 3))
+        return (fx, fy, cx, cy, k1, k2, k3), t_n, pos, rot, att
+
+    def points_b(self, pos, rot) -> np.ndarray:
+        return np.vstack(
+            [self.local[self.pat_of == j] @ rot[j].T + pos[j] for j in range(len(self.pats))]
+        )
+
+    def residuals(self, x: np.ndarray) -> np.ndarray:
+        (fx, fy, cx, cy, k1, k2, k3), t_n, pos, rot, att = self.unpack(x)
+        M = self.points_b(pos, rot)[self.obs.marker]
+        Rk = att[self.obs.frame]
+        p_n = np.einsum("lij,lj->li", Rk, M)
+        p_c = (p_n - t_n) @ self.rig.R_nc
+        xn = p_c[:, 0] / p_c[:, 2]
+        yn = p_c[:, 1] / p_c[:, 2]
+        r2 = xn * xn + yn * yn
+        rad = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        p1, p2 = self.p12
+        xd = xn * rad + 2 * p1 * xn * yn + p2 * (r2 + 2 * xn * xn)
+        yd = yn * rad + p1 * (r2 + 2 * yn * yn) + 2 * p2 * xn * yn
+        u = fx * xd + cx
+        v = fy * yd + cy
+        return np.column_stack([u - self.obs.uv[:, 0], v - self.obs.uv[:, 1]]).ravel()
+
+
+def initial_attitudes(
+    rig: Rig, frame: np.ndarray, marker: np.ndarray, uv: np.ndarray
+) -> np.ndarray:
+    """(F, 3, 3) starting attitudes: a 6-DoF PnP (SQPnP) per frame with the rig's
+    nominal camera, as the paper starts from P3P; it needs no centre of rotation, so it
+    is not thrown off by an error in the camera's distance or the body offset."""
+    import cv2
+
+    F = int(frame.max()) + 1
+    out = np.repeat(np.eye(3)[None], F, axis=0)
+    X = rig.target.points_b
+    for f in range(F):
+        sel = frame == f
+        if sel.sum() < 4:
+            continue
+        ok, rvec, _ = cv2.solvePnP(
+            X[marker[sel]],
+            uv[sel].astype(np.float64),
+            rig.camera.K,
+            rig.camera.dist,
+            flags=cv2.SOLVEPNP_SQPNP,
+        )
+        if ok:
+            out[f] = rig.R_nc @ cv2.Rodrigues(rvec)[0]
+    return out
+
+
+# finite-difference steps: px for intrinsics, 1e-4 for distortion, mm, degrees, rad
+_STEPS = {"intr": 1e-3, "dist": 1e-6, "mm": 1e-4, "deg": 1e-5, "att": 1e-7}
+
+
+def _steps(model: _Model) -> np.ndarray:
+    h = [_STEPS["intr"]] * 4 + [_STEPS["dist"]] * 3 + [_STEPS["mm"]] * 6
+    h += ([_STEPS["deg"]] * 3 + [_STEPS["mm"]] * 3) * (len(model.pats) - 1)
+    return np.array(h + [_STEPS["att"]] * (3 * model.F))
+
+
+def _jacobian(model: _Model, x: np.ndarray) -> csr_matrix:
+    """Sparse Jacobian by central differences using its structure (Appendix B): one
+    column pair per shared parameter, and one pair for the i-th attitude parameter of
+    every frame at once (frames do not share residuals)."""
+    h = _steps(model)
+    ng = model.n_global
+    rows_per_frame = 2 * model.obs.frame  # residual row of each observation's u
+    cols, data, rows = [], [], []
+    for k in range(ng):
+        d = np.zeros_like(x)
+        d[k] = h[k]
+        col = (model.residuals(x + d) - model.residuals(x - d)) / (2 * h[k])
+        nz = np.nonzero(col)[0]
+        rows.append(nz)
+        cols.append(np.full(len(nz), k))
+        data.append(col[nz])
+    L = len(model.obs.frame)
+    for a in range(3):
+        d = np.zeros_like(x)
+        d[ng + a :: 3] = h[ng + a]
+        col = (model.residuals(x + d) - model.residuals(x - d)) / (2 * h[ng + a])
+        r_idx = np.arange(2 * L)
+        frames = np.repeat(model.obs.frame, 2)
+        rows.append(r_idx)
+        cols.append(ng + 3 * frames + a)
+        data.append(col)
+    del rows_per_frame
+    return csr_matrix(
+        (np.concatenate(data), (np.concatenate(rows), np.concatenate(cols))), shape=(2 * L, len(x))
+    )
+
+
+def _levenberg_marquardt(model: _Model, x: np.ndarray, max_iterations: int):
+    """The paper's Gauss-Newton iteration (Eq. 20) with Levenberg-Marquardt damping for
+    a safe start far from the solution. Returns x, r, J, iterations, converged, message."""
+    r = model.residuals(x)
+    cost = float(r @ r)
+    lam = 1e-3
+    J = _jacobian(model, x)
+    for it in range(1, max_iterations + 1):
+        A = (J.T @ J).toarray()
+        g = J.T @ r
+        D = np.diag(np.diag(A)) + 1e-12 * np.eye(len(x))
+        while True:
+            try:
+                step = -np.linalg.solve(A + lam * D, g)
+            except np.linalg.LinAlgError:
+                lam *= 10
+                continue
+            x_new = x + step
+            r_new = model.residuals(x_new)
+            c_new = float(r_new @ r_new)
+            if np.isfinite(c_new) and c_new < cost:
+                break
+            lam *= 10
+            if lam > 1e12:
+                return x, r, J, it, False, "no step lowers the residual"
+        rel = (cost - c_new) / max(cost, 1e-300)
+        x, r, cost = x_new, r_new, c_new
+        lam = max(lam / 10, 1e-9)
+        J = _jacobian(model, x)
+        if rel < 1e-10:
+            return x, r, J, it, True, "converged"
+    return x, r, J, max_iterations, False, f"not converged in {max_iterations} iterations"
+
+
+def calibrate_system(rig: Rig, obs: Observations, max_iterations: int = 30) -> SystemCalibration:
+    """Self-calibrate the rig from identified marker centroids of many frames.
+
+    Raises
+    ------
+    InputFileError
+        Too few frames or observations for the unknowns.
+    """
+    model = _Model(rig, obs)
+    n_par = model.n_global + 3 * model.F
+    if model.F < 10 or 2 * len(obs.frame) <= n_par:
+        raise InputFileError(
+            f"system calibration needs at least 10 frames and more measurements than "
+            f"unknowns: {model.F} frames, {2 * len(obs.frame)} coordinates, {n_par} unknowns"
+        )
+    x, r, J, it, converged, message = _levenberg_marquardt(model, model.x0(), max_iterations)
+    m = len(r)
+    dof = max(m - n_par, 1)
+    s2 = float(r @ r) / dof  # Eq. (24)
+    JtJ = (J.T @ J).toarray()
+    cov = np.linalg.pinv(JtJ) * s2  # Eqs. (22)-(23)
+    sig = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    (fx, fy, cx, cy, k1, k2, k3), t_n, pos, rot, att = model.unpack(x)
+    cam = CameraModel(
+        rig.camera.width,
+        rig.camera.height,
+        fx,
+        fy,
+        cx,
+        cy,
+        np.array([k1, k2, rig.camera.dist[2], rig.camera.dist[3], k3]),
+    )
+    pats = tuple(Pattern(pos[j], rot[j], p.points_mm) for j, p in enumerate(model.pats))
+    cal = replace(
+        rig,
+        camera=cam,
+        mount=Mount("lab", t_n, rig.R_nc),
+        target=replace(rig.target, patterns=pats),
+    )
+    res = r.reshape(-1, 2)
+    att_sig = np.degrees(sig[model.n_global :].reshape(-1, 3))
+    return SystemCalibration(
+        rig=cal,
+        names=model.names,
+        values=x[: model.n_global],
+        sigmas=sig[: model.n_global],
+        residual_std_px=float(np.sqrt(s2)),
+        mean_abs_px=float(np.mean(np.abs(res))),
+        rms_px=float(np.sqrt(np.mean(res**2))),
+        iterations=it,
+        converged=converged,
+        message=message,
+        attitudes=att,
+        attitude_sigma_deg=att_sig,
+    )
+
+
+def calibration_sections(cal: SystemCalibration) -> dict[str, dict[str, object]]:
+    """Sections of the calibration file (camera, mount, target patterns)."""
+    rig = cal.rig
+    cam = rig.camera
+    return {
+        "camera": {
+            "fx": round(cam.fx, 6),
+            "fy": round(cam.fy, 6),
+            "cx": round(cam.cx, 6),
+            "cy": round(cam.cy, 6),
+            "dist": [round(float(v), 9) for v in cam.dist],
+        },
+        "mount": {"position_mm": np.round(rig.t_n, 5)},
+        "target": {
+            "patterns": [
+                {
+                    "position_mm": np.round(p.position_mm, 5),
+                    "rotation": np.round(p.rotation, 9),
+                    "points_mm": p.points_mm,
+                }
+                for p in rig.target.patterns
+            ]
+        },
+        "report": {
+            "residual_std_px": round(cal.residual_std_px, 5),
+            "mean_abs_px": round(cal.mean_abs_px, 5),
+            "frames": len(cal.attitudes),
+        },
+    }
