@@ -32,9 +32,16 @@ def perturbed(rig, rng):
         cy=cam.cy + rng.uniform(-50, 50),
         dist=np.array([rng.uniform(-0.15, 0.15), 0.0, 0.0, 0.0, 0.0]),
     )
+    # the boards stay coplanar (they are): each moves +-10 mm in the plane and turns
+    # +-1 deg about b3 (not the first: it defines B); the plane moves +-10 mm up or down
+    dz = rng.uniform(-10, 10)
     pats = tuple(
-        Pattern(p.position_mm + rng.uniform(-10, 10, 3), p.rotation, p.points_mm)
-        for p in rig.target.patterns
+        Pattern(
+            p.position_mm + [*rng.uniform(-10, 10, 2), dz],
+            euler_to_matrix(np.radians(rng.uniform(-1, 1)) * (j > 0), 0, 0) @ p.rotation,
+            p.points_mm,
+        )
+        for j, p in enumerate(rig.target.patterns)
     )
     t = rig.t_n + np.array([*rng.uniform(-10, 10, 2), rng.uniform(-50, 50)])
     return replace(

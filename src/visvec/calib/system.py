@@ -108,9 +108,24 @@ class _Model:
             "pattern0 y mm",
             "pattern0 z mm",
         ]
-        for j in range(1, len(self.pats)):
-            names += [f"pattern{j} rot{a} deg" for a in "xyz"]
-            names += [f"pattern{j} {a} mm" for a in "xyz"]
+        # STASIS Sec. 3.3: when the patterns are coplanar, a further pattern only turns
+        # about b3 and moves in the plane (3 unknowns instead of 6); a single LED has no
+        # orientation at all
+        z = [p.position_mm[2] for p in self.pats]
+        flat = all(
+            np.allclose(p.rotation[2], [0, 0, 1]) and np.allclose(p.points_mm[:, 2], 0)
+            for p in self.pats
+        )
+        self.coplanar = flat and np.ptp(z) < 1e-6
+        self.free: list[tuple[str, ...]] = []
+        for j, p in enumerate(self.pats[1:], start=1):
+            rots = () if len(p.points_mm) == 1 else ("z",) if self.coplanar else ("x", "y", "z")
+            moves = ("x", "y") if self.coplanar else ("x", "y", "z")
+            self.free.append(tuple(f"rot{a}" for a in rots) + moves)
+            names += [
+                f"pattern{j} {n} deg" if n.startswith("rot") else f"pattern{j} {n} mm"
+                for n in self.free[-1]
+            ]
         self.names = names
         self.n_global = len(names)
 
@@ -127,8 +142,8 @@ class _Model:
             *rig.t_n,
             *self.pats[0].position_mm,
         ]
-        for p in self.pats[1:]:
-            g += [0.0, 0.0, 0.0, *p.position_mm]
+        for p, free in zip(self.pats[1:], self.free, strict=True):
+            g += [0.0 if n.startswith("rot") else p.position_mm["xyz".index(n)] for n in free]
         return np.concatenate([np.array(g, float), np.zeros(3 * self.F)])
 
     def unpack(self, x: np.ndarray):
@@ -137,11 +152,19 @@ class _Model:
         pos = [x[10:13]]
         rot = [self.pats[0].rotation]
         k = 13
-        for p in self.pats[1:]:
-            w = np.radians(x[k : k + 3])
+        for p, free in zip(self.pats[1:], self.free, strict=True):
+            w = np.zeros(3)
+            t = p.position_mm.copy()
+            for n in free:
+                if n.startswith("rot"):
+                    w["xyz".index(n[3])] = np.radians(x[k])
+                else:
+                    t["xyz".index(n)] = x[k]
+                k += 1
+            if self.coplanar:
+                t[2] = pos[0][2]  # the boards share the first one's plane
             rot.append(_rotvec_to_matrix(w[None])[0] @ p.rotation)
-            pos.append(x[k + 3 : k + 6])
-            k += 6
+            pos.append(t)
         att = self.obs.R0 @ _rotvec_to_matrix(x[self.n_global :].reshape(-1, 3))
         return (fx, fy, cx, cy, k1, k2, k3), t_n, pos, rot, att
 
@@ -201,7 +224,8 @@ _STEPS = {"intr": 1e-3, "dist": 1e-6, "mm": 1e-4, "deg": 1e-5, "att": 1e-7}
 
 def _steps(model: _Model) -> np.ndarray:
     h = [_STEPS["intr"]] * 4 + [_STEPS["dist"]] * 3 + [_STEPS["mm"]] * 6
-    h += ([_STEPS["deg"]] * 3 + [_STEPS["mm"]] * 3) * (len(model.pats) - 1)
+    for free in model.free:
+        h += [_STEPS["deg"] if n.startswith("rot") else _STEPS["mm"] for n in free]
     return np.array(h + [_STEPS["att"]] * (3 * model.F))
 
 
@@ -261,12 +285,25 @@ def _levenberg_marquardt(model: _Model, x: np.ndarray, max_iterations: int):
                 break
             lam *= 10
             if lam > 1e12:
-                return x, r, J, it, False, "no step lowers the residual"
+                # no step lowers the residual: at the minimum if the gradient is nil
+                at_min = float(np.max(np.abs(g) / np.sqrt(np.diag(A) + 1e-300))) < 1e-6 * np.sqrt(
+                    cost
+                )
+                return (
+                    x,
+                    r,
+                    J,
+                    it,
+                    at_min,
+                    ("converged" if at_min else "no step lowers the residual"),
+                )
         rel = (cost - c_new) / max(cost, 1e-300)
         x, r, cost = x_new, r_new, c_new
-        lam = max(lam / 10, 1e-9)
+        lam = max(lam / 10, 1e-12)
         J = _jacobian(model, x)
-        if rel < 1e-10:
+        # converged when the cost no longer falls and the step is negligible against the
+        # parameters' own uncertainty (a flat valley can still hold a long way to go)
+        if rel < 1e-10 and lam <= 1e-6:
             return x, r, J, it, True, "converged"
     return x, r, J, max_iterations, False, f"not converged in {max_iterations} iterations"
 
