@@ -17,15 +17,15 @@ import argparse
 import os
 import time
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import replace
 
 import numpy as np
 
+from visvec.bench.markers import perturbed_lab
 from visvec.bench.triangle import machine
 from visvec.calib.system import Observations, calibrate_system, initial_attitudes
 from visvec.estimate.markers import solve_markers
 from visvec.geometry import markers_to_camera
-from visvec.rig import Pattern, load_rig
+from visvec.rig import load_rig
 from visvec.rotations import euler_to_matrix, matrix_to_euler
 from visvec.sim.simulate import random_attitudes
 
@@ -33,36 +33,6 @@ from _common import CONFIGS, command, save_json
 
 SIGMA_C, SIGMA_M, FRAMES, POSES = 0.12, float(os.environ.get("SIGMA_M", 0.05)), 350, 500
 TRACKED = ("fx", "fy", "cx", "cy", "k1", "t_N z mm", "pattern0 x mm", "pattern1 x mm")
-
-
-def lab(rig, rng):
-    cam = rig.camera
-    cam2 = replace(
-        cam,
-        fx=cam.fx + rng.uniform(-50, 50),
-        fy=cam.fy + rng.uniform(-50, 50),
-        cx=cam.cx + rng.uniform(-50, 50),
-        cy=cam.cy + rng.uniform(-50, 50),
-        dist=np.array([rng.uniform(-0.15, 0.15), 0.0, 0.0, 0.0, 0.0]),
-    )
-    # the boards stay coplanar (they are): each moves +-10 mm in the plane and turns
-    # +-1 deg about b3 (not the first: it defines B); the plane moves +-10 mm up or down
-    dz = rng.uniform(-10, 10)
-    pats = tuple(
-        Pattern(
-            p.position_mm + [*rng.uniform(-10, 10, 2), dz],
-            euler_to_matrix(np.radians(rng.uniform(-1, 1)) * (j > 0), 0, 0) @ p.rotation,
-            p.points_mm,
-        )
-        for j, p in enumerate(rig.target.patterns)
-    )
-    t = rig.t_n + np.array([*rng.uniform(-10, 10, 2), rng.uniform(-50, 50)])
-    return replace(
-        rig,
-        camera=cam2,
-        mount=replace(rig.mount, position_mm=t),
-        target=replace(rig.target, patterns=pats),
-    )
 
 
 def truth_values(true, names):
@@ -83,7 +53,7 @@ def truth_values(true, names):
 def one_run(seed: int) -> dict:
     rig = load_rig(CONFIGS / "markers.toml")
     rng = np.random.default_rng(seed)
-    true = lab(rig, rng)
+    true = perturbed_lab(rig, rng)
     X_true = true.target.points_b + rng.standard_normal(true.target.points_b.shape) * SIGMA_M
     n = len(X_true)
 

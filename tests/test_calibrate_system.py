@@ -6,10 +6,11 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
+from visvec.bench.markers import perturbed_lab
 from visvec.calib.system import Observations, calibrate_system, initial_attitudes
 from visvec.cli.main import cli
 from visvec.geometry import markers_to_camera
-from visvec.rig import Pattern, load_rig
+from visvec.rig import load_rig
 from visvec.rotations import euler_to_matrix
 from visvec.sim.simulate import random_attitudes
 
@@ -21,35 +22,7 @@ def mrig():
     return load_rig(CONFIGS / "markers.toml")
 
 
-def perturbed(rig, rng):
-    """A lab that differs from the rig file within ranges like STASIS Table 3."""
-    cam = rig.camera
-    cam2 = replace(
-        cam,
-        fx=cam.fx + rng.uniform(-50, 50),
-        fy=cam.fy + rng.uniform(-50, 50),
-        cx=cam.cx + rng.uniform(-50, 50),
-        cy=cam.cy + rng.uniform(-50, 50),
-        dist=np.array([rng.uniform(-0.15, 0.15), 0.0, 0.0, 0.0, 0.0]),
-    )
-    # the boards stay coplanar (they are): each moves +-10 mm in the plane and turns
-    # +-1 deg about b3 (not the first: it defines B); the plane moves +-10 mm up or down
-    dz = rng.uniform(-10, 10)
-    pats = tuple(
-        Pattern(
-            p.position_mm + [*rng.uniform(-10, 10, 2), dz],
-            euler_to_matrix(np.radians(rng.uniform(-1, 1)) * (j > 0), 0, 0) @ p.rotation,
-            p.points_mm,
-        )
-        for j, p in enumerate(rig.target.patterns)
-    )
-    t = rig.t_n + np.array([*rng.uniform(-10, 10, 2), rng.uniform(-50, 50)])
-    return replace(
-        rig,
-        camera=cam2,
-        mount=replace(rig.mount, position_mm=t),
-        target=replace(rig.target, patterns=pats),
-    )
+perturbed = perturbed_lab
 
 
 def observe(true, rig, n_frames, sigma_px, rng):
