@@ -51,12 +51,13 @@ def cli(debug: bool) -> None:
 
 
 def _register() -> None:
-    from visvec.cli import batch, calibrate, simulate, track
+    from visvec.cli import batch, calibrate, montecarlo, simulate, track
 
     cli.add_command(track.track)
     cli.add_command(batch.batch)
     cli.add_command(calibrate.calibrate)
     cli.add_command(simulate.simulate)
+    cli.add_command(montecarlo.montecarlo)
 
 
 _register()
