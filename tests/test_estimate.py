@@ -6,11 +6,8 @@ import numpy as np
 import pytest
 
 from visvec.data import Detection, Status
-from visvec.estimate.triangle_full import (
-    initial_rotation,
-    residuals_and_jacobian,
-    solve_full,
-)
+from visvec.estimate.rotation import initial_rotation, residuals_and_jacobian
+from visvec.estimate.triangle_full import solve_full
 from visvec.estimate.triangle_paper import solve_paper
 from visvec.geometry import camera_offset_c, lab_to_camera
 from visvec.rotations import euler_rates_from_body, euler_to_matrix, expmap, matrix_to_euler

@@ -77,11 +77,6 @@ class Detection:
     mean_brightness: float = float("nan")
     contour_px: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
 
-    @property
-    def centroid_px(self) -> np.ndarray:
-        """(2,) ndarray: centroid of the three vertices in pixels."""
-        return self.points_px.mean(axis=0)
-
 
 @dataclass(frozen=True)
 class AttitudeSolution:

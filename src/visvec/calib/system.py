@@ -235,7 +235,6 @@ def _jacobian(model: _Model, x: np.ndarray) -> csr_matrix:
     every frame at once (frames do not share residuals)."""
     h = _steps(model)
     ng = model.n_global
-    rows_per_frame = 2 * model.obs.frame  # residual row of each observation's u
     cols, data, rows = [], [], []
     for k in range(ng):
         d = np.zeros_like(x)
@@ -255,7 +254,6 @@ def _jacobian(model: _Model, x: np.ndarray) -> csr_matrix:
         rows.append(r_idx)
         cols.append(ng + 3 * frames + a)
         data.append(col)
-    del rows_per_frame
     return csr_matrix(
         (np.concatenate(data), (np.concatenate(rows), np.concatenate(cols))), shape=(2 * L, len(x))
     )

@@ -17,7 +17,7 @@ from visvec.cli.common import load, rig_options
 from visvec.data import Status
 from visvec.detect.markers import MarkerIdentifier
 from visvec.detect.spots import find_spots
-from visvec.errors import ConfigError, InputFileError, SourceError
+from visvec.errors import InputFileError, SourceError
 from visvec.pipeline import TrianglePipeline
 from visvec.sources import open_source
 from visvec.sources.folder import IMAGE_SUFFIXES, natural_key
@@ -41,11 +41,7 @@ def zero_tilt(frames, rig_path, calibration, out):
     """Zero-tilt offsets from FRAMES (folder or video) taken with the platform level at
     several yaws: target offset from the rotation axis and camera mounting tilt (for
     --method full), zero-tilt centroid (for --method paper)."""
-    rig = load(rig_path, calibration)
-    if rig.kind != "triangle":
-        raise ConfigError(
-            f"{rig_path}: [target] kind = {rig.kind!r}: zero-tilt calibration is for triangle rigs"
-        )
+    rig = load(rig_path, calibration, "triangle", "zero-tilt calibration")
     pipe = TrianglePipeline(rig, "full")
     dets, names, bad = [], [], 0
     for frame in open_source(frames, fps=rig.fps, retry_s=0.0):
@@ -170,11 +166,7 @@ def system(frames, rig_path, calibration, out, max_iterations):
     """Self-calibrate a markers rig from FRAMES (a folder or video of the platform moved
     through many attitudes): intrinsics, camera position, pattern poses (STASIS
     Sec. 2.5). Prints a report like the paper's Table 2."""
-    rig = load(rig_path, calibration)
-    if rig.kind != "markers":
-        raise ConfigError(
-            f"{rig_path}: [target] kind = {rig.kind!r}: system calibration is for markers rigs"
-        )
+    rig = load(rig_path, calibration, "markers", "system calibration")
     # the rig is only roughly known yet: identify with a free translation (which absorbs
     # errors of the camera distance and focal length) and a wide final gate (markers are
     # about 100 px apart, so 10 px cannot confuse two of them)

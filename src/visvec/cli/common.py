@@ -9,6 +9,7 @@ from pathlib import Path
 import click
 import cv2
 
+from visvec.errors import ConfigError
 from visvec.output import ATTITUDE_COLUMNS, AttitudeRow
 from visvec.pipeline import METHODS, make_pipeline
 from visvec.rig import Rig, load_rig
@@ -71,8 +72,12 @@ def output_options(f):
     return f
 
 
-def load(rig_path: str, calibration: str | None) -> Rig:
-    return load_rig(rig_path, calibration)
+def load(rig_path: str, calibration: str | None, kind: str | None = None, what: str = "") -> Rig:
+    """The rig (with its calibration); refused unless its target is ``kind`` if given."""
+    rig = load_rig(rig_path, calibration)
+    if kind is not None and rig.kind != kind:
+        raise ConfigError(f"{rig_path}: [target] kind = {rig.kind!r}: {what} is for {kind} rigs")
+    return rig
 
 
 @contextlib.contextmanager

@@ -12,7 +12,6 @@ import click
 
 from visvec.bench.markers import METHODS, RunSpec, run_one, summarise
 from visvec.cli.common import load, rig_options
-from visvec.errors import ConfigError
 
 
 def _floats(text: str, what: str) -> list[float]:
@@ -95,11 +94,7 @@ def montecarlo(
     each run draws a lab within STASIS Table-3-like ranges, places the LEDs with error,
     calibrates virtually, then estimates fresh poses. Reports the 1-sigma errors, the
     Cramer-Rao bound, our efficiency and each baseline's ratio to ours."""
-    rig = load(rig_path, calibration)
-    if rig.kind != "markers":
-        raise ConfigError(
-            f"{rig_path}: [target] kind = {rig.kind!r}: the Monte Carlo study is for markers rigs"
-        )
+    rig = load(rig_path, calibration, "markers", "the Monte Carlo study")
     cs = _floats(centroid_noise, "--centroid-noise")
     ms = _floats(marker_error, "--marker-error")
     specs = [

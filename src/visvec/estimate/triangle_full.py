@@ -20,11 +20,7 @@ from __future__ import annotations
 import numpy as np
 
 from visvec.data import AttitudeSolution, Detection, Status
-from visvec.estimate.rotation import (  # noqa: F401 - re-exported for the tests
-    fit_rotation,
-    initial_rotation,
-    residuals_and_jacobian,
-)
+from visvec.estimate.rotation import fit_rotation
 from visvec.geometry import camera_offset_c
 from visvec.rig import Rig
 
