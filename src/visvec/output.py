@@ -3,7 +3,8 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import ClassVar
 
 import numpy as np
 
@@ -31,24 +32,55 @@ ATTITUDE_COLUMNS = (
 )
 
 
+RATE_COLUMNS = (
+    "frame",
+    "time_s",
+    "status",
+    "wx_dps",
+    "wy_dps",
+    "wz_dps",
+    "sigma_wx_dps",
+    "sigma_wy_dps",
+    "sigma_wz_dps",
+    "rms_px",
+    "n_points",
+    "latency_ms",
+    "warnings",
+)
+
+
 @dataclass(frozen=True)
-class AttitudeRow:
-    """One output row of an attitude mode; numeric fields are nan unless status is ok."""
+class Row:
+    """What every output row has; numeric fields are nan unless status is ok.
+
+    Subclasses name their columns and list their quantities (name, value, decimals)
+    in column order.
+    """
 
     frame: int
     time_s: float
     status: Status
-    euler_deg: np.ndarray  # (3,) yaw, pitch, roll
-    q_nb: np.ndarray  # (4,) w, x, y, z
-    sigma_deg: np.ndarray  # (3,) yaw, pitch, roll
     rms_px: float
     n_points: int
     latency_ms: float
     warnings: tuple[str, ...]
 
+    columns: ClassVar[tuple[str, ...]] = ()
+
     @property
     def ok(self) -> bool:
         return self.status is Status.OK
+
+    def quantities(self) -> list[tuple[str, float, int]]:
+        raise NotImplementedError
+
+    def values(self) -> np.ndarray:
+        """The row's main quantities (the ones a truth file holds), in column order."""
+        raise NotImplementedError
+
+    def sigmas(self) -> np.ndarray:
+        """1-sigma of :meth:`values` where the row has one."""
+        raise NotImplementedError
 
     def as_dict(self) -> dict[str, object]:
         """Column name -> value; None for the empty numeric fields of a non-ok row."""
@@ -62,19 +94,57 @@ class AttitudeRow:
             "time_s": round(self.time_s, 6),
             "status": str(self.status),
         }
-        for k, v in zip(("yaw_deg", "pitch_deg", "roll_deg"), self.euler_deg, strict=True):
-            d[k] = num(v, 6)
-        for k, v in zip(("qw", "qx", "qy", "qz"), self.q_nb, strict=True):
-            d[k] = num(v, 9)
-        for k, v in zip(
-            ("sigma_yaw_deg", "sigma_pitch_deg", "sigma_roll_deg"), self.sigma_deg, strict=True
-        ):
-            d[k] = num(v, 6)
+        for k, v, nd in self.quantities():
+            d[k] = num(v, nd)
         d["rms_px"] = num(self.rms_px, 4)
         d["n_points"] = self.n_points
         d["latency_ms"] = round(self.latency_ms, 3)
         d["warnings"] = ";".join(dict.fromkeys(self.warnings))
         return d
+
+
+@dataclass(frozen=True)
+class AttitudeRow(Row):
+    """One output row of an attitude mode (triangle, markers)."""
+
+    euler_deg: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))  # yaw,pitch,roll
+    q_nb: np.ndarray = field(default_factory=lambda: np.full(4, np.nan))  # w, x, y, z
+    sigma_deg: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))
+
+    columns: ClassVar[tuple[str, ...]] = ATTITUDE_COLUMNS
+
+    def quantities(self) -> list[tuple[str, float, int]]:
+        out = [(k, v, 6) for k, v in zip(ATTITUDE_COLUMNS[3:6], self.euler_deg, strict=True)]
+        out += [(k, v, 9) for k, v in zip(ATTITUDE_COLUMNS[6:10], self.q_nb, strict=True)]
+        out += [(k, v, 6) for k, v in zip(ATTITUDE_COLUMNS[10:13], self.sigma_deg, strict=True)]
+        return out
+
+    def values(self) -> np.ndarray:
+        return self.euler_deg
+
+    def sigmas(self) -> np.ndarray:
+        return self.sigma_deg
+
+
+@dataclass(frozen=True)
+class RateRow(Row):
+    """One output row of the starfield mode: angular rate in the camera frame C."""
+
+    w_dps: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))
+    sigma_dps: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))
+
+    columns: ClassVar[tuple[str, ...]] = RATE_COLUMNS
+
+    def quantities(self) -> list[tuple[str, float, int]]:
+        out = [(k, v, 7) for k, v in zip(RATE_COLUMNS[3:6], self.w_dps, strict=True)]
+        out += [(k, v, 7) for k, v in zip(RATE_COLUMNS[6:9], self.sigma_dps, strict=True)]
+        return out
+
+    def values(self) -> np.ndarray:
+        return self.w_dps
+
+    def sigmas(self) -> np.ndarray:
+        return self.sigma_dps
 
 
 def attitude_row(
@@ -87,15 +157,11 @@ def attitude_row(
     n_points: int = 0,
 ) -> AttitudeRow:
     """Build the row of one frame from its solution (None when there is none)."""
-    nan3 = np.full(3, np.nan)
     if sol is None or status is not Status.OK:
         return AttitudeRow(
             frame,
             time_s,
             status,
-            nan3,
-            np.full(4, np.nan),
-            nan3,
             sol.rms_px if sol is not None else math.nan,
             sol.n_points if sol is not None else n_points,
             latency_ms,
@@ -108,11 +174,11 @@ def attitude_row(
         frame,
         time_s,
         status,
-        np.degrees(e),
-        matrix_to_quat(sol.R_nb),
-        np.degrees(sigma),
         sol.rms_px,
         sol.n_points,
         latency_ms,
         warnings,
+        euler_deg=np.degrees(e),
+        q_nb=matrix_to_quat(sol.R_nb),
+        sigma_deg=np.degrees(sigma),
     )

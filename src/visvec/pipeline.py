@@ -21,7 +21,7 @@ from visvec.errors import ConfigError
 from visvec.estimate import ESTIMATORS
 from visvec.estimate.markers import solve_markers
 from visvec.estimate.pnp import PNP_FLAGS, solve_pnp
-from visvec.output import AttitudeRow, attitude_row
+from visvec.output import AttitudeRow, Row, attitude_row
 from visvec.rig import Rig
 
 TRIANGLE_METHODS = tuple(ESTIMATORS)
@@ -30,9 +30,11 @@ METHODS = tuple(dict.fromkeys(TRIANGLE_METHODS + MARKER_METHODS))
 
 
 class Pipeline:
-    """Shared frame loop of every target kind. Subclasses implement :meth:`estimate`."""
+    """Shared frame loop of every target kind. Subclasses implement :meth:`estimate`
+    and :meth:`make_row`."""
 
     methods: tuple[str, ...] = ()
+    row_type: type[Row] = Row
 
     def __init__(self, rig: Rig, method: str = "full"):
         if method not in self.methods:
@@ -63,43 +65,51 @@ class Pipeline:
     def reset(self) -> None:
         """Forget the previous frame."""
 
-    def estimate(
-        self, image: np.ndarray
-    ) -> tuple[Status, AttitudeSolution | None, tuple[str, ...]]:
+    def estimate(self, frame: Frame) -> tuple[Status, object | None, tuple[str, ...]]:
+        """Status, solution (or None) and warnings of one readable frame."""
         raise NotImplementedError
 
-    def process(self, frame: Frame, t_in: float | None = None) -> AttitudeRow:
+    def make_row(
+        self,
+        frame: Frame,
+        status: Status,
+        sol: object | None,
+        warnings: tuple[str, ...],
+        latency_ms: float,
+    ) -> Row:
+        raise NotImplementedError
+
+    def check_solution(
+        self, status: Status, sol: object | None, warnings: tuple[str, ...]
+    ) -> tuple[Status, tuple[str, ...]]:
+        """A last physical check of an ok solution (none by default)."""
+        return status, warnings
+
+    def process(self, frame: Frame, t_in: float | None = None) -> Row:
         """The row of one frame; never raises on frame content."""
         t_in = time.perf_counter() if t_in is None else t_in
         self.last_detection, self.last_solution, self.last_error = None, None, ""
         if self.check_frame(frame):
             self.reset()
-            return attitude_row(
-                frame.index, frame.time_s, None, Status.READ_ERROR, ("read_error",), _ms(t_in)
-            )
+            return self.make_row(frame, Status.READ_ERROR, None, ("read_error",), _ms(t_in))
         try:
-            status, sol, warnings = self.estimate(frame.image)
+            status, sol, warnings = self.estimate(frame)
         except Exception as exc:  # noqa: BLE001 - one bad frame must not end the run
             # a bug met on this frame's content: refuse the frame, keep the run going,
             # and keep the message for the caller to report
             self.last_error = f"{type(exc).__name__}: {exc}"
             self.reset()
-            return attitude_row(
-                frame.index, frame.time_s, None, Status.REJECTED, ("internal_error",), _ms(t_in)
-            )
+            return self.make_row(frame, Status.REJECTED, None, ("internal_error",), _ms(t_in))
         self.last_solution = sol
         if status is Status.OK and sol is not None:
-            tilt = np.degrees(np.arccos(np.clip(sol.R_nb[2, 2], -1.0, 1.0)))
-            if tilt > self.rig.max_tilt_deg:
-                status, warnings = Status.REJECTED, warnings + ("impossible_tilt",)
+            status, warnings = self.check_solution(status, sol, warnings)
         if status is not Status.OK:
             self.reset()
-        n = sol.n_points if sol is not None else 0
-        return attitude_row(frame.index, frame.time_s, sol, status, warnings, _ms(t_in), n)
+        return self.make_row(frame, status, sol, warnings, _ms(t_in))
 
     def run(
-        self, frames: Iterable[Frame], on_frame: Callable[[Frame, AttitudeRow], None] | None = None
-    ) -> Iterator[AttitudeRow]:
+        self, frames: Iterable[Frame], on_frame: Callable[[Frame, Row], None] | None = None
+    ) -> Iterator[Row]:
         """Rows of all frames, lazily; ``on_frame`` sees each frame with its row."""
         for frame in frames:
             row = self.process(frame)
@@ -108,7 +118,22 @@ class Pipeline:
             yield row
 
 
-class TrianglePipeline(Pipeline):
+class AttitudePipeline(Pipeline):
+    """Attitude rows (triangle, markers), with the physically-possible tilt check."""
+
+    row_type = AttitudeRow
+
+    def make_row(self, frame, status, sol, warnings, latency_ms):
+        return attitude_row(frame.index, frame.time_s, sol, status, warnings, latency_ms)
+
+    def check_solution(self, status, sol, warnings):
+        tilt = np.degrees(np.arccos(np.clip(sol.R_nb[2, 2], -1.0, 1.0)))
+        if tilt > self.rig.max_tilt_deg:
+            return Status.REJECTED, warnings + ("impossible_tilt",)
+        return status, warnings
+
+
+class TrianglePipeline(AttitudePipeline):
     """The triangle target; ``method`` "full" (default) or "paper"."""
 
     methods = TRIANGLE_METHODS
@@ -123,8 +148,8 @@ class TrianglePipeline(Pipeline):
     def reset(self) -> None:
         self.detector.reset()
 
-    def estimate(self, image):
-        det = self.detector.detect(image)
+    def estimate(self, frame):
+        det = self.detector.detect(frame.image)
         self.last_detection = det
         if det.status is not Status.OK:
             return det.status, None, det.warnings
@@ -146,7 +171,7 @@ MAX_ELONGATION = 1.8
 TRACK_WINDOW_PX = 24
 
 
-class MarkerPipeline(Pipeline):
+class MarkerPipeline(AttitudePipeline):
     """LED markers seen by a camera fixed in the lab; ``method`` "full" (the constrained
     3-parameter solver) or a PnP baseline ("pnp-sqpnp", "pnp-ippe", ...)."""
 
@@ -172,7 +197,8 @@ class MarkerPipeline(Pipeline):
             windows = [(u - h, v - h, u + h + 1, v + h + 1) for u, v in uv if np.isfinite(u)]
         return find_spots(image, d.threshold, d.min_spot_px, d.max_spot_px, windows)
 
-    def estimate(self, image):
+    def estimate(self, frame):
+        image = frame.image
         warnings: list[str] = []
         tracking = self.R_last is not None
         spots = self._spots(image, self.R_last)

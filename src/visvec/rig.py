@@ -21,7 +21,7 @@ from visvec.camera import CameraModel
 from visvec.errors import ConfigError
 
 TARGET_KINDS = ("triangle", "markers", "lamps", "starfield")
-SUPPORTED_KINDS = ("triangle", "markers")
+SUPPORTED_KINDS = ("triangle", "markers", "starfield")
 REFINE_METHODS = ("lines", "corners")
 
 
@@ -80,6 +80,18 @@ class MarkerTarget:
 
 
 @dataclass(frozen=True)
+class StarfieldTarget:
+    """The sky seen by a camera on the platform; only rates are measured.
+
+    max_rate_dps : the largest angular rate to search for (deg/s); it sets how far a
+        star may move between frames.
+    """
+
+    max_rate_dps: float = 6.0
+    kind: str = "starfield"
+
+
+@dataclass(frozen=True)
 class DetectSettings:
     """Detector settings (``[detect]``), all optional.
 
@@ -116,12 +128,13 @@ class Rig:
 
     camera: CameraModel
     mount: Mount
-    target: TriangleTarget | MarkerTarget
+    target: TriangleTarget | MarkerTarget | StarfieldTarget
     max_tilt_deg: float = 10.0
     detect: DetectSettings = field(default_factory=DetectSettings)
     zero_tilt: ZeroTilt = field(default_factory=ZeroTilt)
     device: int | str | None = None
     fps: float = 30.0
+    exposure_ms: float | None = None
     path: Path | None = None
 
     @property
@@ -324,6 +337,12 @@ def rig_from_dict(raw: Mapping[str, Any], src: str = "<rig>", base_dir: Path | N
     if device is not None and not isinstance(device, int | str):
         raise ConfigError(f"{src}: [camera] device = {device!r}: expected an index or a path/URL")
     fps = cam.number("fps", 30.0, positive=True)
+    exposure_ms = cam.number("exposure_ms", None, positive=True)
+    if exposure_ms is not None and exposure_ms > 1000.0 / fps:
+        raise ConfigError(
+            f"{src}: [camera] exposure_ms = {exposure_ms}: longer than one frame "
+            f"({1000.0 / fps:.1f} ms at fps = {fps})"
+        )
     cam.check_unknown()
 
     mnt = _Section(src, "mount", raw["mount"])
@@ -343,6 +362,8 @@ def rig_from_dict(raw: Mapping[str, Any], src: str = "<rig>", base_dir: Path | N
         )
     if kind == "triangle":
         target = _triangle_target(tgt, mount, src)
+    elif kind == "starfield":
+        target = _starfield_target(tgt, mount, src)
     else:
         target = _marker_target(tgt, mount, src)
 
@@ -383,6 +404,7 @@ def rig_from_dict(raw: Mapping[str, Any], src: str = "<rig>", base_dir: Path | N
         zero_tilt=zero,
         device=device,
         fps=fps,
+        exposure_ms=exposure_ms,
         path=Path(src.split(" (+")[0]) if base_dir is not None else None,
     )
     _check_visible(rig, src)
@@ -427,6 +449,17 @@ def _triangle_target(tgt: _Section, mount: Mount, src: str) -> TriangleTarget:
     tgt.check_unknown()
     _check_triangle(verts, src)
     return TriangleTarget(vertices_mm=verts)
+
+
+def _starfield_target(tgt: _Section, mount: Mount, src: str) -> StarfieldTarget:
+    if mount.on != "platform":
+        raise ConfigError(
+            f"{src}: [mount] on = {mount.on!r}: a starfield camera rides on the platform "
+            '(on = "platform")'
+        )
+    rate = tgt.number("max_rate_dps", 6.0, positive=True, hi=180.0)
+    tgt.check_unknown()
+    return StarfieldTarget(max_rate_dps=rate)
 
 
 def _marker_target(tgt: _Section, mount: Mount, src: str) -> MarkerTarget:
@@ -488,6 +521,8 @@ def _marker_target(tgt: _Section, mount: Mount, src: str) -> MarkerTarget:
 
 def _check_visible(rig: Rig, src: str) -> None:
     """The target must be in front of the camera at zero attitude."""
+    if rig.kind == "starfield":
+        return  # the sky is everywhere
     if rig.kind == "markers":
         p_c = (rig.target.points_b - rig.t_n) @ rig.R_nc
         if np.any(p_c[:, 2] <= 0):

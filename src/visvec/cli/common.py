@@ -10,7 +10,7 @@ import click
 import cv2
 
 from visvec.errors import ConfigError
-from visvec.output import ATTITUDE_COLUMNS, AttitudeRow
+from visvec.output import Row
 from visvec.pipeline import METHODS, make_pipeline
 from visvec.rig import Rig, load_rig
 from visvec.sinks import open_sink
@@ -99,15 +99,15 @@ def run_frames(
     method: str,
     overlay: str | None,
     max_frames: int | None,
-) -> list[AttitudeRow]:
+) -> list[Row]:
     """Process frames, writing each row as it is made; Ctrl-C ends the loop cleanly."""
     pipe = make_pipeline(rig, method)
-    rows: list[AttitudeRow] = []
+    rows: list[Row] = []
     ov = Path(overlay) if overlay else None
     if ov is not None:
         ov.mkdir(parents=True, exist_ok=True)
     with open_out(out) as stream:
-        sink = open_sink(fmt, stream, ATTITUDE_COLUMNS)
+        sink = open_sink(fmt, stream, pipe.row_type.columns)
         try:
             for frame in frames:
                 row = pipe.process(frame)
