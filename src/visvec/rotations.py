@@ -149,3 +149,16 @@ def euler_rates_from_body(yaw: float, pitch: float, roll: float) -> np.ndarray:
     # columns: d/d(yaw, pitch, roll) of eps
     E = np.array([[-sp, 0.0, 1.0], [sr * cp, cr, 0.0], [cr * cp, -sr, 0.0]])
     return np.linalg.inv(E)
+
+
+def logmap(R: np.ndarray) -> np.ndarray:
+    """Rotation vector w with exp([w]x) = R (the inverse of :func:`expmap`), |w| <= pi.
+
+    Goes through the quaternion, which stays accurate for small and large angles.
+    """
+    q = matrix_to_quat(R)
+    v = q[1:]
+    s = float(np.linalg.norm(v))
+    if s < 1e-12:
+        return 2.0 * v  # first order: q = (1, w / 2)
+    return v * (2.0 * np.arctan2(s, q[0]) / s)

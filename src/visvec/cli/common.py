@@ -51,9 +51,10 @@ def output_options(f):
     f = click.option(
         "--method",
         type=click.Choice(METHODS),
-        default="full",
-        show_default=True,
-        help="Estimator: 'full' (camera model, lever arm) or 'paper'.",
+        default=None,
+        help="Estimator. Triangle: 'full' (default; camera model, lever arm) or 'paper'; "
+        "markers: 'full' (default) or a PnP baseline; starfield: 'poisson' (default) or "
+        "'crassidis'.",
     )(f)
     f = click.option(
         "--format",
@@ -96,7 +97,7 @@ def run_frames(
     *,
     out: str | None,
     fmt: str,
-    method: str,
+    method: str | None,
     overlay: str | None,
     max_frames: int | None,
 ) -> list[Row]:

@@ -1,0 +1,159 @@
+"""Angular rate of the camera from matched star directions of two frames.
+
+Two estimators of omega (rad/s, camera frame C, the camera's rate relative to the stars):
+
+``poisson`` (Fasano et al., Sensors 2013, Sec. 2.2, Eqs. (3)-(4)): stars are fixed in
+inertial space, so in the camera frame du/dt = -omega x u = [u]x omega. Each star gives
+three (dependent) linear equations; all are stacked and solved by least squares through
+a QR decomposition; residuals flag outliers. We evaluate [u]x at the mid-point
+(u1 + u2) / 2 of the two directions, which makes the finite difference exact to second
+order (u2 - u1 = 2 tan(theta/2) k x (u1 + u2) / 2 for a rotation theta about k), where
+the paper's first-frame u leaves a first-order error.
+
+``crassidis`` (after Crassidis, "Angular velocity determination directly from star
+tracker measurements", J. Guidance, Control, and Dynamics 25(6), 2002): the rotation
+between the matched direction sets of the two frames, found in closed form as the
+optimal rotation of Wahba's problem (SVD, Markley 1988), gives omega = -log(R) / dt
+with the QUEST measurement-model covariance (Shuster & Oh 1981) of the rotation. It is
+exact for any rotation per frame, so it is the better choice when a frame turns the
+camera by more than a few degrees (low frame rates, fast tumbles); below that both give
+the same answer (measured in benchmarks/RESULTS.md).
+
+Both reject outliers iteratively: a star whose residual exceeds 4 robust sigmas (and
+three times the centroid noise) is dropped and the fit repeated.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from visvec.rotations import expmap, logmap
+
+OUTLIER_SIGMAS = 4.0
+MIN_STARS = 5
+MIN_INLIER_FRACTION = 0.5
+
+
+@dataclass(frozen=True)
+class RateSolution:
+    """omega (3,) rad/s in C; cov (3, 3) rad^2/s^2; rms_px: RMS residual of the inliers
+    in pixels; inliers: (N,) bool; ok: enough consistent stars; reason when not ok."""
+
+    omega: np.ndarray
+    cov: np.ndarray
+    rms_px: float
+    inliers: np.ndarray
+    ok: bool
+    reason: str = ""
+
+    @property
+    def n_points(self) -> int:
+        return int(self.inliers.sum())
+
+
+def unit_vectors(xy_n: np.ndarray) -> np.ndarray:
+    """(N, 3) unit vectors of normalised image coordinates (N, 2)."""
+    v = np.column_stack([xy_n, np.ones(len(xy_n))])
+    return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+
+def skew_stack(u: np.ndarray) -> np.ndarray:
+    """(3N, 3) stacked cross-product matrices [u_i]x."""
+    n = len(u)
+    A = np.zeros((n, 3, 3))
+    A[:, 0, 1], A[:, 0, 2] = -u[:, 2], u[:, 1]
+    A[:, 1, 0], A[:, 1, 2] = u[:, 2], -u[:, 0]
+    A[:, 2, 0], A[:, 2, 1] = -u[:, 1], u[:, 0]
+    return A.reshape(3 * n, 3)
+
+
+def _poisson_fit(u1: np.ndarray, u2: np.ndarray, dt: float):
+    """omega, per-star residual norms (rad), (A^T A)^-1 of the Poisson least squares."""
+    um = 0.5 * (u1 + u2)
+    A = skew_stack(um)
+    b = ((u2 - u1) / dt).ravel()
+    Q, R = np.linalg.qr(A)  # Fasano et al.: least squares by QR
+    omega = np.linalg.solve(R, Q.T @ b)
+    res = (A @ omega - b).reshape(-1, 3) * dt
+    Rinv = np.linalg.inv(R)
+    return omega, np.linalg.norm(res, axis=1), Rinv @ Rinv.T
+
+
+def _wahba_fit(u1: np.ndarray, u2: np.ndarray, dt: float):
+    """omega, per-star residual norms (rad), and sum(I - u u^T)^-1 (the QUEST
+    information matrix for unit-sigma vectors), from the rotation R with u2 = R u1."""
+    B = u2.T @ u1
+    U, _, Vt = np.linalg.svd(B)
+    d = np.sign(np.linalg.det(U) * np.linalg.det(Vt))
+    R = U @ np.diag([1.0, 1.0, d]) @ Vt
+    # u_C(t + dt) = exp(-[omega]x dt) u_C(t), so R = exp(-[omega]x dt)
+    omega = -logmap(R) / dt
+    res = np.linalg.norm(u2 - u1 @ R.T, axis=1)
+    um = 0.5 * (u1 + u2)
+    um /= np.linalg.norm(um, axis=1, keepdims=True)
+    F = len(um) * np.eye(3) - um.T @ um
+    return omega, res, np.linalg.inv(F)
+
+
+def estimate_rate(
+    xy1: np.ndarray,
+    xy2: np.ndarray,
+    dt: float,
+    f_px: float,
+    sigma_px: float,
+    method: str = "poisson",
+) -> RateSolution:
+    """omega from matched normalised image points of two frames ``dt`` seconds apart.
+
+    Parameters
+    ----------
+    xy1, xy2 : (N, 2) undistorted normalised coordinates of the same stars.
+    f_px : focal length in pixels (to express residuals in pixels).
+    sigma_px : a-priori 1-sigma of one centroid (the floor of the covariance).
+    method : "poisson" (the paper) or "crassidis".
+    """
+    u1, u2 = unit_vectors(xy1), unit_vectors(xy2)
+    n = len(u1)
+    inl = np.ones(n, dtype=bool)
+    fit = _poisson_fit if method == "poisson" else _wahba_fit
+    nan3 = np.full(3, np.nan)
+    if n < MIN_STARS:
+        return RateSolution(nan3, np.full((3, 3), np.nan), np.nan, inl, False, "too_few_matches")
+    sig_rad = sigma_px / f_px
+    for _ in range(10):
+        omega, _, _ = fit(u1[inl], u2[inl], dt)
+        full = np.linalg.norm(u2 - _predict(u1, omega, dt), axis=1)
+        s = 1.4826 * np.median(full[inl])
+        lim = max(OUTLIER_SIGMAS * s, 3.0 * np.sqrt(2.0) * sig_rad)
+        new = full <= lim
+        if new.sum() < MIN_STARS or np.array_equal(new, inl):
+            break
+        inl = new
+    omega, _, H = fit(u1[inl], u2[inl], dt)
+    k = int(inl.sum())
+    if k < MIN_STARS or k < MIN_INLIER_FRACTION * n:
+        return RateSolution(
+            nan3, np.full((3, 3), np.nan), np.nan, inl, False, "no_consistent_motion"
+        )
+    # covariance: the sandwich (heteroscedasticity-consistent) form
+    # H (sum A_i^T e_i e_i^T A_i) H with A_i = [u_i]x and e_i the residual of star i,
+    # because errors are not alike across stars and axes (a streak's centroid is
+    # worse along the streak); small-sample factor k / (k - 2); floored by the a-priori
+    # centroid noise of both frames
+    e = u2[inl] - _predict(u1[inl], omega, dt)
+    g = np.cross(0.5 * (u1[inl] + u2[inl]), e)  # A_i^T e_i = -[u_i]x e_i, sign irrelevant
+    meat = g.T @ g * (k / max(k - 2.0, 1.0))
+    cov = H @ meat @ H / dt**2
+    floor = 2.0 * sig_rad**2 * H / dt**2
+    if np.trace(cov) < np.trace(floor):
+        cov = floor
+    res = np.linalg.norm(e, axis=1)
+    rms_px = float(np.sqrt(np.mean(res**2))) * f_px
+    return RateSolution(omega, cov, rms_px, inl, True)
+
+
+def _predict(u1: np.ndarray, omega: np.ndarray, dt: float) -> np.ndarray:
+    """Directions after dt at rate omega: u(t + dt) = exp(-[omega]x dt) u(t)."""
+    return u1 @ expmap(-omega * dt).T
