@@ -1,4 +1,8 @@
-"""Error statistics of attitude rows against a truth file (``batch --truth``)."""
+"""Error statistics of output rows against a truth file (``batch --truth``).
+
+The quantities compared are the row type's main values: yaw, pitch, roll (deg) for
+attitude rows, wx, wy, wz (deg/s) for rate rows. Yaw is compared modulo 360 degrees.
+"""
 
 from __future__ import annotations
 
@@ -10,13 +14,15 @@ from pathlib import Path
 import numpy as np
 
 from visvec.errors import InputFileError
-from visvec.output import AttitudeRow
+from visvec.output import Row
 
 ANGLES = ("yaw_deg", "pitch_deg", "roll_deg")
+RATES = ("wx_dps", "wy_dps", "wz_dps")
+WRAPPED = ("yaw_deg", "heading_deg")
 
 
-def read_truth(path: str | Path) -> dict[int, np.ndarray]:
-    """frame -> (3,) true yaw, pitch, roll in degrees, from a `visvec simulate` truth file."""
+def read_truth(path: str | Path, names: Sequence[str] = ANGLES) -> dict[int, np.ndarray]:
+    """frame -> true values of the columns ``names``, from a `visvec simulate` truth file."""
     path = Path(path)
     out: dict[int, np.ndarray] = {}
     try:
@@ -25,31 +31,34 @@ def read_truth(path: str | Path) -> dict[int, np.ndarray]:
         raise InputFileError(f"{path}: cannot read the truth file ({exc.strerror})") from None
     with fh:
         reader = csv.DictReader(fh)
-        need = {"frame", *ANGLES}
+        need = {"frame", *names}
         if not reader.fieldnames or not need <= set(reader.fieldnames):
             raise InputFileError(
                 f"{path}: truth file needs columns {sorted(need)}; found {reader.fieldnames}"
             )
         for line, row in enumerate(reader, start=2):
             try:
-                out[int(row["frame"])] = np.array([float(row[k]) for k in ANGLES])
+                out[int(row["frame"])] = np.array([float(row[k]) for k in names])
             except (TypeError, ValueError):
                 raise InputFileError(
-                    f"{path}: line {line}: expected numbers in frame,{','.join(ANGLES)}"
+                    f"{path}: line {line}: expected numbers in frame,{','.join(names)}"
                 ) from None
     return out
 
 
 @dataclass(frozen=True)
 class ErrorStats:
-    """Per-axis error statistics (yaw, pitch, roll) in degrees over the ok rows."""
+    """Per-quantity error statistics over the ok rows (units of the columns)."""
 
+    names: tuple[str, ...]
     n_frames: int
     n_ok: int
-    rms_deg: np.ndarray
-    mean_deg: np.ndarray
-    max_abs_deg: np.ndarray
-    within_3sigma: float  # fraction of ok rows with every axis within 3 sigma
+    rms: np.ndarray
+    mean: np.ndarray
+    std: np.ndarray
+    max_abs: np.ndarray
+    mean_sigma: np.ndarray
+    within_3sigma: float  # fraction of ok rows with every quantity within 3 sigma
 
     def lines(self) -> list[str]:
         out = [
@@ -57,10 +66,12 @@ class ErrorStats:
             f"({100 * self.n_ok / max(self.n_frames, 1):.1f}%)"
         ]
         if self.n_ok:
-            for name, i in (("yaw", 0), ("pitch", 1), ("roll", 2)):
+            for i, name in enumerate(self.names):
+                unit = name.rsplit("_", 1)[1]
                 out.append(
-                    f"{name:>5}: rms {self.rms_deg[i]:.4f} deg, mean {self.mean_deg[i]:+.4f}, "
-                    f"max |err| {self.max_abs_deg[i]:.4f}"
+                    f"{name.rsplit('_', 1)[0]:>7}: rms {self.rms[i]:.5g} {unit}, mean "
+                    f"{self.mean[i]:+.3g}, std {self.std[i]:.3g}, max |err| "
+                    f"{self.max_abs[i]:.3g}, mean sigma {self.mean_sigma[i]:.3g}"
                 )
             out.append(f"ok rows within 3 sigma on every axis: {100 * self.within_3sigma:.1f}%")
         return out
@@ -70,24 +81,36 @@ def wrap_deg(a: np.ndarray) -> np.ndarray:
     return (a + 180.0) % 360.0 - 180.0
 
 
-def error_stats(rows: Sequence[AttitudeRow], truth: dict[int, np.ndarray]) -> ErrorStats:
+def error_stats(
+    rows: Sequence[Row], truth: dict[int, np.ndarray], names: Sequence[str] = ANGLES
+) -> ErrorStats:
     """Compare rows with the truth (frames missing from the truth are skipped)."""
     errs, sig = [], []
     n = 0
+    wrap = [i for i, k in enumerate(names) if k in WRAPPED]
     for r in rows:
         if r.frame not in truth:
             continue
         n += 1
         if r.ok:
-            e = r.euler_deg - truth[r.frame]
-            e[0] = wrap_deg(e[0])
+            e = r.values() - truth[r.frame]
+            e[wrap] = wrap_deg(e[wrap])
             errs.append(e)
-            sig.append(r.sigma_deg)
+            sig.append(r.sigmas())
+    names = tuple(names)
     if not errs:
-        nan = np.full(3, np.nan)
-        return ErrorStats(n, 0, nan, nan, nan, float("nan"))
+        nan = np.full(len(names), np.nan)
+        return ErrorStats(names, n, 0, nan, nan, nan, nan, nan, float("nan"))
     E, S = np.array(errs), np.array(sig)
     within = float(np.mean(np.all(np.abs(E) <= 3 * S, axis=1)))
     return ErrorStats(
-        n, len(E), np.sqrt((E**2).mean(axis=0)), E.mean(axis=0), np.abs(E).max(axis=0), within
+        names,
+        n,
+        len(E),
+        np.sqrt((E**2).mean(axis=0)),
+        E.mean(axis=0),
+        E.std(axis=0),
+        np.abs(E).max(axis=0),
+        S.mean(axis=0),
+        within,
     )

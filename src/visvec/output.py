@@ -66,6 +66,7 @@ class Row:
     warnings: tuple[str, ...]
 
     columns: ClassVar[tuple[str, ...]] = ()
+    value_columns: ClassVar[tuple[str, ...]] = ()  # the values a truth file holds
 
     @property
     def ok(self) -> bool:
@@ -112,6 +113,7 @@ class AttitudeRow(Row):
     sigma_deg: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))
 
     columns: ClassVar[tuple[str, ...]] = ATTITUDE_COLUMNS
+    value_columns: ClassVar[tuple[str, ...]] = ATTITUDE_COLUMNS[3:6]
 
     def quantities(self) -> list[tuple[str, float, int]]:
         out = [(k, v, 6) for k, v in zip(ATTITUDE_COLUMNS[3:6], self.euler_deg, strict=True)]
@@ -134,6 +136,7 @@ class RateRow(Row):
     sigma_dps: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))
 
     columns: ClassVar[tuple[str, ...]] = RATE_COLUMNS
+    value_columns: ClassVar[tuple[str, ...]] = RATE_COLUMNS[3:6]
 
     def quantities(self) -> list[tuple[str, float, int]]:
         out = [(k, v, 7) for k, v in zip(RATE_COLUMNS[3:6], self.w_dps, strict=True)]

@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 
 from visvec.data import Status
-from visvec.output import AttitudeRow
+from visvec.output import AttitudeRow, Row
 
 _GREEN, _RED, _BLUE, _YELLOW, _GREY = (
     (60, 200, 60),
@@ -20,7 +20,7 @@ _GREEN, _RED, _BLUE, _YELLOW, _GREY = (
 def draw_overlay(
     image: np.ndarray,
     det: object | None,
-    row: AttitudeRow,
+    row: Row,
     rig: object | None = None,
     scale: int | None = None,
 ) -> np.ndarray:
@@ -30,10 +30,12 @@ def draw_overlay(
     (toward the acute vertex, red) and n2 (blue). Markers: each spot circled, green with
     its marker id when identified, red when not; brightened so the dark frame shows.
     """
-    from visvec.pipeline import MarkerDetection
+    from visvec.pipeline import MarkerDetection, RateDetection
 
     if isinstance(det, MarkerDetection):
         return _text(_draw_markers(image, det, rig), row)
+    if isinstance(det, RateDetection):
+        return _text(_draw_flow(image, det), row)
     if scale is None:
         scale = max(1, int(round(800 / max(image.shape[1], 1))))
     big = cv2.resize(image, None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST)
@@ -64,13 +66,16 @@ def draw_overlay(
     return _text(out, row)
 
 
-def _text(out: np.ndarray, row: AttitudeRow) -> np.ndarray:
+def _text(out: np.ndarray, row: Row) -> np.ndarray:
     text = [f"frame {row.frame}  {row.status}"]
-    if row.ok:
+    if isinstance(row, AttitudeRow) and row.ok:
         y, p, r = row.euler_deg
         sy, sp, sr = row.sigma_deg
         text.append(f"yaw {y:8.3f} +- {sy:.3f}")
         text.append(f"pitch {p:6.3f} +- {sp:.3f}   roll {r:6.3f} +- {sr:.3f}")
+    elif row.ok:
+        for k, v, s in zip(row.value_columns, row.values(), row.sigmas(), strict=True):
+            text.append(f"{k} {v:9.4f} +- {s:.4f}")
     if row.warnings:
         text.append(" ".join(row.warnings))
     for i, t in enumerate(text):
@@ -98,4 +103,25 @@ def _draw_markers(image: np.ndarray, det, rig) -> np.ndarray:
                 2,
                 cv2.LINE_AA,
             )
+    return out
+
+
+FLOW_GAIN = 5.0  # arrows are drawn this many times longer than the motion
+
+
+def _draw_flow(image: np.ndarray, det) -> np.ndarray:
+    """Stars circled (yellow), and the motion from the previous frame as arrows, 5x
+    magnified: green for stars used, red for outliers."""
+    bright = cv2.convertScaleAbs(image, alpha=4.0)
+    out = cv2.cvtColor(bright, cv2.COLOR_GRAY2BGR)
+    for u, v in det.stars.centroids_px:
+        cv2.circle(out, (int(round(u)), int(round(v))), 9, _YELLOW, 1, cv2.LINE_AA)
+    m = det.matches
+    if m is not None and len(m):
+        inl = det.inliers if det.inliers is not None else np.ones(len(m), bool)
+        for a, b, ok in zip(m.uv1, m.uv2, inl, strict=True):
+            tip = a + FLOW_GAIN * (b - a)
+            p0 = (int(round(a[0])), int(round(a[1])))
+            p1 = (int(round(tip[0])), int(round(tip[1])))
+            cv2.arrowedLine(out, p0, p1, _GREEN if ok else _RED, 2, cv2.LINE_AA, 0, 0.2)
     return out

@@ -51,13 +51,14 @@ def cli(debug: bool) -> None:
 
 
 def _register() -> None:
-    from visvec.cli import batch, calibrate, montecarlo, simulate, track
+    from visvec.cli import batch, calibrate, montecarlo, rate, simulate, track
 
     cli.add_command(track.track)
     cli.add_command(batch.batch)
     cli.add_command(calibrate.calibrate)
     cli.add_command(simulate.simulate)
     cli.add_command(montecarlo.montecarlo)
+    cli.add_command(rate.rate)
 
 
 _register()

@@ -12,6 +12,7 @@ from visvec.sim.markers import SpotScene
 from visvec.sim.scene import Scene
 from visvec.sim.simulate import Clutter, true_rig
 from visvec.sim.simulate import simulate as run_simulation
+from visvec.sim.stars import PAPER_CASES, StarScene, simulate_stars
 
 
 @click.command()
@@ -97,6 +98,20 @@ from visvec.sim.simulate import simulate as run_simulation
     default=(0.0, 0.0),
     help="Tilt the real camera on its mount (about b1, b2) against the rig file.",
 )
+@click.option(
+    "--case",
+    type=click.IntRange(1, 4),
+    default=None,
+    help="Starfield: the paper's case 1-4 (1 and 5 deg/s out of plane, 1 and 5 deg/s "
+    "about the boresight, each with the orbital rate).",
+)
+@click.option(
+    "--rate-dps",
+    nargs=3,
+    type=float,
+    default=None,
+    help="Starfield: constant rate wx wy wz (deg/s, camera frame).",
+)
 def simulate(
     rig_path,
     calibration,
@@ -115,9 +130,17 @@ def simulate(
     reflections,
     target_offset_mm,
     camera_askew_deg,
+    case,
+    rate_dps,
 ):
-    """Render frames of the rig's target at known attitudes; write OUT/truth.csv."""
+    """Render frames of the rig's target at known attitudes (or, for a starfield rig, a
+    sky turning at a known rate); write OUT/truth.csv."""
     rig = load(rig_path, calibration)
+    if rig.kind == "starfield":
+        _stars(rig, out_dir, n_frames, seed, noise, case, rate_dps)
+        return
+    if case is not None or rate_dps is not None:
+        raise click.UsageError("--case and --rate-dps apply to starfield rigs only")
     if rig.kind != "triangle" and (
         lights or occluder or no_triangle or any(target_offset_mm) or any(camera_askew_deg)
     ):
@@ -150,3 +173,18 @@ def simulate(
             progress=lambda i: bar.update(1),
         )
     click.echo(f"wrote {n_frames} frames and {truth}", err=True)
+
+
+def _stars(rig, out_dir, n_frames, seed, noise, case, rate_dps) -> None:
+    if case is not None and rate_dps is not None:
+        raise click.UsageError("give --case or --rate-dps, not both")
+    w = PAPER_CASES[case] if case is not None else tuple(rate_dps or PAPER_CASES[1])
+    scene = replace(StarScene(exposure_ms=rig.exposure_ms or 50.0), read_noise_dn=noise)
+    with click.progressbar(length=n_frames, label="rendering", file=sys.stderr) as bar:
+        truth = simulate_stars(
+            rig, out_dir, n_frames, w, seed=seed, scene=scene, progress=lambda i: bar.update(1)
+        )
+    click.echo(
+        f"wrote {n_frames} frames turning at {w[0]:g}, {w[1]:g}, {w[2]:g} deg/s and {truth}",
+        err=True,
+    )

@@ -33,6 +33,7 @@ MIN_COMPACT_FRACTION = 0.7
 MIN_PEAK_SNR_P90 = 15.0
 MIN_STARS = 5
 STREAK_GAP_PX = 3
+LINE_WIDTH_PX = 6
 
 
 @dataclass(frozen=True)
@@ -126,6 +127,12 @@ def segment(res: Residual, streak_px: float = 0.0, roi: tuple[int, int, int, int
     n, labels, stats, _ = cv2.connectedComponentsWithStats(binary, connectivity=8)
     cents, flux, area, snr, boxes = [], [], [], [], []
     big = np.nonzero(stats[1:, 4] >= MIN_AREA_PX)[0] + 1  # Fasano et al.: >= 3 px
+    if streak_px > 0:
+        # a satellite or meteor trail is a long thin line: neither a star nor the clutter
+        # of a non-sky scene, so it does not count against the star-field verdict
+        length = np.maximum(stats[big, 2], stats[big, 3])
+        line = (length > streak_px + 8) & (stats[big, 4] <= LINE_WIDTH_PX * length)
+        big = big[~line]
     bright_total = int(stats[big, 4].sum())
     compact_total = 0
     max_area = MAX_AREA_PX * (1.0 + streak_px / 4.0)

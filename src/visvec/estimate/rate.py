@@ -20,7 +20,8 @@ camera by more than a few degrees (low frame rates, fast tumbles); below that bo
 the same answer (measured in benchmarks/RESULTS.md).
 
 Both reject outliers iteratively: a star whose residual exceeds 4 robust sigmas (and
-three times the centroid noise) is dropped and the fit repeated.
+three times the centroid noise), or 2 px in any case, is dropped and the fit repeated;
+unless at least half the stars (and 5) agree, there is no rate.
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ from visvec.rotations import expmap, logmap
 OUTLIER_SIGMAS = 4.0
 MIN_STARS = 5
 MIN_INLIER_FRACTION = 0.5
+MAX_RESIDUAL_PX = 2.0
 
 
 @dataclass(frozen=True)
@@ -122,15 +124,26 @@ def estimate_rate(
     if n < MIN_STARS:
         return RateSolution(nan3, np.full((3, 3), np.nan), np.nan, inl, False, "too_few_matches")
     sig_rad = sigma_px / f_px
-    for _ in range(10):
+    cap = MAX_RESIDUAL_PX / f_px  # a star off by more never fits
+    for it in range(10):
         omega, _, _ = fit(u1[inl], u2[inl], dt)
         full = np.linalg.norm(u2 - _predict(u1, omega, dt), axis=1)
         s = 1.4826 * np.median(full[inl])
         lim = max(OUTLIER_SIGMAS * s, 3.0 * np.sqrt(2.0) * sig_rad)
+        if it > 0:  # the first fit may be pulled by the outliers: no cap yet
+            lim = min(lim, cap)
         new = full <= lim
-        if new.sum() < MIN_STARS or np.array_equal(new, inl):
+        if np.array_equal(new, inl) or new.sum() < MIN_STARS:
+            inl = new
             break
         inl = new
+    if inl.sum() >= MIN_STARS:
+        omega, _, _ = fit(u1[inl], u2[inl], dt)
+        inl &= np.linalg.norm(u2 - _predict(u1, omega, dt), axis=1) <= cap
+    if inl.sum() < MIN_STARS:
+        return RateSolution(
+            nan3, np.full((3, 3), np.nan), np.nan, inl, False, "no_consistent_motion"
+        )
     omega, _, H = fit(u1[inl], u2[inl], dt)
     k = int(inl.sum())
     if k < MIN_STARS or k < MIN_INLIER_FRACTION * n:
@@ -157,3 +170,44 @@ def estimate_rate(
 def _predict(u1: np.ndarray, omega: np.ndarray, dt: float) -> np.ndarray:
     """Directions after dt at rate omega: u(t + dt) = exp(-[omega]x dt) u(t)."""
     return u1 @ expmap(-omega * dt).T
+
+
+@dataclass(frozen=True)
+class RateBudget:
+    """The paper's first-order error budget (deg/s): ``cross`` for omega_1 and omega_2
+    (Eq. 14), ``boresight`` for omega_3 (Eq. 28), ``boresight_full`` with the
+    rate-dependent term of Eq. (26) kept (equal to Eq. 28 at zero rate)."""
+
+    cross: float
+    boresight: float
+    boresight_full: float
+
+
+def rate_budget(
+    ifov_deg: float,
+    fps: float,
+    n_stars: float,
+    pixels_per_star: float,
+    off_boresight_deg: float,
+    w3_dps: float = 0.0,
+) -> RateBudget:
+    """Fasano et al. (Sensors 2013), Sec. 2.3.
+
+    One star's centroid is good to IFOV / sqrt(N_starpixels) (Eq. 13), its apparent
+    velocity to sqrt(2) times that over dt, and N stars average it down:
+    sigma_w1 = sqrt(2) IFOV / (dt sqrt(N N_starpixels)) (Eq. 14). About the boresight a
+    star at chi from the boresight sees only chi times the motion:
+    sigma_w3 = sigma_w1 / chi (Eq. 28), or with the first term of Eq. (26) kept,
+    sigma_w3^2 = [(w3 / chi)^2 IFOV^2 / N_px + (1 / chi)^2 2 IFOV^2 / (dt^2 N_px)] / N.
+    """
+    dt = 1.0 / fps
+    ifov = np.radians(ifov_deg)
+    chi = np.radians(off_boresight_deg)
+    w1 = np.sqrt(2.0) * ifov / (dt * np.sqrt(n_stars * pixels_per_star))
+    w3 = w1 / chi
+    w3r = np.radians(w3_dps)
+    full = np.sqrt(
+        ((w3r / chi) ** 2 * ifov**2 / pixels_per_star
+         + (1.0 / chi) ** 2 * 2.0 * ifov**2 / (dt**2 * pixels_per_star)) / n_stars
+    )  # fmt: skip
+    return RateBudget(float(np.degrees(w1)), float(np.degrees(w3)), float(np.degrees(full)))
