@@ -258,3 +258,21 @@ def test_cli_budget_and_wrong_kind():
     assert res.exit_code == 2 and "starfield" in res.output
     res = r.invoke(cli, ["rate"])
     assert res.exit_code == 2
+
+
+def test_edge_bands_find_the_stars_a_full_search_finds_there(srig):
+    from visvec.detect.stars import residual, segment, segment_edges
+
+    img = sequence(srig, PAPER_CASES[1], 1, seed=7, scene=StarScene(flux_m6=300.0))[0].image
+    res = residual(img)
+    full, edge = segment(res, 10.0), segment_edges(res, 60, 10.0)
+    b = full.boxes
+    h, w = img.shape
+    inside = (b[:, 1] + b[:, 3] < 60) | (b[:, 1] >= h - 60)
+    inside |= ((b[:, 0] + b[:, 2] < 60) | (b[:, 0] >= w - 60)) & (b[:, 1] > 62)
+    inside &= (b[:, 1] + b[:, 3] < h - 62) | (b[:, 1] >= h - 60)
+    ref = full.cents[inside]
+    assert len(ref) >= 3
+    d = np.linalg.norm(ref[:, None] - edge.cents[None], axis=2).min(axis=1)
+    assert np.all(d < 1e-3)
+    assert len(edge.cents) <= len(ref) + 2

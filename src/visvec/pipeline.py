@@ -18,7 +18,14 @@ from visvec.detect import TriangleDetector
 from visvec.detect.flow import Matches, match_stars, signal
 from visvec.detect.markers import MarkerIdentifier
 from visvec.detect.spots import Spots, find_spots
-from visvec.detect.stars import Residual, StarField, residual, segment, stars_of
+from visvec.detect.stars import (
+    Residual,
+    StarField,
+    background,
+    residual,
+    segment_edges,
+    stars_of,
+)
 from visvec.errors import ConfigError
 from visvec.estimate import ESTIMATORS
 from visvec.estimate.markers import solve_markers
@@ -249,7 +256,8 @@ class MarkerPipeline(AttitudePipeline):
 RATE_METHODS = ("poisson", "crassidis")
 SATURATED_FRACTION = 0.02
 BOOTSTRAP_STARS = 12
-FULL_SEARCH_EVERY = 10
+FULL_SEARCH_EVERY = 20
+BACKGROUND_EVERY = 5
 FRAME_GAP_TOLERANCE = 1.5  # a frame later than this many periods is a jump
 
 
@@ -277,8 +285,10 @@ class RatePipeline(Pipeline):
     Beyond the paper, stars are tracked: once a rate is known, a frame's stars are the
     ones matched into it from the previous frame plus those found in the bands along
     the image edges where new stars enter; the whole frame is searched again every
-    FULL_SEARCH_EVERY frames, after any failure, or when few stars remain. This skips the
-    connected-component labelling of most frames, the largest cost at 1280 x 1024.
+    FULL_SEARCH_EVERY (20) frames, after any failure, or when few stars remain. This
+    skips the connected-component labelling of most frames, the largest cost at
+    1280 x 1024. The smooth background is re-estimated every BACKGROUND_EVERY (5)
+    frames while tracking (every frame otherwise); noise and threshold every frame.
     """
 
     methods = RATE_METHODS
@@ -300,6 +310,7 @@ class RatePipeline(Pipeline):
         self.prev: _PreviousFrame | None = None
         self.omega: np.ndarray | None = None
         self.since_full = 0
+        self.bg: np.ndarray | None = None
 
     def reset(self) -> None:
         self.prev = None
@@ -348,36 +359,33 @@ class RatePipeline(Pipeline):
     def _carry(self, m: Matches, inliers: np.ndarray, res: Residual, dt: float) -> StarField:
         """This frame's stars when tracking: the matched ones, and new ones entering
         through the bands along the edges."""
-        cam = self.rig.camera
         band = int(np.linalg.norm(self.omega) * dt * self.flow_gain + self.streak_px) + 12
-        w, h = cam.width, cam.height
-        rois = [(0, 0, w, band), (0, h - band, w, h), (0, band, band, h - band)]
-        rois.append((w - band, band, w, h - band))
-        cents, boxes, flux = [m.uv2[inliers]], [m.bbox2[inliers]], [m.flux2[inliers]]
-        for roi in rois:
-            seg = segment(res, self.streak_px, roi)
-            if not len(seg.cents):
-                continue
+        cents, boxes = [m.uv2[inliers]], [m.bbox2[inliers]]
+        flux, area = [m.flux2[inliers]], [self.prev.stars.area_px[m.index[inliers]]]
+        seg = segment_edges(res, band, self.streak_px)
+        if len(seg.cents):
             d = np.linalg.norm(seg.cents[:, None] - cents[0][None], axis=2)
             new = d.min(axis=1) > 4.0 if d.size else np.ones(len(seg.cents), bool)
             cents.append(seg.cents[new])
             boxes.append(seg.boxes[new])
             flux.append(seg.flux[new])
+            area.append(seg.area[new])
         c = np.vstack(cents)
-        f = np.concatenate(flux)
-        bx = np.vstack(boxes)
         return StarField(
-            c, f, bx[:, 2] * bx[:, 3], np.zeros(len(c)), True, "", res.sigma, 0.0, 1.0,
-            threshold=res.threshold, residual=res.r, bbox_px=bx,
+            c, np.concatenate(flux), np.concatenate(area), np.zeros(len(c)), True, "",
+            res.sigma, 0.0, 1.0, threshold=res.threshold, signal=res.sig,
+            bbox_px=np.vstack(boxes), windowed=np.arange(len(c)) < len(boxes[0]),
         )  # fmt: skip
 
     def estimate(self, frame):
         img = frame.image
         top = 255 if img.dtype == np.uint8 else int(np.iinfo(img.dtype).max)
-        if np.count_nonzero(img >= top) > SATURATED_FRACTION * img.size:
+        if img.max() >= top and np.count_nonzero(img >= top) > SATURATED_FRACTION * img.size:
             self.reset()
             return Status.REJECTED, None, ("saturated",)
-        res = residual(img)
+        if self.bg is None or not self.since_full % BACKGROUND_EVERY or self.omega is None:
+            self.bg = background(img)  # a smooth sky changes slowly: refreshed every 5
+        res = residual(img, self.bg)
         sig = signal(res)
         prev = self.prev
         dt = frame.time_s - prev.time_s if prev is not None else 0.0

@@ -24,6 +24,7 @@ from visvec.detect.stars import Residual, StarField
 
 MARGIN_PX = 2  # Fasano et al.: the star's window plus a 2 px margin
 FLUX_RATIO_MAX = 2.0
+_AR = np.arange(65536, dtype=np.float32)  # pixel coordinates, sliced (no allocation)
 
 
 @dataclass(frozen=True)
@@ -47,7 +48,7 @@ class Matches:
 def signal(res: Residual) -> np.ndarray:
     """The image above the threshold (zero elsewhere), float32: the paper's
     background-removed image."""
-    return cv2.max(res.r - np.float32(res.threshold), 0.0)
+    return res.sig
 
 
 def window_centroid(sig: np.ndarray, x0: int, y0: int, x1: int, y1: int):
@@ -57,12 +58,30 @@ def window_centroid(sig: np.ndarray, x0: int, y0: int, x1: int, y1: int):
     if x0 < 0 or y0 < 0 or x1 > w or y1 > h:
         return None
     win = sig[y0:y1, x0:x1]
-    s = float(win.sum())
+    col = win.sum(axis=0)
+    s = float(col.sum())
     if s <= 0:
         return None
-    u = float(win.sum(axis=0) @ np.arange(x0, x1)) / s
-    v = float(win.sum(axis=1) @ np.arange(y0, y1)) / s
+    u = float(col @ _AR[x0:x1]) / s
+    v = float(win.sum(axis=1) @ _AR[y0:y1]) / s
     return u, v, s
+
+
+def centred_centroid(sig: np.ndarray, x0: int, y0: int, w: int, h: int):
+    """:func:`window_centroid` of a w x h window moved once to be centred on the
+    centroid found in it: a window left off-centre cuts more of the star on one side
+    and pulls the centroid toward its own centre (a bias that builds up when windows
+    are carried from frame to frame). Returns (u, v, flux, x0, y0) or None."""
+    c = window_centroid(sig, x0, y0, x0 + w, y0 + h)
+    if c is None:
+        return None
+    nx = int(round(c[0] - (w - 1) / 2.0))
+    ny = int(round(c[1] - (h - 1) / 2.0))
+    if (nx, ny) != (x0, y0):
+        c2 = window_centroid(sig, nx, ny, nx + w, ny + h)
+        if c2 is not None:
+            return (*c2, nx, ny)
+    return (*c, x0, y0)
 
 
 def match_stars(
@@ -90,7 +109,10 @@ def match_stars(
     for i in idx:
         x, y, bw, bh = (int(a) for a in first.bbox_px[i])
         tx0, ty0, tx1, ty1 = x - m, y - m, x + bw + m, y + bh + m
-        c1 = window_centroid(sig1, tx0, ty0, tx1, ty1)
+        if first.windowed is not None and first.windowed[i]:  # measured in this window
+            c1 = (*first.centroids_px[i], first.flux[i], tx0, ty0)
+        else:
+            c1 = centred_centroid(sig1, tx0, ty0, tx1 - tx0, ty1 - ty0)
         if c1 is None:
             continue
         r = int(radius_px[i])
@@ -103,18 +125,18 @@ def match_stars(
         ssd = cv2.matchTemplate(sig2[sy0:sy1, sx0:sx1], tmpl, cv2.TM_SQDIFF)
         _, _, (bx, by), _ = cv2.minMaxLoc(ssd)
         ox, oy = sx0 + bx, sy0 + by  # the template's top-left corner in frame 2
-        c2 = window_centroid(sig2, ox, oy, ox + tx1 - tx0, oy + ty1 - ty0)
+        c2 = centred_centroid(sig2, ox, oy, tx1 - tx0, ty1 - ty0)
         if c2 is None:
             continue
         ratio = c2[2] / c1[2]
         if not 1.0 / FLUX_RATIO_MAX <= ratio <= FLUX_RATIO_MAX:
             continue  # the window holds another star, part of one, or noise
-        uv1.append(c1[:2])
+        uv1.append(c1[:2])  # fmt: skip
         uv2.append(c2[:2])
         keep.append(i)
         fl.append(c1[2])
         fl2.append(c2[2])
-        box2.append((ox + m, oy + m, bw, bh))
+        box2.append((c2[3] + m, c2[4] + m, bw, bh))
     return Matches(
         np.array(uv1).reshape(-1, 2),
         np.array(uv2).reshape(-1, 2),
