@@ -6,8 +6,9 @@ is rendered at a random pointing of a random sky and processed in order by both
 estimators. Reported per case and axis: mean error, error std, mean 1-sigma, the paper's
 error std (Tables 4, 5), half of it (the target), and the error budget (Eqs. 14, 28)
 evaluated with the measured star count, pixels per star and off-boresight angle.
-Speed: the pipeline's time per frame (= per frame pair) with OpenCV on one thread,
-not counting the PNG decode, which is timed separately on the same frames.
+Speed: the pipeline's mean time per frame (= per frame pair) over the sequence, with
+OpenCV on one thread, best of three runs (the machine is shared), not counting the PNG
+decode, which is timed separately on the same frames.
 
     python benchmarks/starfield_rate.py [--frames 101]
 """
@@ -90,13 +91,29 @@ def run(rig, images: list[np.ndarray], method: str, truth: np.ndarray) -> dict:
         "std": E.std(axis=0).tolist(),
         "mean_sigma": S.mean(axis=0).tolist(),
         "mean_within_sigma": bool(np.all(np.abs(E.mean(axis=0)) <= S.mean(axis=0))),
+        "max_abs_z": float(np.max(np.abs(E / S))),
+        "frac_beyond_3sigma": float(np.mean(np.any(np.abs(E / S) > 3, axis=1))),
         "stars": float(np.mean(nstar)),
         "pixels_per_star": float(np.mean(npix)),
         "off_boresight_deg": float(np.mean(chi)),
         "ms_per_frame_median": 1000 * float(np.median(times[2:])),
         "ms_per_frame_mean": 1000 * float(np.mean(times[2:])),
+        "ms_per_frame_mean_best_of_3": 1000 * min(
+            float(np.mean(times[2:])), *(speed(rig, images, method) for _ in range(2))
+        ),
         "errors": E.tolist(),
     }
+
+
+def speed(rig, images: list[np.ndarray], method: str) -> float:
+    """Mean seconds per frame over a sequence (the first two frames left out)."""
+    pipe = RatePipeline(rig, method)
+    times = []
+    for i, img in enumerate(images):
+        t0 = time.perf_counter()
+        pipe.process(Frame(i, i / rig.fps, img))
+        times.append(time.perf_counter() - t0)
+    return float(np.mean(times[2:]))
 
 
 def main() -> None:
@@ -135,7 +152,10 @@ def main() -> None:
                 f"case {case} {method:9s} ok {r['statuses'].get('ok', 0)}/{r['frames']} "
                 f"stars {r['stars']:.0f} px/star {r['pixels_per_star']:.1f} "
                 f"chi {r['off_boresight_deg']:.1f} deg, "
-                f"{r['ms_per_frame_median']:.1f} ms/frame (decode {decode_ms:.1f} ms)"
+                f"{r['ms_per_frame_mean_best_of_3']:.1f} ms/frame (best of 3 runs; "
+                f"decode {decode_ms:.1f} ms); "
+                f"max |err|/sigma {r['max_abs_z']:.1f}, rows beyond 3 sigma "
+                f"{100 * r['frac_beyond_3sigma']:.0f} %"
             )
             for k, ax in enumerate(AXES):
                 print(

@@ -153,12 +153,15 @@ def estimate_rate(
     # covariance: the sandwich (heteroscedasticity-consistent) form
     # H (sum A_i^T e_i e_i^T A_i) H with A_i = [u_i]x and e_i the residual of star i,
     # because errors are not alike across stars and axes (a streak's centroid is
-    # worse along the streak); small-sample factor k / (k - 2); floored by the a-priori
-    # centroid noise of both frames
+    # worse along the streak). Each residual is divided by 1 - h_i, its star's
+    # leverage (HC3, MacKinnon & White 1985): the fit pulls toward the stars that
+    # weigh most and hides their errors, which matters with few stars.
+    um = 0.5 * (u1[inl] + u2[inl])
     e = u2[inl] - _predict(u1[inl], omega, dt)
-    g = np.cross(0.5 * (u1[inl] + u2[inl]), e)  # A_i^T e_i = -[u_i]x e_i, sign irrelevant
-    meat = g.T @ g * (k / max(k - 2.0, 1.0))
-    cov = H @ meat @ H / dt**2
+    A = skew_stack(um).reshape(-1, 3, 3)
+    lev = np.einsum("kij,jl,kil->k", A, H, A) / 2.0  # trace(A_i H A_i^T) / 2 dof
+    g = np.cross(um, e) / np.clip(1.0 - lev, 0.2, 1.0)[:, None]  # -A_i^T e_i
+    cov = H @ (g.T @ g) @ H / dt**2
     floor = 2.0 * sig_rad**2 * H / dt**2
     if np.trace(cov) < np.trace(floor):
         cov = floor
