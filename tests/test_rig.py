@@ -35,7 +35,7 @@ def test_example_configs_load():
         ("fx = 600.0", "fx = -5.0", ["[camera] fx", "> 0"]),
         ("width = 640", "width = 640.5", ["[camera] width", "whole number"]),
         ('kind = "triangle"', 'kind = "hexagon"', ["[target] kind", "expected one of"]),
-        ('kind = "triangle"', 'kind = "lamps"', ["[target] kind", "not supported"]),
+        ('kind = "triangle"', 'kind = "lamps"', ["[target] map", "missing"]),
         ('kind = "triangle"', 'kind = "markers"', ["[mount] on", "fixed in the lab"]),
         ('on = "platform"', 'on = "ceiling"', ["[mount] on", "expected one of"]),
         (

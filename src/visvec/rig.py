@@ -19,9 +19,10 @@ import numpy as np
 
 from visvec.camera import CameraModel
 from visvec.errors import ConfigError
+from visvec.lamps import LampMap, read_lamp_map
 
 TARGET_KINDS = ("triangle", "markers", "lamps", "starfield")
-SUPPORTED_KINDS = ("triangle", "markers", "starfield")
+SUPPORTED_KINDS = ("triangle", "markers", "starfield", "lamps")
 REFINE_METHODS = ("lines", "corners")
 
 
@@ -92,6 +93,18 @@ class StarfieldTarget:
 
 
 @dataclass(frozen=True)
+class LampTarget:
+    """Lamps on a level ceiling: ``lamps`` (the map, positions in N) read from
+    ``map_path``; ``ceiling_z_mm`` is their height above the body origin where the map
+    has no z."""
+
+    lamps: LampMap
+    map_path: Path
+    ceiling_z_mm: float
+    kind: str = "lamps"
+
+
+@dataclass(frozen=True)
 class DetectSettings:
     """Detector settings (``[detect]``), all optional.
 
@@ -128,7 +141,7 @@ class Rig:
 
     camera: CameraModel
     mount: Mount
-    target: TriangleTarget | MarkerTarget | StarfieldTarget
+    target: TriangleTarget | MarkerTarget | StarfieldTarget | LampTarget
     max_tilt_deg: float = 10.0
     detect: DetectSettings = field(default_factory=DetectSettings)
     zero_tilt: ZeroTilt = field(default_factory=ZeroTilt)
@@ -364,6 +377,8 @@ def rig_from_dict(raw: Mapping[str, Any], src: str = "<rig>", base_dir: Path | N
         target = _triangle_target(tgt, mount, src)
     elif kind == "starfield":
         target = _starfield_target(tgt, mount, src)
+    elif kind == "lamps":
+        target = _lamp_target(tgt, mount, src, base_dir)
     else:
         target = _marker_target(tgt, mount, src)
 
@@ -451,6 +466,27 @@ def _triangle_target(tgt: _Section, mount: Mount, src: str) -> TriangleTarget:
     return TriangleTarget(vertices_mm=verts)
 
 
+def _lamp_target(tgt: _Section, mount: Mount, src: str, base_dir: Path | None) -> LampTarget:
+    if mount.on != "platform":
+        raise ConfigError(
+            f"{src}: [mount] on = {mount.on!r}: a lamps camera rides on the mock-up "
+            '(on = "platform")'
+        )
+    name = tgt.get("map", required=True)
+    if not isinstance(name, str) or not name:
+        raise ConfigError(f"{src}: [target] map = {name!r}: expected the lamp map's CSV path")
+    ceiling = tgt.number("ceiling_z_mm", required=True, positive=True)
+    tgt.check_unknown()
+    path = Path(name)
+    if not path.is_absolute() and base_dir is not None:
+        path = base_dir / path
+    try:
+        lamps = read_lamp_map(path, ceiling)
+    except ConfigError as exc:
+        raise ConfigError(f"{src}: [target] map: {exc}") from None
+    return LampTarget(lamps, path, ceiling)
+
+
 def _starfield_target(tgt: _Section, mount: Mount, src: str) -> StarfieldTarget:
     if mount.on != "platform":
         raise ConfigError(
@@ -521,8 +557,13 @@ def _marker_target(tgt: _Section, mount: Mount, src: str) -> MarkerTarget:
 
 def _check_visible(rig: Rig, src: str) -> None:
     """The target must be in front of the camera at zero attitude."""
-    if rig.kind == "starfield":
-        return  # the sky is everywhere
+    if rig.kind in ("starfield", "lamps"):
+        if rig.R_bc[2, 2] <= 0:
+            raise ConfigError(
+                f"{src}: [mount] rotation: the camera looks down; a {rig.kind} camera looks "
+                "up (third column of R_BC with a positive z)"
+            )
+        return
     if rig.kind == "markers":
         p_c = (rig.target.points_b - rig.t_n) @ rig.R_nc
         if np.any(p_c[:, 2] <= 0):

@@ -1,0 +1,113 @@
+"""Lamp maps, the Delaunay catalogue and the lamps rig (the ZARM LuVeX method)."""
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from visvec.cli.main import cli
+from visvec.errors import ConfigError
+from visvec.lamps import build_catalog, load_catalog, read_lamp_map, triangle_features
+from visvec.rig import load_rig
+
+from conftest import CONFIGS
+
+MAP = CONFIGS / "lamps.csv"
+
+
+def write(tmp_path, text, name="map.csv"):
+    p = tmp_path / name
+    p.write_text(text)
+    return p
+
+
+def test_example_map_and_its_catalogue():
+    lamps = read_lamp_map(MAP, 2500.0)
+    assert len(lamps) == 180 and np.all(lamps.xyz_mm[:, 2] == 2500.0)
+    cat = build_catalog(lamps)
+    assert 300 <= len(cat.triangles) <= 360  # the paper: 322 triangles for ~180 lamps
+    f = cat.features
+    assert np.all((f[:, 0] >= 3.0) & (f[:, 0] <= 60.0) & (f[:, 1] >= 60.0) & (f[:, 1] < 180))
+    # canonical order: the smallest angle's lamp first, then counter-clockwise
+    p = cat.lamps_mm[cat.triangles][:, :, :2]
+    order, feats = triangle_features(p)
+    assert np.all(order[:, 0] == 0) and np.all(order[:, 1] == 1)
+    np.testing.assert_allclose(feats, f)
+
+
+def test_lookup_is_invariant_to_position_heading_and_scale(rng):
+    cat = build_catalog(read_lamp_map(MAP, 2500.0))
+    for k in rng.choice(len(cat.triangles), 20, replace=False):
+        p = cat.lamps_mm[cat.triangles[k], :2]
+        a = rng.uniform(-np.pi, np.pi)
+        R = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+        q = (p @ R.T) * rng.uniform(0.1, 3.0) + rng.uniform(-1e3, 1e3, 2)
+        q = q[rng.permutation(3)]  # any vertex order
+        order, feat = triangle_features(q[None])
+        hits = cat.lookup(feat[0], 0.2)
+        assert k in hits
+        # the canonical order gives the same lamps in the same order
+        np.testing.assert_allclose(
+            ((q[order[0]] - q[order[0]].mean(0)) @ R)
+            / np.linalg.norm(q[order[0]][1] - q[order[0]][0]),
+            (p - p.mean(0)) / np.linalg.norm(p[1] - p[0]),
+            atol=1e-9,
+        )
+
+
+def test_catalogue_round_trip_and_cli(tmp_path):
+    out = tmp_path / "cat.npz"
+    res = CliRunner().invoke(cli, ["catalog", "build", str(MAP), "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    assert "180 lamps" in res.output
+    cat = load_catalog(out)
+    ref = build_catalog(read_lamp_map(MAP, 2500.0))
+    np.testing.assert_array_equal(cat.triangles, ref.triangles)
+    np.testing.assert_allclose(cat.lookup(ref.features[3], 0.01), [3])
+    res = CliRunner().invoke(
+        cli, ["catalog", "build", str(tmp_path / "nope.csv"), "--out", str(out)]
+    )
+    assert res.exit_code == 2 and "nope.csv" in res.output
+
+
+def test_bad_maps_are_refused_naming_the_line(tmp_path):
+    with pytest.raises(ConfigError, match="columns x_mm,y_mm"):
+        read_lamp_map(write(tmp_path, "x,y\n1,2\n"), 2500)
+    with pytest.raises(ConfigError, match="line 3"):
+        read_lamp_map(write(tmp_path, "x_mm,y_mm\n0,0\n1,abc\n5,5\n"), 2500)
+    with pytest.raises(ConfigError, match="lines 2 and 4"):
+        read_lamp_map(write(tmp_path, "x_mm,y_mm\n0,0\n900,0\n0.5,0.2\n0,900\n"), 2500)
+    with pytest.raises(ConfigError, match="one line"):
+        read_lamp_map(write(tmp_path, "x_mm,y_mm\n0,0\n500,500\n1000,1000\n"), 2500)
+    with pytest.raises(ConfigError, match="above the camera"):
+        read_lamp_map(write(tmp_path, "x_mm,y_mm,z_mm\n0,0,-5\n500,0,\n0,500,\n"), 2500)
+
+
+def test_collinear_lamps_inside_the_map_are_warned(tmp_path):
+    # a row of lamps nearly on one line, far from the others: Delaunay must join them
+    # in slivers, which cannot be told apart by shape
+    row = [(0, 0), (1000, 5), (2000, 0), (3000, 5), (4000, 0), (5000, 5), (6000, 0)]
+    far = [(3000, 90_000), (3000, -90_000), (-80_000, 0), (86_000, 0)]
+    text = "x_mm,y_mm\n" + "".join(f"{x},{y}\n" for x, y in row + far)
+    lamps = read_lamp_map(write(tmp_path, text), 2500)
+    with pytest.warns(UserWarning, match="nearly collinear"):
+        cat = build_catalog(lamps)
+    assert cat.features[:, 0].min() >= 3.0
+
+
+def test_lamps_rig(tmp_path):
+    rig = load_rig(CONFIGS / "lamps.toml")
+    assert rig.kind == "lamps" and len(rig.target.lamps) == 180
+    text = (CONFIGS / "lamps.toml").read_text()
+    (tmp_path / "lamps.csv").write_text(MAP.read_text())
+    bad = write(tmp_path, text.replace('on = "platform"', 'on = "lab"'), "a.toml")
+    with pytest.raises(ConfigError, match="on = 'lab'"):
+        load_rig(bad)
+    bad = write(tmp_path, text.replace('map = "lamps.csv"', 'map = "none.csv"'), "b.toml")
+    with pytest.raises(ConfigError, match="none.csv"):
+        load_rig(bad)
+    down = text.replace("rotation = [[1, 0, 0], [0, 1, 0], [0, 0, 1]]",
+                        "rotation = [[1, 0, 0], [0, -1, 0], [0, 0, -1]]")  # fmt: skip
+    with pytest.raises(ConfigError, match="looks down"):
+        load_rig(write(tmp_path, down, "c.toml"))
+    res = CliRunner().invoke(cli, ["batch", str(tmp_path), "--rig", str(CONFIGS / "lamps.toml")])
+    assert res.exit_code == 2 and "no pipeline" in res.output
