@@ -16,8 +16,11 @@ from visvec.rig import Rig, load_rig
 from visvec.sinks import open_sink
 
 
-def rig_options(f):
-    """--rig and --calibration."""
+def rig_options(f=None, *, required: bool = True):
+    """--rig and --calibration (``@rig_options``, or ``@rig_options(required=False)``
+    for a command that can run without a rig)."""
+    if f is None:
+        return lambda g: rig_options(g, required=required)
     f = click.option(
         "--calibration",
         "calibration",
@@ -27,7 +30,7 @@ def rig_options(f):
     f = click.option(
         "--rig",
         "rig_path",
-        required=True,
+        required=required,
         type=click.Path(dir_okay=False),
         help="Rig file (TOML), see configs/.",
     )(f)

@@ -7,18 +7,13 @@ import math
 import click
 
 from visvec.cli.batch import run_batch
-from visvec.cli.common import load, output_options
+from visvec.cli.common import load, output_options, rig_options
 from visvec.estimate.rate import rate_budget
 
 
 @click.command()
 @click.argument("path", type=click.Path(), required=False)
-@click.option("--rig", "rig_path", type=click.Path(dir_okay=False), help="Starfield rig file.")
-@click.option(
-    "--calibration",
-    type=click.Path(dir_okay=False),
-    help="Calibration file (from `visvec calibrate`) overriding the rig.",
-)
+@rig_options(required=False)
 @click.option(
     "--truth",
     type=click.Path(dir_okay=False),

@@ -31,13 +31,12 @@ _AR = np.arange(65536, dtype=np.float32)  # pixel coordinates, sliced (no alloca
 class Matches:
     """Matched stars: ``uv1`` (N, 2) centroids in the first frame, ``uv2`` (N, 2) in
     the second, ``index`` (N,) the star's index in the first frame's StarField,
-    ``flux`` (N,) signal of the star in the first frame, ``flux2`` (N,) in the second,
+    ``flux2`` (N,) signal of the star in the second frame,
     ``bbox2`` (N, 4) the star's box (x, y, w, h) moved to where it matched."""
 
     uv1: np.ndarray
     uv2: np.ndarray
     index: np.ndarray
-    flux: np.ndarray
     flux2: np.ndarray
     bbox2: np.ndarray
 
@@ -105,7 +104,7 @@ def match_stars(
     idx = np.arange(len(first)) if which is None else np.asarray(which, dtype=int)
     m = MARGIN_PX
     h, w = sig2.shape
-    uv1, uv2, keep, fl, fl2, box2 = [], [], [], [], [], []
+    uv1, uv2, keep, fl2, box2 = [], [], [], [], []
     for i in idx:
         x, y, bw, bh = (int(a) for a in first.bbox_px[i])
         tx0, ty0, tx1, ty1 = x - m, y - m, x + bw + m, y + bh + m
@@ -134,14 +133,12 @@ def match_stars(
         uv1.append(c1[:2])  # fmt: skip
         uv2.append(c2[:2])
         keep.append(i)
-        fl.append(c1[2])
         fl2.append(c2[2])
         box2.append((c2[3] + m, c2[4] + m, bw, bh))
     return Matches(
         np.array(uv1).reshape(-1, 2),
         np.array(uv2).reshape(-1, 2),
         np.array(keep, dtype=int),
-        np.array(fl),
         np.array(fl2),
         np.array(box2, dtype=int).reshape(-1, 4),
     )

@@ -134,11 +134,9 @@ class _Segments:
     above_px: int
 
 
-def segment(res: Residual, streak_px: float = 0.0, roi: tuple[int, int, int, int] | None = None):
-    """Stars of a residual image, or of its region ``roi`` = (x0, y0, x1, y1)."""
-    x_off, y_off = (0, 0) if roi is None else roi[:2]
-    r = res.sig if roi is None else res.sig[roi[1] : roi[3], roi[0] : roi[2]]
-    return _segment(r, res.sigma, streak_px, x_off, y_off)
+def segment(res: Residual, streak_px: float = 0.0) -> _Segments:
+    """Stars of a background-removed frame (see :func:`segment_edges` for its edges)."""
+    return _segment(res.sig, res.sigma, streak_px, 0, 0)
 
 
 def segment_edges(res: Residual, band: int, streak_px: float = 0.0) -> _Segments:

@@ -72,31 +72,29 @@ def skew_stack(u: np.ndarray) -> np.ndarray:
 
 
 def _poisson_fit(u1: np.ndarray, u2: np.ndarray, dt: float):
-    """omega, per-star residual norms (rad), (A^T A)^-1 of the Poisson least squares."""
+    """omega and (A^T A)^-1 of the Poisson least squares."""
     um = 0.5 * (u1 + u2)
     A = skew_stack(um)
     b = ((u2 - u1) / dt).ravel()
     Q, R = np.linalg.qr(A)  # Fasano et al.: least squares by QR
     omega = np.linalg.solve(R, Q.T @ b)
-    res = (A @ omega - b).reshape(-1, 3) * dt
     Rinv = np.linalg.inv(R)
-    return omega, np.linalg.norm(res, axis=1), Rinv @ Rinv.T
+    return omega, Rinv @ Rinv.T
 
 
 def _wahba_fit(u1: np.ndarray, u2: np.ndarray, dt: float):
-    """omega, per-star residual norms (rad), and sum(I - u u^T)^-1 (the QUEST
-    information matrix for unit-sigma vectors), from the rotation R with u2 = R u1."""
+    """omega and sum(I - u u^T)^-1 (the inverse QUEST information matrix for
+    unit-sigma vectors), from the rotation R with u2 = R u1."""
     B = u2.T @ u1
     U, _, Vt = np.linalg.svd(B)
     d = np.sign(np.linalg.det(U) * np.linalg.det(Vt))
     R = U @ np.diag([1.0, 1.0, d]) @ Vt
     # u_C(t + dt) = exp(-[omega]x dt) u_C(t), so R = exp(-[omega]x dt)
     omega = -logmap(R) / dt
-    res = np.linalg.norm(u2 - u1 @ R.T, axis=1)
     um = 0.5 * (u1 + u2)
     um /= np.linalg.norm(um, axis=1, keepdims=True)
     F = len(um) * np.eye(3) - um.T @ um
-    return omega, res, np.linalg.inv(F)
+    return omega, np.linalg.inv(F)
 
 
 def estimate_rate(
@@ -126,7 +124,7 @@ def estimate_rate(
     sig_rad = sigma_px / f_px
     cap = MAX_RESIDUAL_PX / f_px  # a star off by more never fits
     for it in range(10):
-        omega, _, _ = fit(u1[inl], u2[inl], dt)
+        omega, _ = fit(u1[inl], u2[inl], dt)
         full = np.linalg.norm(u2 - _predict(u1, omega, dt), axis=1)
         s = 1.4826 * np.median(full[inl])
         lim = max(OUTLIER_SIGMAS * s, 3.0 * np.sqrt(2.0) * sig_rad)
@@ -138,13 +136,13 @@ def estimate_rate(
             break
         inl = new
     if inl.sum() >= MIN_STARS:
-        omega, _, _ = fit(u1[inl], u2[inl], dt)
+        omega, _ = fit(u1[inl], u2[inl], dt)
         inl &= np.linalg.norm(u2 - _predict(u1, omega, dt), axis=1) <= cap
     if inl.sum() < MIN_STARS:
         return RateSolution(
             nan3, np.full((3, 3), np.nan), np.nan, inl, False, "no_consistent_motion"
         )
-    omega, _, H = fit(u1[inl], u2[inl], dt)
+    omega, H = fit(u1[inl], u2[inl], dt)
     k = int(inl.sum())
     if k < MIN_STARS or k < MIN_INLIER_FRACTION * n:
         return RateSolution(
