@@ -48,6 +48,22 @@ RATE_COLUMNS = (
     "warnings",
 )
 
+PLANAR_COLUMNS = (
+    "frame",
+    "time_s",
+    "status",
+    "x_mm",
+    "y_mm",
+    "heading_deg",
+    "sigma_x_mm",
+    "sigma_y_mm",
+    "sigma_heading_deg",
+    "rms_px",
+    "n_points",
+    "latency_ms",
+    "warnings",
+)
+
 
 @dataclass(frozen=True)
 class Row:
@@ -148,6 +164,29 @@ class RateRow(Row):
 
     def sigmas(self) -> np.ndarray:
         return self.sigma_dps
+
+
+@dataclass(frozen=True)
+class PoseRow(Row):
+    """One output row of the lamps mode: the body origin's position in N (mm) and the
+    heading (rotation about n3, deg)."""
+
+    pose: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))  # x, y, heading
+    sigma: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))
+
+    columns: ClassVar[tuple[str, ...]] = PLANAR_COLUMNS
+    value_columns: ClassVar[tuple[str, ...]] = PLANAR_COLUMNS[3:6]
+
+    def quantities(self) -> list[tuple[str, float, int]]:
+        out = [(k, v, 4) for k, v in zip(PLANAR_COLUMNS[3:6], self.pose, strict=True)]
+        out += [(k, v, 5) for k, v in zip(PLANAR_COLUMNS[6:9], self.sigma, strict=True)]
+        return out
+
+    def values(self) -> np.ndarray:
+        return self.pose
+
+    def sigmas(self) -> np.ndarray:
+        return self.sigma
 
 
 def attitude_row(

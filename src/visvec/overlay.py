@@ -29,11 +29,14 @@ def draw_overlay(
     Triangle: the region outline, vertices (the acute one red), centroid, lab axes n1
     (toward the acute vertex, red) and n2 (blue). Markers: each spot circled, green with
     its marker id when identified, red when not; brightened so the dark frame shows.
+    Lamps: the same, and the map's lamps projected at the fitted pose (blue crosses).
     """
-    from visvec.pipeline import MarkerDetection, RateDetection
+    from visvec.pipeline import LampDetection, MarkerDetection, RateDetection
 
     if isinstance(det, MarkerDetection):
         return _text(_draw_markers(image, det, rig), row)
+    if isinstance(det, LampDetection):
+        return _text(_draw_lamps(image, det, row, rig), row)
     if isinstance(det, RateDetection):
         return _text(_draw_flow(image, det), row)
     if scale is None:
@@ -85,24 +88,39 @@ def _text(out: np.ndarray, row: Row) -> np.ndarray:
     return out
 
 
-def _draw_markers(image: np.ndarray, det, rig) -> np.ndarray:
+def _draw_markers(image: np.ndarray, det, rig, size: float = 1.0) -> np.ndarray:
     bright = cv2.convertScaleAbs(image, alpha=4.0)
     out = cv2.cvtColor(bright, cv2.COLOR_GRAY2BGR)
+    r = int(round(14 * size))
     for (u, v), k in zip(det.spots.centroids_px, det.ids, strict=True):
         c = (int(round(u)), int(round(v)))
         color = _GREEN if k >= 0 else _RED
-        cv2.circle(out, c, 14, color, 2, cv2.LINE_AA)
+        cv2.circle(out, c, r, color, 2 if size >= 1 else 1, cv2.LINE_AA)
         if k >= 0:
             cv2.putText(
                 out,
                 str(int(k)),
-                (c[0] + 16, c[1] - 10),
+                (c[0] + r + 2, c[1] - r + 4),
                 cv2.FONT_HERSHEY_SIMPLEX,
-                0.9,
+                0.9 * size,
                 color,
-                2,
+                2 if size >= 1 else 1,
                 cv2.LINE_AA,
             )
+    return out
+
+
+def _draw_lamps(image: np.ndarray, det, row: Row, rig) -> np.ndarray:
+    from visvec.estimate.planar import lamps_to_camera
+
+    out = _draw_markers(image, det, rig, size=0.6)
+    if row.ok and rig is not None:
+        x, y, h = row.values()
+        p = lamps_to_camera(rig, np.array([x, y, np.radians(h)]), rig.target.lamps.xyz_mm)
+        uv = rig.camera.project(p[p[:, 2] > 0])
+        for u, v in uv[rig.camera.in_image(uv)]:
+            c = (int(round(u)), int(round(v)))
+            cv2.drawMarker(out, c, _BLUE, cv2.MARKER_CROSS, 7, 1, cv2.LINE_AA)
     return out
 
 

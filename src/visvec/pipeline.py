@@ -16,6 +16,7 @@ import numpy as np
 from visvec.data import AttitudeSolution, Frame, Status
 from visvec.detect import TriangleDetector
 from visvec.detect.flow import Matches, match_stars, signal
+from visvec.detect.lamps import LampIdentifier
 from visvec.detect.markers import MarkerIdentifier
 from visvec.detect.spots import Spots, find_spots
 from visvec.detect.stars import (
@@ -29,9 +30,11 @@ from visvec.detect.stars import (
 from visvec.errors import ConfigError
 from visvec.estimate import ESTIMATORS
 from visvec.estimate.markers import solve_markers
+from visvec.estimate.planar import MIN_LAMPS, PlanarSolution, solve_planar
 from visvec.estimate.pnp import PNP_FLAGS, solve_pnp
 from visvec.estimate.rate import MIN_STARS, RateSolution, estimate_rate, unit_vectors
-from visvec.output import AttitudeRow, RateRow, Row, attitude_row
+from visvec.lamps import Catalog
+from visvec.output import AttitudeRow, PoseRow, RateRow, Row, attitude_row
 from visvec.rig import Rig
 from visvec.rotations import expmap
 
@@ -446,7 +449,103 @@ class RatePipeline(Pipeline):
         )
 
 
-DEFAULT_METHODS = {"triangle": "full", "markers": "full", "starfield": "poisson"}
+@dataclass(frozen=True)
+class LampDetection:
+    """Spots of one lamp frame, their lamp ids (-1: none) and how they were found."""
+
+    spots: Spots
+    ids: np.ndarray
+    mode: str = ""  # "track" or "lost_in_space"
+    reason: str = ""
+    votes: int = 0
+
+
+MIN_TRACKED_FRACTION = 0.5  # of the spots, matched from the predicted pose, to keep tracking
+
+
+class LampPipeline(Pipeline):
+    """Position and heading of a mock-up from ceiling lamps (LuVeX, Keldysh preprint
+    2011-24): spots, identification (tracking from the predicted pose, else the paper's
+    Delaunay lookup), and a least-squares fit over every identified lamp."""
+
+    methods = ("full",)
+    row_type = PoseRow
+
+    def __init__(self, rig: Rig, method: str = "full", catalog: Catalog | None = None):
+        if rig.kind != "lamps":
+            raise ConfigError(f"LampPipeline needs a lamps rig, not {rig.kind!r}")
+        super().__init__(rig, method)
+        self.identifier = LampIdentifier(rig, catalog)
+        self.sigma_px = rig.detect.centroid_sigma_px
+        self.track_state: tuple[float, np.ndarray, np.ndarray | None] | None = None
+
+    def reset(self) -> None:
+        self.track_state = None
+
+    def _predict(self, t: float) -> np.ndarray | None:
+        if self.track_state is None:
+            return None
+        t0, pose, vel = self.track_state
+        return pose if vel is None else pose + vel * (t - t0)
+
+    def _fit(self, xy: np.ndarray, ident) -> PlanarSolution:
+        sel = ident.ids >= 0
+        lamps = self.identifier.lamps[ident.ids[sel]]
+        return solve_planar(xy[sel], lamps, self.rig, self.sigma_px, ident.pose)
+
+    def estimate(self, frame):
+        d = self.rig.detect
+        spots = find_spots(frame.image, d.threshold, d.min_spot_px, d.max_spot_px)
+        self.last_detection = LampDetection(spots, np.full(len(spots), -1))
+        if len(spots) == 0:
+            return Status.NO_TARGET, None, ("no_lamps",)
+        xy = self.rig.camera.undistort(spots.centroids_px)
+        pred = self._predict(frame.time_s)
+        sol, ident, mode = None, None, "track"
+        if pred is not None:
+            ident = self.identifier.track(xy, pred)
+            if ident.n_identified >= max(MIN_LAMPS + 1, MIN_TRACKED_FRACTION * len(xy)):
+                sol = self._fit(xy, ident)
+        if sol is None or not sol.ok:
+            mode = "lost_in_space"
+            ident = self.identifier.lost_in_space(xy)
+            if ident.pose is None:
+                self.last_detection = LampDetection(spots, ident.ids, mode, ident.reason)
+                return Status.REJECTED, None, (ident.reason,)
+            sol = self._fit(xy, ident)
+        ids = ident.ids.copy()
+        if sol.inliers is not None:
+            ids[np.nonzero(ids >= 0)[0][~sol.inliers]] = -1
+        self.last_detection = LampDetection(spots, ids, mode, ident.reason, ident.votes)
+        if not sol.ok:
+            return sol.status, sol, sol.warnings
+        warnings = list(sol.warnings)
+        if np.sum(ids < 0) > 0:
+            warnings.append("extra_spots")
+        if self.track_state is not None and frame.time_s > self.track_state[0]:
+            t0, p0, _ = self.track_state
+            dp = sol.pose - p0
+            dp[2] = (dp[2] + np.pi) % (2 * np.pi) - np.pi
+            vel = dp / (frame.time_s - t0)
+        else:
+            vel = None
+        self.track_state = (frame.time_s, sol.pose.copy(), vel)
+        return Status.OK, sol, tuple(warnings)
+
+    def make_row(self, frame, status, sol, warnings, latency_ms):
+        if status is not Status.OK or sol is None:
+            n = sol.n_points if sol is not None else 0
+            return PoseRow(frame.index, frame.time_s, status, np.nan, n, latency_ms, warnings)
+        sig = np.sqrt(np.clip(np.diag(sol.cov), 0.0, None))
+        sig[2] = np.degrees(sig[2])
+        pose = np.array([sol.pose[0], sol.pose[1], np.degrees(sol.pose[2])])
+        return PoseRow(
+            frame.index, frame.time_s, status, sol.rms_px, sol.n_points, latency_ms, warnings,
+            pose=pose, sigma=sig,
+        )  # fmt: skip
+
+
+DEFAULT_METHODS = {"triangle": "full", "markers": "full", "starfield": "poisson", "lamps": "full"}
 
 
 def make_pipeline(rig: Rig, method: str | None = None) -> Pipeline:
@@ -458,6 +557,8 @@ def make_pipeline(rig: Rig, method: str | None = None) -> Pipeline:
         return MarkerPipeline(rig, method)
     if rig.kind == "starfield":
         return RatePipeline(rig, method)
+    if rig.kind == "lamps":
+        return LampPipeline(rig, method)
     raise ConfigError(f"target kind {rig.kind!r} has no pipeline in this version")
 
 

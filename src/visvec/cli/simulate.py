@@ -8,6 +8,7 @@ from dataclasses import replace
 import click
 
 from visvec.cli.common import load, rig_options
+from visvec.sim.lamps import LampScene, PerimeterPath, simulate_imu, simulate_lamps
 from visvec.sim.markers import SpotScene
 from visvec.sim.scene import Scene
 from visvec.sim.simulate import Clutter, true_rig
@@ -28,10 +29,10 @@ from visvec.sim.stars import PAPER_CASES, StarScene, simulate_stars
 @click.option("--seed", type=int, default=0, show_default=True)
 @click.option(
     "--motion",
-    type=click.Choice(["random", "sweep", "level"]),
-    default="random",
-    show_default=True,
-    help="Attitudes: random, a smooth sweep, or level at many yaws.",
+    type=click.Choice(["random", "sweep", "level", "perimeter", "rest"]),
+    default=None,
+    help="Attitudes: random (default), a smooth sweep, or level at many yaws; lamps: "
+    "perimeter (default: pushed around the table) or rest.",
 )
 @click.option("--max-tilt-deg", type=click.FloatRange(min=0), default=5.0, show_default=True)
 @click.option(
@@ -112,6 +113,25 @@ from visvec.sim.stars import PAPER_CASES, StarScene, simulate_stars
     default=None,
     help="Starfield: constant rate wx wy wz (deg/s, camera frame).",
 )
+@click.option(
+    "--spurious",
+    type=click.FloatRange(0, 5),
+    default=0.0,
+    show_default=True,
+    help="Lamps: extra bright spots per frame, as a fraction of the lamps in view.",
+)
+@click.option(
+    "--imu",
+    is_flag=True,
+    help="Lamps: also write imu.csv (100 Hz gyro and accelerometer with bias, noise and "
+    "faults) and imu_truth.csv over the frames' time span.",
+)
+@click.option(
+    "--fps",
+    type=click.FloatRange(min=0.01),
+    default=None,
+    help="Frame rate of the rendered sequence (default: the rig's).",
+)
 def simulate(
     rig_path,
     calibration,
@@ -132,12 +152,26 @@ def simulate(
     camera_askew_deg,
     case,
     rate_dps,
+    spurious,
+    imu,
+    fps,
 ):
     """Render frames of the rig's target at known attitudes (or, for a starfield rig, a
     sky turning at a known rate); write OUT/truth.csv."""
     rig = load(rig_path, calibration)
+    lamp_only = spurious > 0 or imu or motion in ("perimeter", "rest")
+    if lamp_only and rig.kind != "lamps":
+        raise click.UsageError("--spurious, --imu and --motion perimeter|rest apply to lamps rigs")
+    if rig.kind == "lamps":
+        if motion not in (None, "perimeter", "rest"):
+            raise click.UsageError(f"--motion {motion}: a lamps rig moves by perimeter or rest")
+        _lamps(rig, out_dir, n_frames, seed, noise, motion or "perimeter", spurious, imu, fps)
+        return
+    if fps is not None and rig.kind != "starfield":
+        raise click.UsageError("--fps applies to starfield and lamps rigs")
+    motion = motion or "random"
     if rig.kind == "starfield":
-        _stars(rig, out_dir, n_frames, seed, noise, case, rate_dps)
+        _stars(rig, out_dir, n_frames, seed, noise, case, rate_dps, fps)
         return
     if case is not None or rate_dps is not None:
         raise click.UsageError("--case and --rate-dps apply to starfield rigs only")
@@ -175,15 +209,35 @@ def simulate(
     click.echo(f"wrote {n_frames} frames and {truth}", err=True)
 
 
-def _stars(rig, out_dir, n_frames, seed, noise, case, rate_dps) -> None:
+def _lamps(rig, out_dir, n_frames, seed, noise, motion, spurious, imu, fps) -> None:
+    path = PerimeterPath(rest=motion == "rest")
+    scene = replace(
+        LampScene(exposure_ms=rig.exposure_ms or LampScene.exposure_ms),
+        noise_sigma=noise,
+        spurious=spurious,
+    )
+    fps = fps or rig.fps
+    with click.progressbar(length=n_frames, label="rendering", file=sys.stderr) as bar:
+        truth = simulate_lamps(
+            rig, out_dir, n_frames, path=path, scene=scene, seed=seed, fps=fps,
+            progress=lambda i: bar.update(1),
+        )  # fmt: skip
+    click.echo(f"wrote {n_frames} frames ({motion}) and {truth}", err=True)
+    if imu:
+        files = simulate_imu(path, (n_frames - 1) / fps, out_dir, seed=seed + 1)
+        click.echo(f"wrote {files[0]} and {files[1]}", err=True)
+
+
+def _stars(rig, out_dir, n_frames, seed, noise, case, rate_dps, fps) -> None:
     if case is not None and rate_dps is not None:
         raise click.UsageError("give --case or --rate-dps, not both")
     w = PAPER_CASES[case] if case is not None else tuple(rate_dps or PAPER_CASES[1])
     scene = replace(StarScene(exposure_ms=rig.exposure_ms or 50.0), read_noise_dn=noise)
     with click.progressbar(length=n_frames, label="rendering", file=sys.stderr) as bar:
         truth = simulate_stars(
-            rig, out_dir, n_frames, w, seed=seed, scene=scene, progress=lambda i: bar.update(1)
-        )
+            rig, out_dir, n_frames, w, seed=seed, scene=scene, fps=fps,
+            progress=lambda i: bar.update(1),
+        )  # fmt: skip
     click.echo(
         f"wrote {n_frames} frames turning at {w[0]:g}, {w[1]:g}, {w[2]:g} deg/s and {truth}",
         err=True,

@@ -1,0 +1,209 @@
+"""Identification of ceiling lamps in a frame: lost-in-space by Delaunay triangles, and
+tracking from the last pose.
+
+Lost in space follows the LuVeX paper (Keldysh preprint 2011-24, Sec. 2, Figs. 3-5):
+the Delaunay triangles of the lamps in the frame are looked up in the catalogue of the
+map's Delaunay triangles by their smallest and largest angle within a tolerance; each
+match gives a position, and triangles that agree on one position give the fix.
+
+Beyond the paper:
+- the lamps are first put on the ceiling plane in body coordinates through the camera
+  model (the table is level and the ceiling height known), so a frame's triangles are
+  the map's up to a rotation and a shift: their size is checked as well as their shape,
+  and each match gives a full hypothesis (x, y, heading) by a 3-point 2-D Procrustes fit;
+- votes count the distinct frame triangles whose hypotheses agree (within 50 mm and
+  2 deg); the winner is verified against every detected spot (each must fall near a map
+  lamp, one spot per lamp), needs 2 votes and 5 verified lamps, and a second, different
+  hypothesis with comparable support makes the frame ambiguous: no fix rather than a
+  guess;
+- tracking matches spots to the map from the predicted pose and falls back to lost in
+  space when too few match.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import Delaunay, QhullError, cKDTree
+
+from visvec.lamps import SLIVER_DEG, Catalog, build_catalog, triangle_features
+from visvec.rig import Rig
+
+ANGLE_TOL_DEG = 2.0  # feature lookup tolerance (smallest and largest angle)
+SIZE_TOL = 0.05  # relative perimeter tolerance of a matched triangle
+CLUSTER_MM = 50.0  # hypotheses this close (and CLUSTER_DEG) agree
+CLUSTER_DEG = 2.0
+MIN_VOTES = 2  # distinct frame triangles agreeing on the pose
+MIN_VERIFIED = 5  # spots explained by the winning pose
+VERIFY_GATE_PX = 6.0  # a spot this close (on the ceiling) to a predicted lamp is that lamp
+TRACK_GATE_PX = 15.0
+AMBIGUOUS_RATIO = 0.6  # a rival with this fraction of the winner's verified lamps
+
+
+@dataclass(frozen=True)
+class Identification:
+    """Lamp index of each spot (-1: none), the pose hypothesis (x_mm, y_mm, heading
+    rad) or None, its votes (frame triangles agreeing) and why it failed."""
+
+    ids: np.ndarray
+    pose: np.ndarray | None
+    votes: int = 0
+    reason: str = ""
+
+    @property
+    def n_identified(self) -> int:
+        return int(np.sum(self.ids >= 0))
+
+
+class LampIdentifier:
+    """Identifies spots (undistorted normalised coordinates) as lamps of the rig's map."""
+
+    def __init__(self, rig: Rig, catalog: Catalog | None = None):
+        self.rig = rig
+        self.lamps = rig.target.lamps.xyz_mm
+        self.catalog = catalog if catalog is not None else build_catalog(rig.target.lamps)
+        self.map_tree = cKDTree(self.lamps[:, :2])
+        self.z_ceiling = float(np.median(self.lamps[:, 2]))
+        depth = self.z_ceiling - float(rig.t_b[2])
+        self.mm_per_px = depth / float(rig.camera.fx)
+        self.verify_gate_mm = VERIFY_GATE_PX * self.mm_per_px
+        cat_pts = self.lamps[self.catalog.triangles, :2]
+        self.cat_perimeter = _perimeter(cat_pts)
+
+    def body_points(self, xy_n: np.ndarray) -> np.ndarray:
+        """Spots put on the ceiling plane, in body coordinates (x, y mm; level table)."""
+        rays = np.column_stack([xy_n, np.ones(len(xy_n))]) @ self.rig.R_bc.T
+        t = self.rig.t_b
+        with np.errstate(divide="ignore", invalid="ignore"):
+            s = (self.z_ceiling - t[2]) / rays[:, 2]
+        s = np.where(rays[:, 2] > 1e-6, s, np.nan)
+        return t[:2] + rays[:, :2] * s[:, None]
+
+    def match_to_map(self, pts_b: np.ndarray, pose: np.ndarray, gate_mm: float) -> np.ndarray:
+        """Lamp index of each body point at ``pose`` within ``gate_mm`` (-1: none); where
+        two points claim one lamp, the nearer keeps it."""
+        m = _to_map(pts_b, pose)
+        ids = np.full(len(pts_b), -1)
+        good = np.all(np.isfinite(m), axis=1)
+        if not good.any():
+            return ids
+        d, j = self.map_tree.query(m[good], distance_upper_bound=gate_mm)
+        idx = np.nonzero(good)[0]
+        hit = np.isfinite(d)
+        ids[idx[hit]] = j[hit]
+        dist = np.full(len(pts_b), np.inf)
+        dist[idx[hit]] = d[hit]
+        for lamp in np.unique(ids[ids >= 0]):
+            claim = np.nonzero(ids == lamp)[0]
+            if len(claim) > 1:
+                ids[claim[claim != claim[np.argmin(dist[claim])]]] = -1
+        return ids
+
+    def track(self, xy_n: np.ndarray, pose_pred: np.ndarray, gate_px: float = TRACK_GATE_PX):
+        """Spots matched to the map lamps nearest the predicted pose."""
+        pts = self.body_points(xy_n)
+        ids = self.match_to_map(pts, pose_pred, gate_px * self.mm_per_px)
+        return Identification(ids, pose_pred if (ids >= 0).any() else None)
+
+    def lost_in_space(self, xy_n: np.ndarray) -> Identification:
+        """The paper's Delaunay-triangle lookup with votes, then verification."""
+        n = len(xy_n)
+        none = np.full(n, -1)
+        pts = self.body_points(xy_n)
+        fin = np.all(np.isfinite(pts), axis=1)
+        if fin.sum() < 3:
+            return Identification(none, None, reason="too_few_lamps")
+        idx = np.nonzero(fin)[0]
+        try:
+            tri = idx[Delaunay(pts[fin]).simplices]
+        except (QhullError, ValueError):
+            return Identification(none, None, reason="lamps_collinear")
+        order, feats = triangle_features(pts[tri])
+        tri = np.take_along_axis(tri, order, axis=1)
+        usable = feats[:, 0] >= SLIVER_DEG
+        tri, feats = tri[usable], feats[usable]
+        if not len(tri):
+            return Identification(none, None, reason="no_triangles")
+        perim = _perimeter(pts[tri])
+        pairs_t, pairs_c = [], []
+        for t in range(len(tri)):
+            cands = self.catalog.lookup(feats[t], ANGLE_TOL_DEG)
+            if len(cands):
+                ok = np.abs(self.cat_perimeter[cands] / perim[t] - 1.0) <= SIZE_TOL
+                cands = cands[ok]
+                pairs_t.extend([t] * len(cands))
+                pairs_c.extend(cands.tolist())
+        if not pairs_t:
+            return Identification(none, None, reason="no_catalogue_match")
+        pt, pc = np.array(pairs_t), np.array(pairs_c)
+        src = pts[tri[pt]]  # (m, 3, 2) body
+        dst = self.lamps[self.catalog.triangles[pc], :2]  # (m, 3, 2) map
+        hyp, err = _procrustes(src, dst)
+        good = err < self.verify_gate_mm
+        if not good.any():
+            return Identification(none, None, reason="no_catalogue_match")
+        hyp, pt = hyp[good], pt[good]
+        votes = _votes(hyp, pt)
+        best = int(np.argmax(votes))
+        if votes[best] < MIN_VOTES:
+            return Identification(none, None, votes=int(votes[best]), reason="no_consensus")
+        ids = self.match_to_map(pts, hyp[best], self.verify_gate_mm)
+        n_ver = int(np.sum(ids >= 0))
+        if n_ver < MIN_VERIFIED:
+            return Identification(none, None, votes=int(votes[best]), reason="no_consensus")
+        # the strongest hypothesis that disagrees with the winner
+        rival = ~_agrees(hyp, hyp[best])
+        if rival.any() and votes[rival].max() >= MIN_VOTES:
+            r = np.nonzero(rival)[0][np.argmax(votes[rival])]
+            n_rival = int(np.sum(self.match_to_map(pts, hyp[r], self.verify_gate_mm) >= 0))
+            if n_rival >= max(MIN_VERIFIED, AMBIGUOUS_RATIO * n_ver):
+                return Identification(none, None, votes=int(votes[best]), reason="ambiguous")
+        return Identification(ids, hyp[best], int(votes[best]))
+
+
+def _perimeter(p: np.ndarray) -> np.ndarray:
+    return (
+        np.linalg.norm(p[:, 0] - p[:, 1], axis=1)
+        + np.linalg.norm(p[:, 1] - p[:, 2], axis=1)
+        + np.linalg.norm(p[:, 2] - p[:, 0], axis=1)
+    )
+
+
+def _to_map(pts_b: np.ndarray, pose: np.ndarray) -> np.ndarray:
+    c, s = np.cos(pose[2]), np.sin(pose[2])
+    return np.column_stack(
+        [pose[0] + c * pts_b[:, 0] - s * pts_b[:, 1], pose[1] + s * pts_b[:, 0] + c * pts_b[:, 1]]
+    )
+
+
+def _procrustes(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rigid 2-D fits map = p + Rz(psi) body of point sets (m, k, 2): poses (m, 3) and
+    the largest point residual (m,)."""
+    sc = src - src.mean(axis=1, keepdims=True)
+    dc = dst - dst.mean(axis=1, keepdims=True)
+    cross = np.sum(sc[..., 0] * dc[..., 1] - sc[..., 1] * dc[..., 0], axis=1)
+    dot = np.sum(sc[..., 0] * dc[..., 0] + sc[..., 1] * dc[..., 1], axis=1)
+    psi = np.arctan2(cross, dot)
+    c, s = np.cos(psi)[:, None], np.sin(psi)[:, None]
+    rx = c * src[..., 0] - s * src[..., 1]
+    ry = s * src[..., 0] + c * src[..., 1]
+    px = (dst[..., 0] - rx).mean(axis=1)
+    py = (dst[..., 1] - ry).mean(axis=1)
+    err = np.hypot(rx + px[:, None] - dst[..., 0], ry + py[:, None] - dst[..., 1]).max(axis=1)
+    return np.column_stack([px, py, psi]), err
+
+
+def _agrees(hyp: np.ndarray, h: np.ndarray) -> np.ndarray:
+    dpsi = np.abs((hyp[:, 2] - h[2] + np.pi) % (2 * np.pi) - np.pi)
+    return (np.hypot(hyp[:, 0] - h[0], hyp[:, 1] - h[1]) < CLUSTER_MM) & (
+        dpsi < np.radians(CLUSTER_DEG)
+    )
+
+
+def _votes(hyp: np.ndarray, tri_of: np.ndarray) -> np.ndarray:
+    """For each hypothesis, the number of distinct frame triangles agreeing with it."""
+    out = np.zeros(len(hyp), dtype=int)
+    for i in range(len(hyp)):
+        out[i] = len(np.unique(tri_of[_agrees(hyp, hyp[i])]))
+    return out

@@ -1,0 +1,135 @@
+"""Planar pose (x, y, heading) of a mock-up from identified ceiling lamps.
+
+The table is level, so the body's attitude is a rotation by the heading psi about n3:
+R_NB = Rz(psi), and the body origin is at p = (x, y, 0) in N. A lamp P_N appears at
+P_C = R_BC^T (Rz(psi)^T (P_N - p) - t_B) (SPEC section 1 with the body origin moved to
+p). The LuVeX paper (Keldysh preprint 2011-24, Sec. 2) takes the position from the
+identified triangles' agreement; here, beyond it, every matched lamp enters one
+Gauss-Newton least-squares fit of the three parameters in pixels, with an analytic
+Jacobian and the covariance sigma^2 (J^T J)^-1.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from visvec.data import Status
+from visvec.rig import Rig
+
+MAX_ITERATIONS = 15
+STEP_TOL = 1e-7  # mm and rad
+MIN_LAMPS = 4
+OUTLIER_SIGMAS = 5.0
+OUTLIER_FLOOR_PX = 1.5  # residuals under this are never outliers (model error of a real map)
+
+
+@dataclass(frozen=True)
+class PlanarSolution:
+    """Pose ``pose`` = (x_mm, y_mm, heading_rad) with covariance ``cov`` (mm, rad);
+    ``inliers`` marks the lamps kept in the fit."""
+
+    status: Status
+    pose: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))
+    cov: np.ndarray = field(default_factory=lambda: np.full((3, 3), np.nan))
+    rms_px: float = float("nan")
+    n_points: int = 0
+    inliers: np.ndarray | None = None
+    warnings: tuple[str, ...] = ()
+
+    @property
+    def ok(self) -> bool:
+        return self.status is Status.OK
+
+
+def lamps_to_camera(rig: Rig, pose: np.ndarray, lamps_n: np.ndarray) -> np.ndarray:
+    """Lamp positions (K, 3) in N seen from the camera at ``pose`` (x, y, heading rad)."""
+    c, s = np.cos(pose[2]), np.sin(pose[2])
+    d = lamps_n - np.array([pose[0], pose[1], 0.0])
+    p_b = np.column_stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1], d[:, 2]])
+    return (p_b - rig.t_b) @ rig.R_bc
+
+
+def project_lamps(rig: Rig, pose: np.ndarray, lamps_n: np.ndarray) -> np.ndarray:
+    """Normalised (undistorted) image coordinates of lamps; nan behind the camera."""
+    p = lamps_to_camera(rig, pose, lamps_n)
+    z = np.where(p[:, 2] > 1e-6, p[:, 2], np.nan)
+    return p[:, :2] / z[:, None]
+
+
+def _residual_jacobian(rig: Rig, pose: np.ndarray, lamps_n: np.ndarray, xy_n: np.ndarray):
+    c, s = np.cos(pose[2]), np.sin(pose[2])
+    d = lamps_n - np.array([pose[0], pose[1], 0.0])
+    p_b = np.column_stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1], d[:, 2]])
+    R_cb = rig.R_bc.T
+    p_c = (p_b - rig.t_b) @ R_cb.T
+    X, Y, Z = p_c.T
+    r = np.column_stack([X / Z, Y / Z]) - xy_n
+    # dP_B/dx = -Rz^T e1, dP_B/dy = -Rz^T e2, dP_B/dpsi = -e3 x P_B
+    K = len(lamps_n)
+    dpb = np.zeros((K, 3, 3))
+    dpb[:, :, 0] = [-c, s, 0.0]
+    dpb[:, :, 1] = [-s, -c, 0.0]
+    dpb[:, 0, 2] = p_b[:, 1]
+    dpb[:, 1, 2] = -p_b[:, 0]
+    dpc = R_cb @ dpb  # (K, 3, 3): d P_C / d (x, y, psi)
+    J = np.empty((K, 2, 3))
+    J[:, 0] = (dpc[:, 0] - (X / Z)[:, None] * dpc[:, 2]) / Z[:, None]
+    J[:, 1] = (dpc[:, 1] - (Y / Z)[:, None] * dpc[:, 2]) / Z[:, None]
+    return r.reshape(-1), J.reshape(-1, 3)
+
+
+def solve_planar(
+    xy_n: np.ndarray,
+    lamps_n: np.ndarray,
+    rig: Rig,
+    sigma_px: float,
+    pose0: np.ndarray,
+) -> PlanarSolution:
+    """Least-squares pose from lamps ``lamps_n`` (K, 3, mm in N) seen at ``xy_n`` (K, 2,
+    undistorted normalised), starting from ``pose0`` (x, y, heading rad).
+
+    Lamps whose residual exceeds 5 robust sigmas (and 1.5 px) are dropped once and the
+    fit repeated; the covariance is sigma^2 (J^T J)^-1 with sigma the larger of the
+    rig's centroid noise and the fit's own residual scatter.
+    """
+    f = float(rig.camera.fx)
+    keep = np.ones(len(xy_n), bool)
+    pose = np.asarray(pose0, dtype=float).copy()
+    for rnd in range(2):
+        if keep.sum() < MIN_LAMPS:
+            return PlanarSolution(
+                Status.REJECTED, n_points=int(keep.sum()), warnings=("too_few_lamps",)
+            )
+        P, xy = lamps_n[keep], xy_n[keep]
+        converged = False
+        for _ in range(MAX_ITERATIONS):
+            r, J = _residual_jacobian(rig, pose, P, xy)
+            if not np.all(np.isfinite(r)):
+                return PlanarSolution(Status.NOT_CONVERGED, warnings=("lamp_behind_camera",))
+            step = np.linalg.lstsq(J, -r, rcond=None)[0]
+            pose += step
+            if abs(step[0]) + abs(step[1]) < STEP_TOL and abs(step[2]) < STEP_TOL:
+                converged = True
+                break
+        if not converged:
+            return PlanarSolution(
+                Status.NOT_CONVERGED, n_points=len(P), warnings=("not_converged",)
+            )
+        r_all, _ = _residual_jacobian(rig, pose, lamps_n, xy_n)
+        e = np.hypot(*r_all.reshape(-1, 2).T) * f
+        scale = np.median(e[keep]) / np.sqrt(np.log(4.0))  # Rayleigh median -> sigma
+        bad = e > max(OUTLIER_SIGMAS * max(scale, sigma_px), OUTLIER_FLOOR_PX)
+        if rnd == 1 or not np.any(bad & keep):
+            break
+        keep &= ~bad
+    r, J = _residual_jacobian(rig, pose, lamps_n[keep], xy_n[keep])
+    n = int(keep.sum())
+    rms_px = float(np.sqrt(np.mean(r**2)) * f)
+    dof = max(2 * n - 3, 1)
+    chi2 = float(np.sum((r * f / sigma_px) ** 2))
+    cov = np.linalg.inv(J.T @ J) * (sigma_px / f) ** 2 * max(1.0, chi2 / dof)
+    pose[2] = (pose[2] + np.pi) % (2 * np.pi) - np.pi
+    warnings = ("outlier_lamps",) if n < len(xy_n) else ()
+    return PlanarSolution(Status.OK, pose, cov, rms_px, n, keep, warnings)
