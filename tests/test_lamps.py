@@ -109,5 +109,3 @@ def test_lamps_rig(tmp_path):
                         "rotation = [[1, 0, 0], [0, -1, 0], [0, 0, -1]]")  # fmt: skip
     with pytest.raises(ConfigError, match="looks down"):
         load_rig(write(tmp_path, down, "c.toml"))
-    res = CliRunner().invoke(cli, ["batch", str(tmp_path), "--rig", str(CONFIGS / "lamps.toml")])
-    assert res.exit_code == 2 and "no pipeline" in res.output
