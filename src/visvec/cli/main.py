@@ -51,7 +51,7 @@ def cli(debug: bool) -> None:
 
 
 def _register() -> None:
-    from visvec.cli import batch, calibrate, catalog, montecarlo, rate, simulate, track
+    from visvec.cli import batch, calibrate, catalog, fuse, montecarlo, rate, simulate, track
 
     cli.add_command(track.track)
     cli.add_command(batch.batch)
@@ -60,6 +60,7 @@ def _register() -> None:
     cli.add_command(montecarlo.montecarlo)
     cli.add_command(rate.rate)
     cli.add_command(catalog.catalog)
+    cli.add_command(fuse.fuse)
 
 
 _register()

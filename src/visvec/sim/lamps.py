@@ -28,7 +28,7 @@ from visvec.sim.markers import add_spot
 
 TRUTH_COLUMNS = ("frame", "file", "time_s", "x_mm", "y_mm", "heading_deg")
 IMU_COLUMNS = ("time_s", "gz_dps", "ax_mps2", "ay_mps2")
-IMU_TRUTH_COLUMNS = ("time_s", "x_mm", "y_mm", "heading_deg")
+IMU_TRUTH_COLUMNS = ("frame", "time_s", "x_mm", "y_mm", "heading_deg")
 
 
 @dataclass(frozen=True)
@@ -63,7 +63,8 @@ class PerimeterPath:
     speed that surges and slows with the pushes, the heading turning with the path and
     swaying.
 
-    ``at(t)`` gives (x_mm, y_mm, heading_rad); ``rest`` gives a still mock-up.
+    ``at(t)`` gives (x_mm, y_mm, heading_rad); ``rest`` gives a still mock-up;
+    ``rest_s`` keeps it still at the start (for the IMU's bias calibration at rest).
     """
 
     a_mm: float = 1600.0
@@ -77,9 +78,14 @@ class PerimeterPath:
     sway_s: float = 11.0
     heading0_deg: float = 20.0
     rest: bool = False
+    rest_s: float = 0.0  # still for this long, then eased into the motion over 4 s
+    ease_s: float = 4.0
 
     def at(self, t: np.ndarray | float) -> np.ndarray:
         t = np.asarray(t, dtype=float)
+        if self.rest_s > 0:
+            u = np.clip(t - self.rest_s, 0.0, None)
+            t = np.where(u < self.ease_s, u * u / (2 * self.ease_s), u - self.ease_s / 2)
         if self.rest:
             z = np.zeros_like(t)
             return np.stack(
@@ -221,7 +227,8 @@ def simulate_imu(
     t0: float = 0.0,
 ) -> tuple[Path, Path]:
     """Write imu.csv (time_s,gz_dps,ax_mps2,ay_mps2) and imu_truth.csv (the true pose
-    at every sample) for ``duration_s`` of ``path``. Returns both paths."""
+    at every sample, ``frame`` = the sample's index, as in the rows of `visvec fuse`)
+    for ``duration_s`` of ``path``. Returns both paths."""
     model = model or ImuModel()
     rng = np.random.default_rng(seed)
     t = t0 + np.arange(int(round(duration_s * model.rate_hz)) + 1) / model.rate_hz
@@ -253,8 +260,8 @@ def simulate_imu(
     with open(truth, "w", newline="") as fh:
         wr = csv.writer(fh, lineterminator="\n")
         wr.writerow(IMU_TRUTH_COLUMNS)
-        for ti, (x, y, p) in zip(t, pose, strict=True):
-            wr.writerow([f"{ti:.4f}", f"{x:.4f}", f"{y:.4f}", f"{_wrap_deg(p):.6f}"])
+        for i, (ti, (x, y, p)) in enumerate(zip(t, pose, strict=True)):
+            wr.writerow([i, f"{ti:.4f}", f"{x:.4f}", f"{y:.4f}", f"{_wrap_deg(p):.6f}"])
     return imu, truth
 
 

@@ -1,0 +1,222 @@
+"""Inputs of `visvec fuse` (SPEC section 4): an inertial CSV and a fixes CSV.
+
+Inertial data: `time_s` and the columns it has of `gx_dps,gy_dps,gz_dps,ax_mps2,
+ay_mps2,az_mps2` in body axes; a planar IMU has `gz_dps,ax_mps2,ay_mps2`. Fixes: visvec
+output rows (attitude or planar pose) whose `time_s` is the exposure time; only `ok`
+rows are used, and a fix becomes available at `time_s + latency_ms / 1000`.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from visvec.errors import InputFileError
+from visvec.rotations import euler_rates_from_body, matrix_to_euler, quat_to_matrix
+
+PLANAR_IMU = ("gz_dps", "ax_mps2", "ay_mps2")
+ATTITUDE_IMU = ("gx_dps", "gy_dps", "gz_dps")
+PLANAR_FIX = ("x_mm", "y_mm", "heading_deg")
+ATTITUDE_FIX = ("qw", "qx", "qy", "qz")
+STATUSES = ("ok", "no_target", "rejected", "not_converged", "read_error")
+GAP_PERIODS = 3.0  # a step longer than this many median periods is a gap
+
+
+@dataclass(frozen=True)
+class ImuData:
+    """Samples of an inertial file: ``t`` (n,) s; ``gyro`` (n, 3) rad/s (a planar IMU
+    fills only z); ``accel`` (n, 2) m/s^2 in x, y, or None; ``lines`` the file line of
+    each sample; ``gaps`` the sample indices that start after a gap."""
+
+    t: np.ndarray
+    gyro: np.ndarray
+    accel: np.ndarray | None
+    lines: np.ndarray
+    gaps: tuple[int, ...]
+    period_s: float
+    path: Path | None = None
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+
+def _number(row: dict, key: str, path: Path, line: int) -> float:
+    raw = (row.get(key) or "").strip()
+    try:
+        x = float(raw)
+    except ValueError:
+        raise InputFileError(f"{path}: line {line}: {key} = {raw!r}: expected a number") from None
+    if not math.isfinite(x):
+        raise InputFileError(f"{path}: line {line}: {key} = {raw!r}: expected a finite number")
+    return x
+
+
+def _open_csv(path: Path, what: str):
+    try:
+        fh = open(path, newline="")
+    except OSError as exc:
+        raise InputFileError(f"{path}: cannot read the {what} ({exc.strerror})") from None
+    reader = csv.DictReader(fh)
+    return fh, reader, list(reader.fieldnames or [])
+
+
+def read_imu(path: str | Path, planar: bool) -> ImuData:
+    """Read an inertial CSV for planar (gz, ax, ay) or 3-D (gx, gy, gz) fusion.
+
+    Raises
+    ------
+    InputFileError
+        Missing columns, a bad number (naming the line and column), or a time that does
+        not increase (naming both lines). Gaps are not errors: they are listed in
+        ``gaps`` for the caller to report, and fusion restarts after each.
+    """
+    path = Path(path)
+    need = ("time_s", *(PLANAR_IMU if planar else ATTITUDE_IMU))
+    fh, reader, cols = _open_csv(path, "inertial data")
+    with fh:
+        missing = [k for k in need if k not in cols]
+        if missing:
+            raise InputFileError(
+                f"{path}: missing column(s) {', '.join(missing)}; a "
+                f"{'planar' if planar else '3-D'} IMU file needs {','.join(need)} "
+                f"(found {','.join(cols) or 'no header'})"
+            )
+        t, g, a, lines = [], [], [], []
+        for line, row in enumerate(reader, start=2):
+            ti = _number(row, "time_s", path, line)
+            if t and ti <= t[-1]:
+                raise InputFileError(
+                    f"{path}: line {line}: time_s = {ti} does not increase (line "
+                    f"{lines[-1]} has {t[-1]}); inertial samples must be in time order"
+                )
+            t.append(ti)
+            lines.append(line)
+            if planar:
+                g.append((0.0, 0.0, _number(row, "gz_dps", path, line)))
+                a.append((_number(row, "ax_mps2", path, line), _number(row, "ay_mps2", path, line)))
+            else:
+                g.append(tuple(_number(row, k, path, line) for k in ATTITUDE_IMU))
+    if len(t) < 2:
+        raise InputFileError(f"{path}: {len(t)} inertial sample(s); at least 2 are needed")
+    t_arr = np.array(t)
+    dt = np.diff(t_arr)
+    period = float(np.median(dt))
+    gaps = tuple(int(i) + 1 for i in np.nonzero(dt > GAP_PERIODS * period)[0])
+    return ImuData(
+        t_arr,
+        np.radians(np.array(g)),
+        np.array(a) if planar else None,
+        np.array(lines),
+        gaps,
+        period,
+        path,
+    )
+
+
+@dataclass(frozen=True)
+class Fix:
+    """One ok fix: exposure time ``time_s``, ``available_s`` when it reached the
+    fusion, ``value`` (x_mm, y_mm, heading rad) or R_NB (3, 3), ``cov`` (3, 3) in mm and
+    rad (planar) or rad in body axes (attitude), or None where the file has no sigma
+    columns, and its file ``line``."""
+
+    time_s: float
+    available_s: float
+    value: np.ndarray
+    cov: np.ndarray | None
+    line: int
+
+
+@dataclass(frozen=True)
+class Fixes:
+    """The ok fixes of a file, in file order; ``planar`` tells the kind."""
+
+    fixes: tuple[Fix, ...]
+    planar: bool
+    n_rows: int
+    path: Path | None = None
+
+
+def read_fixes(path: str | Path) -> Fixes:
+    """Read visvec output rows as fixes (planar pose or attitude, by the header).
+
+    Raises
+    ------
+    InputFileError
+        Neither kind of columns, an unknown status, or an ok row with a missing or bad
+        number (naming the line and the column).
+    """
+    path = Path(path)
+    fh, reader, cols = _open_csv(path, "fixes")
+    with fh:
+        if "time_s" not in cols or "status" not in cols:
+            raise InputFileError(
+                f"{path}: fixes need the columns time_s and status of visvec output rows "
+                f"(found {','.join(cols) or 'no header'})"
+            )
+        if all(k in cols for k in PLANAR_FIX):
+            planar = True
+        elif all(k in cols for k in ATTITUDE_FIX):
+            planar = False
+        else:
+            raise InputFileError(
+                f"{path}: fixes need planar pose columns ({','.join(PLANAR_FIX)}) or "
+                f"attitude columns ({','.join(ATTITUDE_FIX)}); found {','.join(cols)}"
+            )
+        sig_cols = (
+            ("sigma_x_mm", "sigma_y_mm", "sigma_heading_deg")
+            if planar
+            else ("sigma_yaw_deg", "sigma_pitch_deg", "sigma_roll_deg")
+        )
+        has_sigma = all(k in cols for k in sig_cols)
+        out, n = [], 0
+        for line, row in enumerate(reader, start=2):
+            n += 1
+            status = (row.get("status") or "").strip()
+            if status not in STATUSES:
+                raise InputFileError(
+                    f"{path}: line {line}: status = {status!r}: expected one of {STATUSES}"
+                )
+            if status != "ok":
+                continue
+            t = _number(row, "time_s", path, line)
+            lat = _number(row, "latency_ms", path, line) if "latency_ms" in cols else 0.0
+            if lat < 0:
+                raise InputFileError(f"{path}: line {line}: latency_ms = {lat}: must be >= 0")
+            if planar:
+                x, y, h = (_number(row, k, path, line) for k in PLANAR_FIX)
+                value = np.array([x, y, math.radians(h)])
+            else:
+                q = np.array([_number(row, k, path, line) for k in ATTITUDE_FIX])
+                norm = float(np.linalg.norm(q))
+                if abs(norm - 1.0) > 1e-3:
+                    raise InputFileError(
+                        f"{path}: line {line}: quaternion norm {norm:.6f}: expected 1"
+                    )
+                value = quat_to_matrix(q / norm)
+            cov = None
+            if has_sigma:
+                s = np.array([_number(row, k, path, line) for k in sig_cols])
+                if np.any(s <= 0):
+                    raise InputFileError(
+                        f"{path}: line {line}: sigma columns must be positive, got {s.tolist()}"
+                    )
+                cov = _fix_cov(s, value, planar)
+            out.append(Fix(t, t + lat / 1000.0, value, cov, line))
+    return Fixes(tuple(out), planar, n, path)
+
+
+def _fix_cov(s: np.ndarray, value: np.ndarray, planar: bool) -> np.ndarray:
+    if planar:
+        return np.diag([s[0] ** 2, s[1] ** 2, math.radians(s[2]) ** 2])
+    # Euler-angle sigmas (yaw, pitch, roll) -> body-axis rotation covariance:
+    # d(euler) = J d(theta_body), so cov_theta = J^-1 diag(s^2) J^-T
+    yaw, pitch, roll = matrix_to_euler(value)
+    if abs(math.cos(pitch)) < 0.1:  # near gimbal lock the Euler sigmas say little
+        return np.eye(3) * math.radians(float(s.max())) ** 2
+    Ji = np.linalg.inv(euler_rates_from_body(yaw, pitch, roll))
+    return Ji @ np.diag(np.radians(s) ** 2) @ Ji.T

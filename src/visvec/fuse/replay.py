@@ -1,0 +1,183 @@
+"""Causal fusion of inertial samples and late fixes by replay.
+
+The LuVeX paper (Keldysh preprint 2011-24, Sec. 4.1) stores the IMU history and, when
+a camera fix of a moment 0.6 s ago arrives, integrates again from that fix to now. Here
+the same replay serves a Kalman filter and any order of arrival: the state after every
+inertial sample is kept for ``history_s``; when fixes become available
+(``time_s + latency``) the filter goes back to the stored state just before the
+earliest of their exposure times and runs forward through the stored samples, applying
+every known fix at its own exposure time (between two samples, the propagation is
+split there). A late or out-of-order fix therefore lands where it belongs, and the row
+at time t uses only the samples up to t and the fixes available by t.
+
+Faulty samples (rate or acceleration beyond the limits, the paper's 0.5 m/s^2 and
+50 deg/s for the planar mock-up) are not integrated: the last good reading stands in.
+A gap in the samples is never integrated over: the filter restarts at the first fix
+taken after it.
+"""
+
+from __future__ import annotations
+
+import bisect
+import math
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import numpy as np
+
+from visvec.fuse.inputs import Fix, ImuData
+
+MAX_REJECTED_IN_A_ROW = 3  # then the filter restarts from the latest fix
+
+
+@dataclass(frozen=True)
+class FusedSample:
+    """The fused state after inertial sample ``index`` (None before the first fix),
+    the number of fixes applied so far and the sample's warnings."""
+
+    index: int
+    time_s: float
+    state: object | None
+    n_fixes: int
+    warnings: tuple[str, ...]
+
+
+@dataclass(frozen=True)
+class Limits:
+    """Readings beyond these are faults (None: no limit)."""
+
+    max_rate_dps: float | None = 50.0
+    max_accel_mps2: float | None = 0.5
+
+
+def fuse(
+    imu: ImuData,
+    fixes: list[Fix] | tuple[Fix, ...],
+    model,
+    *,
+    limits: Limits | None = None,
+    history_s: float = 10.0,
+) -> Iterator[FusedSample]:
+    """Fused states at every inertial sample, causally (see the module docstring)."""
+    limits = limits or Limits()
+    arrivals = sorted(fixes, key=lambda f: (f.available_s, f.time_s))
+    next_arrival = 0
+    gaps = set(imu.gaps)
+    # buffers over the history window, parallel: sample time, reading, state after it
+    ts: list[float] = []
+    gyro: list[np.ndarray] = []
+    acc: list[np.ndarray | None] = []
+    states: list[object | None] = []
+    raw: list[tuple[np.ndarray, np.ndarray | None]] = []  # the readings as sampled
+    known: list[tuple[float, int, Fix]] = []  # fixes available so far, by exposure time
+    n_applied = 0
+    rejected_streak = 0
+    last_good = None
+    for k in range(len(imu)):
+        t = float(imu.t[k])
+        warnings: list[str] = []
+        if k in gaps:
+            warnings.append("imu_gap")
+            ts.clear(), gyro.clear(), acc.clear(), states.clear(), known.clear(), raw.clear()
+            last_good = None
+        g = imu.gyro[k]
+        a = imu.accel[k] if imu.accel is not None else None
+        if _faulty(g, a, limits):
+            warnings.append("imu_fault")
+            if last_good is not None:
+                g, a = last_good
+            else:
+                g, a = np.zeros(3), (np.zeros(2) if a is not None else None)
+        else:
+            last_good = (g, a)
+        # the reading over the interval ending at t: the mean of its two ends (trapezoid)
+        if ts and "imu_gap" not in warnings:
+            g_prev, a_prev = raw[-1]
+            raw.append((g, a))
+            g = 0.5 * (g + g_prev)
+            a = 0.5 * (a + a_prev) if a is not None else None
+        else:
+            raw.append((g, a))
+        ts.append(t)
+        gyro.append(g)
+        acc.append(a)
+        states.append(None)
+        # fixes that reached us by now
+        new: list[Fix] = []
+        while next_arrival < len(arrivals) and arrivals[next_arrival].available_s <= t:
+            f = arrivals[next_arrival]
+            next_arrival += 1
+            if f.time_s < ts[0] or f.time_s > t:
+                warnings.append("fix_too_old" if f.time_s < ts[0] else "fix_from_future")
+                continue
+            bisect.insort(known, (f.time_s, id(f), f))
+            new.append(f)
+        # replay from the first sample at or after the earliest new fix (else the newest)
+        start = len(ts) - 1
+        if new:
+            start = min(start, bisect.bisect_left(ts, min(f.time_s for f in new)))
+        s = states[start - 1] if start > 0 else None
+        if s is not None:
+            t_s = ts[start - 1]
+        else:
+            # not initialised, or restarting: from the earliest known fix in the buffer
+            init = known[0][2] if known else None
+            if init is None:
+                yield FusedSample(k, t, None, n_applied, (*warnings, "no_fix_yet"))
+                continue
+            s, t_s = model.init(init), init.time_s
+            if any(init is f for f in new):
+                n_applied += 1
+            start = bisect.bisect_left(ts, t_s)
+            for i in range(start):
+                states[i] = None
+        for j in range(start, len(ts)):
+            # every known fix with its exposure in (t_s, ts[j]], at its own time
+            lo = bisect.bisect_right(known, (t_s, math.inf))
+            hi = bisect.bisect_right(known, (ts[j], math.inf))
+            for f_t, _, f in known[lo:hi]:
+                s = model.propagate(s, gyro[j], acc[j], f_t - t_s)
+                t_s = f_t
+                s, ok = model.update(s, f)
+                if any(f is n for n in new):
+                    if ok:
+                        n_applied += 1
+                        rejected_streak = 0
+                    else:
+                        warnings.append("fix_rejected")
+                        rejected_streak += 1
+            if ts[j] > t_s:
+                s = model.propagate(s, gyro[j], acc[j], ts[j] - t_s)
+                t_s = ts[j]
+            states[j] = s
+        if rejected_streak >= MAX_REJECTED_IN_A_ROW:
+            # the filter has disagreed with several fixes in a row: trust the fixes again
+            latest = max(new, key=lambda f: f.time_s)
+            s, t_s = model.init(latest), latest.time_s
+            j0 = bisect.bisect_left(ts, t_s)
+            for i in range(j0):
+                states[i] = None
+            for j in range(j0, len(ts)):
+                if ts[j] > t_s:
+                    s = model.propagate(s, gyro[j], acc[j], ts[j] - t_s)
+                    t_s = ts[j]
+                states[j] = s
+            known[:] = [x for x in known if x[0] >= latest.time_s]
+            rejected_streak = 0
+            warnings.append("filter_restarted")
+        # forget what is older than the history window
+        cut = bisect.bisect_left(ts, t - history_s)
+        if cut > 0:
+            del ts[:cut], gyro[:cut], acc[:cut], states[:cut], raw[:cut]
+            known[:] = [x for x in known if x[0] >= ts[0]]
+        yield FusedSample(k, t, states[-1], n_applied, tuple(warnings))
+
+
+def _faulty(g: np.ndarray, a: np.ndarray | None, limits: Limits) -> bool:
+    if not np.all(np.isfinite(g)) or (a is not None and not np.all(np.isfinite(a))):
+        return True
+    if limits.max_rate_dps is not None and np.degrees(np.abs(g)).max() > limits.max_rate_dps:
+        return True
+    if a is not None and limits.max_accel_mps2 is not None:
+        return bool(np.abs(a).max() > limits.max_accel_mps2)
+    return False
