@@ -98,9 +98,8 @@ def run(rig, images: list[np.ndarray], method: str, truth: np.ndarray) -> dict:
         "off_boresight_deg": float(np.mean(chi)),
         "ms_per_frame_median": 1000 * float(np.median(times[2:])),
         "ms_per_frame_mean": 1000 * float(np.mean(times[2:])),
-        "ms_per_frame_mean_best_of_3": 1000 * min(
-            float(np.mean(times[2:])), *(speed(rig, images, method) for _ in range(2))
-        ),
+        "ms_per_frame_mean_best_of_3": 1000
+        * min(float(np.mean(times[2:])), *(speed(rig, images, method) for _ in range(2))),
         "errors": E.tolist(),
     }
 

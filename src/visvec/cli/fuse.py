@@ -116,11 +116,18 @@ def fuse(imu_path, fixes_path, out, fmt, method, rest_s, max_rate_dps, max_accel
             err=True,
         )  # fmt: skip
     samples = run_fusion(imu, fixes.fixes, model, limits=limits, history_s=history_s)
+    nis: list[float] = []
+
+    def tap(it):
+        for fs in it:
+            nis.extend(x for x in fs.nis if math.isfinite(x))
+            yield fs
+
     rows = []
     columns = PoseRow.columns if fixes.planar else AttitudeRow.columns
     with open_out(out) as stream:
         sink = open_sink(fmt, stream, columns)
-        for row in fused_rows(samples, model):
+        for row in fused_rows(tap(samples), model):
             sink.write(row.as_dict())
             rows.append(row)
     n_ok = sum(r.ok for r in rows)
@@ -132,6 +139,18 @@ def fuse(imu_path, fixes_path, out, fmt, method, rest_s, max_rate_dps, max_accel
         "samples not integrated",
         err=True,
     )
+    if len(nis) >= 5:
+        mean = sum(nis) / len(nis)
+        advice = ""
+        if mean > 6.0:
+            advice = "; the filter is overconfident: raise --gyro-noise-dps (or --accel-noise-mps2)"
+        elif mean < 1.0:
+            advice = "; the filter is too cautious: the noise settings can be lowered"
+        click.echo(
+            f"visvec: fix innovations: mean NIS {mean:.2f} over {len(nis)} fixes (3 expected "
+            f"for a consistent filter){advice}",
+            err=True,
+        )
     if truth and rows:
         names = rows[0].value_columns
         stats = error_stats(rows, read_truth(truth, names), names)

@@ -16,10 +16,13 @@ rules share this propagation:
 3-D: a multiplicative extended Kalman filter (Markley & Crassidis, Fundamentals of
 Spacecraft Attitude Determination and Control, 2014, Sec. 6.2) on the attitude error,
 the gyro bias and, beyond the usual filter, the gyro's misalignment to the fixes' body
-frame: omega_B = R_m (omega_g - b). With R_true = R exp([dth]x), b = b^ + db and
-R_m = exp([dphi]x) R_m^, the error obeys
-    dth' = -[w]x dth - R_m^ db - [w]x dphi,   w = R_m^ (omega_g - b^),
-so the misalignment shows whenever the body turns; it is estimated from the data.
+frame and its scale factors: omega_B = R_m (1 + k) (omega_g - b), k diagonal. With
+R_true = R exp([dth]x), b = b^ + db, R_m = exp([dphi]x) R_m^ and k = k^ + dk, the
+error obeys (to first order)
+    dth' = -[w]x dth - R_m^ (1 + k^) db - [w]x dphi - R_m^ diag(omega_g - b^) dk,
+    w = R_m^ (1 + k^) (omega_g - b^),
+so misalignment and scale show whenever the body turns; they are estimated from the
+data. A zero prior sigma keeps a parameter fixed.
 """
 
 from __future__ import annotations
@@ -105,7 +108,9 @@ class PlanarModel:
         Q[6, 6] = Q[7, 7] = self.accel_bias_walk**2 * dt
         return PlanarState(xn, F @ s.P @ F.T + Q)
 
-    def update(self, s: PlanarState, fix: Fix) -> tuple[PlanarState, bool]:
+    def update(self, s: PlanarState, fix: Fix) -> tuple[PlanarState, bool, float]:
+        """The state after a fix, whether the fix was accepted, and its normalised
+        innovation squared (NIS; chi-square with 3 dof when the filter is consistent)."""
         R = self._fix_cov(fix)
         r = fix.value - s.x[[0, 1, 4]]
         r[2] = (r[2] + math.pi) % (2 * math.pi) - math.pi
@@ -117,17 +122,17 @@ class PlanarModel:
             P[idx, :] = 0.0
             P[:, idx] = 0.0
             P[np.ix_(idx, idx)] = R
-            return PlanarState(x, P), True
+            return PlanarState(x, P), True, math.nan
         S = s.P[np.ix_(idx, idx)] + R
         nis = float(r @ np.linalg.solve(S, r))
         if nis > NIS_LIMIT:
-            return s, False
+            return s, False, nis
         K = np.linalg.solve(S, s.P[idx, :]).T
         x = s.x + K @ r
         IKH = np.eye(8)
         IKH[:, idx] -= K
         P = IKH @ s.P @ IKH.T + K @ R @ K.T  # Joseph form
-        return PlanarState(x, P), True
+        return PlanarState(x, P), True, nis
 
     @staticmethod
     def values(s: PlanarState) -> tuple[np.ndarray, np.ndarray]:
@@ -142,28 +147,32 @@ class AttitudeState:
     R: np.ndarray  # R_NB
     b: np.ndarray  # gyro bias, rad/s, gyro axes
     Rm: np.ndarray  # gyro axes -> body axes
-    P: np.ndarray  # (9, 9): dtheta (body), db, dphi (body)
+    k: np.ndarray  # gyro scale factor errors (3,)
+    P: np.ndarray  # (12, 12): dtheta (body), db, dphi (body), dk
 
 
 @dataclass(frozen=True)
 class AttitudeModel:
-    """3-D fusion (MEKF) with gyro bias and misalignment."""
+    """3-D fusion (MEKF) with gyro bias, misalignment and scale factors."""
 
     gyro_noise: float = math.radians(0.3)  # rad/s per sample
     gyro_bias_walk: float = math.radians(0.01)  # rad/s/sqrt(s)
     gyro_bias0: tuple[float, float, float] = (0.0, 0.0, 0.0)
     gyro_bias_sigma: float = math.radians(1.0)
     misalignment_sigma: float = math.radians(5.0)  # 0: not estimated
+    scale_sigma: float = 0.0  # relative; 0: not estimated (the default)
     fix_sigma: float = math.radians(0.1)
 
     planar = False
 
     def init(self, fix: Fix) -> AttitudeState:
-        P = np.zeros((9, 9))
+        P = np.zeros((12, 12))
         P[0:3, 0:3] = self._fix_cov(fix)
         P[3:6, 3:6] = np.eye(3) * self.gyro_bias_sigma**2
-        P[6:9, 6:9] = np.eye(3) * max(self.misalignment_sigma, 1e-9) ** 2
-        return AttitudeState(fix.value.copy(), np.array(self.gyro_bias0, float), np.eye(3), P)
+        P[6:9, 6:9] = np.eye(3) * self.misalignment_sigma**2
+        P[9:12, 9:12] = np.eye(3) * self.scale_sigma**2
+        b0 = np.array(self.gyro_bias0, float)
+        return AttitudeState(fix.value.copy(), b0, np.eye(3), np.zeros(3), P)
 
     def _fix_cov(self, fix: Fix) -> np.ndarray:
         if fix.cov is not None:
@@ -171,35 +180,34 @@ class AttitudeModel:
         return np.eye(3) * self.fix_sigma**2
 
     def propagate(self, s: AttitudeState, gyro: np.ndarray, accel, dt: float):
-        w = s.Rm @ (gyro - s.b)
+        wg = (1.0 + s.k) * (gyro - s.b)  # scaled, in gyro axes
+        w = s.Rm @ wg
         Rn = s.R @ expmap(w * dt)
-        W = skew(w)
-        F = np.eye(9)
-        Phi = expmap(-w * dt)  # exact transition of -[w]x
-        F[0:3, 0:3] = Phi
-        F[0:3, 3:6] = -s.Rm * dt
-        if self.misalignment_sigma > 0:
-            F[0:3, 6:9] = -W * dt
-        Q = np.zeros((9, 9))
+        F = np.eye(12)
+        F[0:3, 0:3] = expmap(-w * dt)  # exact transition of -[w]x
+        F[0:3, 3:6] = -(s.Rm * (1.0 + s.k)) * dt
+        F[0:3, 6:9] = -skew(w) * dt
+        F[0:3, 9:12] = -(s.Rm * (gyro - s.b)) * dt
+        Q = np.zeros((12, 12))
         Q[0:3, 0:3] = np.eye(3) * (self.gyro_noise * dt) ** 2
         Q[3:6, 3:6] = np.eye(3) * self.gyro_bias_walk**2 * dt
-        return AttitudeState(Rn, s.b, s.Rm, F @ s.P @ F.T + Q)
+        return AttitudeState(Rn, s.b, s.Rm, s.k, F @ s.P @ F.T + Q)
 
-    def update(self, s: AttitudeState, fix: Fix) -> tuple[AttitudeState, bool]:
+    def update(self, s: AttitudeState, fix: Fix) -> tuple[AttitudeState, bool, float]:
         R = self._fix_cov(fix)
         r = logmap(s.R.T @ fix.value)
         S = s.P[0:3, 0:3] + R
         nis = float(r @ np.linalg.solve(S, r))
         if nis > NIS_LIMIT:
-            return s, False
+            return s, False, nis
         K = np.linalg.solve(S, s.P[0:3, :]).T
         dx = K @ r
-        IKH = np.eye(9)
+        IKH = np.eye(12)
         IKH[:, 0:3] -= K
         P = IKH @ s.P @ IKH.T + K @ R @ K.T
         Rn = s.R @ expmap(dx[0:3])
-        Rm = expmap(dx[6:9]) @ s.Rm if self.misalignment_sigma > 0 else s.Rm
-        return AttitudeState(Rn, s.b + dx[3:6], Rm, P), True
+        Rm = expmap(dx[6:9]) @ s.Rm
+        return AttitudeState(Rn, s.b + dx[3:6], Rm, s.k + dx[9:12], P), True, nis
 
     @staticmethod
     def values(s: AttitudeState) -> tuple[np.ndarray, np.ndarray]:

@@ -33,13 +33,15 @@ MAX_REJECTED_IN_A_ROW = 3  # then the filter restarts from the latest fix
 @dataclass(frozen=True)
 class FusedSample:
     """The fused state after inertial sample ``index`` (None before the first fix),
-    the number of fixes applied so far and the sample's warnings."""
+    the number of fixes applied so far, the sample's warnings and the normalised
+    innovation squared of each fix that arrived with it."""
 
     index: int
     time_s: float
     state: object | None
     n_fixes: int
     warnings: tuple[str, ...]
+    nis: tuple[float, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -104,6 +106,7 @@ def fuse(
         states.append(None)
         # fixes that reached us by now
         new: list[Fix] = []
+        nis_new: list[float] = []
         while next_arrival < len(arrivals) and arrivals[next_arrival].available_s <= t:
             f = arrivals[next_arrival]
             next_arrival += 1
@@ -138,8 +141,9 @@ def fuse(
             for f_t, _, f in known[lo:hi]:
                 s = model.propagate(s, gyro[j], acc[j], f_t - t_s)
                 t_s = f_t
-                s, ok = model.update(s, f)
+                s, ok, nis = model.update(s, f)
                 if any(f is n for n in new):
+                    nis_new.append(nis)
                     if ok:
                         n_applied += 1
                         rejected_streak = 0
@@ -170,7 +174,7 @@ def fuse(
         if cut > 0:
             del ts[:cut], gyro[:cut], acc[:cut], states[:cut], raw[:cut]
             known[:] = [x for x in known if x[0] >= ts[0]]
-        yield FusedSample(k, t, states[-1], n_applied, tuple(warnings))
+        yield FusedSample(k, t, states[-1], n_applied, tuple(warnings), tuple(nis_new))
 
 
 def _faulty(g: np.ndarray, a: np.ndarray | None, limits: Limits) -> bool:
