@@ -3,10 +3,12 @@
 import csv
 
 import numpy as np
+import pytest
 from click.testing import CliRunner
 
 from visvec.cli.main import cli
 from visvec.data import Frame, Status
+from visvec.detect.spots import auto_threshold
 from visvec.estimate.planar import (
     _residual_jacobian,
     lamps_to_camera,
@@ -189,3 +191,16 @@ def test_simulate_and_batch_cli(tmp_path):
         cli, ["simulate", "--rig", str(CONFIGS / "triangle.toml"), "--out", str(out), "--imu"]
     )
     assert r.exit_code == 2 and "lamps" in r.output
+
+
+def test_histogram_threshold_equals_the_sorted_median(rng):
+    """auto_threshold's histogram medians give what np.median gives."""
+    for _ in range(100):
+        hi = int(rng.integers(2, 256))
+        img = rng.integers(0, hi, size=(int(rng.integers(3, 300)), int(rng.integers(3, 300))))
+        img = img.astype(np.uint8)
+        step = max(1, int(np.sqrt(img.size / 20000)))
+        sub = img[::step, ::step].astype(np.float32)
+        med = float(np.median(sub))
+        mad = float(np.median(np.abs(sub - med))) * 1.4826
+        assert auto_threshold(img) == pytest.approx(max(med + 6 * max(mad, 0.5), 20.0))

@@ -94,7 +94,7 @@ def fuse(imu_path, fixes_path, out, fmt, method, rest_s, max_rate_dps, max_accel
         limits = Limits(max_rate_dps or 2000.0, None)
     if rest_s > 0:
         try:
-            rb = rest_biases(imu, rest_s)
+            rb = rest_biases(imu, rest_s, limits)
         except ValueError as exc:
             raise click.UsageError(str(exc)) from None
         if fixes.planar:

@@ -84,7 +84,7 @@ def fuse(
             last_good = None
         g = imu.gyro[k]
         a = imu.accel[k] if imu.accel is not None else None
-        if _faulty(g, a, limits):
+        if is_faulty(g, a, limits):
             warnings.append("imu_fault")
             if last_good is not None:
                 g, a = last_good
@@ -177,7 +177,7 @@ def fuse(
         yield FusedSample(k, t, states[-1], n_applied, tuple(warnings), tuple(nis_new))
 
 
-def _faulty(g: np.ndarray, a: np.ndarray | None, limits: Limits) -> bool:
+def is_faulty(g: np.ndarray, a: np.ndarray | None, limits: Limits) -> bool:
     if not np.all(np.isfinite(g)) or (a is not None and not np.all(np.isfinite(a))):
         return True
     if limits.max_rate_dps is not None and np.degrees(np.abs(g)).max() > limits.max_rate_dps:

@@ -11,7 +11,7 @@ import numpy as np
 
 from visvec.data import AttitudeSolution, Status
 from visvec.fuse.inputs import ImuData
-from visvec.fuse.replay import FusedSample
+from visvec.fuse.replay import FusedSample, Limits, is_faulty
 from visvec.output import PoseRow, Row, attitude_row
 
 REST_MAX_RATE_DPS = 2.0  # a rest window turning faster than this was not at rest
@@ -30,8 +30,9 @@ class RestBiases:
     duration_s: float
 
 
-def rest_biases(imu: ImuData, duration_s: float) -> RestBiases:
-    """Biases from the first ``duration_s`` seconds, which must be at rest.
+def rest_biases(imu: ImuData, duration_s: float, limits: Limits | None = None) -> RestBiases:
+    """Biases from the first ``duration_s`` seconds, which must be at rest; samples
+    beyond ``limits`` (faults) are left out.
 
     Raises
     ------
@@ -42,6 +43,9 @@ def rest_biases(imu: ImuData, duration_s: float) -> RestBiases:
     sel = imu.t < imu.t[0] + duration_s
     if imu.gaps:
         sel &= np.arange(len(imu)) < imu.gaps[0]
+    if limits is not None:
+        acc = imu.accel if imu.accel is not None else [None] * len(imu)
+        sel &= ~np.array([is_faulty(g, a, limits) for g, a in zip(imu.gyro, acc, strict=True)])
     n = int(sel.sum())
     if n < 10:
         raise ValueError(f"--rest-s {duration_s}: {n} inertial samples; at least 10 needed")
