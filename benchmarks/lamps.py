@@ -6,8 +6,8 @@ camera) by visvec.sim.lamps and processed by the same LampPipeline as `visvec ba
 
 1. At rest: --rest-frames frames at each of 5 random poses; RMS error against the truth.
 2. Identification, lost in space (the pipeline reset before each frame): --frames random
-   poses over the whole lamp map (near its edges few lamps are in view), counting the frames with at least 6 lamps in view that
-   give an ok fix, and wrong fixes (position off by more than 10 mm or heading by more
+   poses over the whole lamp map (near its edges few lamps are in view), counting the
+   frames with at least 6 lamps in view that give an ok fix, and wrong fixes (position off by more than 10 mm or heading by more
    than 0.5 deg); again with 20 % extra spurious spots; and along the perimeter path at
    30 fps with tracking and motion blur (10 ms exposure).
 3. Speed on one core: pipeline time per frame (decode excluded), tracking and lost in
@@ -71,10 +71,13 @@ def err(row, pose) -> np.ndarray:
     return e
 
 
-def random_pose(rng) -> np.ndarray:
-    return np.array(
-        [rng.uniform(-2500, 2500), rng.uniform(-1500, 1500), rng.uniform(-np.pi, np.pi)]
-    )
+def random_pose(rng, half=(2500.0, 1500.0)) -> np.ndarray:
+    """A random pose over the table (default) or any area of half-sizes ``half`` (mm)."""
+    return np.array([rng.uniform(-half[0], half[0]), rng.uniform(-half[1], half[1]),
+                     rng.uniform(-np.pi, np.pi)])  # fmt: skip
+
+
+MAP_HALF = (3600.0, 2400.0)  # the whole lamp map: frames near its edges see few lamps
 
 
 def at_rest(rig, rng, n_frames: int) -> dict:
