@@ -7,9 +7,10 @@ camera) by visvec.sim.lamps and processed by the same LampPipeline as `visvec ba
 1. At rest: --rest-frames frames at each of 5 random poses; RMS error against the truth.
 2. Identification, lost in space (the pipeline reset before each frame): --frames random
    poses over the whole lamp map (near its edges few lamps are in view), counting the
-   frames with at least 6 lamps in view that give an ok fix, and wrong fixes (position off by more than 10 mm or heading by more
-   than 0.5 deg); again with 20 % extra spurious spots; and along the perimeter path at
-   30 fps with tracking and motion blur (10 ms exposure).
+   frames with at least 6 lamps in view that give an ok fix, and wrong fixes (position
+   off by more than 10 mm or heading by more than 0.5 deg); again with 20 % extra
+   spurious spots; and along the perimeter path at 30 fps with tracking and motion blur
+   (10 ms exposure).
 3. Speed on one core: pipeline time per frame (decode excluded), tracking and lost in
    space, best of 3.
 4. Fusion: the mock-up still for 5 s, then pushed around the table for 120 s; frames at
