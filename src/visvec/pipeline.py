@@ -460,6 +460,7 @@ class LampDetection:
     votes: int = 0
 
 
+EDGE_PX = 5.0  # lamp spots closer than this to the image border may be cut
 MIN_TRACKED_FRACTION = 0.5  # of the spots, matched from the predicted pose, to keep tracking
 
 
@@ -496,6 +497,12 @@ class LampPipeline(Pipeline):
     def estimate(self, frame):
         d = self.rig.detect
         spots = find_spots(frame.image, d.threshold, d.min_spot_px, d.max_spot_px)
+        # a lamp cut by the image border has a biased centroid: left out
+        keep = self.rig.camera.in_image(spots.centroids_px, EDGE_PX)
+        if not keep.all():
+            spots = Spots(*(a[keep] for a in (spots.centroids_px, spots.flux, spots.area_px,
+                                               spots.elongation, spots.saturated)),
+                          spots.threshold)  # fmt: skip
         self.last_detection = LampDetection(spots, np.full(len(spots), -1))
         if len(spots) == 0:
             return Status.NO_TARGET, None, ("no_lamps",)

@@ -126,17 +126,18 @@ class LampIdentifier:
         if not len(tri):
             return Identification(none, None, reason="no_triangles")
         perim = _perimeter(pts[tri])
-        pairs_t, pairs_c = [], []
-        for t in range(len(tri)):
-            cands = self.catalog.lookup(feats[t], ANGLE_TOL_DEG)
-            if len(cands):
-                ok = np.abs(self.cat_perimeter[cands] / perim[t] - 1.0) <= SIZE_TOL
-                cands = cands[ok]
-                pairs_t.extend([t] * len(cands))
-                pairs_c.extend(cands.tolist())
-        if not pairs_t:
+        # all frame triangles looked up at once (the k-d tree takes many points)
+        near = self.catalog.tree.query_ball_point(feats, ANGLE_TOL_DEG * np.sqrt(2.0))
+        pairs_t = np.repeat(np.arange(len(tri)), [len(c) for c in near])
+        pairs_c = np.fromiter((c for cs in near for c in cs), dtype=int, count=len(pairs_t))
+        if len(pairs_t):
+            close = np.all(np.abs(self.catalog.features[pairs_c] - feats[pairs_t])
+                           <= ANGLE_TOL_DEG, axis=1)  # fmt: skip
+            size = np.abs(self.cat_perimeter[pairs_c] / perim[pairs_t] - 1.0) <= SIZE_TOL
+            pairs_t, pairs_c = pairs_t[close & size], pairs_c[close & size]
+        if not len(pairs_t):
             return Identification(none, None, reason="no_catalogue_match")
-        pt, pc = np.array(pairs_t), np.array(pairs_c)
+        pt, pc = pairs_t, pairs_c
         src = pts[tri[pt]]  # (m, 3, 2) body
         dst = self.lamps[self.catalog.triangles[pc], :2]  # (m, 3, 2) map
         hyp, err = _procrustes(src, dst)
@@ -195,15 +196,17 @@ def _procrustes(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarra
 
 
 def _agrees(hyp: np.ndarray, h: np.ndarray) -> np.ndarray:
-    dpsi = np.abs((hyp[:, 2] - h[2] + np.pi) % (2 * np.pi) - np.pi)
-    return (np.hypot(hyp[:, 0] - h[0], hyp[:, 1] - h[1]) < CLUSTER_MM) & (
-        dpsi < np.radians(CLUSTER_DEG)
-    )
+    """Which hypotheses (m, 3) agree with h (3,) or, for h (k, 3), the (k, m) matrix."""
+    h = np.atleast_2d(h)
+    dpsi = np.abs((hyp[None, :, 2] - h[:, None, 2] + np.pi) % (2 * np.pi) - np.pi)
+    d = np.hypot(hyp[None, :, 0] - h[:, None, 0], hyp[None, :, 1] - h[:, None, 1])
+    out = (d < CLUSTER_MM) & (dpsi < np.radians(CLUSTER_DEG))
+    return out[0] if out.shape[0] == 1 else out
 
 
 def _votes(hyp: np.ndarray, tri_of: np.ndarray) -> np.ndarray:
     """For each hypothesis, the number of distinct frame triangles agreeing with it."""
-    out = np.zeros(len(hyp), dtype=int)
-    for i in range(len(hyp)):
-        out[i] = len(np.unique(tri_of[_agrees(hyp, hyp[i])]))
-    return out
+    A = np.atleast_2d(_agrees(hyp, hyp)).astype(np.int32)  # (m, m)
+    onehot = np.zeros((len(hyp), int(tri_of.max()) + 1), np.int32)
+    onehot[np.arange(len(hyp)), tri_of] = 1
+    return np.count_nonzero(A @ onehot, axis=1)

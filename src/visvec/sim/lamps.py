@@ -158,9 +158,14 @@ def render_lamps(
     return np.clip(np.rint(img), 0, 255).astype(np.uint8)
 
 
-def lamps_in_view(rig: Rig, pose: np.ndarray, margin_px: float = 3.0) -> int:
-    """How many lamps of the map the camera sees at ``pose``."""
-    p = lamps_to_camera(rig, pose, rig.target.lamps.xyz_mm)
+def lamps_in_view(
+    rig: Rig, pose: np.ndarray, margin_px: float = 5.0, hidden: tuple[int, ...] = ()
+) -> int:
+    """How many lit lamps of the map the camera sees at ``pose`` (at least ``margin_px``
+    inside the image, as the lamp pipeline uses them)."""
+    lit = np.ones(len(rig.target.lamps), bool)
+    lit[list(hidden)] = False
+    p = lamps_to_camera(rig, pose, rig.target.lamps.xyz_mm[lit])
     front = p[:, 2] > 0
     return int(np.sum(rig.camera.in_image(rig.camera.project(p[front]), margin_px)))
 
