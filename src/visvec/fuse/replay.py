@@ -70,18 +70,17 @@ def fuse(
     gyro: list[np.ndarray] = []
     acc: list[np.ndarray | None] = []
     states: list[object | None] = []
-    raw: list[tuple[np.ndarray, np.ndarray | None]] = []  # the readings as sampled
     known: list[tuple[float, int, Fix]] = []  # fixes available so far, by exposure time
     n_applied = 0
     rejected_streak = 0
-    last_good = None
+    last_good = prev = None  # the last good reading; the last reading as used
     for k in range(len(imu)):
         t = float(imu.t[k])
         warnings: list[str] = []
         if k in gaps:
             warnings.append("imu_gap")
-            ts.clear(), gyro.clear(), acc.clear(), states.clear(), known.clear(), raw.clear()
-            last_good = None
+            ts.clear(), gyro.clear(), acc.clear(), states.clear(), known.clear()
+            last_good = prev = None
         g = imu.gyro[k]
         a = imu.accel[k] if imu.accel is not None else None
         if is_faulty(g, a, limits):
@@ -93,13 +92,11 @@ def fuse(
         else:
             last_good = (g, a)
         # the reading over the interval ending at t: the mean of its two ends (trapezoid)
-        if ts and "imu_gap" not in warnings:
-            g_prev, a_prev = raw[-1]
-            raw.append((g, a))
-            g = 0.5 * (g + g_prev)
-            a = 0.5 * (a + a_prev) if a is not None else None
-        else:
-            raw.append((g, a))
+        g_end, a_end = g, a
+        if prev is not None:
+            g = 0.5 * (g + prev[0])
+            a = 0.5 * (a + prev[1]) if a is not None else None
+        prev = (g_end, a_end)
         ts.append(t)
         gyro.append(g)
         acc.append(a)
@@ -172,7 +169,7 @@ def fuse(
         # forget what is older than the history window
         cut = bisect.bisect_left(ts, t - history_s)
         if cut > 0:
-            del ts[:cut], gyro[:cut], acc[:cut], states[:cut], raw[:cut]
+            del ts[:cut], gyro[:cut], acc[:cut], states[:cut]
             known[:] = [x for x in known if x[0] >= ts[0]]
         yield FusedSample(k, t, states[-1], n_applied, tuple(warnings), tuple(nis_new))
 
