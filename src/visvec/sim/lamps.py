@@ -19,12 +19,12 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from visvec.estimate.planar import lamps_to_camera
 from visvec.rig import Rig
 from visvec.sim.markers import add_spot
+from visvec.sim.sequence import write_sequence
 
 TRUTH_COLUMNS = ("frame", "file", "time_s", "x_mm", "y_mm", "heading_deg")
 IMU_COLUMNS = ("time_s", "gz_dps", "ax_mps2", "ay_mps2")
@@ -188,23 +188,14 @@ def simulate_lamps(
     scene = scene or LampScene(exposure_ms=rig.exposure_ms or LampScene.exposure_ms)
     rng = np.random.default_rng(seed)
     fps = fps or rig.fps
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    truth = out / "truth.csv"
-    width = max(4, len(str(n_frames - 1)))
-    with open(truth, "w", newline="") as fh:
-        wr = csv.writer(fh, lineterminator="\n")
-        wr.writerow(TRUTH_COLUMNS)
-        for i in range(n_frames):
-            t = t0 + i / fps
-            img = render_lamps(rig, path.at, t, scene, rng)
-            name = f"frame_{i:0{width}d}.png"
-            cv2.imwrite(str(out / name), img)
-            x, y, psi = path.at(t)
-            wr.writerow([i, name, f"{t:.6f}", f"{x:.4f}", f"{y:.4f}", f"{_wrap_deg(psi):.6f}"])
-            if progress is not None:
-                progress(i)
-    return truth
+
+    def frame_at(t: float) -> tuple[np.ndarray, list[str]]:
+        x, y, psi = path.at(t)
+        img = render_lamps(rig, path.at, t, scene, rng)
+        return img, [f"{x:.4f}", f"{y:.4f}", f"{_wrap_deg(psi):.6f}"]
+
+    times = t0 + np.arange(n_frames) / fps
+    return write_sequence(out_dir, TRUTH_COLUMNS, times, frame_at, progress)
 
 
 @dataclass(frozen=True)

@@ -15,17 +15,16 @@ quantisation to 8 bits with saturation at 255.
 
 from __future__ import annotations
 
-import csv
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-import cv2
 import numpy as np
 from scipy.special import erf
 
 from visvec.rig import Rig
 from visvec.rotations import expmap
+from visvec.sim.sequence import write_sequence
 
 # Fasano et al. (Sensors 2013), Table 3: rates of the star sensor frame (deg/s)
 ORBIT_RATE_DPS = 6.243e-2
@@ -177,20 +176,9 @@ def simulate_stars(
     fps = fps or rig.fps
     w_c = np.radians(np.asarray(rate_dps, dtype=float))
     R0 = random_pointing(rng)
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    truth = out / "truth.csv"
-    width = max(4, len(str(n_frames - 1)))
-    with open(truth, "w", newline="") as fh:
-        wr = csv.writer(fh, lineterminator="\n")
-        wr.writerow(TRUTH_COLUMNS)
-        for i in range(n_frames):
-            t = i / fps
-            R_ic = R0 @ expmap(w_c * t)
-            img = star_image(rig, R_ic, w_c, sky, scene, rng)
-            name = f"frame_{i:0{width}d}.png"
-            cv2.imwrite(str(out / name), img)
-            wr.writerow([i, name, f"{t:.6f}", *(f"{x:.9f}" for x in rate_dps)])
-            if progress is not None:
-                progress(i)
-    return truth
+
+    def frame_at(t: float) -> tuple[np.ndarray, list[str]]:
+        img = star_image(rig, R0 @ expmap(w_c * t), w_c, sky, scene, rng)
+        return img, [f"{x:.9f}" for x in rate_dps]
+
+    return write_sequence(out_dir, TRUTH_COLUMNS, np.arange(n_frames) / fps, frame_at, progress)
