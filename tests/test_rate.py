@@ -99,6 +99,49 @@ def test_outliers_are_dropped_and_the_covariance_is_honest(rng):
     assert np.all((s > 0.8) & (s < 1.25)), s
 
 
+@pytest.mark.parametrize("method", ["poisson", "crassidis"])
+def test_weighting_stars_by_their_noise_beats_equal_weights_and_stays_honest(method, rng):
+    # stars 0.02 to 0.6 px noisy (bright to faint): weights 1 / variance win, and the
+    # covariance from the variances matches the scatter
+    w = np.radians([0.5, -1.0, 2.0])
+    f, n = 3370.0, 40
+    sig = np.geomspace(0.02, 0.6, n)
+    var = sig**2  # per axis, both centroids together
+    err_w, err_u, z = [], [], []
+    for _ in range(300):
+        u1 = unit(n, rng)
+        u2 = u1 @ expmap(-w * 0.1).T
+        xy1 = u1[:, :2] / u1[:, 2:] + rng.normal(0, 1, (n, 2)) * sig[:, None] / np.sqrt(2) / f
+        xy2 = u2[:, :2] / u2[:, 2:] + rng.normal(0, 1, (n, 2)) * sig[:, None] / np.sqrt(2) / f
+        a = estimate_rate(xy1, xy2, 0.1, f, 0.001, method, var)
+        b = estimate_rate(xy1, xy2, 0.1, f, 0.001, method)
+        assert a.ok and b.ok
+        err_w.append(a.omega - w)
+        err_u.append(b.omega - w)
+        z.append((a.omega - w) / np.sqrt(np.diag(a.cov)))
+    assert np.all(np.std(err_w, axis=0) < 0.6 * np.std(err_u, axis=0))
+    s = np.std(z, axis=0)
+    assert np.all((s > 0.8) & (s < 1.2)), s
+
+
+def test_window_centroid_variance_matches_the_scatter_of_noisy_stars(rng):
+    from visvec.detect.flow import window_centroid
+
+    # a Gaussian star (sigma 1.2 px, flux 400) on noise sigma 2, thresholded at 0 after
+    # subtracting 3 sigma, as in the paper's background removal
+    yy, xx = np.mgrid[0:21, 0:21]
+    star = 400.0 / (2 * np.pi * 1.44) * np.exp(-((xx - 10.3) ** 2 + (yy - 9.8) ** 2) / 2.88)
+    cents, pred = [], []
+    for _ in range(2000):
+        img = star + rng.normal(0, 2.0, star.shape)
+        sig = np.clip(img - 6.0, 0, None).astype(np.float32)
+        u, v, _, spread = window_centroid(sig, 5, 5, 16, 16)
+        cents.append((u, v))
+        pred.append(4.0 * spread / 2.0)  # sigma^2 * spread, per axis
+    ratio = np.std(cents, axis=0) / np.sqrt(np.mean(pred))
+    assert np.all((ratio > 0.8) & (ratio < 1.2)), ratio  # measured 0.87-0.93
+
+
 def test_too_few_or_inconsistent_matches_give_no_rate(rng):
     u1 = unit(4, rng)
     sol = estimate_rate(u1[:, :2], u1[:, :2], 0.1, 3370.0, 0.05)
@@ -265,14 +308,22 @@ def test_edge_bands_find_the_stars_a_full_search_finds_there(srig):
 
     img = sequence(srig, PAPER_CASES[1], 1, seed=7, scene=StarScene(flux_m6=300.0))[0].image
     res = residual(img)
-    full, edge = segment(res, 10.0), segment_edges(res, 60, 10.0)
+    full = segment(res, 10.0)
     b = full.boxes
     h, w = img.shape
-    inside = (b[:, 1] + b[:, 3] < 60) | (b[:, 1] >= h - 60)
-    inside |= ((b[:, 0] + b[:, 2] < 60) | (b[:, 0] >= w - 60)) & (b[:, 1] > 62)
-    inside &= (b[:, 1] + b[:, 3] < h - 62) | (b[:, 1] >= h - 60)
-    ref = full.cents[inside]
-    assert len(ref) >= 3
-    d = np.linalg.norm(ref[:, None] - edge.cents[None], axis=2).min(axis=1)
-    assert np.all(d < 1e-3)
-    assert len(edge.cents) <= len(ref) + 2
+    # a bottom band that ends across a star of the left band
+    low = (b[:, 0] + b[:, 2] < 60) & (b[:, 1] > h - h // 3) & (b[:, 3] >= 3)
+    cut = h - int(b[low, 1].max()) - 2
+    for bands in ((60, 60, 60, 60), (90, 25, 40, 120), (60, cut, 60, 60)):
+        top, bottom, left, right = bands
+        edge = segment_edges(res, bands, 10.0)
+        # every star lying whole in a band, corners included, is found exactly once
+        inside = (b[:, 1] + b[:, 3] < top) | (b[:, 1] > h - bottom)
+        inside |= (b[:, 0] + b[:, 2] < left) | (b[:, 0] > w - right)
+        ref = full.cents[inside]
+        assert len(ref) >= 5
+        d = np.linalg.norm(ref[:, None] - edge.cents[None], axis=2)
+        assert np.all(d.min(axis=1) < 1e-3)
+        assert np.all(np.sum(d < 1e-3, axis=1) == 1)
+        # and nothing else but stars cut by a band's inner edge is left out
+        assert len(edge.cents) == len(ref)

@@ -15,7 +15,7 @@ import numpy as np
 
 from visvec.data import AttitudeSolution, Frame, Status
 from visvec.detect import TriangleDetector
-from visvec.detect.flow import Matches, match_stars, signal
+from visvec.detect.flow import MARGIN_PX, Matches, match_stars, signal
 from visvec.detect.lamps import LampIdentifier
 from visvec.detect.markers import MarkerIdentifier
 from visvec.detect.spots import Spots, find_spots
@@ -260,6 +260,11 @@ RATE_METHODS = ("poisson", "crassidis")
 SATURATED_FRACTION = 0.02
 BOOTSTRAP_STARS = 12
 FULL_SEARCH_EVERY = 20
+# a detection whose peak is less than 1 sigma over the mu + 3 sigma threshold is not
+# matched once the rate is known: at 4 sigma, pure noise still lights about 40 pixels
+# of a 1280 x 1024 frame (at 3 sigma about 1800), and such faint stars would weigh
+# little anyway
+MIN_PEAK_SNR = 1.0
 BACKGROUND_EVERY = 5
 FRAME_GAP_TOLERANCE = 1.5  # a frame later than this many periods is a jump
 
@@ -306,9 +311,10 @@ class RatePipeline(Pipeline):
         self.dt_nominal = 1.0 / rig.fps
         self.w_max = np.radians(rig.target.max_rate_dps)
         exposure = (rig.exposure_ms / 1000.0) if rig.exposure_ms else self.dt_nominal
+        self.exposure_s = exposure
         corner = np.hypot(cam.width, cam.height) / 2.0 / self.f_px
         self.flow_gain = self.f_px * (1.0 + corner**2)  # px per rad at the field's corner
-        self.streak_px = self.w_max * exposure * self.flow_gain
+        self.streak_px = self.w_max * self.exposure_s * self.flow_gain
         self.sigma_px = rig.detect.centroid_sigma_px
         self.prev: _PreviousFrame | None = None
         self.omega: np.ndarray | None = None
@@ -332,13 +338,18 @@ class RatePipeline(Pipeline):
         p = u @ expmap(-omega * dt).T
         return cam.distort(p[:, :2] / p[:, 2:3]) - uv1
 
-    def _solve(self, m: Matches, dt: float) -> RateSolution:
+    def _solve(self, m: Matches, dt: float, noise: tuple[float, float]) -> RateSolution:
+        """The rate from matched stars; ``noise`` the pixel noise sigma of the first
+        and second frame, which with each centroid's spread gives its variance."""
         cam = self.rig.camera
         xy1 = cam.undistort(m.uv1) if len(m) else np.zeros((0, 2))
         xy2 = cam.undistort(m.uv2) if len(m) else np.zeros((0, 2))
-        return estimate_rate(xy1, xy2, dt, self.f_px, self.sigma_px, self.method)
+        var = (noise[0] ** 2 * m.spread1 + noise[1] ** 2 * m.spread2) / 2.0  # per axis
+        return estimate_rate(xy1, xy2, dt, self.f_px, self.sigma_px, self.method, var)
 
-    def _match(self, prev: _PreviousFrame, sig: np.ndarray, dt: float) -> Matches:
+    def _match(
+        self, prev: _PreviousFrame, sig: np.ndarray, dt: float, noise: tuple[float, float]
+    ) -> Matches:
         first = prev.stars
         n = len(first)
         zero = np.zeros((n, 2))
@@ -349,23 +360,48 @@ class RatePipeline(Pipeline):
             rad = np.full(n, self._full_radius(dt))
             m = match_stars(first, prev.sig, sig, zero, rad, bright)
             if len(m) >= MIN_STARS:
-                sol = self._solve(m, dt)
+                sol = self._solve(m, dt, noise)
                 if sol.ok:
                     omega = sol.omega
             if omega is None:
                 return match_stars(first, prev.sig, sig, zero, rad)
         shifts = self._shifts(first.centroids_px, omega, dt)
-        # allow the rate to change by 10 % (and 3 px) since it was measured
-        r = 3 + int(np.ceil(0.1 * np.linalg.norm(omega) * dt * self.flow_gain))
-        return match_stars(first, prev.sig, sig, shifts, np.full(n, r))
+        # stars carried by tracking, and detections whose peak is clearly above the noise
+        carried = first.windowed if first.windowed is not None else np.zeros(n, bool)
+        which = np.nonzero(carried | (first.peak_snr >= MIN_PEAK_SNR))[0]
+        return match_stars(first, prev.sig, sig, shifts, np.full(n, self._radius(omega, dt)), which)
+
+    def _bands(self, dt: float) -> tuple[int, int, int, int]:
+        """Widths (top, bottom, left, right) of the edge bands where this frame may hold
+        stars that tracking did not carry: on each edge the largest inward flow (new
+        stars), plus the search radius and margin (stars near an edge whose search
+        window left the image), plus a star's extent (its streak and 8 px of blur)."""
+        cam = self.rig.camera
+        w, h = cam.width - 1.0, cam.height - 1.0
+        s = np.linspace(0.0, 1.0, 9)
+        z, one = np.zeros(9), np.ones(9)
+        pts = np.vstack(
+            [np.c_[s * w, z], np.c_[s * w, one * h], np.c_[z, s * h], np.c_[one * w, s * h]]
+        )
+        d = self._shifts(pts, self.omega, dt).reshape(4, 9, 2)
+        inward = (d[0, :, 1].max(), -d[1, :, 1].min(), d[2, :, 0].max(), -d[3, :, 0].min())
+        streak = np.linalg.norm(d, axis=2).max(axis=1) * self.exposure_s / dt
+        extent = self._radius(self.omega, dt) + MARGIN_PX + 8 + 4
+        return tuple(
+            int(np.ceil(max(a, 0.0) + b + extent)) for a, b in zip(inward, streak, strict=True)
+        )
+
+    def _radius(self, omega: np.ndarray, dt: float) -> int:
+        """Search half-width around a tracked star's predicted shift: the rate may have
+        changed by 10 % (and 3 px) since it was measured."""
+        return 3 + int(np.ceil(0.1 * np.linalg.norm(omega) * dt * self.flow_gain))
 
     def _carry(self, m: Matches, inliers: np.ndarray, res: Residual, dt: float) -> StarField:
         """This frame's stars when tracking: the matched ones, and new ones entering
         through the bands along the edges."""
-        band = int(np.linalg.norm(self.omega) * dt * self.flow_gain + self.streak_px) + 12
         cents, boxes = [m.uv2[inliers]], [m.bbox2[inliers]]
         flux, area = [m.flux2[inliers]], [self.prev.stars.area_px[m.index[inliers]]]
-        seg = segment_edges(res, band, self.streak_px)
+        seg = segment_edges(res, self._bands(dt), self.streak_px)
         if len(seg.cents):
             d = np.linalg.norm(seg.cents[:, None] - cents[0][None], axis=2)
             new = d.min(axis=1) > 4.0 if d.size else np.ones(len(seg.cents), bool)
@@ -374,10 +410,13 @@ class RatePipeline(Pipeline):
             flux.append(seg.flux[new])
             area.append(seg.area[new])
         c = np.vstack(cents)
+        spread = np.zeros(len(c))
+        spread[: len(boxes[0])] = m.spread2[inliers]
         return StarField(
             c, np.concatenate(flux), np.concatenate(area), np.zeros(len(c)), True, "",
             res.sigma, 0.0, 1.0, threshold=res.threshold, signal=res.sig,
             bbox_px=np.vstack(boxes), windowed=np.arange(len(c)) < len(boxes[0]),
+            spread=spread,
         )  # fmt: skip
 
     def estimate(self, frame):
@@ -411,8 +450,9 @@ class RatePipeline(Pipeline):
             self.prev, self.omega = _PreviousFrame(frame.time_s, stars, sig), None
             return (Status.NO_TARGET, None, ("first_frame",)) if not jump else (
                 Status.REJECTED, None, ("frame_jump",))  # fmt: skip
-        m = self._match(prev, sig, dt)
-        sol = self._solve(m, dt)
+        noise = (prev.stars.noise_sigma, res.sigma)
+        m = self._match(prev, sig, dt, noise)
+        sol = self._solve(m, dt, noise)
         if stars is None:
             if sol.ok:
                 stars = self._carry(m, sol.inliers, res, dt)

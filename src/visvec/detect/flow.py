@@ -24,7 +24,6 @@ from visvec.detect.stars import Residual, StarField
 
 MARGIN_PX = 2  # Fasano et al.: the star's window plus a 2 px margin
 FLUX_RATIO_MAX = 2.0
-_AR = np.arange(65536, dtype=np.float32)  # pixel coordinates, sliced (no allocation)
 
 
 @dataclass(frozen=True)
@@ -32,13 +31,17 @@ class Matches:
     """Matched stars: ``uv1`` (N, 2) centroids in the first frame, ``uv2`` (N, 2) in
     the second, ``index`` (N,) the star's index in the first frame's StarField,
     ``flux2`` (N,) signal of the star in the second frame,
-    ``bbox2`` (N, 4) the star's box (x, y, w, h) moved to where it matched."""
+    ``bbox2`` (N, 4) the star's box (x, y, w, h) moved to where it matched,
+    ``spread1``, ``spread2`` (N,) each centroid's variance per unit pixel-noise variance
+    (see :func:`window_centroid`)."""
 
     uv1: np.ndarray
     uv2: np.ndarray
     index: np.ndarray
     flux2: np.ndarray
     bbox2: np.ndarray
+    spread1: np.ndarray
+    spread2: np.ndarray
 
     def __len__(self) -> int:
         return len(self.index)
@@ -50,28 +53,39 @@ def signal(res: Residual) -> np.ndarray:
     return res.sig
 
 
-def window_centroid(sig: np.ndarray, x0: int, y0: int, x1: int, y1: int):
-    """(u, v, flux) of the signal in the window [x0, x1) x [y0, y1), or None if the
-    window leaves the image or holds no signal."""
+def window_centroid(sig: np.ndarray, x0: int, y0: int, x1: int, y1: int, spread: bool = True):
+    """(u, v, flux, spread) of the signal in the window [x0, x1) x [y0, y1), or None if
+    the window leaves the image or holds no signal.
+
+    ``spread`` is sum((x - u)^2 + (y - v)^2) / flux^2 over the window's lit pixels: the
+    centroid's variance (px^2, both axes together) per unit pixel-noise variance, from
+    d u / d w_i = (x_i - u) / flux for the centre of mass u = sum(w_i x_i) / sum(w_i).
+    Pixels below the threshold are clipped to zero, so only lit pixels pass noise on.
+    (NaN when not asked for.)"""
     h, w = sig.shape
     if x0 < 0 or y0 < 0 or x1 > w or y1 > h:
         return None
     win = sig[y0:y1, x0:x1]
-    col = win.sum(axis=0)
-    s = float(col.sum())
+    m = cv2.moments(win)
+    s = m["m00"]
     if s <= 0:
         return None
-    u = float(col @ _AR[x0:x1]) / s
-    v = float(win.sum(axis=1) @ _AR[y0:y1]) / s
-    return u, v, s
+    cu, cv = m["m10"] / s, m["m01"] / s  # in the window
+    sp = np.nan
+    if spread:
+        b = cv2.moments((win > 0).view(np.uint8), binaryImage=True)
+        n = b["m00"]
+        du, dv = b["m10"] / n - cu, b["m01"] / n - cv  # lit pixels' centre vs centroid
+        sp = (b["mu20"] + b["mu02"] + n * (du * du + dv * dv)) / (s * s)
+    return cu + x0, cv + y0, s, sp
 
 
 def centred_centroid(sig: np.ndarray, x0: int, y0: int, w: int, h: int):
     """:func:`window_centroid` of a w x h window moved once to be centred on the
     centroid found in it: a window left off-centre cuts more of the star on one side
     and pulls the centroid toward its own centre (a bias that builds up when windows
-    are carried from frame to frame). Returns (u, v, flux, x0, y0) or None."""
-    c = window_centroid(sig, x0, y0, x0 + w, y0 + h)
+    are carried from frame to frame). Returns (u, v, flux, spread, x0, y0) or None."""
+    c = window_centroid(sig, x0, y0, x0 + w, y0 + h, spread=False)
     if c is None:
         return None
     nx = int(round(c[0] - (w - 1) / 2.0))
@@ -80,7 +94,7 @@ def centred_centroid(sig: np.ndarray, x0: int, y0: int, w: int, h: int):
         c2 = window_centroid(sig, nx, ny, nx + w, ny + h)
         if c2 is not None:
             return (*c2, nx, ny)
-    return (*c, x0, y0)
+    return (*window_centroid(sig, x0, y0, x0 + w, y0 + h), x0, y0)
 
 
 def match_stars(
@@ -104,12 +118,12 @@ def match_stars(
     idx = np.arange(len(first)) if which is None else np.asarray(which, dtype=int)
     m = MARGIN_PX
     h, w = sig2.shape
-    uv1, uv2, keep, fl2, box2 = [], [], [], [], []
+    uv1, uv2, keep, fl2, box2, sp1, sp2 = [], [], [], [], [], [], []
     for i in idx:
         x, y, bw, bh = (int(a) for a in first.bbox_px[i])
         tx0, ty0, tx1, ty1 = x - m, y - m, x + bw + m, y + bh + m
         if first.windowed is not None and first.windowed[i]:  # measured in this window
-            c1 = (*first.centroids_px[i], first.flux[i], tx0, ty0)
+            c1 = (*first.centroids_px[i], first.flux[i], first.spread[i], tx0, ty0)
         else:
             c1 = centred_centroid(sig1, tx0, ty0, tx1 - tx0, ty1 - ty0)
         if c1 is None:
@@ -134,11 +148,15 @@ def match_stars(
         uv2.append(c2[:2])
         keep.append(i)
         fl2.append(c2[2])
-        box2.append((c2[3] + m, c2[4] + m, bw, bh))
+        sp1.append(c1[3])
+        sp2.append(c2[3])
+        box2.append((c2[4] + m, c2[5] + m, bw, bh))
     return Matches(
         np.array(uv1).reshape(-1, 2),
         np.array(uv2).reshape(-1, 2),
         np.array(keep, dtype=int),
         np.array(fl2),
         np.array(box2, dtype=int).reshape(-1, 4),
+        np.array(sp1),
+        np.array(sp2),
     )

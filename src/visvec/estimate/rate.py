@@ -71,21 +71,22 @@ def skew_stack(u: np.ndarray) -> np.ndarray:
     return A.reshape(3 * n, 3)
 
 
-def _poisson_fit(u1: np.ndarray, u2: np.ndarray, dt: float):
-    """omega and (A^T A)^-1 of the Poisson least squares."""
+def _poisson_fit(u1: np.ndarray, u2: np.ndarray, dt: float, w: np.ndarray):
+    """omega and (A^T W A)^-1 of the Poisson least squares, star i weighted by w_i."""
     um = 0.5 * (u1 + u2)
-    A = skew_stack(um)
-    b = ((u2 - u1) / dt).ravel()
+    sw = np.repeat(np.sqrt(w), 3)[:, None]
+    A = skew_stack(um) * sw
+    b = ((u2 - u1) / dt).ravel() * sw[:, 0]
     Q, R = np.linalg.qr(A)  # Fasano et al.: least squares by QR
     omega = np.linalg.solve(R, Q.T @ b)
     Rinv = np.linalg.inv(R)
     return omega, Rinv @ Rinv.T
 
 
-def _wahba_fit(u1: np.ndarray, u2: np.ndarray, dt: float):
-    """omega and sum(I - u u^T)^-1 (the inverse QUEST information matrix for
-    unit-sigma vectors), from the rotation R with u2 = R u1."""
-    B = u2.T @ u1
+def _wahba_fit(u1: np.ndarray, u2: np.ndarray, dt: float, w: np.ndarray):
+    """omega and (sum w_i (I - u_i u_i^T))^-1 (the inverse QUEST information matrix),
+    from the rotation R with u2 = R u1 that best fits the pairs weighted by w_i."""
+    B = (u2 * w[:, None]).T @ u1
     U, _, Vt = np.linalg.svd(B)
     d = np.sign(np.linalg.det(U) * np.linalg.det(Vt))
     R = U @ np.diag([1.0, 1.0, d]) @ Vt
@@ -93,7 +94,7 @@ def _wahba_fit(u1: np.ndarray, u2: np.ndarray, dt: float):
     omega = -logmap(R) / dt
     um = 0.5 * (u1 + u2)
     um /= np.linalg.norm(um, axis=1, keepdims=True)
-    F = len(um) * np.eye(3) - um.T @ um
+    F = w.sum() * np.eye(3) - (um * w[:, None]).T @ um
     return omega, np.linalg.inv(F)
 
 
@@ -104,6 +105,7 @@ def estimate_rate(
     f_px: float,
     sigma_px: float,
     method: str = "poisson",
+    var_px: np.ndarray | None = None,
 ) -> RateSolution:
     """omega from matched normalised image points of two frames ``dt`` seconds apart.
 
@@ -111,8 +113,13 @@ def estimate_rate(
     ----------
     xy1, xy2 : (N, 2) undistorted normalised coordinates of the same stars.
     f_px : focal length in pixels (to express residuals in pixels).
-    sigma_px : a-priori 1-sigma of one centroid (the floor of the covariance).
+    sigma_px : a-priori 1-sigma of one centroid on one axis, every star's floor.
     method : "poisson" (the paper) or "crassidis".
+    var_px : (N,) each star's displacement variance per axis (px^2) from its pixel
+        noise, both centroids together, or None (then the floor alone). Stars are
+        weighted by the inverse of their variance plus the floor: a faint star's
+        centroid is worse than a bright one's, and the paper's unweighted least
+        squares lets it count as much.
     """
     u1, u2 = unit_vectors(xy1), unit_vectors(xy2)
     n = len(u1)
@@ -122,9 +129,11 @@ def estimate_rate(
     if n < MIN_STARS:
         return RateSolution(nan3, np.full((3, 3), np.nan), np.nan, inl, False, "too_few_matches")
     sig_rad = sigma_px / f_px
+    var = np.full(n, 2.0 * sigma_px**2) if var_px is None else var_px + 2.0 * sigma_px**2
+    w = (f_px**2) / var  # 1 / rad^2
     cap = MAX_RESIDUAL_PX / f_px  # a star off by more never fits
     for it in range(10):
-        omega, _ = fit(u1[inl], u2[inl], dt)
+        omega, _ = fit(u1[inl], u2[inl], dt, w[inl])
         full = np.linalg.norm(u2 - _predict(u1, omega, dt), axis=1)
         s = 1.4826 * np.median(full[inl])
         lim = max(OUTLIER_SIGMAS * s, 3.0 * np.sqrt(2.0) * sig_rad)
@@ -136,33 +145,34 @@ def estimate_rate(
             break
         inl = new
     if inl.sum() >= MIN_STARS:
-        omega, _ = fit(u1[inl], u2[inl], dt)
+        omega, _ = fit(u1[inl], u2[inl], dt, w[inl])
         inl &= np.linalg.norm(u2 - _predict(u1, omega, dt), axis=1) <= cap
     if inl.sum() < MIN_STARS:
         return RateSolution(
             nan3, np.full((3, 3), np.nan), np.nan, inl, False, "no_consistent_motion"
         )
-    omega, H = fit(u1[inl], u2[inl], dt)
+    omega, H = fit(u1[inl], u2[inl], dt, w[inl])
     k = int(inl.sum())
     if k < MIN_STARS or k < MIN_INLIER_FRACTION * n:
         return RateSolution(
             nan3, np.full((3, 3), np.nan), np.nan, inl, False, "no_consistent_motion"
         )
-    # covariance: the sandwich (heteroscedasticity-consistent) form
-    # H (sum A_i^T e_i e_i^T A_i) H with A_i = [u_i]x and e_i the residual of star i,
-    # because errors are not alike across stars and axes (a streak's centroid is
-    # worse along the streak). Each residual is divided by 1 - h_i, its star's
-    # leverage (HC3, MacKinnon & White 1985): the fit pulls toward the stars that
-    # weigh most and hides their errors, which matters with few stars.
+    # H / dt^2 is the covariance if the noise model is right. Beside it, the sandwich
+    # (heteroscedasticity-consistent) form H (sum w_i^2 A_i^T e_i e_i^T A_i) H with
+    # A_i = [u_i]x and e_i the residual of star i measures what the residuals show,
+    # whatever the model: the larger is reported. Each residual is divided by 1 - h_i,
+    # its star's leverage (HC3, MacKinnon & White 1985): the fit pulls toward the stars
+    # that weigh most and hides their errors, which matters with few stars.
+    wi = w[inl]
     um = 0.5 * (u1[inl] + u2[inl])
     e = u2[inl] - _predict(u1[inl], omega, dt)
     A = skew_stack(um).reshape(-1, 3, 3)
-    lev = np.einsum("kij,jl,kil->k", A, H, A) / 2.0  # trace(A_i H A_i^T) / 2 dof
-    g = np.cross(um, e) / np.clip(1.0 - lev, 0.2, 1.0)[:, None]  # -A_i^T e_i
+    lev = wi * np.einsum("kij,jl,kil->k", A, H, A) / 2.0  # w_i trace(A_i H A_i^T) / 2 dof
+    g = wi[:, None] * np.cross(um, e) / np.clip(1.0 - lev, 0.2, 1.0)[:, None]  # -w_i A_i^T e_i
     cov = H @ (g.T @ g) @ H / dt**2
-    floor = 2.0 * sig_rad**2 * H / dt**2
-    if np.trace(cov) < np.trace(floor):
-        cov = floor
+    model = H / dt**2
+    if np.trace(cov) < np.trace(model):
+        cov = model
     res = np.linalg.norm(e, axis=1)
     rms_px = float(np.sqrt(np.mean(res**2))) * f_px
     return RateSolution(omega, cov, rms_px, inl, True)
