@@ -56,6 +56,20 @@ def test_self_calibration_recovers_the_lab(mrig):
     np.testing.assert_allclose(cal.rig.target.points_b, true.target.points_b, atol=0.5)
 
 
+def test_convergence_is_declared_within_a_hundredth_of_a_sigma_of_the_minimum(mrig, monkeypatch):
+    import visvec.calib.system as system
+
+    rng = np.random.default_rng(5)
+    true = perturbed(mrig, rng)
+    obs = observe(true, mrig, 80, 0.12, rng)
+    cal = calibrate_system(mrig, obs)
+    monkeypatch.setattr(system, "CONVERGED_SIGMA_FRACTION", 1e-4)
+    ref = calibrate_system(mrig, obs, max_iterations=40)  # to the noise floor
+    assert cal.converged and ref.iterations > cal.iterations
+    z = (np.asarray(cal.values) - np.asarray(ref.values)) / np.asarray(ref.sigmas)
+    assert np.max(np.abs(z)) < 0.02, z
+
+
 def test_inconsistent_observations_do_not_converge(mrig):
     rng = np.random.default_rng(2)
     obs = observe(mrig, mrig, 15, 0.1, rng)
