@@ -126,7 +126,7 @@ def main():
         .tolist(),
     }
     print(res)
-    print(save_json("markers_calibration", res))
+    print(save_json(f"markers_calibration_{SIGMA_M:g}mm", res))
 
 
 if __name__ == "__main__":
