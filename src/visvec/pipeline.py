@@ -366,9 +366,9 @@ class RatePipeline(Pipeline):
             if omega is None:
                 return match_stars(first, prev.sig, sig, zero, rad)
         shifts = self._shifts(first.centroids_px, omega, dt)
-        # stars carried by tracking, and detections whose peak is clearly above the noise
-        carried = first.windowed if first.windowed is not None else np.zeros(n, bool)
-        which = np.nonzero(carried | (first.peak_snr >= MIN_PEAK_SNR))[0]
+        # detections whose peak is clearly above the noise (carried stars have an
+        # infinite one: they were matched before)
+        which = np.nonzero(first.peak_snr >= MIN_PEAK_SNR)[0]
         return match_stars(first, prev.sig, sig, shifts, np.full(n, self._radius(omega, dt)), which)
 
     def _bands(self, dt: float) -> tuple[int, int, int, int]:
@@ -401,6 +401,7 @@ class RatePipeline(Pipeline):
         through the bands along the edges."""
         cents, boxes = [m.uv2[inliers]], [m.bbox2[inliers]]
         flux, area = [m.flux2[inliers]], [self.prev.stars.area_px[m.index[inliers]]]
+        snr = [np.full(len(cents[0]), np.inf)]  # carried: matched whatever their peak
         seg = segment_edges(res, self._bands(dt), self.streak_px)
         if len(seg.cents):
             d = np.linalg.norm(seg.cents[:, None] - cents[0][None], axis=2)
@@ -409,11 +410,12 @@ class RatePipeline(Pipeline):
             boxes.append(seg.boxes[new])
             flux.append(seg.flux[new])
             area.append(seg.area[new])
+            snr.append(seg.snr[new])
         c = np.vstack(cents)
         spread = np.zeros(len(c))
         spread[: len(boxes[0])] = m.spread2[inliers]
         return StarField(
-            c, np.concatenate(flux), np.concatenate(area), np.zeros(len(c)), True, "",
+            c, np.concatenate(flux), np.concatenate(area), np.concatenate(snr), True, "",
             res.sigma, 0.0, 1.0, threshold=res.threshold, signal=res.sig,
             bbox_px=np.vstack(boxes), windowed=np.arange(len(c)) < len(boxes[0]),
             spread=spread,
