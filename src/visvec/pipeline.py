@@ -310,8 +310,7 @@ class RatePipeline(Pipeline):
         self.f_px = float(min(cam.fx, cam.fy))
         self.dt_nominal = 1.0 / rig.fps
         self.w_max = np.radians(rig.target.max_rate_dps)
-        exposure = (rig.exposure_ms / 1000.0) if rig.exposure_ms else self.dt_nominal
-        self.exposure_s = exposure
+        self.exposure_s = (rig.exposure_ms / 1000.0) if rig.exposure_ms else self.dt_nominal
         corner = np.hypot(cam.width, cam.height) / 2.0 / self.f_px
         self.flow_gain = self.f_px * (1.0 + corner**2)  # px per rad at the field's corner
         self.streak_px = self.w_max * self.exposure_s * self.flow_gain

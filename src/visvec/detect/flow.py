@@ -55,13 +55,8 @@ def signal(res: Residual) -> np.ndarray:
 
 def window_centroid(sig: np.ndarray, x0: int, y0: int, x1: int, y1: int, spread: bool = True):
     """(u, v, flux, spread) of the signal in the window [x0, x1) x [y0, y1), or None if
-    the window leaves the image or holds no signal.
-
-    ``spread`` is sum((x - u)^2 + (y - v)^2) / flux^2 over the window's lit pixels: the
-    centroid's variance (px^2, both axes together) per unit pixel-noise variance, from
-    d u / d w_i = (x_i - u) / flux for the centre of mass u = sum(w_i x_i) / sum(w_i).
-    Pixels below the threshold are clipped to zero, so only lit pixels pass noise on.
-    (NaN when not asked for.)"""
+    the window leaves the image or holds no signal; spread (see :func:`lit_spread`) is
+    NaN when not asked for."""
     h, w = sig.shape
     if x0 < 0 or y0 < 0 or x1 > w or y1 > h:
         return None
@@ -71,13 +66,20 @@ def window_centroid(sig: np.ndarray, x0: int, y0: int, x1: int, y1: int, spread:
     if s <= 0:
         return None
     cu, cv = m["m10"] / s, m["m01"] / s  # in the window
-    sp = np.nan
-    if spread:
-        b = cv2.moments((win > 0).view(np.uint8), binaryImage=True)
-        n = b["m00"]
-        du, dv = b["m10"] / n - cu, b["m01"] / n - cv  # lit pixels' centre vs centroid
-        sp = (b["mu20"] + b["mu02"] + n * (du * du + dv * dv)) / (s * s)
+    sp = lit_spread(win, cu, cv, s) if spread else np.nan
     return cu + x0, cv + y0, s, sp
+
+
+def lit_spread(win: np.ndarray, cu: float, cv: float, flux: float) -> float:
+    """sum((x - u)^2 + (y - v)^2) / flux^2 over the lit pixels of a window whose centroid
+    is (cu, cv) in window coordinates: the centroid's variance (px^2, both axes
+    together) per unit pixel-noise variance, from d u / d w_i = (x_i - u) / flux for the
+    centre of mass u = sum(w_i x_i) / sum(w_i). Pixels below the threshold are clipped
+    to zero, so only lit pixels pass noise on."""
+    b = cv2.moments((win > 0).view(np.uint8), binaryImage=True)
+    n = b["m00"]
+    du, dv = b["m10"] / n - cu, b["m01"] / n - cv  # lit pixels' centre vs centroid
+    return (b["mu20"] + b["mu02"] + n * (du * du + dv * dv)) / (flux * flux)
 
 
 def centred_centroid(sig: np.ndarray, x0: int, y0: int, w: int, h: int):
@@ -94,7 +96,8 @@ def centred_centroid(sig: np.ndarray, x0: int, y0: int, w: int, h: int):
         c2 = window_centroid(sig, nx, ny, nx + w, ny + h)
         if c2 is not None:
             return (*c2, nx, ny)
-    return (*window_centroid(sig, x0, y0, x0 + w, y0 + h), x0, y0)
+    sp = lit_spread(sig[y0 : y0 + h, x0 : x0 + w], c[0] - x0, c[1] - y0, c[2])
+    return (*c[:3], sp, x0, y0)
 
 
 def match_stars(
