@@ -9,9 +9,10 @@ from click.testing import CliRunner
 from visvec.bench.markers import perturbed_lab
 from visvec.calib.system import Observations, calibrate_system, initial_attitudes
 from visvec.cli.main import cli
+from visvec.estimate.markers import solve_markers
 from visvec.geometry import markers_to_camera
 from visvec.rig import load_rig
-from visvec.rotations import euler_to_matrix
+from visvec.rotations import euler_to_matrix, matrix_to_euler
 from visvec.sim.simulate import random_attitudes
 
 from conftest import CONFIGS
@@ -25,11 +26,13 @@ def mrig():
 perturbed = perturbed_lab
 
 
-def observe(true, rig, n_frames, sigma_px, rng):
+def observe(true, rig, n_frames, sigma_px, rng, X_true=None):
+    """Observations of the true lab's markers (at X_true if given: misplaced LEDs)."""
+    X = true.target.points_b if X_true is None else X_true
     eul = random_attitudes(n_frames, 22.0, rng, "random")
     fr, mk, uv = [], [], []
     for k, e in enumerate(eul):
-        u = true.camera.project(markers_to_camera(true, euler_to_matrix(*e), true.target.points_b))
+        u = true.camera.project(markers_to_camera(true, euler_to_matrix(*e), X))
         uv.append(u + rng.standard_normal(u.shape) * sigma_px)
         fr += [k] * len(u)
         mk += list(range(len(u)))
@@ -54,6 +57,68 @@ def test_self_calibration_recovers_the_lab(mrig):
         v, s = got[name]
         assert abs(v - truth) < 5 * s, (name, v, truth, s)
     np.testing.assert_allclose(cal.rig.target.points_b, true.target.points_b, atol=0.5)
+
+
+def with_placement_sigma(rig, sigma_mm):
+    return replace(rig, target=replace(rig.target, placement_sigma_mm=sigma_mm))
+
+
+def aligned_error(X, X_true):
+    """(M,) distances between two layouts after the best rotation and scaling about B's
+    origin (the centre of rotation). Turning or scaling the whole layout about it (with
+    the attitudes and the camera distance) changes no image: these gauges are fixed only
+    by the offsets' prior, to within the placement errors."""
+    U, S, Vt = np.linalg.svd(X_true.T @ X)
+    D = np.diag([1.0, 1.0, np.linalg.det(U @ Vt)])
+    scale = np.trace(np.diag(S) @ D) / np.sum(X**2)
+    return np.linalg.norm(scale * X @ (U @ D @ Vt).T - X_true, axis=1)
+
+
+def tilt_error_spread(rig, true, X_true, rng, n_poses=100):
+    """(2,) spread of the pitch and roll errors (arcsec) of fresh poses solved with rig."""
+    errs = []
+    for e in random_attitudes(n_poses, 22.0, rng, "random"):
+        u = true.camera.project(markers_to_camera(true, euler_to_matrix(*e), X_true))
+        u += rng.standard_normal(u.shape) * 0.12
+        sol = solve_markers(rig.camera.undistort(u), np.arange(len(u)), rig, 0.12)
+        errs.append(np.degrees(np.array(matrix_to_euler(sol.R_nb))[1:] - e[1:]) * 3600)
+    return np.std(errs, axis=0)
+
+
+def test_misplaced_markers_are_found_and_their_errors_kept_out_of_the_camera(mrig, tmp_path):
+    from visvec.calib.system import calibration_sections
+    from visvec.calib.tomlout import dumps
+
+    rng = np.random.default_rng(21)
+    true = perturbed(mrig, rng)
+    X_true = true.target.points_b + rng.standard_normal((21, 3)) * 0.2
+    obs = observe(true, mrig, 150, 0.12, rng, X_true)
+    plain = calibrate_system(with_placement_sigma(mrig, 0.0), obs)
+    cal = calibrate_system(with_placement_sigma(mrig, 0.2), obs)
+    assert plain.converged and cal.converged and cal.iterations <= 10
+    assert not np.any(plain.marker_offset_sigma_mm)
+    # the paper's model leaves the placement errors in its residual; with the offsets
+    # estimated only the centroid noise is left
+    assert plain.residual_std_px > 0.2
+    assert abs(cal.residual_std_px - 0.12) < 0.01
+    # every LED found to a fraction of its placement error (the file is 0.2 mm off)
+    err_file = aligned_error(true.target.points_b, X_true)
+    err_cal = aligned_error(cal.rig.target.points_b, X_true)
+    assert np.median(err_file) > 0.2 and np.max(err_cal) < 0.06, (err_file, err_cal)
+    # and the camera is within its (now honest) 1-sigma
+    got = dict(zip(cal.names, zip(cal.values, cal.sigmas, strict=True), strict=True))
+    for name, truth in (("fx", true.camera.fx), ("t_N z mm", true.t_n[2])):
+        v, s = got[name]
+        assert abs(v - truth) < 4 * s, (name, v, truth, s)
+    assert "marker 20" in "\n".join(cal.report())
+    # fresh poses: tilts at least twice as accurate as with the paper's model
+    ours, paper = (tilt_error_spread(c.rig, true, X_true, rng) for c in (cal, plain))
+    assert np.all(ours < 0.5 * paper), (ours, paper)
+    # the calibration file carries the corrected positions
+    f = tmp_path / "cal.toml"
+    f.write_text(dumps(calibration_sections(cal), "test"))
+    again = load_rig(CONFIGS / "markers.toml", f)
+    np.testing.assert_allclose(again.target.points_b, cal.rig.target.points_b, atol=1e-4)
 
 
 def test_convergence_is_declared_within_a_hundredth_of_a_sigma_of_the_minimum(mrig, monkeypatch):

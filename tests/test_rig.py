@@ -110,6 +110,7 @@ def test_markers_rig_loads():
     rig = load_rig(CONFIGS / "markers.toml")
     assert rig.kind == "markers" and rig.target.points_b.shape == (21, 3)
     assert rig.target.reference_id == 20
+    assert rig.target.placement_sigma_mm == 0.05
     # marker 6 is pattern 1's second LED, (40, 0, 0) in the board turned 35 deg about b3
     pat = rig.target.patterns[1]
     c, s = np.cos(np.radians(35.0)), np.sin(np.radians(35.0))
@@ -139,6 +140,11 @@ def test_markers_rig_loads():
             ["markers 0 and 20 are at the same place"],
         ),
         ('on = "lab"', 'on = "platform"', ["[mount] on", "fixed in the lab"]),
+        (
+            "placement_sigma_mm = 0.05",
+            "placement_sigma_mm = -0.05",
+            ["[target] placement_sigma_mm", "[0.0, 10.0]"],
+        ),
     ],
 )
 def test_bad_markers_rig(tmp_path, old, new, words):

@@ -68,10 +68,14 @@ class MarkerTarget:
 
     reference_id : the id of a reference marker set apart from the others (the STASIS
         layout's identification aid), or None.
+    placement_sigma_mm : 1-sigma error of each marker's position as the file gives it
+        (hand-placed LEDs: a few hundredths of a mm). `calibrate system` estimates every
+        marker's own offset with this as its prior; 0 takes the file's positions as exact.
     """
 
     patterns: tuple[Pattern, ...]
     reference_id: int | None = None
+    placement_sigma_mm: float = 0.0
     kind: str = "markers"
 
     @cached_property
@@ -543,8 +547,9 @@ def _marker_target(tgt: _Section, mount: Mount, src: str) -> MarkerTarget:
         raise ConfigError(
             f"{src}: [target] reference_id = {ref!r}: expected a marker id 0..{n - 1}"
         )
+    placement = tgt.number("placement_sigma_mm", 0.0, lo=0.0, hi=10.0)
     tgt.check_unknown()
-    target = MarkerTarget(tuple(patterns), ref)
+    target = MarkerTarget(tuple(patterns), ref, placement)
     pts = target.points_b
     if n < 4:
         raise ConfigError(f"{src}: [target] patterns: {n} markers; at least 4 are needed")

@@ -104,7 +104,10 @@ def run_one(spec: RunSpec) -> dict:
             fr += [k] * n
             mk += list(range(n))
         fr, mk, uv = np.array(fr), np.array(mk), np.vstack(uv)
-        cal = calibrate_system(rig, Observations(fr, mk, uv, initial_attitudes(rig, fr, mk, uv)))
+        # the virtual calibration knows the centroid noise and the LEDs' tolerance (it
+        # estimates each LED's offset with that prior; the paper's model when it is 0)
+        obs = Observations(fr, mk, uv, initial_attitudes(rig, fr, mk, uv))
+        cal = calibrate_system(rig, obs, sigma_px=s_c, placement_sigma_mm=spec.sigma_m_mm)
         out.update(
             converged=bool(cal.converged),
             iterations=int(cal.iterations),

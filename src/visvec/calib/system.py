@@ -7,6 +7,16 @@ seen from the camera), the first pattern's position in B (the paper's body offse
 further pattern's pose in B, and every frame's attitude. The first pattern's rotation
 and the camera's rotation R_NC fix the orientation gauges of B and N.
 
+Beyond the paper: when the rig gives a marker placement error sigma_m
+(``[target] placement_sigma_mm``), every marker's own offset from its file position is
+an unknown too, with a Gaussian prior N(0, sigma_m^2) per axis entered as pseudo-
+residuals (sigma_px / sigma_m) * offset (maximum a posteriori). A placement error is the
+same in every frame, so the paper's model, which has no place for it, pushes it into the
+intrinsics and the camera distance and reports a covariance that is far too small;
+with the offsets estimated, the covariance is the posterior one, which for a Gaussian
+prior matches the spread of the estimates over layouts drawn from it. The prior also
+fixes the gauges the offsets open (a common shift, turn or scaling of the layout).
+
 The problem is solved by Gauss-Newton (Eq. 20) with Levenberg-Marquardt damping. The
 Jacobian is sparse (each frame's residuals depend on the shared parameters and on its
 own attitude only, the paper's Appendix B structure): it is taken by central
@@ -68,6 +78,8 @@ class SystemCalibration:
     message: str
     attitudes: np.ndarray  # (F, 3, 3)
     attitude_sigma_deg: np.ndarray  # (F, 3) about body axes
+    marker_offsets_mm: np.ndarray  # (M, 3) in B from the file positions; zeros if not estimated
+    marker_offset_sigma_mm: np.ndarray  # (M, 3); zeros if not estimated
 
     def report(self) -> list[str]:
         """Lines like the paper's Table 2."""
@@ -78,11 +90,23 @@ class SystemCalibration:
         ]
         for n, v, s in zip(self.names, self.values, self.sigmas, strict=True):
             out.append(f"  {n:<28} {v:>14.6f} +- {s:.6f}")
+        if np.any(self.marker_offset_sigma_mm > 0):
+            off = self.marker_offsets_mm
+            out.append(
+                f"  marker offsets from the rig file (mm, in B): rms "
+                f"{np.sqrt(np.mean(off**2)):.4f}, largest {np.abs(off).max():.4f}"
+            )
+            for i, (d, s) in enumerate(zip(off, self.marker_offset_sigma_mm, strict=True)):
+                xyz = "  ".join(f"{a:+.4f} +- {b:.4f}" for a, b in zip(d, s, strict=True))
+                out.append(f"    marker {i:<3} {xyz}")
         return out
 
 
 class _Model:
-    def __init__(self, rig: Rig, obs: Observations):
+    """Parameter vector x = [shared (n_global) | marker offsets (n_off) | attitudes (3F)];
+    residuals = [pixel errors u, v of every observation (2L) | offset prior (n_off)]."""
+
+    def __init__(self, rig: Rig, obs: Observations, sigma_px: float, sigma_m: float):
         self.rig = rig
         self.obs = obs
         self.pats = rig.target.patterns
@@ -91,6 +115,9 @@ class _Model:
         )
         self.local = np.vstack([p.points_mm for p in self.pats])
         self.F = len(obs.R0)
+        self.L = len(obs.frame)
+        self.n_off = 3 * len(self.local) if sigma_m > 0 else 0
+        self.w_prior = sigma_px / sigma_m if sigma_m > 0 else 0.0
         cam = rig.camera
         self.p12 = cam.dist[2:4]
         names = [
@@ -128,6 +155,7 @@ class _Model:
             ]
         self.names = names
         self.n_global = len(names)
+        self.att0 = self.n_global + self.n_off  # first attitude parameter
 
     def x0(self) -> np.ndarray:
         cam, rig = self.rig.camera, self.rig
@@ -144,7 +172,7 @@ class _Model:
         ]
         for p, free in zip(self.pats[1:], self.free, strict=True):
             g += [0.0 if n.startswith("rot") else p.position_mm["xyz".index(n)] for n in free]
-        return np.concatenate([np.array(g, float), np.zeros(3 * self.F)])
+        return np.concatenate([np.array(g, float), np.zeros(self.n_off + 3 * self.F)])
 
     def unpack(self, x: np.ndarray):
         fx, fy, cx, cy, k1, k2, k3 = x[:7]
@@ -165,17 +193,26 @@ class _Model:
                 t[2] = pos[0][2]  # the boards share the first one's plane
             rot.append(_rotvec_to_matrix(w[None])[0] @ p.rotation)
             pos.append(t)
-        att = self.obs.R0 @ _rotvec_to_matrix(x[self.n_global :].reshape(-1, 3))
+        att = self.obs.R0 @ _rotvec_to_matrix(x[self.att0 :].reshape(-1, 3))
         return (fx, fy, cx, cy, k1, k2, k3), t_n, pos, rot, att
 
-    def points_b(self, pos, rot) -> np.ndarray:
-        return np.vstack(
-            [self.local[self.pat_of == j] @ rot[j].T + pos[j] for j in range(len(self.pats))]
+    def offsets(self, x: np.ndarray) -> np.ndarray:
+        """(M, 3) every marker's offset from its file position, in B (mm)."""
+        if not self.n_off:
+            return np.zeros_like(self.local)
+        return x[self.n_global : self.att0].reshape(-1, 3)
+
+    def points_b(self, pos, rot, offsets) -> np.ndarray:
+        return (
+            np.vstack(
+                [self.local[self.pat_of == j] @ rot[j].T + pos[j] for j in range(len(self.pats))]
+            )
+            + offsets
         )
 
     def residuals(self, x: np.ndarray) -> np.ndarray:
         (fx, fy, cx, cy, k1, k2, k3), t_n, pos, rot, att = self.unpack(x)
-        M = self.points_b(pos, rot)[self.obs.marker]
+        M = self.points_b(pos, rot, self.offsets(x))[self.obs.marker]
         Rk = att[self.obs.frame]
         p_n = np.einsum("lij,lj->li", Rk, M)
         p_c = (p_n - t_n) @ self.rig.R_nc
@@ -188,7 +225,10 @@ class _Model:
         yd = yn * rad + p1 * (r2 + 2 * yn * yn) + 2 * p2 * xn * yn
         u = fx * xd + cx
         v = fy * yd + cy
-        return np.column_stack([u - self.obs.uv[:, 0], v - self.obs.uv[:, 1]]).ravel()
+        pix = np.column_stack([u - self.obs.uv[:, 0], v - self.obs.uv[:, 1]]).ravel()
+        if not self.n_off:
+            return pix
+        return np.concatenate([pix, self.w_prior * x[self.n_global : self.att0]])
 
 
 def initial_attitudes(
@@ -226,15 +266,17 @@ def _steps(model: _Model) -> np.ndarray:
     h = [_STEPS["intr"]] * 4 + [_STEPS["dist"]] * 3 + [_STEPS["mm"]] * 6
     for free in model.free:
         h += [_STEPS["deg"] if n.startswith("rot") else _STEPS["mm"] for n in free]
-    return np.array(h + [_STEPS["att"]] * (3 * model.F))
+    return np.array(h + [_STEPS["mm"]] * model.n_off + [_STEPS["att"]] * (3 * model.F))
 
 
 def _jacobian(model: _Model, x: np.ndarray) -> csr_matrix:
     """Sparse Jacobian by central differences using its structure (Appendix B): one
-    column pair per shared parameter, and one pair for the i-th attitude parameter of
-    every frame at once (frames do not share residuals)."""
+    column pair per shared parameter, and one pair for the a-th parameter of every
+    frame's attitude at once (frames do not share residuals); likewise one pair for the
+    a-th offset of every marker at once (an observation sees one marker only). The
+    offset prior's rows are the constant diagonal w_prior."""
     h = _steps(model)
-    ng = model.n_global
+    ng, L = model.n_global, model.L
     cols, data, rows = [], [], []
     for k in range(ng):
         d = np.zeros_like(x)
@@ -244,18 +286,24 @@ def _jacobian(model: _Model, x: np.ndarray) -> csr_matrix:
         rows.append(nz)
         cols.append(np.full(len(nz), k))
         data.append(col[nz])
-    L = len(model.obs.frame)
-    for a in range(3):
-        d = np.zeros_like(x)
-        d[ng + a :: 3] = h[ng + a]
-        col = (model.residuals(x + d) - model.residuals(x - d)) / (2 * h[ng + a])
-        r_idx = np.arange(2 * L)
-        frames = np.repeat(model.obs.frame, 2)
-        rows.append(r_idx)
-        cols.append(ng + 3 * frames + a)
-        data.append(col)
+    blocks = [(model.att0, len(x), model.obs.frame)]
+    if model.n_off:
+        blocks.append((ng, model.att0, model.obs.marker))
+        rows.append(2 * L + np.arange(model.n_off))
+        cols.append(ng + np.arange(model.n_off))
+        data.append(np.full(model.n_off, model.w_prior))
+    for start, stop, owner in blocks:
+        owner2 = np.repeat(owner, 2)
+        for a in range(3):
+            d = np.zeros_like(x)
+            d[start + a : stop : 3] = h[start + a]
+            col = (model.residuals(x + d) - model.residuals(x - d))[: 2 * L] / (2 * h[start + a])
+            rows.append(np.arange(2 * L))
+            cols.append(start + 3 * owner2 + a)
+            data.append(col)
+    n_rows = 2 * L + model.n_off
     return csr_matrix(
-        (np.concatenate(data), (np.concatenate(rows), np.concatenate(cols))), shape=(2 * L, len(x))
+        (np.concatenate(data), (np.concatenate(rows), np.concatenate(cols))), shape=(n_rows, len(x))
     )
 
 
@@ -313,25 +361,40 @@ def _levenberg_marquardt(model: _Model, x: np.ndarray, max_iterations: int):
     return x, r, J, max_iterations, False, f"not converged in {max_iterations} iterations"
 
 
-def calibrate_system(rig: Rig, obs: Observations, max_iterations: int = 30) -> SystemCalibration:
+def calibrate_system(
+    rig: Rig,
+    obs: Observations,
+    max_iterations: int = 30,
+    sigma_px: float | None = None,
+    placement_sigma_mm: float | None = None,
+) -> SystemCalibration:
     """Self-calibrate the rig from identified marker centroids of many frames.
+
+    sigma_px, placement_sigma_mm : the centroid noise and the markers' placement error
+        that weigh the offset prior against the pixels (default: the rig's
+        ``[detect] centroid_sigma_px`` and ``[target] placement_sigma_mm``); only their
+        ratio matters, the covariance is scaled by the final residual.
 
     Raises
     ------
     InputFileError
         Too few frames or observations for the unknowns.
     """
-    model = _Model(rig, obs)
+    if sigma_px is None:
+        sigma_px = rig.detect.centroid_sigma_px
+    if placement_sigma_mm is None:
+        placement_sigma_mm = rig.target.placement_sigma_mm
+    model = _Model(rig, obs, sigma_px, placement_sigma_mm)
+    # the offsets come with as many prior rows as unknowns: they add no degree of freedom
     n_par = model.n_global + 3 * model.F
-    if model.F < 10 or 2 * len(obs.frame) <= n_par:
+    if model.F < 10 or 2 * model.L <= n_par:
         raise InputFileError(
             f"system calibration needs at least 10 frames and more measurements than "
-            f"unknowns: {model.F} frames, {2 * len(obs.frame)} coordinates, {n_par} unknowns"
+            f"unknowns: {model.F} frames, {2 * model.L} coordinates, {n_par} unknowns"
         )
     x, r, J, it, converged, message = _levenberg_marquardt(model, model.x0(), max_iterations)
-    m = len(r)
-    dof = max(m - n_par, 1)
-    s2 = float(r @ r) / dof  # Eq. (24)
+    dof = max(2 * model.L - n_par, 1)
+    s2 = float(r @ r) / dof  # Eq. (24), the prior's rows included
     JtJ = (J.T @ J).toarray()
     cov = np.linalg.pinv(JtJ) * s2  # Eqs. (22)-(23)
     sig = np.sqrt(np.clip(np.diag(cov), 0.0, None))
@@ -345,15 +408,25 @@ def calibrate_system(rig: Rig, obs: Observations, max_iterations: int = 30) -> S
         cy,
         np.array([k1, k2, rig.camera.dist[2], rig.camera.dist[3], k3]),
     )
-    pats = tuple(Pattern(pos[j], rot[j], p.points_mm) for j, p in enumerate(model.pats))
+    # each marker's calibrated position goes back into its board's frame
+    X = model.points_b(pos, rot, model.offsets(x))
+    pats = tuple(
+        Pattern(pos[j], rot[j], (X[model.pat_of == j] - pos[j]) @ rot[j])
+        for j in range(len(model.pats))
+    )
     cal = replace(
         rig,
         camera=cam,
         mount=Mount("lab", t_n, rig.R_nc),
         target=replace(rig.target, patterns=pats),
     )
-    res = r.reshape(-1, 2)
-    att_sig = np.degrees(sig[model.n_global :].reshape(-1, 3))
+    res = r[: 2 * model.L].reshape(-1, 2)
+    att_sig = np.degrees(sig[model.att0 :].reshape(-1, 3))
+    off_sig = (
+        sig[model.n_global : model.att0].reshape(-1, 3)
+        if model.n_off
+        else np.zeros_like(model.local)
+    )
     return SystemCalibration(
         rig=cal,
         names=model.names,
@@ -367,6 +440,8 @@ def calibrate_system(rig: Rig, obs: Observations, max_iterations: int = 30) -> S
         message=message,
         attitudes=att,
         attitude_sigma_deg=att_sig,
+        marker_offsets_mm=model.offsets(x).copy(),
+        marker_offset_sigma_mm=off_sig,
     )
 
 
@@ -388,7 +463,7 @@ def calibration_sections(cal: SystemCalibration) -> dict[str, dict[str, object]]
                 {
                     "position_mm": np.round(p.position_mm, 5),
                     "rotation": np.round(p.rotation, 9),
-                    "points_mm": p.points_mm,
+                    "points_mm": np.round(p.points_mm, 5),
                 }
                 for p in rig.target.patterns
             ]
