@@ -30,6 +30,16 @@ def _spread_four(X: np.ndarray) -> np.ndarray:
     return np.array(chosen)
 
 
+def _onto_plane(X: np.ndarray) -> np.ndarray:
+    """The points projected onto their least-squares plane. IPPE solves for a planar
+    target and OpenCV refuses points off a plane; a calibrated layout of coplanar
+    boards carries each LED's small estimated offset out of it (hundredths of a mm),
+    which IPPE, by its model, cannot use."""
+    c = X.mean(axis=0)
+    n = np.linalg.svd(X - c)[2][2]
+    return X - np.outer((X - c) @ n, n)
+
+
 def solve_pnp(
     uv_px: np.ndarray, ids: np.ndarray, rig: Rig, method: str, sigma_px: float
 ) -> AttitudeSolution:
@@ -40,6 +50,8 @@ def solve_pnp(
     if method in ("pnp-p3p", "pnp-ap3p"):
         sel = _spread_four(X)
         X4, uv4 = X[sel], uv[sel]
+    elif method == "pnp-ippe":
+        X4, uv4 = _onto_plane(X), uv
     else:
         X4, uv4 = X, uv
     if len(X4) < 4:
