@@ -8,6 +8,7 @@ parameters and discard the translation; this estimates the three that exist.
 
 from __future__ import annotations
 
+import math
 from functools import lru_cache
 
 import numpy as np
@@ -59,7 +60,7 @@ def solve_markers(
     fit = fit_rotation(t_c, X, xy_n, W, R0)
     if fit is None:
         return AttitudeSolution(Status.NOT_CONVERGED, n_points=K, warnings=("no_initial_solution",))
-    rms_px = float(np.sqrt(np.mean(fit.r**2)) * rig.camera.fx)
+    rms_px = math.sqrt(fit.chi2 / (W * 2 * K)) * rig.camera.fx  # chi2 = W |r|^2
     if not fit.converged:
         return AttitudeSolution(
             Status.NOT_CONVERGED,
