@@ -156,6 +156,15 @@ class _Model:
         self.names = names
         self.n_global = len(names)
         self.att0 = self.n_global + self.n_off  # first attitude parameter
+        # offsets join the fit below this pixel rms: five times what the placement
+        # errors and the centroid noise together leave (see _levenberg_marquardt)
+        depth = float(np.linalg.norm(rig.t_n))  # camera to centre of rotation
+        self.release_rms_px = 5.0 * float(np.hypot(sigma_px, sigma_m * cam.fx / depth))
+
+    def rms_px(self, r: np.ndarray) -> float:
+        """RMS of the pixel residuals (the prior's rows left out)."""
+        pix = r[: 2 * self.L]
+        return float(np.sqrt(pix @ pix / len(pix)))
 
     def x0(self) -> np.ndarray:
         cam, rig = self.rig.camera, self.rig
@@ -323,22 +332,39 @@ def _levenberg_marquardt(model: _Model, x: np.ndarray, max_iterations: int):
     of sigma^2 = cost / dof. Converged when it is under CONVERGED_SIGMA_FRACTION^2, that
     is when no parameter can move by more than 1 % of its 1-sigma. Unlike a test on the
     last step, damping cannot fake it, and noise in the cost near the minimum cannot
-    hide it."""
+    hide it.
+
+    The marker offsets are held at zero while the pixel residuals are far larger than
+    placement errors could explain (model.release_rms_px): a few hundredths of a mm
+    cannot account for a start that is pixels off, and left free they only slow the
+    first steps. They join once the fit is close, or once it has converged without them."""
     r = model.residuals(x)
     cost = float(r @ r)
     dof = max(len(r) - len(x), 1)
     lam = 1e-3
     J = _jacobian(model, x)
+    off = slice(model.n_global, model.att0)
+    released = not model.n_off or model.rms_px(r) <= model.release_rms_px
     for it in range(max_iterations + 1):
         A = (J.T @ J).toarray()
         g = J.T @ r
+        if not released:
+            A[off, :] = 0.0
+            A[:, off] = 0.0
+            A[off, off] = np.eye(model.n_off)
+            g[off] = 0.0
         D = np.diag(np.diag(A)) + 1e-12 * np.eye(len(x))
         try:
             decrement = float(g @ np.linalg.solve(A + 1e-12 * D, g))
         except np.linalg.LinAlgError:
             decrement = np.inf
         if decrement < CONVERGED_SIGMA_FRACTION**2 * cost / dof:
-            return x, r, J, it, True, "converged"
+            if released:
+                return x, r, J, it, True, "converged"
+            released = True  # converged without the offsets: now with them
+            lam = 1e-3
+            A, g = (J.T @ J).toarray(), J.T @ r
+            D = np.diag(np.diag(A)) + 1e-12 * np.eye(len(x))
         if it == max_iterations:
             break
         while True:
@@ -357,6 +383,7 @@ def _levenberg_marquardt(model: _Model, x: np.ndarray, max_iterations: int):
                 return x, r, J, it, False, "no step lowers the residual"
         x, r, cost = x_new, r_new, c_new
         lam = max(lam / 10, 1e-12)
+        released = released or model.rms_px(r) <= model.release_rms_px
         J = _jacobian(model, x)
     return x, r, J, max_iterations, False, f"not converged in {max_iterations} iterations"
 
