@@ -6,6 +6,8 @@ R_nb = Rz(yaw) Ry(pitch) Rx(roll). Quaternions are scalar-first with w >= 0.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 
@@ -48,17 +50,22 @@ def skew(v: np.ndarray) -> np.ndarray:
 
 
 def expmap(w: np.ndarray) -> np.ndarray:
-    """Rotation matrix exp([w]x) of a rotation vector (Rodrigues' formula).
+    """Rotation matrix exp([w]x) of a rotation vector (Rodrigues' formula)."""
+    return expmap_xyz(float(w[0]), float(w[1]), float(w[2]))
+
+
+def expmap_xyz(x: float, y: float, z: float) -> np.ndarray:
+    """:func:`expmap` of the rotation vector (x, y, z) given as floats (the math
+    module's functions, cheaper than numpy's on scalars, for inner loops).
 
     Uses the series expansion below 1e-8 rad, where sin(t)/t loses precision.
     """
-    x, y, z = float(w[0]), float(w[1]), float(w[2])
     t2 = x * x + y * y + z * z
     if t2 < 1e-16:
         a, b = 1.0, 0.5
     else:
-        t = np.sqrt(t2)
-        a, b = np.sin(t) / t, (1.0 - np.cos(t)) / t2
+        t = math.sqrt(t2)
+        a, b = math.sin(t) / t, (1.0 - math.cos(t)) / t2
     # I + a K + b K^2 with K = [w]x, written out (K^2 = w w^T - t^2 I)
     return np.array(
         [

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from visvec.rotations import expmap
+from visvec.rotations import expmap, expmap_xyz
 
 MAX_ITERATIONS = 15
 # Gauss-Newton converges about quadratically here (small residuals): after a step
@@ -211,7 +211,7 @@ def _fit_equal_weights(
             K = Ninv @ J  # the step is -K r
             moved = 0.0
         dx, dy, dz = (K @ r).tolist()
-        R = _expmap_floats(-dx, -dy, -dz) @ R
+        R = expmap_xyz(-dx, -dy, -dz) @ R
         step = math.sqrt(dx * dx + dy * dy + dz * dz)
         moved += step
         if step < STEP_TOL_RAD:
@@ -220,24 +220,6 @@ def _fit_equal_weights(
             converged = True
             break
     return RotationFit(R, Ninv / W, float(r @ r) * W, r, it, converged)
-
-
-def _expmap_floats(x: float, y: float, z: float) -> np.ndarray:
-    """:func:`visvec.rotations.expmap` from three floats with the math module (the
-    numpy scalar functions cost more than the arithmetic)."""
-    t2 = x * x + y * y + z * z
-    if t2 < 1e-16:
-        a, b = 1.0, 0.5
-    else:
-        t = math.sqrt(t2)
-        a, b = math.sin(t) / t, (1.0 - math.cos(t)) / t2
-    return np.array(
-        [
-            [1.0 - b * (y * y + z * z), b * x * y - a * z, b * x * z + a * y],
-            [b * x * y + a * z, 1.0 - b * (x * x + z * z), b * y * z - a * x],
-            [b * x * z - a * y, b * y * z + a * x, 1.0 - b * (x * x + y * y)],
-        ]
-    )
 
 
 def _inv_sym3(A: np.ndarray) -> np.ndarray:
