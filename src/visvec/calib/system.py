@@ -321,6 +321,20 @@ def _jacobian(model: _Model, x: np.ndarray) -> csr_matrix:
 CONVERGED_SIGMA_FRACTION = 0.01
 
 
+def _normal_equations(J: csr_matrix, r: np.ndarray, hold: slice | None):
+    """A = J^T J, g = J^T r and the damping diagonal D; the parameters in ``hold`` are
+    kept where they are (their rows and columns replaced by the identity's, g zero)."""
+    A = (J.T @ J).toarray()
+    g = J.T @ r
+    if hold is not None:
+        A[hold, :] = 0.0
+        A[:, hold] = 0.0
+        n = hold.stop - hold.start
+        A[hold, hold] = np.eye(n)
+        g[hold] = 0.0
+    return A, g, np.diag(np.diag(A)) + 1e-12 * np.eye(len(g))
+
+
 def _levenberg_marquardt(model: _Model, x: np.ndarray, max_iterations: int):
     """The paper's Gauss-Newton iteration (Eq. 20) with Levenberg-Marquardt damping for
     a safe start far from the solution. Returns x, r, J, iterations (steps taken),
@@ -346,14 +360,7 @@ def _levenberg_marquardt(model: _Model, x: np.ndarray, max_iterations: int):
     off = slice(model.n_global, model.att0)
     released = not model.n_off or model.rms_px(r) <= model.release_rms_px
     for it in range(max_iterations + 1):
-        A = (J.T @ J).toarray()
-        g = J.T @ r
-        if not released:
-            A[off, :] = 0.0
-            A[:, off] = 0.0
-            A[off, off] = np.eye(model.n_off)
-            g[off] = 0.0
-        D = np.diag(np.diag(A)) + 1e-12 * np.eye(len(x))
+        A, g, D = _normal_equations(J, r, None if released else off)
         try:
             decrement = float(g @ np.linalg.solve(A + 1e-12 * D, g))
         except np.linalg.LinAlgError:
@@ -363,8 +370,7 @@ def _levenberg_marquardt(model: _Model, x: np.ndarray, max_iterations: int):
                 return x, r, J, it, True, "converged"
             released = True  # converged without the offsets: now with them
             lam = 1e-3
-            A, g = (J.T @ J).toarray(), J.T @ r
-            D = np.diag(np.diag(A)) + 1e-12 * np.eye(len(x))
+            A, g, D = _normal_equations(J, r, None)
         if it == max_iterations:
             break
         while True:
