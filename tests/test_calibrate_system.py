@@ -121,6 +121,22 @@ def test_misplaced_markers_are_found_and_their_errors_kept_out_of_the_camera(mri
     np.testing.assert_allclose(again.target.points_b, cal.rig.target.points_b, atol=1e-4)
 
 
+def test_offset_prior_takes_the_centroid_noise_from_the_residuals(mrig):
+    """A rig that states the centroid noise 10x too large would weigh the offsets' prior
+    10x too weakly; the calibration measures the noise and solves again."""
+    rng = np.random.default_rng(8)
+    true = perturbed(mrig, rng)
+    X_true = true.target.points_b + rng.standard_normal((21, 3)) * 0.1
+    obs = observe(true, mrig, 120, 0.12, rng, X_true)
+    rig = with_placement_sigma(mrig, 0.1)
+    right = calibrate_system(rig, obs, sigma_px=0.12)
+    wrong = calibrate_system(rig, obs, sigma_px=1.2)
+    assert right.converged and wrong.converged
+    assert abs(wrong.prior_sigma_px - 0.12) < 0.01
+    z = (wrong.marker_offsets_mm - right.marker_offsets_mm) / right.marker_offset_sigma_mm
+    assert np.abs(z).max() < 0.1, np.abs(z).max()
+
+
 def test_convergence_is_declared_within_a_hundredth_of_a_sigma_of_the_minimum(mrig, monkeypatch):
     import visvec.calib.system as system
 

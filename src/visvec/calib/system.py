@@ -80,6 +80,7 @@ class SystemCalibration:
     attitude_sigma_deg: np.ndarray  # (F, 3) about body axes
     marker_offsets_mm: np.ndarray  # (M, 3) in B from the file positions; zeros if not estimated
     marker_offset_sigma_mm: np.ndarray  # (M, 3); zeros if not estimated
+    prior_sigma_px: float  # centroid noise that weighed the offsets' prior
 
     def report(self) -> list[str]:
         """Lines like the paper's Table 2."""
@@ -94,7 +95,8 @@ class SystemCalibration:
             off = self.marker_offsets_mm
             out.append(
                 f"  marker offsets from the rig file (mm, in B): rms "
-                f"{np.sqrt(np.mean(off**2)):.4f}, largest {np.abs(off).max():.4f}"
+                f"{np.sqrt(np.mean(off**2)):.4f}, largest {np.abs(off).max():.4f} "
+                f"(prior weighed with {self.prior_sigma_px:.4f} px of centroid noise)"
             )
             for i, (d, s) in enumerate(zip(off, self.marker_offset_sigma_mm, strict=True)):
                 xyz = "  ".join(f"{a:+.4f} +- {b:.4f}" for a, b in zip(d, s, strict=True))
@@ -117,7 +119,8 @@ class _Model:
         self.F = len(obs.R0)
         self.L = len(obs.frame)
         self.n_off = 3 * len(self.local) if sigma_m > 0 else 0
-        self.w_prior = sigma_px / sigma_m if sigma_m > 0 else 0.0
+        self.sigma_m = sigma_m
+        self.set_sigma_px(sigma_px)
         cam = rig.camera
         self.p12 = cam.dist[2:4]
         names = [
@@ -160,6 +163,11 @@ class _Model:
         # errors and the centroid noise together leave (see _levenberg_marquardt)
         depth = float(np.linalg.norm(rig.t_n))  # camera to centre of rotation
         self.release_rms_px = 5.0 * float(np.hypot(sigma_px, sigma_m * cam.fx / depth))
+
+    def set_sigma_px(self, sigma_px: float) -> None:
+        """The centroid noise that weighs the offset prior (w = sigma_px / sigma_m)."""
+        self.sigma_px = sigma_px
+        self.w_prior = sigma_px / self.sigma_m if self.n_off else 0.0
 
     def rms_px(self, r: np.ndarray) -> float:
         """RMS of the pixel residuals (the prior's rows left out)."""
@@ -426,6 +434,19 @@ def calibrate_system(
             f"unknowns: {model.F} frames, {2 * model.L} coordinates, {n_par} unknowns"
         )
     x, r, J, it, converged, message = _levenberg_marquardt(model, model.x0(), max_iterations)
+    # the prior weighs offsets against pixels through the centroid noise: if the rig's
+    # value is off, take it from the residuals and solve again (variance components;
+    # the offsets use up about one measurement each)
+    for _ in range(3):
+        if not (converged and model.n_off):
+            break
+        pix = r[: 2 * model.L]
+        s_px = float(np.sqrt(pix @ pix / max(2 * model.L - n_par - model.n_off, 1)))
+        if abs(s_px / model.sigma_px - 1.0) < 0.05:
+            break
+        model.set_sigma_px(s_px)
+        x, r, J, it2, converged, message = _levenberg_marquardt(model, x, max_iterations - it)
+        it += it2
     dof = max(2 * model.L - n_par, 1)
     s2 = float(r @ r) / dof  # Eq. (24), the prior's rows included
     JtJ = (J.T @ J).toarray()
@@ -475,6 +496,7 @@ def calibrate_system(
         attitude_sigma_deg=att_sig,
         marker_offsets_mm=model.offsets(x).copy(),
         marker_offset_sigma_mm=off_sig,
+        prior_sigma_px=model.sigma_px,
     )
 
 
