@@ -345,7 +345,8 @@ def fit_edges(
             # near-parallel lines from a region that is not a clean triangle: stop here
             return replace(fit, ok=False)
         corners = new
-        if npass == 1 and passes.count(1) == 1 and np.abs(corners - start).max() > TRACK_RECENTRE_PX:
+        moved = np.abs(corners - start).max()
+        if npass == 1 and passes.count(1) == 1 and moved > TRACK_RECENTRE_PX:
             # the profiles were not centred on the edge (a prediction or a first pass
             # that was off): their windows cut the blur on one side, which biases the
             # levels and the step fit; centre them once more
