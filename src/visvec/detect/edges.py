@@ -28,7 +28,8 @@ PROFILE_SPACING_PX = 1.5
 GN_STEPS = 1
 # cv2.remap takes at most 32767 rows; no real edge needs more than this many profiles
 MAX_PROFILES_PER_EDGE = 4000
-# when tracking, profiles are re-centred if the vertices move more than this (px)
+# profiles are re-centred once if a fine pass moves the vertices more than this (px):
+# a prediction (tracking) or a first pass (cold) that was off
 TRACK_RECENTRE_PX = 0.75
 
 
