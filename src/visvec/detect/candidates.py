@@ -64,8 +64,9 @@ def iter_candidates(
         Work on the image shrunk by this factor (area averaging), for speed.
     levels : ndarray, optional
         Thresholds to try in this order (grey levels); by default ``n_levels`` spread
-        over the histogram, those in its darker middle (where the board-to-triangle step
-        usually lies) first.
+        over the histogram, darkest first: the first one above the board's grey level
+        cuts the triangle off from everything else (the dark board encloses it), whether
+        the ceiling around the board is brighter or darker than the triangle.
     area_tol : float
         Relative tolerance on the area.
 
@@ -85,8 +86,6 @@ def iter_candidates(
     a_lo, a_hi = a_exp * (1 - area_tol), a_exp * (1 + area_tol)
     if levels is None:
         levels = _levels(small, n_levels)
-        start = np.percentile(small, 35.0)
-        levels = levels[np.argsort(np.abs(levels - start))]
     for level in levels:
         _, binary = cv2.threshold(small, float(level), 255, cv2.THRESH_BINARY)
         n, labels, stats, _ = cv2.connectedComponentsWithStats(binary, connectivity=8)
