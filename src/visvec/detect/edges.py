@@ -85,6 +85,16 @@ def _corner_angles(p: np.ndarray) -> np.ndarray:
     return np.array([a0, a1, np.pi - a0 - a1])
 
 
+def _median(a: np.ndarray) -> float:
+    """np.median of a 1-D array, without its wrapper's overhead (same value)."""
+    n = a.size
+    k = n // 2
+    if n % 2:
+        return float(np.partition(a, k)[k])
+    p = np.partition(a, (k - 1, k))
+    return 0.5 * (float(p[k - 1]) + float(p[k]))
+
+
 def _group_linear(t: np.ndarray, y: np.ndarray, gid: np.ndarray, n: int) -> np.ndarray:
     """Per-group straight-line least-squares fit of y against t, evaluated at t."""
     w = np.bincount(gid, minlength=n)
@@ -119,7 +129,7 @@ def _robust_line(p: np.ndarray, floor: float, rounds: int = 3) -> tuple:
     c, d, n = _tls(p)
     for _ in range(rounds):
         r = (p - c) @ n
-        sigma = max(1.4826 * float(np.median(np.abs(r[keep]))), floor)
+        sigma = max(1.4826 * _median(np.abs(r[keep])), floor)
         new = np.abs(r) <= max(3.5 * sigma, 0.25)
         if new.sum() < 5 or np.array_equal(new, keep):
             break
@@ -286,13 +296,14 @@ def fit_edges(
         npass = passes[k]
         k += 1
         start = corners
+        w_mid = sorted(width)[1]  # median blur width of the three edges
         if npass >= 1:
-            half = step * np.ceil(float(np.clip(3.0 * np.median(width) + 0.75, 1.5, half)) / step)
+            half = step * np.ceil(min(max(3.0 * w_mid + 0.75, 1.5), half) / step)
         # near a vertex of angle alpha the other edge is d sin(alpha) away: keep the
         # profiles (and the blur around them) clear of it
         trims = np.maximum(
             trim * _side_lengths(corners).min(),
-            (half + 2.0 * float(np.median(width)) + 0.5)
+            (half + 2.0 * w_mid + 0.5)
             / np.sin(np.clip(_corner_angles(corners), 0.2, None)),
         )
         bases, normals, gid, t, along, vals, ends = _sample(
@@ -310,7 +321,8 @@ def fit_edges(
         for i in range(3):
             sel = np.nonzero(gid == i)[0]
             hi_ = h[sel]
-            good = (np.abs(e[sel]) < half - 1.0) & (hi_ > 0.4 * max(float(np.median(hi_)), 1e-6))
+            h_mid = _median(hi_)
+            good = (np.abs(e[sel]) < half - 1.0) & (hi_ > 0.4 * max(h_mid, 1e-6))
             use = sel[good] if good.sum() >= 5 else sel
             n, o, c, sp, keep, sig = _robust_line(ideal[use], sigma_floor, 3 if npass == 1 else 1)
             if n @ centre_ideal < o:
@@ -318,7 +330,7 @@ def fit_edges(
             normals_l[i], offsets[i], centres[i] = n, o, c
             spreads[i], counts[i], sigmas[i] = sp, keep.sum(), sig
             outl[i] = 1.0 - keep.sum() / len(sel)
-            contrast[i] = float(np.median(hi_))
+            contrast[i] = h_mid
             # how far the inlier edge points stop short of the two ends of the edge
             s_in = along[use[keep]]
             length = ends[i][2]
@@ -368,8 +380,10 @@ def intersect(fit: EdgeFit, with_cov: bool = True) -> tuple[np.ndarray, np.ndarr
         V = np.empty((3, 2))
         for i in range(3):
             j, k = (i + 1) % 3, (i + 2) % 3
-            A = np.vstack([fit.normals[j], fit.normals[k]])
-            V[i] = np.linalg.solve(A, np.array([fit.offsets[j], fit.offsets[k]]))
+            (a, b), (c, d) = fit.normals[j].tolist(), fit.normals[k].tolist()
+            oj, ok = float(fit.offsets[j]), float(fit.offsets[k])
+            det = a * d - b * c  # Cramer's rule for [n_j; n_k] x = [o_j, o_k]
+            V[i] = ((oj * d - b * ok) / det, (a * ok - oj * c) / det) if det else np.nan
         return V, None
     V = np.zeros((3, 2))
     J = np.zeros((6, 6))
