@@ -303,8 +303,7 @@ def fit_edges(
         # profiles (and the blur around them) clear of it
         trims = np.maximum(
             trim * _side_lengths(corners).min(),
-            (half + 2.0 * w_mid + 0.5)
-            / np.sin(np.clip(_corner_angles(corners), 0.2, None)),
+            (half + 2.0 * w_mid + 0.5) / np.sin(np.clip(_corner_angles(corners), 0.2, None)),
         )
         bases, normals, gid, t, along, vals, ends = _sample(
             roi, corners, off, half, step, trims, 2.0 if npass == 0 else PROFILE_SPACING_PX
