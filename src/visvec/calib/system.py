@@ -81,6 +81,9 @@ class SystemCalibration:
     marker_offsets_mm: np.ndarray  # (M, 3) in B from the file positions; zeros if not estimated
     marker_offset_sigma_mm: np.ndarray  # (M, 3); zeros if not estimated
     prior_sigma_px: float  # centroid noise that weighed the offsets' prior
+    # (3,) 1-sigma of the error every attitude shares (B's orientation as calibrated, about
+    # b1, b2, b3): a constant bias of the attitudes, not in the rows' sigma columns
+    b_orientation_sigma_arcsec: np.ndarray
 
     def report(self) -> list[str]:
         """Lines like the paper's Table 2."""
@@ -89,6 +92,11 @@ class SystemCalibration:
             f"{self.mean_abs_px:.4f} px, rms {self.rms_px:.4f} px, "
             f"{self.iterations} iterations"
         ]
+        b1, b2, b3 = self.b_orientation_sigma_arcsec
+        out.append(
+            f"  B's orientation, shared by every attitude (a constant bias, not in the "
+            f"rows' sigma): 1-sigma {b1:.1f}, {b2:.1f}, {b3:.1f} arcsec about b1, b2, b3"
+        )
         for n, v, s in zip(self.names, self.values, self.sigmas, strict=True):
             out.append(f"  {n:<28} {v:>14.6f} +- {s:.6f}")
         if np.any(self.marker_offset_sigma_mm > 0):
@@ -476,6 +484,13 @@ def calibrate_system(
     )
     res = r[: 2 * model.L].reshape(-1, 2)
     att_sig = np.degrees(sig[model.att0 :].reshape(-1, 3))
+    # the part of the attitude errors every frame shares: the mean covariance between
+    # two different frames' (body-axis) attitude errors; B's orientation is fixed only
+    # through the calibrated geometry (and, with placement errors, the offsets' prior),
+    # so its error is common to all attitudes, those measured later included
+    C = cov[model.att0 :, model.att0 :].reshape(model.F, 3, model.F, 3)
+    common = (C.sum(axis=(0, 2)) - np.einsum("fifj->ij", C)) / (model.F * (model.F - 1))
+    b_sig = np.degrees(np.sqrt(np.clip(np.diag(common), 0.0, None))) * 3600.0
     off_sig = (
         sig[model.n_global : model.att0].reshape(-1, 3)
         if model.n_off
@@ -497,6 +512,7 @@ def calibrate_system(
         marker_offsets_mm=model.offsets(x).copy(),
         marker_offset_sigma_mm=off_sig,
         prior_sigma_px=model.sigma_px,
+        b_orientation_sigma_arcsec=b_sig,
     )
 
 
