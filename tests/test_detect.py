@@ -81,6 +81,27 @@ def test_edge_along_a_pixel_row_is_not_biased_by_off_centre_profiles(rig640):
     assert e @ np.linalg.solve(d.cov_n, e) < 22.5
 
 
+def test_edge_levels_measured_beyond_the_step_make_the_vertices_more_precise(rig640, monkeypatch):
+    """The board and triangle levels of an edge are fitted along it from every profile's
+    ends, so their error moves the whole line and does not average out: measured over
+    2 px beyond the step window rather than 1 px inside it, the vertices of one frame
+    under 30 noise draws scatter at least 5 % less (14 % measured)."""
+    from visvec.detect import edges
+
+    R = _attitudes(1, 5)[0]
+    start = project_target(rig640, R)
+    truth = rig640.camera.undistort(start) * rig640.camera.fx
+    errs = {0.0: [], edges.LEVEL_EXTENT_PX: []}
+    for k in range(30):
+        img = render_frame(rig640, R, Scene(), rng=500 + k)
+        for ext, out in errs.items():
+            monkeypatch.setattr(edges, "LEVEL_EXTENT_PX", ext)
+            fit = edges.fit_edges(img, start, rig640.camera, width=np.full(3, 0.9))
+            out.append((edges.intersect(fit)[0] - truth).ravel())
+    inside, beyond = (np.sqrt(np.mean(np.square(e))) for e in errs.values())
+    assert beyond < 0.95 * inside, (beyond, inside)
+
+
 def test_most_acute_vertex_first_and_handedness(rig640):
     R = euler_to_matrix(np.radians(120.0), 0.0, 0.0)
     d = TriangleDetector(rig640).detect(render_frame(rig640, R, Scene(noise_sigma=0), rng=0))
