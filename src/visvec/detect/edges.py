@@ -192,12 +192,9 @@ def _sample(
     normals = np.concatenate(normals)
     offs = np.arange(-half, half + 1e-9, step)
     pts = bases[:, None, :] - off + offs[None, :, None] * normals[:, None, :]
+    # one (M, S, 2) float32 map (x, y interleaved), converted in one contiguous pass
     vals = cv2.remap(
-        roi,
-        pts[..., 0].astype(np.float32),
-        pts[..., 1].astype(np.float32),
-        cv2.INTER_LINEAR,
-        borderMode=cv2.BORDER_REPLICATE,
+        roi, pts.astype(np.float32), None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
     )
     return (
         bases,
