@@ -401,19 +401,27 @@ def intersect(fit: EdgeFit, with_cov: bool = True) -> tuple[np.ndarray, np.ndarr
         return V, None
     V = np.zeros((3, 2))
     J = np.zeros((6, 6))
-    var = np.zeros(6)
-    for j in range(3):
-        var[2 * j] = fit.sigmas[j] ** 2 / fit.counts[j]
-        var[2 * j + 1] = fit.sigmas[j] ** 2 / max(fit.spreads[j], 1e-12)
+    sig2 = np.asarray(fit.sigmas, float) ** 2
+    var = np.empty(6)
+    var[0::2] = sig2 / np.asarray(fit.counts, float)
+    var[1::2] = sig2 / np.maximum(np.asarray(fit.spreads, float), 1e-12)
+    nrm = np.asarray(fit.normals, float).tolist()
+    off = np.asarray(fit.offsets, float).tolist()
+    cen = np.asarray(fit.centres, float).tolist()
     for i in range(3):
         j, k = (i + 1) % 3, (i + 2) % 3
-        A = np.vstack([fit.normals[j], fit.normals[k]])
-        x = np.linalg.solve(A, np.array([fit.offsets[j], fit.offsets[k]]))
+        (a, b), (c, d) = nrm[j], nrm[k]
+        det = a * d - b * c
+        if det == 0.0:
+            return np.full((3, 2), np.nan), np.full((6, 6), np.nan)
+        # inverse of A = [n_j; n_k] (Cramer), x = A^-1 [o_j, o_k]
+        inv = ((d / det, -b / det), (-c / det, a / det))
+        x = (inv[0][0] * off[j] + inv[0][1] * off[k], inv[1][0] * off[j] + inv[1][1] * off[k])
         V[i] = x
-        Ainv = np.linalg.inv(A)
         for row, ln in enumerate((j, k)):
-            t = np.array([-fit.normals[ln][1], fit.normals[ln][0]])
-            s = float((x - fit.centres[ln]) @ t)
-            J[2 * i : 2 * i + 2, 2 * ln] += Ainv[:, row]
-            J[2 * i : 2 * i + 2, 2 * ln + 1] += Ainv[:, row] * s
-    return V, J @ np.diag(var) @ J.T
+            nx, ny = nrm[ln]
+            s = (x[0] - cen[ln][0]) * -ny + (x[1] - cen[ln][1]) * nx  # along-line coordinate
+            for q in range(2):
+                J[2 * i + q, 2 * ln] += inv[q][row]
+                J[2 * i + q, 2 * ln + 1] += inv[q][row] * s
+    return V, (J * var) @ J.T
