@@ -242,3 +242,19 @@ def test_pipeline_turns_an_internal_error_into_a_refused_row(rig640, monkeypatch
     row = pipe.process(Frame(0, 0.0, np.zeros((480, 640), np.uint8)))
     assert row.status is Status.REJECTED and "internal_error" in row.warnings
     assert "bug" in pipe.last_error
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    st.integers(1, 60),
+    st.integers(1, 60),
+    st.integers(1, 256),
+    st.integers(0, 2**31 - 1),
+)
+def test_histogram_percentiles_equal_numpys(h, w, levels, seed):
+    """The region search's thresholds come from percentiles taken off the histogram."""
+    from visvec.detect.candidates import _percentiles
+
+    img = np.random.default_rng(seed).integers(0, levels, (h, w)).astype(np.uint8)
+    qs = (0.0, 1.0, 35.0, 50.0, 99.0, 100.0)
+    np.testing.assert_allclose(_percentiles(img, qs), np.percentile(img, qs), atol=1e-9)

@@ -37,8 +37,24 @@ class Candidate:
     tracked: bool = False
 
 
+def _percentiles(image: np.ndarray, qs: tuple[float, ...]) -> np.ndarray:
+    """np.percentile (linear interpolation) of a uint8 image, from its histogram (a
+    cumulative count instead of a partial sort)."""
+    cdf = np.cumsum(np.bincount(image.ravel(), minlength=256))
+    n = int(cdf[-1])
+    pos = np.asarray(qs, float) / 100.0 * (n - 1)
+    k = pos.astype(int)
+    v = np.searchsorted(cdf, np.concatenate([k, np.minimum(k + 1, n - 1)]), side="right")
+    v0, v1 = v[: len(k)], v[len(k) :]
+    return v0 + (pos - k) * (v1 - v0)
+
+
 def _levels(small: np.ndarray, n: int) -> np.ndarray:
-    lo, hi = np.percentile(small, (1.0, 99.0))
+    lo, hi = (
+        _percentiles(small, (1.0, 99.0))
+        if small.dtype == np.uint8
+        else np.percentile(small, (1.0, 99.0))
+    )
     if hi - lo < 4:
         return np.zeros(0)
     return np.linspace(lo, hi, n + 2)[1:-1]
