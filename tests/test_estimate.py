@@ -110,3 +110,25 @@ def test_paper_estimator_yaw_and_tilt_signs(rig640):
     R = euler_to_matrix(0.0, np.radians(2.0), np.radians(-1.0))
     y, p, r = np.degrees(matrix_to_euler(solve_paper(_detection(rig640, R), rig640).R_nb))
     assert abs(p - 2.0) < 0.2 and abs(r + 1.0) < 0.2
+
+
+def test_tracking_starts_from_the_last_attitude_and_finds_the_same_one(rig640):
+    """While the detector tracks, Gauss-Newton starts from the last frame's attitude
+    instead of the closed form: same minimum, and the start is really used."""
+    from visvec.data import Frame
+    from visvec.pipeline import TrianglePipeline
+    from visvec.sim.render import render_frame
+    from visvec.sim.scene import Scene
+
+    pipe = TrianglePipeline(rig640)
+    used = 0
+    for k in range(6):
+        R = euler_to_matrix(np.radians(10 + 0.3 * k), np.radians(1 - 0.1 * k), np.radians(2))
+        row = pipe.process(Frame(k, k / 30, render_frame(rig640, R, Scene(), rng=k)))
+        assert row.ok
+        tracked = pipe.detector.last_was_tracked
+        assert tracked == (k > 0)
+        closed = solve_full(pipe.last_detection, rig640)
+        np.testing.assert_allclose(pipe.last_solution.R_nb, closed.R_nb, atol=1e-8)
+        used += tracked and pipe.last_solution.iterations != closed.iterations
+    assert used >= 1  # the start differed from the closed form's

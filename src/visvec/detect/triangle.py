@@ -104,6 +104,8 @@ class TriangleDetector:
         self._prev_points: np.ndarray | None = None
         self._last_width: np.ndarray | None = None
         self._fit_width: np.ndarray | None = None
+        # the last detection came from the previous frame's vertices (small motion)
+        self.last_was_tracked = False
 
     def _tracked_candidate(self, pts: np.ndarray) -> Candidate:
         inside = bool(np.all(self.rig.camera.in_image(pts, 2.0)))
@@ -136,6 +138,7 @@ class TriangleDetector:
             warnings.append("high_brightness")
 
         reason, contour = "", np.zeros((0, 2))
+        self.last_was_tracked = False
         if self._last_points is not None:
             # tracking: refine straight from the last frame's vertices; any failed check
             # falls back to the full search below
@@ -146,6 +149,7 @@ class TriangleDetector:
             if det.status is Status.OK:
                 self._prev_points, self._last_points = self._last_points, det.points_px
                 self._last_width = self._fit_width
+                self.last_was_tracked = True
                 return det
         levels = None if self._last_level is None else np.array([self._last_level])
         for _attempt in range(2):
