@@ -221,6 +221,9 @@ def test_calibrate_system_cli(tmp_path, mrig):
     )
     assert r.exit_code == 0, r.output
     assert "residual std" in r.output and "fx" in r.output
+    assert "B's orientation" in r.output
+    # the file says what it was made from and how well B is pinned down
+    assert "B's orientation 1-sigma" in out.read_text().split("[camera]")[0]
     cal = load_rig(CONFIGS / "markers.toml", out)
     assert abs(cal.camera.fx - true.camera.fx) < 5.0
     assert abs(cal.t_n[2] - true.t_n[2]) < 3.0

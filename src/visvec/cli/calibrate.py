@@ -209,7 +209,11 @@ def system(frames, rig_path, calibration, out, max_iterations):
         raise SystemExit(1)
     header = (
         f"visvec system calibration, {datetime.now(UTC):%Y-%m-%d %H:%M} UTC\n"
-        f"rig {rig_path}, frames {frames} ({n_used} used)"
+        f"rig {rig_path}, frames {frames} ({n_used} used)\n"
+        f"residual std {res.residual_std_px:.4f} px; B's orientation 1-sigma (a bias "
+        f"shared by every attitude) about b1, b2, b3: "
+        + ", ".join(f"{v:.1f}" for v in res.b_orientation_sigma_arcsec)
+        + " arcsec"
     )
     Path(out).write_text(dumps(system_sections(res), header))
     click.echo(f"wrote {out}")
