@@ -35,11 +35,12 @@ TRACK_RECENTRE_PX = 0.75
 # The fine profiles reach this far (px) beyond the step window on both sides, and the
 # board and triangle levels are measured over the outer 1 px + this: an error in a level
 # is common to every profile of the edge (the level lines are fitted along it) and moves
-# the whole line, so it is not averaged away by more profiles (and a window one sample
-# longer or shorter gave the same frame a tilt up to 2 sigma different). Measuring the
-# levels over 2 px instead of 1 px cut the attitude errors by 3-8 % and the vertex
-# error tail (640x480 frames with vertices beyond the 99 % chi-square point: 1.7 % ->
-# 0.7 %, EDGE_VARIANCE_INFLATION re-calibrated).
+# the whole line, so it is not averaged away by more profiles. With 1 px levels, the
+# window length (which follows the measured blur, so the start of the fit) gave one
+# frame tilts 1.5 or 4 sigma off; now its results from different starts spread by
+# 0.2 sigma. Measuring the levels over 2 px cut the attitude errors by 3-8 % and the
+# vertex error tail (640x480 frames with vertices beyond the 99 % chi-square point:
+# 1.7 % -> 0.7 %, EDGE_VARIANCE_INFLATION re-calibrated).
 LEVEL_EXTENT_PX = 1.0
 
 
