@@ -170,42 +170,31 @@ def _sample(
     along the edge t in [-1, 1] (M,), distance from the edge's first end (M,), values
     (M, S), and per edge (start vertex, unit direction, length).
     """
-    inside = corners.mean(axis=0)
-    bases, normals, gid, tt, along, ends = [], [], [], [], [], []
-    for i in range(3):
-        a, b = corners[(i + 1) % 3], corners[(i + 2) % 3]
-        length = float(np.linalg.norm(b - a))
-        d = (b - a) / max(length, 1e-9)
-        n_in = np.array([-d[1], d[0]])
-        if n_in @ (inside - a) < 0:
-            n_in = -n_in
-        s0 = min(trims[(i + 1) % 3], 0.4 * length)
-        s1 = length - min(trims[(i + 2) % 3], 0.4 * length)
-        m = int(np.clip((s1 - s0) / spacing, 4, MAX_PROFILES_PER_EDGE))
-        s = np.linspace(s0, s1, m)
-        bases.append(a + s[:, None] * d)
-        normals.append(np.broadcast_to(n_in, (m, 2)))
-        gid.append(np.full(m, i))
-        tt.append(np.linspace(-1.0, 1.0, m))
-        along.append(s)
-        ends.append((a, d, length))
-    bases = np.concatenate(bases)
-    normals = np.concatenate(normals)
+    A = corners[[1, 2, 0]]  # edge i runs from vertex i+1 to vertex i+2
+    D = corners[[2, 0, 1]] - A
+    length = np.sqrt(np.einsum("ij,ij->i", D, D))
+    D = D / np.maximum(length, 1e-9)[:, None]
+    N = np.column_stack([-D[:, 1], D[:, 0]])
+    # normals point into the triangle
+    N *= np.where(np.einsum("ij,ij->i", N, corners.mean(axis=0) - A) < 0, -1.0, 1.0)[:, None]
+    s0 = np.minimum(trims[[1, 2, 0]], 0.4 * length)
+    s1 = length - np.minimum(trims[[2, 0, 1]], 0.4 * length)
+    m = np.clip((s1 - s0) / spacing, 4, MAX_PROFILES_PER_EDGE).astype(int)
+    gid = np.repeat(np.arange(3), m)
+    k = np.arange(len(gid)) - np.repeat(np.cumsum(m) - m, m)  # index along the edge
+    frac = k / np.repeat(m - 1, m)
+    along = s0[gid] + frac * (s1 - s0)[gid]
+    tt = 2.0 * frac - 1.0
+    bases = A[gid] + along[:, None] * D[gid]
+    normals = N[gid]
+    ends = [(A[i], D[i], float(length[i])) for i in range(3)]
     offs = np.arange(-half, half + 1e-9, step)
     pts = bases[:, None, :] - off + offs[None, :, None] * normals[:, None, :]
     # one (M, S, 2) float32 map (x, y interleaved), converted in one contiguous pass
     vals = cv2.remap(
         roi, pts.astype(np.float32), None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
     )
-    return (
-        bases,
-        normals,
-        np.concatenate(gid),
-        np.concatenate(tt),
-        np.concatenate(along),
-        vals,
-        ends,
-    )
+    return bases, normals, gid, tt, along, vals, ends
 
 
 def _positions(
