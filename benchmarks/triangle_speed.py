@@ -54,6 +54,7 @@ def main() -> None:
     }
     times = {"tracking": [], "cold": [], "png_decode": []}
     n_ok = {"tracking": 0, "cold": 0}
+    n = len(images)
     for _ in range(args.repeats):
         for mode in ("tracking", "cold"):
             pipe = TrianglePipeline(rig)
@@ -73,6 +74,8 @@ def main() -> None:
         res[k] = {
             "median_ms": round(float(np.median(v)), 3),
             "p90_ms": round(float(np.percentile(v, 90)), 3),
+            # each repeat's own median: how much the machine drifted during the run
+            "repeat_medians_ms": np.round(np.median(v.reshape(-1, n), axis=1), 3).tolist(),
         }
     for k, v in n_ok.items():
         res[k]["ok_fraction"] = round(v / (args.frames * args.repeats), 4)
