@@ -266,3 +266,30 @@ def test_track_reads_a_stream_url(tmp_path):
     assert r.exit_code == 0, r.output
     rows = rows_of(r.stdout)
     assert len(rows) == 3 and all(x["status"] == "ok" for x in rows)
+
+
+def test_overlay_text_sits_on_a_dark_box_without_black_outlines():
+    """The overlay's header is white text on a darkened box. A thick black outline under
+    the text was misaligned with it under OpenCV 5 (wider glyph spacing) and made the
+    numbers unreadable; nothing may be darker than the darkened background."""
+    from visvec.data import Status
+    from visvec.output import AttitudeRow
+    from visvec.overlay import _text
+
+    grey = np.full((120, 400, 3), 150, np.uint8)
+    row = AttitudeRow(
+        frame=7,
+        time_s=0.2,
+        status=Status.OK,
+        euler_deg=np.array([-42.11, -2.434, -0.775]),
+        sigma_deg=np.array([0.014, 0.001, 0.001]),
+        rms_px=0.02,
+        n_points=3,
+        latency_ms=1.0,
+        warnings=("near_fov_edge",),
+    )
+    out = _text(grey.copy(), row)
+    assert out.min() >= 150 // 3  # no black outline pixels
+    assert out.max() >= 250  # the white text is there
+    assert (out[5:60, 5:200] < 150).mean() > 0.5  # on a darkened box
+    assert np.array_equal(out[100:, :], grey[100:, :])  # below the box: untouched

@@ -81,10 +81,17 @@ def _text(out: np.ndarray, row: Row) -> np.ndarray:
             text.append(f"{k} {v:9.4f} +- {s:.4f}")
     if row.warnings:
         text.append(" ".join(row.warnings))
+    # white text on a darkened box: a thick black outline under thin white text does not
+    # line up (OpenCV 5 spaces thick glyphs wider), which made the lines unreadable
+    # (and the text grows with the image: a 2048 px frame is looked at scaled down)
+    k = max(1.0, out.shape[1] / 800.0)
+    font, scale, thick, step = cv2.FONT_HERSHEY_SIMPLEX, 0.55 * k, max(1, round(k)), 20 * k
+    width = max(cv2.getTextSize(t, font, scale, thick)[0][0] for t in text)
+    box = out[: int(12 * k + step * len(text)), : int(16 * k) + width]
+    box[:] = box // 3
     for i, t in enumerate(text):
-        org = (8, 22 + 20 * i)
-        cv2.putText(out, t, org, cv2.FONT_HERSHEY_SIMPLEX, 0.55, (0, 0, 0), 3, cv2.LINE_AA)
-        cv2.putText(out, t, org, cv2.FONT_HERSHEY_SIMPLEX, 0.55, (255, 255, 255), 1, cv2.LINE_AA)
+        org = (int(8 * k), int(22 * k + step * i))
+        cv2.putText(out, t, org, font, scale, (255, 255, 255), thick, cv2.LINE_AA)
     return out
 
 
