@@ -132,7 +132,7 @@ def fit_rotation(
     R = R0 if R0 is not None else initial_rotation(t_c, X, xy)
     if R is None:
         return None
-    if np.ndim(W) == 0:
+    if isinstance(W, float) or np.ndim(W) == 0:
         return _fit_equal_weights(t_c, X, xy, float(W), R)
     converged = False
     it = 0
@@ -193,6 +193,8 @@ def _fit_equal_weights(
     M = np.empty((3, 4))
     M[:, 3] = t_c
     xy_t = xy.T
+    G = np.empty((3, N))  # (u, v, 1) per point, for the Jacobian
+    G[2] = 1.0
     moved = np.inf
     converged = False
     it = 0
@@ -204,7 +206,6 @@ def _fit_equal_weights(
         r = (uv - xy_t).ravel()
         if moved > RELINEARISE_RAD:
             F = (P - M[:, 3:]) / P[2]  # q / z with q = R X
-            G = np.ones((3, N))
             G[:2] = uv
             J = (_JACOBIAN_TABLE @ (F[:, None, :] * G[None, :, :]).reshape(9, N)).reshape(3, -1)
             Ninv = _inv_sym3(J @ J.T)
