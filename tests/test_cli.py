@@ -103,6 +103,19 @@ def test_camera_that_cannot_be_opened_exit_3():
     assert "97" in r.output and "cannot open" in r.output
 
 
+def test_a_camera_that_cannot_be_opened_gives_one_line_not_opencvs_warnings():
+    import subprocess
+    import sys
+
+    cmd = [sys.executable, "-m", "visvec", "track", "--rig", str(RIG), "--camera", "97"]
+    p = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+    assert p.returncode == 3
+    assert p.stderr.strip().splitlines() == [
+        "visvec: error: camera 97: cannot open it (not connected, in use by another "
+        "program, or no permission?); --camera also takes a video file or URL"
+    ]
+
+
 def test_bad_frames_are_read_error_rows_and_the_run_goes_on(tmp_path):
     folder = tmp_path / "frames"
     folder.mkdir()

@@ -48,6 +48,12 @@ def cli(debug: bool) -> None:
 
     Units are mm and degrees; see the README for the frames and the rig file.
     """
+    if not debug:
+        # OpenCV's own warnings (for instance every backend it tried on a camera that
+        # cannot be opened) would bury visvec's one-line message; --debug keeps them
+        import cv2
+
+        cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
 
 
 def _register() -> None:

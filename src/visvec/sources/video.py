@@ -43,8 +43,12 @@ class VideoSource:
         self.live = isinstance(spec, int) or "://" in str(spec)
         self.cap = cv2.VideoCapture(spec)
         if not self.cap.isOpened():
-            kind = "camera" if isinstance(spec, int) else "video or stream"
-            raise SourceError(f"{spec}: cannot open the {kind}")
+            if isinstance(spec, int):
+                raise SourceError(
+                    f"camera {spec}: cannot open it (not connected, in use by another "
+                    f"program, or no permission?); --camera also takes a video file or URL"
+                )
+            raise SourceError(f"{spec}: cannot open the video or stream")
         src_fps = self.cap.get(cv2.CAP_PROP_FPS)
         self.fps = src_fps if src_fps and src_fps > 0 and not isinstance(spec, int) else fps
         self.retry_s = retry_s
