@@ -258,3 +258,29 @@ def test_histogram_percentiles_equal_numpys(h, w, levels, seed):
     img = np.random.default_rng(seed).integers(0, levels, (h, w)).astype(np.uint8)
     qs = (0.0, 1.0, 35.0, 50.0, 99.0, 100.0)
     np.testing.assert_allclose(_percentiles(img, qs), np.percentile(img, qs), atol=1e-9)
+
+
+@pytest.mark.parametrize("rig_name", ["rig640", "rig320"])
+def test_real_photos_without_a_triangle_are_never_ok(request, rig_name):
+    """Real photos (OpenCV's chessboards, night skies, a tree, a roof), scaled to the
+    rig's size: their checkerboards, stars, branches and tiles must never be read as
+    the triangle (one chessboard view has a triangle-shaped region at the border: it
+    is refused, as partly out of view)."""
+    from visvec.data import Frame
+    from visvec.pipeline import TrianglePipeline
+
+    from conftest import shared
+
+    rig = request.getfixturevalue(rig_name)
+    files = sorted(shared("opencv_chessboard").glob("*.jpg"))
+    files += sorted(shared("cedar_solve_extra").glob("*.jpg"))
+    assert len(files) >= 30
+    pipe = TrianglePipeline(rig)
+    size = (rig.camera.width, rig.camera.height)
+    for k, f in enumerate(files):
+        img = cv2.imread(str(f), cv2.IMREAD_GRAYSCALE)
+        img = cv2.resize(img, size, interpolation=cv2.INTER_AREA)
+        pipe.reset()
+        row = pipe.process(Frame(k, 0.0, img))
+        assert not row.ok, f.name
+        assert row.status in (Status.NO_TARGET, Status.REJECTED), (f.name, row.status)
