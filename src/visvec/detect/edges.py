@@ -371,6 +371,25 @@ def fit_edges(
     return fit
 
 
+def _vertices(fit: EdgeFit) -> tuple[np.ndarray, list | None]:
+    """Vertices (3, 2) in ideal pixels and, per vertex i, the inverse of the 2x2 matrix
+    [n_j; n_k] of its two lines (Cramer's rule: x = A^-1 [o_j, o_k]); all NaN and None
+    when two lines are parallel."""
+    nrm, off = fit.normals.tolist(), fit.offsets.tolist()
+    V = np.empty((3, 2))
+    invs = []
+    for i in range(3):
+        j, k = (i + 1) % 3, (i + 2) % 3
+        (a, b), (c, d) = nrm[j], nrm[k]
+        det = a * d - b * c
+        if det == 0.0:
+            return np.full((3, 2), np.nan), None
+        inv = ((d / det, -b / det), (-c / det, a / det))
+        V[i] = (inv[0][0] * off[j] + inv[0][1] * off[k], inv[1][0] * off[j] + inv[1][1] * off[k])
+        invs.append(inv)
+    return V, invs
+
+
 def intersect(fit: EdgeFit, with_cov: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
     """Vertices (3, 2) in ideal pixels and their (6, 6) covariance.
 
@@ -380,35 +399,20 @@ def intersect(fit: EdgeFit, with_cov: bool = True) -> tuple[np.ndarray, np.ndarr
     eps_o + eps_a * s(x), s = along-line distance from the centre. Stacking the six line
     errors, vertex displacements are linear in them: cov = J diag(var) J^T.
     """
+    V, invs = _vertices(fit)
     if not with_cov:
-        V = np.empty((3, 2))
-        for i in range(3):
-            j, k = (i + 1) % 3, (i + 2) % 3
-            (a, b), (c, d) = fit.normals[j].tolist(), fit.normals[k].tolist()
-            oj, ok = float(fit.offsets[j]), float(fit.offsets[k])
-            det = a * d - b * c  # Cramer's rule for [n_j; n_k] x = [o_j, o_k]
-            V[i] = ((oj * d - b * ok) / det, (a * ok - oj * c) / det) if det else np.nan
         return V, None
-    V = np.zeros((3, 2))
-    J = np.zeros((6, 6))
+    if invs is None:
+        return V, np.full((6, 6), np.nan)
     sig2 = np.asarray(fit.sigmas, float) ** 2
     var = np.empty(6)
     var[0::2] = sig2 / np.asarray(fit.counts, float)
     var[1::2] = sig2 / np.maximum(np.asarray(fit.spreads, float), 1e-12)
-    nrm = np.asarray(fit.normals, float).tolist()
-    off = np.asarray(fit.offsets, float).tolist()
-    cen = np.asarray(fit.centres, float).tolist()
-    for i in range(3):
-        j, k = (i + 1) % 3, (i + 2) % 3
-        (a, b), (c, d) = nrm[j], nrm[k]
-        det = a * d - b * c
-        if det == 0.0:
-            return np.full((3, 2), np.nan), np.full((6, 6), np.nan)
-        # inverse of A = [n_j; n_k] (Cramer), x = A^-1 [o_j, o_k]
-        inv = ((d / det, -b / det), (-c / det, a / det))
-        x = (inv[0][0] * off[j] + inv[0][1] * off[k], inv[1][0] * off[j] + inv[1][1] * off[k])
-        V[i] = x
-        for row, ln in enumerate((j, k)):
+    nrm, cen = fit.normals.tolist(), fit.centres.tolist()
+    J = np.zeros((6, 6))
+    for i, inv in enumerate(invs):
+        x = V[i].tolist()
+        for row, ln in enumerate(((i + 1) % 3, (i + 2) % 3)):
             nx, ny = nrm[ln]
             s = (x[0] - cen[ln][0]) * -ny + (x[1] - cen[ln][1]) * nx  # along-line coordinate
             for q in range(2):
