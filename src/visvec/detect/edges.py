@@ -246,19 +246,45 @@ def _positions(
 
 
 def _widths(
-    vals: np.ndarray, e: np.ndarray, gid: np.ndarray, half: float, step: float
+    vals: np.ndarray, e: np.ndarray, h: np.ndarray, gid: np.ndarray, half: float, step: float
 ) -> np.ndarray:
-    """(3,) RMS blur width (px) per edge: second moment of the mean profile derivative."""
-    offs = np.arange(-half, half + 1e-9, step)
-    xc = 0.5 * (offs[1:] + offs[:-1])
-    starts = np.searchsorted(gid, np.arange(3))  # profiles are grouped by edge
-    cnt = np.maximum(np.diff(np.append(starts, len(gid))), 1)
-    g = np.clip(np.add.reduceat(np.diff(vals, axis=1), starts, axis=0) / cnt[:, None], 0.0, None)
-    e_mean = np.add.reduceat(e, starts) / cnt
-    x = xc[None, :] - e_mean[:, None]
-    tot = g.sum(axis=1)
-    out = np.sqrt((g * x * x).sum(axis=1) / np.where(tot > 0, tot, 1.0))
-    return np.where(tot > 0, out, half / 3.0)
+    """(3,) RMS blur width (px) per edge: second moment of the mean profile derivative.
+
+    The profiles of the sparse pass cross chords of the coarse corners, which may be
+    several px off the edge and tilted to it (an acute apex from a shrunk image), so the
+    step sits at a different offset in each profile. Each profile's derivative is shifted
+    by its own step position (to the nearest sample) before averaging, so the mean is
+    not smeared by the chord's tilt; profiles without a clear step (step position near
+    the window's end, or step height under 0.4x the edge's median) are left out. The
+    mean is not clipped at zero: noise then adds no bias (clipping widened a 0.81 px
+    edge to 0.87 px median at 2 grey levels of noise).
+    """
+    d = np.diff(vals, axis=1)
+    n_bins = d.shape[1]
+    good = np.abs(e) < half - 1.0
+    for i in range(3):
+        sel = gid == i
+        if sel.any():
+            good &= ~sel | (h > 0.4 * max(_median(h[sel]), 1e-6))
+    k = np.rint(e[good] / step).astype(int)
+    j = np.arange(n_bins)[None, :] - k[:, None] + n_bins  # aligned bin, in [0, 3 n_bins)
+    flat = (gid[good][:, None] * (3 * n_bins) + j).ravel()
+    sums = np.bincount(flat, d[good].ravel(), 9 * n_bins).reshape(3, 3 * n_bins)
+    cnt = np.bincount(flat, minlength=9 * n_bins).reshape(3, 3 * n_bins)
+    x = -half + (np.arange(3 * n_bins) - n_bins + 0.5) * step  # bin centres, edge at 0
+    out = np.full(3, half / 3.0)
+    for i in range(3):
+        # bins that at least half the profiles cover, within one window of the edge
+        m = (cnt[i] > 0) & (cnt[i] >= 0.5 * cnt[i].max()) & (np.abs(x) <= half)
+        g = sums[i, m] / np.maximum(cnt[i, m], 1)
+        tot = g.sum()
+        if tot <= 0:
+            continue
+        c = (g * x[m]).sum() / tot
+        w2 = (g * (x[m] - c) ** 2).sum() / tot
+        if w2 > 0:
+            out[i] = min(np.sqrt(w2), half / 2.0)
+    return out
 
 
 def fit_edges(
@@ -315,7 +341,7 @@ def fit_edges(
         )
         e, h, mid = _positions(vals, t, gid, half, step, width if npass >= 1 else None, ext)
         if npass == 0:
-            width = _widths(vals, e, gid, half, step)
+            width = _widths(vals, e, h, gid, half, step)
         pts_px = bases + e[:, None] * normals
         ideal = camera.undistort(pts_px) * f
         centre_ideal = camera.undistort(corners.mean(axis=0)[None, :])[0] * f
