@@ -261,30 +261,23 @@ def _widths(
     """
     d = np.diff(vals, axis=1)
     n_bins = d.shape[1]
-    good = np.abs(e) < half - 1.0
-    for i in range(3):
-        sel = gid == i
-        if sel.any():
-            good &= ~sel | (h > 0.4 * max(_median(h[sel]), 1e-6))
+    h_mid = np.array([_median(h[gid == i]) if np.any(gid == i) else 0.0 for i in range(3)])
+    good = (np.abs(e) < half - 1.0) & (h > 0.4 * np.maximum(h_mid, 1e-6)[gid])
     k = np.rint(e[good] / step).astype(int)
     j = np.arange(n_bins)[None, :] - k[:, None] + n_bins  # aligned bin, in [0, 3 n_bins)
     flat = (gid[good][:, None] * (3 * n_bins) + j).ravel()
     sums = np.bincount(flat, d[good].ravel(), 9 * n_bins).reshape(3, 3 * n_bins)
     cnt = np.bincount(flat, minlength=9 * n_bins).reshape(3, 3 * n_bins)
     x = -half + (np.arange(3 * n_bins) - n_bins + 0.5) * step  # bin centres, edge at 0
-    out = np.full(3, half / 3.0)
-    for i in range(3):
-        # bins that at least half the profiles cover, within one window of the edge
-        m = (cnt[i] > 0) & (cnt[i] >= 0.5 * cnt[i].max()) & (np.abs(x) <= half)
-        g = sums[i, m] / np.maximum(cnt[i, m], 1)
-        tot = g.sum()
-        if tot <= 0:
-            continue
-        c = (g * x[m]).sum() / tot
-        w2 = (g * (x[m] - c) ** 2).sum() / tot
-        if w2 > 0:
-            out[i] = min(np.sqrt(w2), half / 2.0)
-    return out
+    # bins that at least half the edge's profiles cover, within one window of the edge
+    use = (cnt > 0) & (cnt >= 0.5 * cnt.max(axis=1, keepdims=True)) & (np.abs(x) <= half)
+    g = np.where(use, sums / np.maximum(cnt, 1), 0.0)
+    tot = g.sum(axis=1)
+    safe = np.where(tot > 0, tot, 1.0)
+    c = (g @ x) / safe
+    w2 = (g * (x[None, :] - c[:, None]) ** 2).sum(axis=1) / safe
+    ok = (tot > 0) & (w2 > 0)
+    return np.where(ok, np.sqrt(np.where(ok, w2, 1.0)).clip(max=half / 2.0), half / 3.0)
 
 
 def fit_edges(
