@@ -81,6 +81,25 @@ def test_edge_along_a_pixel_row_is_not_biased_by_off_centre_profiles(rig640):
     assert e @ np.linalg.solve(d.cov_n, e) < 22.5
 
 
+def test_defocused_edges_are_fitted_on_windows_that_hold_the_blur(rig640):
+    """A soft lens (blur sigma 2 px at 640x480): the profiles were cut at 4 px, 2 blur
+    sigmas, and a line the first pass left a fraction of a pixel off gave biased steps:
+    noise-free vertex coordinates were 0.057 px RMS off on these frames. With windows
+    of 3 blur widths (the sparse pass repeated on a wider window when the blur needs
+    it) they are within 0.035 px (0.025 measured) and every frame is found."""
+    rng = np.random.default_rng(4)
+    errs = []
+    for k in range(8):
+        eul = [rng.uniform(-np.pi, np.pi), *rng.uniform(-0.08, 0.08, 2)]
+        R = euler_to_matrix(*eul)
+        img = render_frame(rig640, R, replace(Scene(), blur_sigma_px=2.0, noise_sigma=0.0), rng=k)
+        d = TriangleDetector(rig640).detect(img)
+        assert d.status is Status.OK, d.reason
+        errs.append((d.points_n - rig640.camera.undistort(project_target(rig640, R))).ravel())
+    rms_px = np.sqrt(np.mean(np.square(errs))) * rig640.camera.fx
+    assert rms_px < 0.035, rms_px
+
+
 def test_blur_width_from_coarse_corners_far_off_the_edges(rig640):
     """The coarse corners of a cold frame can be far off: the acute apex found on the
     shrunk image came out 21 px from the true one (a frame of the speed benchmark's

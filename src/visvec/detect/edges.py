@@ -42,6 +42,14 @@ TRACK_RECENTRE_PX = 0.75
 # vertex error tail (640x480 frames with vertices beyond the 99 % chi-square point:
 # 1.7 % -> 0.7 %, EDGE_VARIANCE_INFLATION re-calibrated).
 LEVEL_EXTENT_PX = 1.0
+# The fine profiles reach 3 blur widths + 0.75 px each side of the edge, at most this
+# far (px). At the old cap of 4 px (the sparse pass's window), a defocused edge (blur
+# sigma 2 px at 640x480) was cut at 2 sigma: a line the first pass left a fraction of a
+# pixel off then gave biased steps, the acute vertex scattered 0.05 px (noise-free) and
+# its sigma no longer covered the tilt errors (pitch error/sigma RMS 1.4, up to 5 sigma
+# at 320x240). The sparse pass is repeated on a wider window when the blur it measures
+# needs one, so that the width itself is not cut short.
+MAX_HALF_PX = 8.0
 
 
 @dataclass(frozen=True)
@@ -302,8 +310,9 @@ def fit_edges(
     good to a pixel (tracking): the sparse pass is skipped, and repeated only if the
     vertices then move by more than ``TRACK_RECENTRE_PX``.
     """
-    lo = np.floor(corners_px.min(axis=0) - half - 3).astype(int)
-    hi = np.ceil(corners_px.max(axis=0) + half + 3).astype(int)
+    reach = MAX_HALF_PX + LEVEL_EXTENT_PX + 3.0
+    lo = np.floor(corners_px.min(axis=0) - reach).astype(int)
+    hi = np.ceil(corners_px.max(axis=0) + reach).astype(int)
     lo = np.maximum(lo, 0)
     hi = np.minimum(hi, [image.shape[1] - 1, image.shape[0] - 1])
     roi = image[lo[1] : hi[1] + 1, lo[0] : hi[0] + 1].astype(np.float32)
@@ -312,6 +321,7 @@ def fit_edges(
     corners = corners_px.astype(float)
     tracked = width is not None
     width = np.full(3, half / 3.0) if width is None else np.asarray(width, float)
+    half0 = half  # window of the sparse pass
     fit = None
     passes = [1] if tracked else [0, 1]
     k = 0
@@ -322,7 +332,9 @@ def fit_edges(
         w_mid = sorted(width)[1]  # median blur width of the three edges
         ext = LEVEL_EXTENT_PX if npass >= 1 else 0.0
         if npass >= 1:
-            half = step * np.ceil(min(max(3.0 * w_mid + 0.75, 1.5), half) / step)
+            half = step * np.ceil(min(max(3.0 * w_mid + 0.75, 1.5), MAX_HALF_PX) / step)
+        else:
+            half = half0
         # near a vertex of angle alpha the other edge is d sin(alpha) away: keep the
         # profiles (and the blur around them) clear of it
         trims = np.maximum(
@@ -335,6 +347,12 @@ def fit_edges(
         e, h, mid = _positions(vals, t, gid, half, step, width if npass >= 1 else None, ext)
         if npass == 0:
             width = _widths(vals, e, h, gid, half, step)
+            # a blur this wide was cut short by the window: measure it again on a
+            # window that holds it (once), from the corners of this pass
+            need = 3.0 * sorted(width)[1] + 0.75
+            if need > half0 and half0 < MAX_HALF_PX and passes.count(0) == 1:
+                half0 = min(step * np.ceil(need / step), MAX_HALF_PX)
+                passes.insert(k, 0)
         pts_px = bases + e[:, None] * normals
         ideal = camera.undistort(pts_px) * f
         centre_ideal = camera.undistort(corners.mean(axis=0)[None, :])[0] * f
