@@ -301,9 +301,11 @@ def fit_edges(
 ) -> EdgeFit:
     """Fit the three edges of the triangle whose coarse corners are ``corners_px`` (3, 2).
 
-    Two passes: sparse profiles across the chords of the coarse corners, then profiles
-    every pixel across the lines of the first pass, centred on them (symmetric about
-    the edge) and only as long as the measured blur needs. Lines are in ideal
+    Two passes: sparse profiles across the chords of the coarse corners (``half`` px
+    each side; repeated once on a longer window if the blur they measure needs one),
+    then profiles every PROFILE_SPACING_PX across the lines of the first pass, centred
+    on them (symmetric about the edge) and as long as the measured blur needs (3 blur
+    widths + 0.75 px, at most MAX_HALF_PX). Lines are in ideal
     (undistorted) pixels: f * (normalised coordinates), f = fx.
 
     With ``width`` (3,), the blur widths of a previous fit, the corners are taken to be
