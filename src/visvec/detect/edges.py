@@ -254,7 +254,7 @@ def _positions(
 
 
 def _widths(
-    vals: np.ndarray, e: np.ndarray, h: np.ndarray, gid: np.ndarray, half: float, step: float
+    vals: np.ndarray, e: np.ndarray, clear: np.ndarray, gid: np.ndarray, half: float, step: float
 ) -> np.ndarray:
     """(3,) RMS blur width (px) per edge: second moment of the mean profile derivative.
 
@@ -262,15 +262,15 @@ def _widths(
     several px off the edge and tilted to it (an acute apex from a shrunk image), so the
     step sits at a different offset in each profile. Each profile's derivative is shifted
     by its own step position (to the nearest sample) before averaging, so the mean is
-    not smeared by the chord's tilt; profiles without a clear step (step position near
-    the window's end, or step height under 0.4x the edge's median) are left out. The
+    not smeared by the chord's tilt; profiles without a clear step (``clear`` False:
+    step position near the window's end, or step height under 0.4x the edge's median)
+    are left out. The
     mean is not clipped at zero: noise then adds no bias (clipping widened a 0.81 px
     edge to 0.87 px median at 2 grey levels of noise).
     """
     d = np.diff(vals, axis=1)
     n_bins = d.shape[1]
-    h_mid = np.array([_median(h[gid == i]) if np.any(gid == i) else 0.0 for i in range(3)])
-    good = (np.abs(e) < half - 1.0) & (h > 0.4 * np.maximum(h_mid, 1e-6)[gid])
+    good = clear
     k = np.rint(e[good] / step).astype(int)
     j = np.arange(n_bins)[None, :] - k[:, None] + n_bins  # aligned bin, in [0, 3 n_bins)
     flat = (gid[good][:, None] * (3 * n_bins) + j).ravel()
@@ -347,8 +347,12 @@ def fit_edges(
             roi, corners, off, half + ext, step, trims, 2.0 if npass == 0 else PROFILE_SPACING_PX
         )
         e, h, mid = _positions(vals, t, gid, half, step, width if npass >= 1 else None, ext)
+        # per edge, the median step height; a profile has a clear step if its position
+        # is inside the window and its height at least 0.4x that median
+        h_mid = [_median(h[gid == i]) for i in range(3)]
+        clear = (np.abs(e) < half - 1.0) & (h > 0.4 * np.maximum(h_mid, 1e-6)[gid])
         if npass == 0:
-            width = _widths(vals, e, h, gid, half, step)
+            width = _widths(vals, e, clear, gid, half, step)
             # a blur this wide was cut short by the window: measure it again on a
             # window that holds it (once), from the corners of this pass
             need = 3.0 * sorted(width)[1] + 0.75
@@ -363,9 +367,7 @@ def fit_edges(
         outl, contrast, gaps = np.zeros(3), np.zeros(3), np.zeros((3, 2))
         for i in range(3):
             sel = np.nonzero(gid == i)[0]
-            hi_ = h[sel]
-            h_mid = _median(hi_)
-            good = (np.abs(e[sel]) < half - 1.0) & (hi_ > 0.4 * max(h_mid, 1e-6))
+            good = clear[sel]
             use = sel[good] if good.sum() >= 5 else sel
             n, o, c, sp, keep, sig = _robust_line(ideal[use], sigma_floor, 3 if npass == 1 else 1)
             if n @ centre_ideal < o:
@@ -373,7 +375,7 @@ def fit_edges(
             normals_l[i], offsets[i], centres[i] = n, o, c
             spreads[i], counts[i], sigmas[i] = sp, keep.sum(), sig
             outl[i] = 1.0 - keep.sum() / len(sel)
-            contrast[i] = h_mid
+            contrast[i] = h_mid[i]
             # how far the inlier edge points stop short of the two ends of the edge
             s_in = along[use[keep]]
             length = ends[i][2]
