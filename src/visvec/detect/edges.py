@@ -54,6 +54,10 @@ LEVEL_EXTENT_PX = 1.0
 # at 320x240). The sparse pass is repeated on a wider window when the blur it measures
 # needs one, so that the width itself is not cut short.
 MAX_HALF_PX = 8.0
+# A tracked frame measures the blur width on its own profiles; when the median of the
+# three edges differs from the widths it was fitted with by more than this factor (a
+# lens refocusing mid-run), the widths are measured afresh as on a cold frame.
+WIDTH_CHANGE = 1.35
 
 
 @dataclass(frozen=True)
@@ -334,8 +338,10 @@ def fit_edges(
     (undistorted) pixels: f * (normalised coordinates), f = fx.
 
     With ``width`` (3,), the blur widths of a previous fit, the corners are taken to be
-    good to a pixel (tracking): the sparse pass is skipped, and repeated only if the
-    vertices then move by more than ``TRACK_RECENTRE_PX``.
+    good to a pixel (tracking): the sparse pass is skipped, and run only if the widths
+    measured on the fine profiles differ from ``width`` by more than WIDTH_CHANGE (a
+    lens refocusing); the fine pass is repeated if the vertices move by more than
+    ``TRACK_RECENTRE_PX``.
     """
     reach = MAX_HALF_PX + LEVEL_EXTENT_PX + 3.0
     lo = np.floor(corners_px.min(axis=0) - reach).astype(int)
@@ -379,6 +385,14 @@ def fit_edges(
         # is inside the window and its height at least 0.4x that median
         h_mid = [_median(h[gid == i]) for i in range(3)]
         clear = (np.abs(e) < half - 1.0) & (h > 0.4 * np.maximum(h_mid, 1e-6)[gid])
+        if tracked and k == 1:
+            # a tracked frame keeps the widths of the last cold one: check them on this
+            # pass's profiles (a lens refocusing mid-run), and measure them afresh from
+            # these corners if they are off
+            n_ext = int(round(ext / step))
+            seen = _widths(vals[:, n_ext : vals.shape[1] - n_ext], e, clear, gid, half, step)
+            if abs(np.log(sorted(seen)[1] / w_mid)) > np.log(WIDTH_CHANGE):
+                passes.extend([0, 1])
         if npass == 0:
             width = _widths(vals, e, clear, gid, half, step)
             # a blur this wide was cut short by the window: measure it again on a
