@@ -3,7 +3,9 @@
 The clean-scene benchmark uses the default blur (sigma 0.6 px). Here the same scene is
 rendered with Gaussian defocus blur sigma 0.6 to 3 px, 100 cold frames per level and
 resolution, and "full" is scored on its accuracy, its ok fraction and whether its sigma
-still covers the errors (error/sigma RMS, rows beyond 3 and 5 sigma).
+still covers the errors (error/sigma RMS, rows beyond 3 and 5 sigma). Then a tracked
+recording (a smooth sweep at 30 fps) whose lens refocuses every 100 frames
+(REFOCUS_PX), scored per stretch of constant focus.
 
     python benchmarks/triangle_defocus.py [--frames 100]
 """
@@ -16,13 +18,25 @@ from dataclasses import replace
 
 import numpy as np
 
-from visvec.bench.triangle import evaluate, machine, random_cases, render_cases
+from visvec.bench.triangle import Case, evaluate, machine, random_cases, render_cases
 from visvec.rig import load_rig
 from visvec.sim.scene import Scene
+from visvec.sim.simulate import random_attitudes
 
 from _common import CONFIGS, command, save_json
 
 BLURS_PX = (0.6, 1.0, 1.5, 2.0, 3.0)
+# blur sigma (px) of each 100-frame stretch of the tracked recording
+REFOCUS_PX = (0.6, 1.5, 3.0, 0.8)
+
+
+def summarise(out) -> dict:
+    s = out.summary()
+    if out.n_ok:
+        z = np.array(out.err_deg) / np.array(out.sigma_deg)
+        rms = np.sqrt(np.mean(z**2, axis=0)).round(2).tolist()
+        s["z_rms"] = dict(zip(("yaw", "pitch", "roll"), rms, strict=True))
+    return s
 
 
 def main() -> None:
@@ -35,14 +49,20 @@ def main() -> None:
         res = {}
         for blur in BLURS_PX:
             cases = random_cases(args.frames, replace(Scene(), blur_sigma_px=blur), seed=21)
-            out = evaluate(rig, render_cases(rig, cases), cases, "full")
-            s = out.summary()
-            if out.n_ok:
-                z = np.array(out.err_deg) / np.array(out.sigma_deg)
-                rms = np.sqrt(np.mean(z**2, axis=0)).round(2).tolist()
-                s["z_rms"] = dict(zip(("yaw", "pitch", "roll"), rms, strict=True))
+            s = summarise(evaluate(rig, render_cases(rig, cases), cases, "full"))
             res[f"blur_{blur}"] = s
             print(cfg, blur, s)
+        # tracked: one pipeline through the whole recording, focus changing under it
+        eul = random_attitudes(100 * len(REFOCUS_PX), 5.0, np.random.default_rng(22), "sweep")
+        cases = [
+            Case(e, replace(Scene(), blur_sigma_px=REFOCUS_PX[k // 100]), 2200 + k)
+            for k, e in enumerate(eul)
+        ]
+        out = evaluate(rig, render_cases(rig, cases), cases, "full", track=True)
+        for j, blur in enumerate(REFOCUS_PX):
+            s = summarise(out.part(100 * j, 100 * (j + 1)))
+            res[f"tracked_stretch_{j}_blur_{blur}"] = s
+            print(cfg, "tracked", j, blur, s)
         results[cfg] = res
     print(save_json("triangle_defocus", results))
 

@@ -57,6 +57,17 @@ class Outcome:
     def n_ok(self) -> int:
         return len(self.err_deg)
 
+    def part(self, start: int, stop: int) -> Outcome:
+        """The rows of frames start..stop-1 (ok rows' errors kept in step)."""
+        first = sum(st == "ok" for st in self.status[:start])
+        n_ok = sum(st == "ok" for st in self.status[start:stop])
+        return Outcome(
+            self.status[start:stop],
+            self.warnings[start:stop],
+            self.err_deg[first : first + n_ok],
+            self.sigma_deg[first : first + n_ok],
+        )
+
     def rms(self) -> np.ndarray:
         e = np.array(self.err_deg).reshape(-1, 3)
         return np.sqrt(np.mean(e**2, axis=0)) if len(e) else np.full(3, np.nan)
