@@ -104,17 +104,22 @@ def iter_candidates(
         levels = _levels(small, n_levels)
     for level in levels:
         _, binary = cv2.threshold(small, float(level), 255, cv2.THRESH_BINARY)
-        n, labels, stats, _ = cv2.connectedComponentsWithStats(binary, connectivity=8)
-        areas = stats[1:, cv2.CC_STAT_AREA]
+        # outer outlines of the 8-connected bright regions, also those inside another
+        # region's hole (the triangle on the board in a bright ceiling): RETR_CCOMP puts
+        # every outer outline at the top level, holes under them. findContours is ~6x
+        # faster than connectedComponentsWithStats here.
+        cnts, hierarchy = cv2.findContours(binary, cv2.RETR_CCOMP, cv2.CHAIN_APPROX_NONE)
         found = []
-        for k in np.nonzero((areas >= a_lo) & (areas <= a_hi))[0] + 1:
-            x, y, bw, bh = stats[k, :4]
-            roi = (labels[y : y + bh, x : x + bw] == k).astype(np.uint8)
-            cnts, _ = cv2.findContours(roi, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
-            cnt = max(cnts, key=cv2.contourArea)
-            if len(cnt) < 6:
+        for cnt, parent in zip(cnts, hierarchy[0, :, 3] if cnts else (), strict=True):
+            if parent >= 0 or len(cnt) < 6:  # a hole's outline
                 continue
             area_c = cv2.contourArea(cnt)
+            # pixels enclosed by the outline, boundary pixels included (Pick's theorem:
+            # the outline's B pixels are the polygon's lattice points on its boundary)
+            area_px = area_c + 0.5 * len(cnt) + 1.0
+            if not a_lo <= area_px <= a_hi:
+                continue
+            x, y, bw, bh = cv2.boundingRect(cnt)
             ok, tri = cv2.minEnclosingTriangle(cnt.astype(np.float32))
             if not ok:
                 continue
@@ -123,14 +128,13 @@ def iter_candidates(
             if fill < 0.8:
                 continue
             touches = bool(x == 0 or y == 0 or x + bw == w or y + bh == h)
-            off = np.array([x, y], dtype=float)
-            corners = (tri.reshape(3, 2) + off + 0.5) * scale - 0.5
-            contour = (cnt.reshape(-1, 2) + off + 0.5) * scale - 0.5
+            corners = (tri.reshape(3, 2) + 0.5) * scale - 0.5
+            contour = (cnt.reshape(-1, 2) + 0.5) * scale - 0.5
             found.append(
                 Candidate(
                     corners,
                     contour,
-                    float(areas[k - 1]) * scale**2,
+                    float(area_px) * scale**2,
                     float(level),
                     touches,
                     float(fill),

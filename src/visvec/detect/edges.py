@@ -29,6 +29,8 @@ from visvec.camera import CameraModel
 EDGE_VARIANCE_INFLATION = 1.3
 # spacing of the edge profiles along the edge in the fine pass (px)
 PROFILE_SPACING_PX = 1.5
+# and in the sparse first pass of a cold frame (px)
+SPARSE_SPACING_PX = 2.0
 # Gauss-Newton steps of the matched (erf) edge refinement
 GN_STEPS = 1
 # cv2.remap takes at most 32767 rows; no real edge needs more than this many profiles
@@ -374,8 +376,9 @@ def fit_edges(
             trim * _side_lengths(corners).min(),
             (half + ext + 2.0 * w_mid + 0.5) / np.sin(np.clip(_corner_angles(corners), 0.2, None)),
         )
+        spacing = SPARSE_SPACING_PX if npass == 0 else PROFILE_SPACING_PX
         bases, normals, gid, t, along, vals, ends = _sample(
-            roi, corners, off, half + ext, step, trims, 2.0 if npass == 0 else PROFILE_SPACING_PX
+            roi, corners, off, half + ext, step, trims, spacing
         )
         e, h, mid, level_sd = _positions(
             vals, t, gid, half, step, width if npass >= 1 else None, ext
