@@ -401,3 +401,24 @@ def test_real_photos_without_a_triangle_are_never_ok(request, rig_name):
         row = pipe.process(Frame(k, 0.0, img))
         assert not row.ok, f.name
         assert row.status in (Status.NO_TARGET, Status.REJECTED), (f.name, row.status)
+
+
+def test_region_search_finds_a_triangle_inside_a_hole_with_its_pixel_area():
+    """The triangle on the dark board inside a bright ceiling is an outline nested in
+    another region's hole; its area (from the outline, by Pick's theorem) is its pixel
+    count, as connected components counted it."""
+    from visvec.detect.candidates import iter_candidates
+
+    img = np.full((240, 320), 200, np.uint8)  # bright ceiling
+    cv2.rectangle(img, (60, 30), (260, 210), 40, -1)  # dark board
+    tri = np.array([[160, 50], [110, 190], [215, 185]], np.int32)
+    cv2.fillPoly(img, [tri], 120)
+    cands = list(iter_candidates(img, 7000.0, levels=np.array([80.0])))
+    assert len(cands) == 1
+    c = cands[0]
+    n_px = int(np.count_nonzero(img == 120))
+    assert c.area_px == pytest.approx(n_px, abs=0.5)
+    assert not c.touches_border and c.fill > 0.95
+    # corners of the enclosing triangle near the drawn ones (order free)
+    d = np.linalg.norm(c.corners_px[:, None, :] - tri[None, :, :], axis=2)
+    assert d.min(axis=0).max() < 3.0
