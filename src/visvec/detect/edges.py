@@ -383,7 +383,9 @@ def fit_edges(
         e, h, mid, level_sd = _positions(
             vals, t, gid, half, step, width if npass >= 1 else None, ext
         )
-        level_px = _level_gain(width, half, step) * level_sd
+        # the levels' share of each edge point's error (fine passes: the first pass's
+        # area estimate is only used for its lines, never for a covariance)
+        level_px = _level_gain(width, half, step) * level_sd if npass >= 1 else np.zeros(3)
         # per edge, the median step height; a profile has a clear step if its position
         # is inside the window and its height at least 0.4x that median
         h_mid = [_median(h[gid == i]) for i in range(3)]
@@ -417,8 +419,7 @@ def fit_edges(
             n, o, c, sp, keep, sig = _robust_line(ideal[use], sigma_floor, 3 if npass == 1 else 1)
             # the levels' error, common to the edge's profiles (see _level_gain): added
             # per point, so that over the count it is the variance of the line's shift
-            # from the fitted level line (the first pass's area estimate is only used
-            # for its lines, never for a covariance)
+            # from the fitted level line
             sig = float(np.hypot(sig, level_px[i] / max(abs(h_mid[i]), 1e-6)))
             if n @ centre_ideal < o:
                 n, o = -n, -o
