@@ -6,6 +6,8 @@ import json
 import sys
 from pathlib import Path
 
+import numpy as np
+
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
 OUT = HERE / "out"
@@ -28,3 +30,13 @@ def command() -> str:
             *sys.argv[1:],
         ]
     )
+
+
+def summarise(out) -> dict:
+    """An Outcome's summary with the RMS of error/sigma per axis (ok rows)."""
+    s = out.summary()
+    if out.n_ok:
+        z = np.array(out.err_deg) / np.array(out.sigma_deg)
+        rms = np.sqrt(np.mean(z**2, axis=0)).round(2).tolist()
+        s["z_rms"] = dict(zip(("yaw", "pitch", "roll"), rms, strict=True))
+    return s

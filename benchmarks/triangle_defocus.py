@@ -23,20 +23,11 @@ from visvec.rig import load_rig
 from visvec.sim.scene import Scene
 from visvec.sim.simulate import random_attitudes
 
-from _common import CONFIGS, command, save_json
+from _common import CONFIGS, command, save_json, summarise
 
 BLURS_PX = (0.6, 1.0, 1.5, 2.0, 3.0)
 # blur sigma (px) of each 100-frame stretch of the tracked recording
 REFOCUS_PX = (0.6, 1.5, 3.0, 0.8)
-
-
-def summarise(out) -> dict:
-    s = out.summary()
-    if out.n_ok:
-        z = np.array(out.err_deg) / np.array(out.sigma_deg)
-        rms = np.sqrt(np.mean(z**2, axis=0)).round(2).tolist()
-        s["z_rms"] = dict(zip(("yaw", "pitch", "roll"), rms, strict=True))
-    return s
 
 
 def main() -> None:
