@@ -377,6 +377,25 @@ def test_histogram_percentiles_equal_numpys(h, w, levels, seed):
     np.testing.assert_allclose(_percentiles(img, qs), np.percentile(img, qs), atol=1e-9)
 
 
+@settings(max_examples=40, deadline=None)
+@given(st.integers(1, 90), st.integers(1, 90), st.integers(1, 12), st.integers(0, 2**31 - 1))
+def test_shrink_is_the_block_mean(h, w, scale, seed):
+    """The region search's small image: pixel (i, j) is the mean of full-resolution block
+    [scale i, scale (i + 1)) x [scale j, scale (j + 1)), to the rounding of each step."""
+    from visvec.detect.candidates import shrink
+
+    scale = min(scale, h, w)
+    img = np.random.default_rng(seed).integers(0, 256, (h, w)).astype(np.uint8)
+    small = shrink(img, scale)
+    hs, ws = h // scale, w // scale
+    assert small.shape == (hs, ws)
+    blocks = img[: hs * scale, : ws * scale].astype(float).reshape(hs, scale, ws, scale)
+    # each halving, and the odd step left after them, rounds to a grey level
+    halvings = (scale & -scale).bit_length() - 1
+    steps = halvings + int(scale >> halvings > 1)
+    assert np.abs(small - blocks.mean(axis=(1, 3))).max() <= 0.5 * steps + 1e-9
+
+
 @pytest.mark.parametrize("rig_name", ["rig640", "rig320"])
 def test_real_photos_without_a_triangle_are_never_ok(request, rig_name):
     """Real photos (OpenCV's chessboards, night skies, a tree, a roof), scaled to the

@@ -40,13 +40,32 @@ class Candidate:
 def _percentiles(image: np.ndarray, qs: tuple[float, ...]) -> np.ndarray:
     """np.percentile (linear interpolation) of a uint8 image, from its histogram (a
     cumulative count instead of a partial sort)."""
-    cdf = np.cumsum(np.bincount(image.ravel(), minlength=256))
+    # cv2.calcHist counts in float32, exact to 2^24 pixels; 2-3x faster than np.bincount
+    cdf = np.cumsum(cv2.calcHist([image], [0], None, [256], [0, 256]).ravel().astype(np.int64))
     n = int(cdf[-1])
     pos = np.asarray(qs, float) / 100.0 * (n - 1)
     k = pos.astype(int)
     v = np.searchsorted(cdf, np.concatenate([k, np.minimum(k + 1, n - 1)]), side="right")
     v0, v1 = v[: len(k)], v[len(k) :]
     return v0 + (pos - k) * (v1 - v0)
+
+
+def shrink(image: np.ndarray, scale: int) -> np.ndarray:
+    """The image area-averaged over ``scale`` x ``scale`` blocks (the last rows and
+    columns that do not fill a block dropped), so that pixel (i, j) of the result covers
+    full-resolution pixels [scale i, scale (i + 1)).
+
+    Factors of two are taken one halving at a time: cv2.resize's INTER_AREA has a fast
+    path for exactly 2x (15 us for 640x480 -> 160x120 in two halvings against 110 us in
+    one 4x step).
+    """
+    h, w = image.shape[:2]
+    out = image[: h - h % scale, : w - w % scale]
+    while scale > 1:
+        f = 2 if scale % 2 == 0 else scale
+        out = cv2.resize(out, (out.shape[1] // f, out.shape[0] // f), interpolation=cv2.INTER_AREA)
+        scale //= f
+    return out
 
 
 def _levels(small: np.ndarray, n: int) -> np.ndarray:
@@ -90,13 +109,7 @@ def iter_candidates(
     ------
     Candidate, level by level, the most triangular first within a level.
     """
-    small = (
-        image
-        if scale == 1
-        else cv2.resize(
-            image, (image.shape[1] // scale, image.shape[0] // scale), interpolation=cv2.INTER_AREA
-        )
-    )
+    small = shrink(image, scale)
     h, w = small.shape
     a_exp = expected_area_px / scale**2
     a_lo, a_hi = a_exp * (1 - area_tol), a_exp * (1 + area_tol)
