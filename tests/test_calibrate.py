@@ -51,6 +51,35 @@ def test_zero_tilt_recovers_target_offset_and_camera_tilt(rig640, rng):
     np.testing.assert_allclose(cal.target.vertices_mm, world.target.vertices_mm, atol=0.5)
 
 
+@pytest.mark.parametrize("scale_in_rig", [1.0, 1.5])
+def test_zero_tilt_measures_how_much_wider_the_vertices_scatter_than_their_sigma(
+    rig640, scale_in_rig
+):
+    """The a-posteriori variance factor: vertices with 0.03 px of noise whose covariance
+    says 0.02 px scatter 1.5x their sigma; the check is against the detector's own
+    covariance whatever sigma_scale the rig already applies."""
+    from dataclasses import replace
+
+    world = true_rig(rig640, (15.0, -6.0), (0.7, -0.4))
+    rig = replace(rig640, detect=replace(rig640.detect, sigma_scale=scale_in_rig))
+    yaws = np.radians(np.arange(-180, 180, 3.0))  # 120 frames: 596 degrees of freedom
+    dets = _level_detections(rig, world, yaws, 0.03, np.random.default_rng(5))
+    own = (0.02 / rig.camera.fx) ** 2  # what the edge model says
+    dets = [replace(d, cov_n=np.eye(6) * own * scale_in_rig**2) for d in dets]
+    res = calibrate_zero_tilt(dets, rig)
+    assert res.dof == 5 * len(dets) - 4
+    lo, hi = res.sigma_ratio_95
+    assert lo < 1.5 < hi and hi - lo < 0.2
+    assert res.sigma_scale == res.sigma_ratio
+    assert res.apply(rig).detect.sigma_scale == res.sigma_ratio
+    # an honest covariance passes the check and leaves the scale at 1
+    dets = _level_detections(rig640, world, yaws, 0.02, np.random.default_rng(5))
+    res = calibrate_zero_tilt(dets, rig640)
+    lo, hi = res.sigma_ratio_95
+    assert lo < 1.0 < hi
+    assert res.sigma_scale == 1.0
+
+
 def test_zero_tilt_needs_spread_yaws(rig640):
     dets = _level_detections(rig640, rig640, np.radians([0.0, 5.0, 10.0, 15.0]))
     with pytest.raises(InputFileError, match="spread over at least 60 deg"):
@@ -96,8 +125,11 @@ def test_calibrate_zero_tilt_cli_end_to_end(tmp_path):
     )
     assert r.exit_code == 0, r.output
     assert "target offset from the axis: dx +1" in r.output
+    assert "sigma check: the vertices scatter" in r.output
     text = cal.read_text()
     assert "[mount]" in text and "[target]" in text and "[zero_tilt]" in text
+    # clean frames: the edge model's sigma holds, and the file says so
+    assert "[detect]" in text and "sigma_scale = 1.0" in text
     r = CliRunner().invoke(
         cli,
         [

@@ -65,6 +65,18 @@ def test_noisy_vertices_and_their_covariance(rig640):
     assert 0.6 < zr < 1.5, zr
 
 
+def test_sigma_scale_widens_the_vertex_covariance_and_nothing_else(rig640):
+    """[detect] sigma_scale (written by `calibrate zero-tilt`) multiplies the vertices'
+    sigma; the vertices themselves do not move."""
+    img = render_frame(rig640, _attitudes(1, 4)[0], Scene(), rng=4)
+    d1 = TriangleDetector(rig640).detect(img)
+    wide = replace(rig640, detect=replace(rig640.detect, sigma_scale=1.3))
+    d2 = TriangleDetector(wide).detect(img)
+    assert d1.status is Status.OK and d2.status is Status.OK
+    np.testing.assert_array_equal(d1.points_n, d2.points_n)
+    np.testing.assert_allclose(d2.cov_n, 1.3**2 * d1.cov_n, rtol=1e-12)
+
+
 def test_edge_along_a_pixel_row_is_not_biased_by_off_centre_profiles(rig640):
     """A cold frame whose base edge lies along a pixel row (found in the accuracy
     benchmark): the first fine pass was centred on a coarse line 2 px off, its windows

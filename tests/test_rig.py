@@ -64,6 +64,11 @@ def test_example_configs_load():
             ["[platform]", "unknown key", "max_tilt"],
         ),
         ('refine = "lines"', 'refine = "magic"', ["[detect] refine", "expected one of"]),
+        (
+            'refine = "lines"',
+            'refine = "lines"\nsigma_scale = 0.0',
+            ["[detect] sigma_scale", "expected a number > 0"],
+        ),
         ("[platform]", "[plaftorm]", ["unknown section", "plaftorm"]),
         (
             "rotation = [[1, 0, 0], [0, 1, 0], [0, 0, 1]]",

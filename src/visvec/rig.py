@@ -116,6 +116,9 @@ class DetectSettings:
     min_contrast : least grey-level step between board and triangle to accept.
     refine : "lines" (edge-line fits, default) or "corners" (cv2.cornerSubPix).
     pixel_sigma_floor : px, least per-point noise assumed in the covariance.
+    sigma_scale : triangle: factor on the vertices' 1-sigma (1 = the edge-noise model
+        alone). `calibrate zero-tilt` measures it from the level frames' scatter and
+        writes it when that is significantly wider than the model (compressed video).
     threshold : markers: grey level above which a pixel belongs to a spot (0 = automatic:
         background median + 6 robust sigmas, at least 20).
     centroid_sigma_px : markers: 1-sigma noise of a spot centroid, used in the covariance.
@@ -126,6 +129,7 @@ class DetectSettings:
     min_contrast: float = 8.0
     refine: str = "lines"
     pixel_sigma_floor: float = 0.02
+    sigma_scale: float = 1.0
     threshold: float = 0.0
     centroid_sigma_px: float = 0.1
     min_spot_px: int = 3
@@ -402,6 +406,7 @@ def rig_from_dict(raw: Mapping[str, Any], src: str = "<rig>", base_dir: Path | N
         min_contrast=det.number("min_contrast", 8.0, positive=True),
         refine=det.choice("refine", REFINE_METHODS, "lines"),
         pixel_sigma_floor=det.number("pixel_sigma_floor", 0.02, lo=0.0, hi=5.0),
+        sigma_scale=det.number("sigma_scale", 1.0, positive=True, hi=10.0),
         threshold=det.number("threshold", 0.0, lo=0.0, hi=65535.0),
         centroid_sigma_px=det.number("centroid_sigma_px", 0.1, positive=True, hi=10.0),
         min_spot_px=int(det.number("min_spot_px", 3, positive=True)),

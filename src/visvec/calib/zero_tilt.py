@@ -7,6 +7,14 @@ with each frame's unknown yaw, by weighted least squares on the vertex positions
 offset without a yaw reference and is not estimated; nor can a sideways camera offset be
 told from a camera tilt (the target is one plane), so the rig's camera position is kept.
 
+The same fit checks the vertices' sigma on this camera: with each frame's yaw free, the
+weighted residuals' chi-square over its degrees of freedom (the a-posteriori variance
+factor of a least-squares adjustment) is the square of how much wider the vertices
+scatter than their covariance says. Recordings through a lossy codec scatter wider than
+the edge-noise model (block errors correlated along an edge); when the excess is
+significant the ratio is written as ``[detect] sigma_scale``, which scales every later
+row's sigma.
+
 For the "paper" estimator: the zero-tilt centroid, the centre of the circle the
 triangle's centroid traces as the level platform turns (Kasa's algebraic circle fit; the
 mean when the yaws do not spread).
@@ -14,10 +22,11 @@ mean when the yaws do not spread).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.optimize import least_squares
+from scipy.stats import chi2 as chi2_dist
 
 from visvec.data import Detection
 from visvec.errors import InputFileError
@@ -26,6 +35,9 @@ from visvec.rotations import rot_x, rot_y, rot_z
 
 MIN_FRAMES = 3
 MIN_YAW_SPREAD_DEG = 60.0
+# the vertices' scatter counts as wider than their sigma when chi-square exceeds this
+# quantile of its distribution under the covariance (a 1 % false alarm rate)
+SIGMA_CHECK_QUANTILE = 0.99
 
 
 @dataclass(frozen=True)
@@ -38,6 +50,10 @@ class ZeroTiltResult:
     yaw_deg : (K,) each frame's yaw
     residual_px : (K,) RMS vertex residual per frame
     rms_px : float, overall
+    sigma_ratio : float, the vertices' scatter over their sigma without any sigma_scale
+        (sqrt of chi-square per degree of freedom), and sigma_ratio_95 : (2,) its 95 %
+        interval; dof : int, the degrees of freedom
+    sigma_scale : float, sigma_ratio if significantly above 1, else 1
     """
 
     target_offset_mm: np.ndarray
@@ -50,6 +66,10 @@ class ZeroTiltResult:
     residual_px: np.ndarray
     rms_px: float
     converged: bool
+    sigma_ratio: float = 1.0
+    sigma_ratio_95: np.ndarray = field(default_factory=lambda: np.ones(2))
+    dof: int = 0
+    sigma_scale: float = 1.0
 
     def apply(self, rig: Rig) -> Rig:
         """The rig with the calibration applied."""
@@ -62,6 +82,7 @@ class ZeroTiltResult:
             target=replace(rig.target, vertices_mm=v),
             mount=replace(rig.mount, rotation=R_bc),
             zero_tilt=replace(rig.zero_tilt, centroid_px=self.centroid_px),
+            detect=replace(rig.detect, sigma_scale=self.sigma_scale),
         )
 
 
@@ -141,6 +162,13 @@ def calibrate_zero_tilt(dets: list[Detection], rig: Rig) -> ZeroTiltResult:
     dof = max(6 * n - len(x0), 1)
     chi2 = float(sol.fun @ sol.fun)
     cov = np.linalg.pinv(J.T @ J) * max(1.0, chi2 / dof)
+    # the sigma check, against the detector's own covariance (the detections carry the
+    # rig's sigma_scale, if any, squared)
+    chi2_own = chi2 * rig.detect.sigma_scale**2
+    ratio = float(np.sqrt(chi2_own / dof))
+    # 95 % interval of the ratio: chi2_own / ratio^2 ~ chi-square(dof)
+    ratio_95 = ratio * np.sqrt(dof / chi2_dist.ppf([0.975, 0.025], dof))
+    wider = chi2_own > chi2_dist.ppf(SIGMA_CHECK_QUANTILE, dof)
     sig = np.sqrt(np.diag(cov))
     r = (_model(sol.x, rig, n) - meas) * rig.camera.fx
     per_frame = np.sqrt((r**2).reshape(n, 6).mean(axis=1))
@@ -157,6 +185,10 @@ def calibrate_zero_tilt(dets: list[Detection], rig: Rig) -> ZeroTiltResult:
         residual_px=per_frame,
         rms_px=float(np.sqrt(np.mean(r**2))),
         converged=bool(sol.success),
+        sigma_ratio=ratio,
+        sigma_ratio_95=ratio_95,
+        dof=dof,
+        sigma_scale=ratio if wider else 1.0,
     )
 
 
@@ -170,6 +202,7 @@ def calibration_sections(res: ZeroTiltResult, rig: Rig) -> dict[str, dict[str, o
             "centroid_px": np.round(res.centroid_px, 4),
             "residual_px": round(res.rms_px, 5),
         },
+        "detect": {"sigma_scale": round(res.sigma_scale, 4)},
         "report": {
             "frames": len(res.yaw_deg),
             "target_offset_mm": np.round(res.target_offset_mm, 4),
@@ -177,5 +210,8 @@ def calibration_sections(res: ZeroTiltResult, rig: Rig) -> dict[str, dict[str, o
             "camera_tilt_deg": np.round(res.camera_tilt_deg, 5),
             "sigma_camera_tilt_deg": np.round(res.sigma_camera_tilt_deg, 5),
             "sigma_centroid_px": np.round(res.sigma_centroid_px, 4),
+            "sigma_ratio": round(res.sigma_ratio, 4),
+            "sigma_ratio_95": np.round(res.sigma_ratio_95, 4),
+            "sigma_dof": res.dof,
         },
     }

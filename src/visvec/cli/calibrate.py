@@ -75,6 +75,21 @@ def zero_tilt(frames, rig_path, calibration, out):
     click.echo(
         f"  residual: rms {res.rms_px:.4f} px, worst frame {float(np.max(res.residual_px)):.4f} px"
     )
+    lo, hi = res.sigma_ratio_95
+    verdict = (
+        f"wider than the edge-noise model (a lossy codec?): every row's sigma will be "
+        f"scaled by {res.sigma_scale:.3f} ([detect] sigma_scale)"
+        if res.sigma_scale > 1.0
+        else "consistent with it (sigma_scale 1)"
+    )
+    click.echo(
+        f"  sigma check: the vertices scatter {res.sigma_ratio:.3f}x their sigma (95 % "
+        f"interval {lo:.3f}-{hi:.3f}, {res.dof} degrees of freedom): {verdict}"
+    )
+    if hi / lo > 1.25:
+        click.echo(
+            "    (for a tighter check, record a few seconds at each yaw: every frame counts)"
+        )
     click.echo("  per frame (yaw found, rms vertex residual):")
     for name, yaw, r in zip(names, res.yaw_deg, res.residual_px, strict=True):
         click.echo(f"    {name}: yaw {yaw:+9.3f} deg, {r:.4f} px")
