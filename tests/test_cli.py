@@ -116,6 +116,36 @@ def test_a_camera_that_cannot_be_opened_gives_one_line_not_opencvs_warnings():
     ]
 
 
+def test_a_reader_that_closes_the_pipe_ends_the_run_quietly(tmp_path):
+    """`visvec batch ... | head -2`: the run ends with status 0 and no error message, and
+    a calibration whose report is cut short has still written its file."""
+    import subprocess
+    import sys
+
+    rig320 = str(CONFIGS / "triangle-320.toml")
+    frames = tmp_path / "level"
+    r = run("simulate", "--rig", rig320, "--out", frames, "--frames", 40, "--motion", "level")
+    assert r.exit_code == 0
+    vis = [sys.executable, "-m", "visvec"]
+    p = subprocess.Popen(
+        [*vis, "batch", str(frames), "--rig", rig320],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    assert p.stdout.readline().startswith("frame,time_s,status")
+    p.stdout.close()  # the reader is gone before the rows come
+    assert p.wait(timeout=120) == 0
+    assert p.stderr.read() == ""
+    cal = tmp_path / "cal.toml"
+    cmd = [*vis, "calibrate", "zero-tilt", str(frames), "--rig", rig320, "--out", str(cal)]
+    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    p.stdout.close()
+    assert p.wait(timeout=120) == 0
+    assert p.stderr.read() == ""
+    assert "sigma_scale" in cal.read_text()
+
+
 def test_bad_frames_are_read_error_rows_and_the_run_goes_on(tmp_path):
     folder = tmp_path / "frames"
     folder.mkdir()

@@ -65,8 +65,8 @@ def test_example_configs_load():
         ),
         ('refine = "lines"', 'refine = "magic"', ["[detect] refine", "expected one of"]),
         (
-            'refine = "lines"',
-            'refine = "lines"\nsigma_scale = 0.0',
+            "sigma_scale = 1.0",
+            "sigma_scale = 0.0",
             ["[detect] sigma_scale", "expected a number > 0"],
         ),
         ("[platform]", "[plaftorm]", ["unknown section", "plaftorm"]),

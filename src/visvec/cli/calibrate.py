@@ -55,7 +55,14 @@ def zero_tilt(frames, rig_path, calibration, out):
                 f"frame {frame.index}: skipped ({row.status}: {';'.join(row.warnings)})", err=True
             )
     res = calibrate_zero_tilt(dets, rig)
-    sec = calibration_sections(res, rig)
+    if res.converged:
+        # written before the report is printed: a reader that closes the pipe early
+        # (`| head`) loses none of it
+        header = (
+            f"visvec zero-tilt calibration, {datetime.now(UTC):%Y-%m-%d %H:%M} UTC\n"
+            f"rig {rig_path}, frames {frames} ({len(dets)} used)"
+        )
+        Path(out).write_text(dumps(calibration_sections(res, rig), header))
     click.echo(f"zero-tilt calibration from {len(dets)} frames ({bad} skipped)")
     click.echo(
         f"  target offset from the axis: dx {res.target_offset_mm[0]:+.2f} +- "
@@ -96,11 +103,6 @@ def zero_tilt(frames, rig_path, calibration, out):
     if not res.converged:
         click.echo("visvec: error: the calibration did not converge; nothing written", err=True)
         raise SystemExit(1)
-    header = (
-        f"visvec zero-tilt calibration, {datetime.now(UTC):%Y-%m-%d %H:%M} UTC\n"
-        f"rig {rig_path}, frames {frames} ({len(dets)} used)"
-    )
-    Path(out).write_text(dumps(sec, header))
     click.echo(f"wrote {out}")
 
 
@@ -138,6 +140,13 @@ def camera(frames, pattern, square_mm, recipe, out):
     if not files:
         raise SourceError(f"{frames}: no images found")
     cal = calibrate_camera(files, pat, square_mm, recipe)
+    text = dumps(
+        {"camera": camera_section(cal)},
+        f"visvec camera calibration ({recipe}), pattern {pattern}, "
+        f"square {square_mm} mm, rms {cal.rms_px:.4f} px",
+    )
+    if out:
+        Path(out).write_text(text)  # before the report (see zero-tilt)
     click.echo(
         f"camera calibration from {len(cal.files)} views "
         f"({len(cal.skipped)} without the pattern: {', '.join(cal.skipped) or '-'})"
@@ -151,14 +160,7 @@ def camera(frames, pattern, square_mm, recipe, out):
     for name, e in zip(cal.files, cal.per_view_px, strict=True):
         flag = "  <- outlier" if name in cal.outliers else ""
         click.echo(f"    {name}: {e:.4f} px{flag}")
-    sec = {"camera": camera_section(cal)}
-    text = dumps(
-        sec,
-        f"visvec camera calibration ({recipe}), pattern {pattern}, "
-        f"square {square_mm} mm, rms {cal.rms_px:.4f} px",
-    )
     if out:
-        Path(out).write_text(text)
         click.echo(f"wrote {out}")
     else:
         click.echo(text)
@@ -212,6 +214,16 @@ def system(frames, rig_path, calibration, out, max_iterations):
     fr_a, mk_a, uv_a = np.array(fr), np.array(mk), np.vstack(uv)
     obs = Observations(fr_a, mk_a, uv_a, initial_attitudes(rig, fr_a, mk_a, uv_a))
     res = calibrate_system(rig, obs, max_iterations)
+    if res.converged:
+        header = (
+            f"visvec system calibration, {datetime.now(UTC):%Y-%m-%d %H:%M} UTC\n"
+            f"rig {rig_path}, frames {frames} ({n_used} used)\n"
+            f"residual std {res.residual_std_px:.4f} px; B's orientation 1-sigma (a bias "
+            f"shared by every attitude) about b1, b2, b3: "
+            + ", ".join(f"{v:.1f}" for v in res.b_orientation_sigma_arcsec)
+            + " arcsec"
+        )
+        Path(out).write_text(dumps(system_sections(res), header))  # before the report
     click.echo(f"system calibration from {n_used} frames, {len(mk_a)} marker positions")
     for line in res.report():
         click.echo(line)
@@ -222,13 +234,4 @@ def system(frames, rig_path, calibration, out, max_iterations):
             err=True,
         )
         raise SystemExit(1)
-    header = (
-        f"visvec system calibration, {datetime.now(UTC):%Y-%m-%d %H:%M} UTC\n"
-        f"rig {rig_path}, frames {frames} ({n_used} used)\n"
-        f"residual std {res.residual_std_px:.4f} px; B's orientation 1-sigma (a bias "
-        f"shared by every attitude) about b1, b2, b3: "
-        + ", ".join(f"{v:.1f}" for v in res.b_orientation_sigma_arcsec)
-        + " arcsec"
-    )
-    Path(out).write_text(dumps(system_sections(res), header))
     click.echo(f"wrote {out}")

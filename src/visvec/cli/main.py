@@ -29,6 +29,14 @@ class VisvecGroup(click.Group):
             raise
         except KeyboardInterrupt:
             sys.exit(0)
+        except BrokenPipeError:
+            # the reader of stdout went away (`visvec track ... | head`): like Ctrl-C, the
+            # run ends quietly; stdout goes to devnull so that Python's own flush at exit
+            # does not raise again
+            import os
+
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+            sys.exit(0)
         except Exception as exc:  # noqa: BLE001 - the last resort promised by the SPEC
             if debug:
                 raise
