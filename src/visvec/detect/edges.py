@@ -208,11 +208,12 @@ def _sample(
     normals = N[gid]
     ends = [(A[i], D[i], float(length[i])) for i in range(3)]
     offs = np.arange(-half, half + 1e-9, step)
-    pts = bases[:, None, :] - off + offs[None, :, None] * normals[:, None, :]
-    # one (M, S, 2) float32 map (x, y interleaved), converted in one contiguous pass
-    vals = cv2.remap(
-        roi, pts.astype(np.float32), None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
-    )
+    # the sample points as two (M, S) float32 maps, x and y: built as 2-D broadcasts
+    # (an interleaved (M, S, 2) map took 3x longer to build than cv2.remap takes to run)
+    b = bases - off
+    map_x = (b[:, 0:1] + offs * normals[:, 0:1]).astype(np.float32)
+    map_y = (b[:, 1:2] + offs * normals[:, 1:2]).astype(np.float32)
+    vals = cv2.remap(roi, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     return bases, normals, gid, tt, along, vals, ends
 
 
