@@ -389,6 +389,65 @@ def test_histogram_percentiles_equal_numpys(h, w, levels, seed):
     np.testing.assert_allclose(_percentiles(img, qs), np.percentile(img, qs), atol=1e-9)
 
 
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.integers(1, 40), min_size=3, max_size=3), st.integers(0, 2**31 - 1))
+def test_group_median_equals_numpys_per_edge(sizes, seed):
+    """The edges' medians in one sort: each equals np.median of that edge's kept values."""
+    from visvec.detect.edges import _group_median
+
+    r = np.random.default_rng(seed)
+    gid = np.repeat(np.arange(3), sizes)
+    index = np.concatenate([np.arange(m) for m in sizes])
+    a = r.standard_normal(len(gid))
+    keep = r.random(len(gid)) < 0.7
+    med = _group_median(a, gid, index, keep)
+    for i in range(3):
+        sel = a[(gid == i) & keep]
+        assert med[i] == (np.median(sel) if sel.size else 0.0)
+
+
+def test_robust_lines_reject_outliers_and_measure_the_noise():
+    """Three noisy lines with gross outliers, fitted at once: each line within its noise,
+    the outliers out, sigma the residuals' (inflated) RMS; an edge with fewer than 5
+    usable points keeps them all."""
+    from visvec.detect.edges import EDGE_VARIANCE_INFLATION, _robust_lines
+
+    r = np.random.default_rng(11)
+    m = [300, 200, 250]
+    gid = np.repeat(np.arange(3), m)
+    index = np.concatenate([np.arange(k) for k in m])
+    angles = np.radians([10.0, 75.0, -50.0])
+    offsets = np.array([40.0, -12.0, 7.5])
+    normal = np.column_stack([np.cos(angles), np.sin(angles)])
+    along = r.uniform(-100, 100, len(gid))
+    noise = 0.05 * r.standard_normal(len(gid))
+    bad = r.random(len(gid)) < 0.05
+    noise[bad] += r.choice([-1.0, 1.0], bad.sum()) * r.uniform(1.0, 5.0, bad.sum())
+    perp = np.column_stack([-normal[gid, 1], normal[gid, 0]])
+    p = normal[gid] * (offsets[gid] + noise)[:, None] + perp * along[:, None]
+    use = np.ones(len(gid), dtype=bool)
+    n, o, c, spread, sigma, keep = _robust_lines(p[:, 0], p[:, 1], gid, index, use, 0.0, 3)
+    for i in range(3):
+        s = np.sign(n[i] @ normal[i])
+        assert abs(s * o[i] - offsets[i]) < 0.02
+        assert np.degrees(np.arccos(min(1.0, abs(n[i] @ normal[i])))) < 0.02
+        sel = gid == i
+        assert not keep[sel & bad].any()  # every gross outlier (>= 1 px = 20 sigma) out
+        assert keep[sel & ~bad].mean() > 0.99
+        res = (p[sel & keep] - c[i]) @ n[i]
+        assert sigma[i] == pytest.approx(
+            np.sqrt(res @ res / (keep[sel].sum() - 2) * EDGE_VARIANCE_INFLATION), rel=1e-9
+        )
+        assert sigma[i] == pytest.approx(0.05 * np.sqrt(EDGE_VARIANCE_INFLATION), rel=0.15)
+    # an edge with only 4 usable points: no rejection round for it
+    use4 = use.copy()
+    use4[gid == 1] = False
+    use4[np.nonzero(gid == 1)[0][:4]] = True
+    _, _, _, _, _, keep4 = _robust_lines(p[:, 0], p[:, 1], gid, index, use4, 0.0, 3)
+    assert keep4[gid == 1].sum() == 4
+    np.testing.assert_array_equal(keep4[gid != 1], keep[gid != 1])
+
+
 @settings(max_examples=40, deadline=None)
 @given(st.integers(1, 90), st.integers(1, 90), st.integers(1, 12), st.integers(0, 2**31 - 1))
 def test_shrink_is_the_block_mean(h, w, scale, seed):

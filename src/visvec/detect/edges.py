@@ -106,72 +106,111 @@ def _side_lengths(p: np.ndarray) -> np.ndarray:
     return np.linalg.norm(p[[1, 2, 0]] - p[[2, 0, 1]], axis=1)
 
 
-def _corner_angles(p: np.ndarray) -> np.ndarray:
-    """(3,) interior angles (rad) from the law of cosines."""
-    a, b, c = _side_lengths(p)
+def _corner_angles(p: np.ndarray, sides: np.ndarray | None = None) -> np.ndarray:
+    """(3,) interior angles (rad) from the law of cosines (``sides``: _side_lengths(p))."""
+    a, b, c = (_side_lengths(p) if sides is None else sides).tolist()
     cos0 = (b * b + c * c - a * a) / (2 * b * c)
     cos1 = (a * a + c * c - b * b) / (2 * a * c)
     a0, a1 = np.arccos(np.clip([cos0, cos1], -1.0, 1.0))
     return np.array([a0, a1, np.pi - a0 - a1])
 
 
-def _median(a: np.ndarray) -> float:
-    """np.median of a 1-D array, without its wrapper's overhead (same value)."""
-    n = a.size
-    k = n // 2
-    if n % 2:
-        return float(np.partition(a, k)[k])
-    p = np.partition(a, (k - 1, k))
-    return 0.5 * (float(p[k - 1]) + float(p[k]))
-
-
-def _group_linear(t: np.ndarray, y: np.ndarray, gid: np.ndarray, n: int) -> np.ndarray:
-    """Per-group straight-line least-squares fit of y against t, evaluated at t."""
+def _group_linear(
+    t: np.ndarray, ys: tuple[np.ndarray, ...], gid: np.ndarray, n: int
+) -> list[np.ndarray]:
+    """Per-group straight-line least-squares fits of each y in ``ys`` against t,
+    evaluated at t (the sums over t shared)."""
     w = np.bincount(gid, minlength=n)
     st = np.bincount(gid, t, n)
-    sy = np.bincount(gid, y, n)
     stt = np.bincount(gid, t * t, n)
-    sty = np.bincount(gid, t * y, n)
     den = w * stt - st * st
-    slope = np.where(np.abs(den) > 1e-12, (w * sty - st * sy) / np.where(den == 0, 1, den), 0)
-    icpt = (sy - slope * st) / np.maximum(w, 1)
-    return icpt[gid] + slope[gid] * t
+    ok = np.abs(den) > 1e-12
+    den = np.where(ok, den, 1.0)
+    w1 = np.maximum(w, 1)
+    out = []
+    for y in ys:
+        sy = np.bincount(gid, y, n)
+        slope = np.where(ok, (w * np.bincount(gid, t * y, n) - st * sy) / den, 0.0)
+        icpt = (sy - slope * st) / w1
+        out.append(icpt[gid] + slope[gid] * t)
+    return out
 
 
-def _tls(p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Centre, unit direction and unit normal of the total-least-squares line through p."""
-    c = p.mean(axis=0)
-    q = p - c
-    sxx, syy, sxy = q[:, 0] @ q[:, 0], q[:, 1] @ q[:, 1], q[:, 0] @ q[:, 1]
-    # direction: principal axis of the 2x2 scatter matrix, angle 0.5 atan2(2 sxy, sxx - syy)
-    a = 0.5 * np.arctan2(2.0 * sxy, sxx - syy)
-    d = np.array([np.cos(a), np.sin(a)])
-    return c, d, np.array([-d[1], d[0]])
+def _group_tls(
+    x: np.ndarray, y: np.ndarray, gid: np.ndarray, keep: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Total-least-squares line through each edge's kept points (x, y), all three at once.
 
-
-def _robust_line(p: np.ndarray, floor: float, rounds: int = 3) -> tuple:
-    """Total-least-squares line through (N, 2) points with iterative outlier rejection
-    (3.5 robust sigmas, sigma from the median absolute residual).
-
-    Returns normal, offset, centre, spread, inlier mask, sigma.
+    Returns the count (3,), centre (3, 2), unit direction (3, 2), unit normal (3, 2) and
+    the centred coordinates (dx, dy) of every point (M, 2) about its edge's centre.
     """
-    keep = np.ones(len(p), dtype=bool)
-    c, d, n = _tls(p)
+    w = keep.astype(float)
+    k = np.bincount(gid, w, 3)
+    kk = np.maximum(k, 1.0)
+    c = np.column_stack([np.bincount(gid, w * x, 3) / kk, np.bincount(gid, w * y, 3) / kk])
+    dx, dy = x - c[gid, 0], y - c[gid, 1]
+    sxx = np.bincount(gid, w * dx * dx, 3)
+    syy = np.bincount(gid, w * dy * dy, 3)
+    sxy = np.bincount(gid, w * dx * dy, 3)
+    # direction: principal axis of each 2x2 scatter matrix, angle 0.5 atan2(2 sxy, sxx - syy)
+    a = 0.5 * np.arctan2(2.0 * sxy, sxx - syy)
+    d = np.column_stack([np.cos(a), np.sin(a)])
+    return k, c, d, np.column_stack([-d[:, 1], d[:, 0]]), np.column_stack([dx, dy])
+
+
+def _group_median(a: np.ndarray, gid: np.ndarray, index: np.ndarray, keep: np.ndarray):
+    """(3,) median of ``a`` over each edge's kept points (index: position along the edge),
+    the same value as np.median: one sort of a (3, longest edge) table padded with inf."""
+    table = np.full((3, int(index.max()) + 1), np.inf)
+    table[gid[keep], index[keep]] = a[keep]
+    table.sort(axis=1)
+    k = np.bincount(gid[keep], minlength=3)
+    rows = np.arange(3)
+    lo = table[rows, np.maximum(k - 1, 0) // 2]
+    hi = table[rows, np.maximum(k // 2, 0)]
+    return np.where(k > 0, 0.5 * (lo + hi), 0.0)
+
+
+def _robust_lines(
+    x: np.ndarray,
+    y: np.ndarray,
+    gid: np.ndarray,
+    index: np.ndarray,
+    use: np.ndarray,
+    floor: float,
+    rounds: int,
+) -> tuple:
+    """Total-least-squares lines through each edge's points (those with ``use``), with
+    iterative outlier rejection (3.5 robust sigmas, sigma from the median absolute
+    residual), all three edges at once. An edge stops iterating when its inliers no
+    longer change or would fall under 5.
+
+    Returns per edge the normal (3, 2), offset (3,), centre (3, 2), spread (3,), sigma
+    (3,), and the inlier mask (M,).
+    """
+    keep = use.copy()
+    k, c, d, n, q = _group_tls(x, y, gid, keep)
+    active = np.ones(3, dtype=bool)
     for _ in range(rounds):
-        r = (p - c) @ n
-        sigma = max(1.4826 * _median(np.abs(r[keep])), floor)
-        new = np.abs(r) <= max(3.5 * sigma, 0.25)
-        if new.sum() < 5 or np.array_equal(new, keep):
+        a = np.abs(q[:, 0] * n[gid, 0] + q[:, 1] * n[gid, 1])
+        sigma = np.maximum(1.4826 * _group_median(a, gid, index, keep), floor)
+        new = use & (a <= np.maximum(3.5 * sigma, 0.25)[gid])
+        changed = np.bincount(gid, new != keep, 3) > 0
+        active &= changed & (np.bincount(gid, new, 3) >= 5)
+        if not active.any():
             break
-        keep = new
-        c, d, n = _tls(p[keep])
-    q = p[keep] - c
-    r = q @ n
+        keep = np.where(active[gid], new, keep)
+        k, c, d, n, q = _group_tls(x, y, gid, keep)
+    w = keep.astype(float)
+    r = q[:, 0] * n[gid, 0] + q[:, 1] * n[gid, 1]
+    t = q[:, 0] * d[gid, 0] + q[:, 1] * d[gid, 1]
     # EDGE_VARIANCE_INFLATION: neighbouring profiles share pixels through the bilinear
     # sampling, so the points are not independent.
-    sigma = max(float(np.sqrt(r @ r / max(len(r) - 2, 1) * EDGE_VARIANCE_INFLATION)), floor)
-    tcoord = q @ d
-    return n, float(n @ c), c, float(tcoord @ tcoord), keep, sigma
+    rss = np.bincount(gid, w * r * r, 3)
+    sigma = np.maximum(np.sqrt(rss / np.maximum(k - 2, 1) * EDGE_VARIANCE_INFLATION), floor)
+    spread = np.bincount(gid, w * t * t, 3)
+    offset = np.einsum("ij,ij->i", n, c)
+    return n, offset, c, spread, sigma, keep
 
 
 def _sample(
@@ -185,9 +224,10 @@ def _sample(
 ):
     """Profiles across the three chords of ``corners``, all in one cv2.remap call.
 
-    Returns bases (M, 2) in full-image px, inward normals (M, 2), edge id (M,), position
-    along the edge t in [-1, 1] (M,), distance from the edge's first end (M,), values
-    (M, S), and per edge (start vertex, unit direction, length).
+    Returns bases (M, 2) in full-image px, inward normals (M, 2), edge id (M,) (the
+    edges' profiles one after the other), index along the edge (M,), position along the
+    edge t in [-1, 1] (M,), distance from the edge's first end (M,), values (M, S), and
+    each edge's length (3,).
     """
     A = corners[[1, 2, 0]]  # edge i runs from vertex i+1 to vertex i+2
     D = corners[[2, 0, 1]] - A
@@ -206,7 +246,6 @@ def _sample(
     tt = 2.0 * frac - 1.0
     bases = A[gid] + along[:, None] * D[gid]
     normals = N[gid]
-    ends = [(A[i], D[i], float(length[i])) for i in range(3)]
     offs = np.arange(-half, half + 1e-9, step)
     # the sample points as two (M, S) float32 maps, x and y: built as 2-D broadcasts
     # (an interleaved (M, S, 2) map took 3x longer to build than cv2.remap takes to run)
@@ -214,7 +253,7 @@ def _sample(
     map_x = (b[:, 0:1] + offs * normals[:, 0:1]).astype(np.float32)
     map_y = (b[:, 1:2] + offs * normals[:, 1:2]).astype(np.float32)
     vals = cv2.remap(roi, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    return bases, normals, gid, tt, along, vals, ends
+    return bases, normals, gid, k, tt, along, vals, length
 
 
 def _positions(
@@ -242,12 +281,13 @@ def _positions(
     """
     n_ext = int(round(ext / step))
     ends = max(2, int(1.0 / step)) + n_ext
-    lo_raw = vals[:, :ends].mean(axis=1)
-    hi_raw = vals[:, -ends:].mean(axis=1)
+    # the means of the first and last ``ends`` samples (np.add.reduce: mean without
+    # its wrapper's overhead, the same value)
+    lo_raw = np.add.reduce(vals[:, :ends], axis=1) / ends
+    hi_raw = np.add.reduce(vals[:, -ends:], axis=1) / ends
     if n_ext:
         vals = vals[:, n_ext:-n_ext]
-    lo = _group_linear(t, lo_raw, gid, 3)
-    hi = _group_linear(t, hi_raw, gid, 3)
+    lo, hi = _group_linear(t, (lo_raw, hi_raw), gid, 3)
     step_h = hi - lo
     safe = np.where(np.abs(step_h) > 1e-6, step_h, 1e-6)
     f = (vals - lo[:, None]) / safe[:, None]
@@ -373,12 +413,14 @@ def fit_edges(
             half = half0
         # near a vertex of angle alpha the other edge is d sin(alpha) away: keep the
         # profiles (and the blur around them) clear of it
+        sides = _side_lengths(corners)
         trims = np.maximum(
-            trim * _side_lengths(corners).min(),
-            (half + ext + 2.0 * w_mid + 0.5) / np.sin(np.clip(_corner_angles(corners), 0.2, None)),
+            trim * sides.min(),
+            (half + ext + 2.0 * w_mid + 0.5)
+            / np.sin(np.clip(_corner_angles(corners, sides), 0.2, None)),
         )
         spacing = SPARSE_SPACING_PX if npass == 0 else PROFILE_SPACING_PX
-        bases, normals, gid, t, along, vals, ends = _sample(
+        bases, normals, gid, index, t, along, vals, lengths = _sample(
             roi, corners, off, half + ext, step, trims, spacing
         )
         e, h, mid, level_sd = _positions(
@@ -389,7 +431,7 @@ def fit_edges(
         level_px = _level_gain(width, half, step) * level_sd if npass >= 1 else np.zeros(3)
         # per edge, the median step height; a profile has a clear step if its position
         # is inside the window and its height at least 0.4x that median
-        h_mid = [_median(h[gid == i]) for i in range(3)]
+        h_mid = _group_median(h, gid, index, np.ones(len(h), dtype=bool))
         clear = (np.abs(e) < half - 1.0) & (h > 0.4 * np.maximum(h_mid, 1e-6)[gid])
         if tracked and k == 1:
             # a tracked frame keeps the widths of the last cold one: check them on this
@@ -410,32 +452,29 @@ def fit_edges(
         pts_px = bases + e[:, None] * normals
         ideal = camera.undistort(pts_px) * f
         centre_ideal = camera.undistort(corners.mean(axis=0)[None, :])[0] * f
-        normals_l, offsets, centres = np.zeros((3, 2)), np.zeros(3), np.zeros((3, 2))
-        spreads, counts, sigmas = np.zeros(3), np.zeros(3), np.zeros(3)
-        outl, contrast, gaps = np.zeros(3), np.zeros(3), np.zeros((3, 2))
-        for i in range(3):
-            sel = np.nonzero(gid == i)[0]
-            good = clear[sel]
-            use = sel[good] if good.sum() >= 5 else sel
-            n, o, c, sp, keep, sig = _robust_line(ideal[use], sigma_floor, 3 if npass == 1 else 1)
-            # the levels' error, common to the edge's profiles (see _level_gain): added
-            # per point, so that over the count it is the variance of the line's shift
-            # from the fitted level line
-            sig = float(np.hypot(sig, level_px[i] / max(abs(h_mid[i]), 1e-6)))
-            if n @ centre_ideal < o:
-                n, o = -n, -o
-            normals_l[i], offsets[i], centres[i] = n, o, c
-            spreads[i], counts[i], sigmas[i] = sp, keep.sum(), sig
-            outl[i] = 1.0 - keep.sum() / len(sel)
-            contrast[i] = h_mid[i]
-            # how far the inlier edge points stop short of the two ends of the edge
-            s_in = along[use[keep]]
-            length = ends[i][2]
-            gaps[i] = (
-                (s_in.min() - trims[(i + 1) % 3], length - trims[(i + 2) % 3] - s_in.max())
-                if len(s_in)
-                else (length, length)
-            )
+        # an edge's points with a clear step; all of them if fewer than 5 are clear
+        use = clear | (np.bincount(gid, clear, 3) < 5)[gid]
+        normals_l, offsets, centres, spreads, sigmas, keep = _robust_lines(
+            ideal[:, 0], ideal[:, 1], gid, index, use, sigma_floor, 3 if npass == 1 else 1
+        )
+        # the levels' error, common to the edge's profiles (see _level_gain): added per
+        # point, so that over the count it is the variance of the line's shift from the
+        # fitted level line
+        sigmas = np.hypot(sigmas, level_px / np.maximum(np.abs(h_mid), 1e-6))
+        flip = np.where(normals_l @ centre_ideal < offsets, -1.0, 1.0)
+        normals_l, offsets = normals_l * flip[:, None], offsets * flip
+        counts = np.bincount(gid, keep, 3)
+        outl = 1.0 - counts / np.bincount(gid, minlength=3)
+        contrast = h_mid
+        # how far the inlier edge points stop short of the two ends of the edge
+        starts = np.cumsum(np.bincount(gid, minlength=3)) - np.bincount(gid, minlength=3)
+        s_min = np.minimum.reduceat(np.where(keep, along, np.inf), starts)
+        s_max = np.maximum.reduceat(np.where(keep, along, -np.inf), starts)
+        gaps = np.where(
+            (counts > 0)[:, None],
+            np.column_stack([s_min - trims[[1, 2, 0]], lengths - trims[[2, 0, 1]] - s_max]),
+            lengths[:, None],
+        )
         fit = EdgeFit(
             normals_l,
             offsets,
@@ -450,7 +489,7 @@ def fit_edges(
             width.copy(),
         )
         new = camera.distort(intersect(fit, with_cov=False)[0] / f)
-        size = float(_side_lengths(corners).max())
+        size = float(sides.max())
         if not np.all(np.isfinite(new)) or np.abs(new - corners).max() > 0.25 * size + 3.0:
             # near-parallel lines from a region that is not a clean triangle: stop here
             return replace(fit, ok=False)
