@@ -209,6 +209,65 @@ def test_camera_that_stops_delivering_is_retried_then_raises(monkeypatch):
         next(iter(src))
 
 
+class _FakeCamera:
+    """A cv2.VideoCapture stand-in for a camera whose modes are ``modes`` (w, h)."""
+
+    def __init__(self, modes, frame):
+        self.modes, self.frame, self.props = modes, frame, {}
+        self.size = modes[0]
+
+    def isOpened(self):
+        return True
+
+    def set(self, prop, value):
+        self.props[prop] = value
+        want = (
+            int(self.props.get(cv2.CAP_PROP_FRAME_WIDTH, self.size[0])),
+            int(self.props.get(cv2.CAP_PROP_FRAME_HEIGHT, self.size[1])),
+        )
+        if want in self.modes:
+            self.size = want
+        return True
+
+    def get(self, prop):
+        return 0.0
+
+    def read(self):
+        return True, cv2.resize(self.frame, self.size)
+
+    def release(self):
+        pass
+
+
+def test_track_asks_the_camera_for_the_rigs_frame_size_and_rate(monkeypatch):
+    """A webcam starts in its own mode (640x480 here): track asks it for the rig's
+    320x240 and fps, and refuses a camera without that mode before any row, naming
+    both sizes, instead of a read_error row for every frame."""
+    img = cv2.imread(str(sorted(SAMPLES.glob("*.png"))[0]), cv2.IMREAD_GRAYSCALE)
+    rig320 = str(CONFIGS / "triangle-320.toml")
+    cams = []
+
+    def capture(modes):
+        def make(spec):
+            cams.append(_FakeCamera(modes, img))
+            return cams[-1]
+
+        return make
+
+    monkeypatch.setattr(cv2, "VideoCapture", capture([(640, 480), (320, 240)]))
+    r = run("track", "--rig", rig320, "--camera", "0", "--max-frames", "3")
+    assert r.exit_code == 0, r.output
+    assert cams[-1].props[cv2.CAP_PROP_FRAME_WIDTH] == 320
+    assert cams[-1].props[cv2.CAP_PROP_FRAME_HEIGHT] == 240
+    assert cams[-1].props[cv2.CAP_PROP_FPS] == load_rig(rig320).fps
+    assert [x["status"] for x in rows_of(r.stdout)] == ["ok"] * 3
+    monkeypatch.setattr(cv2, "VideoCapture", capture([(640, 480)]))
+    r = CliRunner().invoke(cli, ["track", "--rig", rig320, "--camera", "0"])
+    assert r.exit_code == 3
+    assert "camera 0: delivers 640x480 frames, not the rig's 320x240" in r.output
+    assert rows_of(r.stdout) == []  # refused before any row
+
+
 def test_overlay_and_paper_method(tmp_path):
     ov = tmp_path / "ov"
     r = run(

@@ -36,5 +36,6 @@ def track(rig_path, calibration, camera, retry_s, out, fmt, method, overlay, max
         fps=rig.fps,
         max_frames=max_frames,
         retry_s=retry_s,
+        size=(rig.camera.width, rig.camera.height),
     )
     run_frames(rig, src, out=out, fmt=fmt, method=method, overlay=overlay, max_frames=max_frames)

@@ -10,11 +10,18 @@ from visvec.sources.video import VideoSource
 
 
 def open_source(
-    spec: str | int, fps: float = 30.0, max_frames: int | None = None, retry_s: float = 5.0
+    spec: str | int,
+    fps: float = 30.0,
+    max_frames: int | None = None,
+    retry_s: float = 5.0,
+    size: tuple[int, int] | None = None,
 ):
-    """A camera index ("0"), a folder of images, a single image, a video file or a URL."""
+    """A camera index ("0"), a folder of images, a single image, a video file or a URL.
+
+    A camera is asked for ``size`` (width, height) and ``fps``, and refused if it cannot
+    deliver that size (see :class:`VideoSource`)."""
     if isinstance(spec, int) or (isinstance(spec, str) and spec.isdigit()):
-        return VideoSource(int(spec), fps=fps, retry_s=retry_s, max_frames=max_frames)
+        return VideoSource(int(spec), fps=fps, retry_s=retry_s, max_frames=max_frames, size=size)
     if "://" in spec:
         return VideoSource(spec, fps=fps, retry_s=retry_s, max_frames=max_frames)
     p = Path(spec)

@@ -25,6 +25,10 @@ class VideoSource:
         A live camera that stops delivering frames is retried for this long before
         :class:`SourceError` is raised. Files simply end.
     max_frames : int, optional
+    size : (width, height), optional
+        A camera (index) is asked for this frame size and ``fps`` (the rig's); if its
+        first frame comes at another size, :class:`SourceError` (every frame would be
+        unusable). Files and URLs deliver what they hold.
 
     Raises
     ------
@@ -38,6 +42,7 @@ class VideoSource:
         fps: float = 30.0,
         retry_s: float = 5.0,
         max_frames: int | None = None,
+        size: tuple[int, int] | None = None,
     ):
         self.spec = spec
         self.live = isinstance(spec, int) or "://" in str(spec)
@@ -49,6 +54,12 @@ class VideoSource:
                     f"program, or no permission?); --camera also takes a video file or URL"
                 )
             raise SourceError(f"{spec}: cannot open the video or stream")
+        self.size = size if isinstance(spec, int) else None
+        if self.size is not None:
+            # V4L2, DirectShow and AVFoundation switch to the nearest mode they have
+            self.cap.set(cv2.CAP_PROP_FRAME_WIDTH, float(size[0]))
+            self.cap.set(cv2.CAP_PROP_FRAME_HEIGHT, float(size[1]))
+            self.cap.set(cv2.CAP_PROP_FPS, float(fps))
         src_fps = self.cap.get(cv2.CAP_PROP_FPS)
         self.fps = src_fps if src_fps and src_fps > 0 and not isinstance(spec, int) else fps
         self.retry_s = retry_s
@@ -76,10 +87,24 @@ class VideoSource:
                 if img is None or img.size == 0:
                     yield Frame(i, t, None, f"{self.spec}#{i}", error="empty frame")
                 else:
+                    if self.size is not None:
+                        self._check_size(img)
                     yield Frame(i, t, to_gray(img), f"{self.spec}#{i}")
                 i += 1
         finally:
             self.cap.release()
+
+    def _check_size(self, img) -> None:
+        """The first good frame of a camera asked for ``size``: refuse another size."""
+        w, h = self.size
+        if img.shape[:2] != (h, w):
+            raise SourceError(
+                f"camera {self.spec}: delivers {img.shape[1]}x{img.shape[0]} frames, not the "
+                f"rig's {w}x{h} (it has no such mode); calibrate the camera at "
+                f"{img.shape[1]}x{img.shape[0]} (visvec calibrate camera) and use that "
+                f"[camera] section"
+            )
+        self.size = None  # checked once
 
     def _retry(self):
         deadline = time.monotonic() + self.retry_s
