@@ -167,7 +167,7 @@ def _group_median(a: np.ndarray, gid: np.ndarray, index: np.ndarray, keep: np.nd
     k = np.bincount(gid[keep], minlength=3)
     rows = np.arange(3)
     lo = table[rows, np.maximum(k - 1, 0) // 2]
-    hi = table[rows, np.maximum(k // 2, 0)]
+    hi = table[rows, k // 2]
     return np.where(k > 0, 0.5 * (lo + hi), 0.0)
 
 
@@ -464,10 +464,11 @@ def fit_edges(
         flip = np.where(normals_l @ centre_ideal < offsets, -1.0, 1.0)
         normals_l, offsets = normals_l * flip[:, None], offsets * flip
         counts = np.bincount(gid, keep, 3)
-        outl = 1.0 - counts / np.bincount(gid, minlength=3)
+        n_profiles = np.bincount(gid, minlength=3)
+        outl = 1.0 - counts / n_profiles
         contrast = h_mid
         # how far the inlier edge points stop short of the two ends of the edge
-        starts = np.cumsum(np.bincount(gid, minlength=3)) - np.bincount(gid, minlength=3)
+        starts = np.cumsum(n_profiles) - n_profiles
         s_min = np.minimum.reduceat(np.where(keep, along, np.inf), starts)
         s_max = np.maximum.reduceat(np.where(keep, along, -np.inf), starts)
         gaps = np.where(
