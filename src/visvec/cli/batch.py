@@ -32,7 +32,14 @@ def run_batch(rig, path, truth, out, fmt, method, overlay, max_frames) -> None:
     truth_rows = read_truth(truth, names) if truth else None
     src = open_source(path, fps=rig.fps, max_frames=max_frames, retry_s=0.0)
     rows = run_frames(
-        rig, src, out=out, fmt=fmt, method=method, overlay=overlay, max_frames=max_frames
+        rig,
+        src,
+        out=out,
+        fmt=fmt,
+        method=method,
+        overlay=overlay,
+        max_frames=max_frames,
+        keep_rows=truth_rows is not None,
     )
     if truth_rows is not None:
         stats = error_stats(rows, truth_rows, names)

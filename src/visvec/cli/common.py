@@ -94,6 +94,28 @@ def open_out(path: str | None):
             yield fh
 
 
+class FrameRecorder:
+    """Raw frames saved as DIR/frame_NNNNNN.png with DIR/times.csv (file,time_s), the
+    sidecar a folder source reads: `visvec batch DIR` replays the run with its times.
+    Each frame's line is flushed when the frame is saved."""
+
+    def __init__(self, folder: str | Path):
+        self.dir = Path(folder)
+        self.dir.mkdir(parents=True, exist_ok=True)
+        self._times = open(self.dir / "times.csv", "w", newline="")  # noqa: SIM115
+        self._times.write("file,time_s\n")
+
+    def save(self, frame) -> None:
+        name = f"frame_{frame.index:06d}.png"
+        if not cv2.imwrite(str(self.dir / name), frame.image):
+            raise click.ClickException(f"{self.dir / name}: cannot write the frame")
+        self._times.write(f"{name},{frame.time_s:.6f}\n")
+        self._times.flush()
+
+    def close(self) -> None:
+        self._times.close()
+
+
 def run_frames(
     rig: Rig,
     frames,
@@ -103,20 +125,31 @@ def run_frames(
     method: str | None,
     overlay: str | None,
     max_frames: int | None,
+    keep_rows: bool = False,
+    save_frames: str | None = None,
 ) -> list[Row]:
-    """Process frames, writing each row as it is made; Ctrl-C ends the loop cleanly."""
+    """Process frames, writing each row as it is made; Ctrl-C ends the loop cleanly.
+
+    Returns the rows only with ``keep_rows`` (a live camera can run for hours: rows are
+    not held in memory unless the caller needs them). ``save_frames``: a folder where
+    every readable frame is kept losslessly (see :class:`FrameRecorder`).
+    """
     pipe = make_pipeline(rig, method)
     rows: list[Row] = []
+    n = 0
     ov = Path(overlay) if overlay else None
     if ov is not None:
         ov.mkdir(parents=True, exist_ok=True)
+    rec = FrameRecorder(save_frames) if save_frames else None
     with open_out(out) as stream:
         sink = open_sink(fmt, stream, pipe.row_type.columns)
         try:
             for frame in frames:
                 row = pipe.process(frame)
                 sink.write(row.as_dict())
-                rows.append(row)
+                n += 1
+                if keep_rows:
+                    rows.append(row)
                 if row.status == "read_error":
                     click.echo(
                         f"visvec: frame {frame.index}: {frame.error or pipe.check_frame(frame)}",
@@ -128,13 +161,19 @@ def run_frames(
                         f"({pipe.last_error}); please report it",
                         err=True,
                     )
+                # after the row is out: saving a frame adds nothing to its latency
+                if rec is not None and frame.image is not None:
+                    rec.save(frame)
                 if ov is not None and frame.image is not None:
                     from visvec.overlay import draw_overlay
 
                     img = draw_overlay(frame.image, pipe.last_detection, row, rig)
                     cv2.imwrite(str(ov / f"overlay_{frame.index:06d}.png"), img)
-                if max_frames is not None and len(rows) >= max_frames:
+                if max_frames is not None and n >= max_frames:
                     break
         except KeyboardInterrupt:
-            click.echo(f"visvec: interrupted after {len(rows)} frames; all rows written", err=True)
+            click.echo(f"visvec: interrupted after {n} frames; all rows written", err=True)
+        finally:
+            if rec is not None:
+                rec.close()
     return rows

@@ -23,8 +23,17 @@ from visvec.sources import open_source
     show_default=True,
     help="How long to retry a camera that stops delivering frames before exit 3.",
 )
+@click.option(
+    "--save-frames",
+    type=click.Path(file_okay=False),
+    default=None,
+    help="Also keep every frame losslessly in this folder (PNG, with times.csv), for "
+    "`visvec batch` or `calibrate zero-tilt` later.",
+)
 @output_options
-def track(rig_path, calibration, camera, retry_s, out, fmt, method, overlay, max_frames):
+def track(
+    rig_path, calibration, camera, retry_s, save_frames, out, fmt, method, overlay, max_frames
+):
     """Stream one attitude row per frame, flushed row by row, until the source ends,
     --max-frames, or Ctrl-C."""
     rig = load(rig_path, calibration)
@@ -38,4 +47,13 @@ def track(rig_path, calibration, camera, retry_s, out, fmt, method, overlay, max
         retry_s=retry_s,
         size=(rig.camera.width, rig.camera.height),
     )
-    run_frames(rig, src, out=out, fmt=fmt, method=method, overlay=overlay, max_frames=max_frames)
+    run_frames(
+        rig,
+        src,
+        out=out,
+        fmt=fmt,
+        method=method,
+        overlay=overlay,
+        max_frames=max_frames,
+        save_frames=save_frames,
+    )
