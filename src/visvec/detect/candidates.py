@@ -107,51 +107,69 @@ def iter_candidates(
 
     Yields
     ------
-    Candidate, level by level, the most triangular first within a level.
+    Candidate, level by level, the most triangular first within a level; the first
+    level with candidates is pooled with the next one (see below).
     """
     small = shrink(image, scale)
-    h, w = small.shape
     a_exp = expected_area_px / scale**2
     a_lo, a_hi = a_exp * (1 - area_tol), a_exp * (1 + area_tol)
     if levels is None:
         levels = _levels(small, n_levels)
-    for level in levels:
-        _, binary = cv2.threshold(small, float(level), 255, cv2.THRESH_BINARY)
-        # outer outlines of the 8-connected bright regions, also those inside another
-        # region's hole (the triangle on the board in a bright ceiling): RETR_CCOMP puts
-        # every outer outline at the top level, holes under them. findContours is ~6x
-        # faster than connectedComponentsWithStats here.
-        cnts, hierarchy = cv2.findContours(binary, cv2.RETR_CCOMP, cv2.CHAIN_APPROX_NONE)
-        found = []
-        for cnt, parent in zip(cnts, hierarchy[0, :, 3] if cnts else (), strict=True):
-            if parent >= 0 or len(cnt) < 6:  # a hole's outline
-                continue
-            area_c = cv2.contourArea(cnt)
-            # pixels enclosed by the outline, boundary pixels included (Pick's theorem:
-            # the outline's B pixels are the polygon's lattice points on its boundary)
-            area_px = area_c + 0.5 * len(cnt) + 1.0
-            if not a_lo <= area_px <= a_hi:
-                continue
-            x, y, bw, bh = cv2.boundingRect(cnt)
-            ok, tri = cv2.minEnclosingTriangle(cnt.astype(np.float32))
-            if not ok:
-                continue
-            tri_area = abs(cv2.contourArea(tri))
-            fill = area_c / tri_area if tri_area > 0 else 0.0
-            if fill < 0.8:
-                continue
-            touches = bool(x == 0 or y == 0 or x + bw == w or y + bh == h)
-            corners = (tri.reshape(3, 2) + 0.5) * scale - 0.5
-            contour = (cnt.reshape(-1, 2) + 0.5) * scale - 0.5
-            found.append(
-                Candidate(
-                    corners,
-                    contour,
-                    float(area_px) * scale**2,
-                    float(level),
-                    touches,
-                    float(fill),
-                )
-            )
+    levels = list(levels)
+    k = 0
+    while k < len(levels):
+        found = _at_level(small, levels[k], scale, a_lo, a_hi)
+        if found and k + 1 < len(levels):
+            # the first level that cuts the triangle off may sit just above the board's
+            # grey, where the outline is ragged (noise and blur on the board side) and
+            # its enclosing triangle several px off: the next level, nearer the middle of
+            # the step, competes on how triangular its region is
+            found += _at_level(small, levels[k + 1], scale, a_lo, a_hi)
+            k += 1
+        k += 1
         found.sort(key=lambda c: (c.touches_border, -c.fill))
         yield from found
+
+
+def _at_level(
+    small: np.ndarray, level: float, scale: int, a_lo: float, a_hi: float
+) -> list[Candidate]:
+    """Bright regions at one threshold whose area is within [a_lo, a_hi] (small px) and
+    that fill at least 0.8 of their minimum enclosing triangle."""
+    h, w = small.shape
+    _, binary = cv2.threshold(small, float(level), 255, cv2.THRESH_BINARY)
+    # outer outlines of the 8-connected bright regions, also those inside another
+    # region's hole (the triangle on the board in a bright ceiling): RETR_CCOMP puts
+    # every outer outline at the top level, holes under them. findContours is ~6x
+    # faster than connectedComponentsWithStats here.
+    cnts, hierarchy = cv2.findContours(binary, cv2.RETR_CCOMP, cv2.CHAIN_APPROX_NONE)
+    found = []
+    for cnt, parent in zip(cnts, hierarchy[0, :, 3] if cnts else (), strict=True):
+        if parent >= 0 or len(cnt) < 6:  # a hole's outline
+            continue
+        area_c = cv2.contourArea(cnt)
+        # pixels enclosed by the outline, boundary pixels included (Pick's theorem:
+        # the outline's B pixels are the polygon's lattice points on its boundary)
+        area_px = area_c + 0.5 * len(cnt) + 1.0
+        if not a_lo <= area_px <= a_hi:
+            continue
+        x, y, bw, bh = cv2.boundingRect(cnt)
+        ok, tri = cv2.minEnclosingTriangle(cnt.astype(np.float32))
+        if not ok:
+            continue
+        tri_area = abs(cv2.contourArea(tri))
+        fill = area_c / tri_area if tri_area > 0 else 0.0
+        if fill < 0.8:
+            continue
+        touches = bool(x == 0 or y == 0 or x + bw == w or y + bh == h)
+        found.append(
+            Candidate(
+                (tri.reshape(3, 2) + 0.5) * scale - 0.5,
+                (cnt.reshape(-1, 2) + 0.5) * scale - 0.5,
+                float(area_px) * scale**2,
+                float(level),
+                touches,
+                float(fill),
+            )
+        )
+    return found
