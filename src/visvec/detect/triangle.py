@@ -285,8 +285,10 @@ class TriangleDetector:
         roi = image[y0:y1, x0:x1]
         m = np.zeros(roi.shape, np.uint8)
         cv2.fillPoly(m, [inner - [x0, y0]], 1)
-        vals = roi[m > 0]
-        if vals.size and np.mean(vals >= 254) > SATURATED_MAX:
+        n_in = cv2.countNonZero(m)
+        # saturated pixels inside: (roi >= 254) as a 0/1 image, counted under the mask
+        n_sat = cv2.countNonZero(cv2.threshold(roi, 253, 1, cv2.THRESH_BINARY)[1] & m)
+        if n_in and n_sat / n_in > SATURATED_MAX:
             return self._reject("overexposed", warnings, mean, cand, pts_px)
         # the region found must be the whole triangle: an occluder or a light touching
         # it changes the region's area against the fitted vertices'
@@ -321,7 +323,9 @@ class TriangleDetector:
         roi = image[y0:y1, x0:x1]
         mask = np.zeros(roi.shape, np.uint8)
         cv2.fillPoly(mask, [np.rint(big - [x0, y0]).astype(np.int32)], 1)
-        bright = float(np.count_nonzero((roi > level) & (mask > 0)))
+        # pixels above the level inside the mask (threshold to 0/1, and-ed with the mask)
+        above = cv2.threshold(roi, np.floor(level), 1, cv2.THRESH_BINARY)[1]
+        bright = float(cv2.countNonZero(above & mask))
         area = abs(_signed_area(pts_px))
         return abs(bright / max(area, 1.0) - 1.0) <= REGION_AREA_TOL
 
@@ -335,12 +339,13 @@ class TriangleDetector:
         x1, y1 = np.ceil(outer.max(axis=0)).astype(int) + 1
         roi = image[y0:y1, x0:x1]
         o = np.array([x0, y0])
-        m = np.zeros(roi.shape, np.uint8)
-        cv2.fillPoly(m, [np.rint(outer - o).astype(np.int32)], 1)
-        cv2.fillPoly(m, [np.rint(c + (pts_px - c) * 1.08 - o).astype(np.int32)], 0)
-        cv2.fillPoly(m, [np.rint(c + (pts_px - c) * 0.75 - o).astype(np.int32)], 2)
-        ring = cv2.mean(roi, (m == 1).astype(np.uint8))[0]
-        inner = cv2.mean(roi, (m == 2).astype(np.uint8))[0]
+        ring_m = np.zeros(roi.shape, np.uint8)
+        cv2.fillPoly(ring_m, [np.rint(outer - o).astype(np.int32)], 1)
+        cv2.fillPoly(ring_m, [np.rint(c + (pts_px - c) * 1.08 - o).astype(np.int32)], 0)
+        inner_m = np.zeros(roi.shape, np.uint8)
+        cv2.fillPoly(inner_m, [np.rint(c + (pts_px - c) * 0.75 - o).astype(np.int32)], 1)
+        ring = cv2.mean(roi, ring_m)[0]
+        inner = cv2.mean(roi, inner_m)[0]
         return inner - ring >= 0.5 * min_contrast
 
     def _corners(self, image: np.ndarray, cand: Candidate, mask: np.ndarray):
