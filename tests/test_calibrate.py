@@ -80,6 +80,34 @@ def test_zero_tilt_measures_how_much_wider_the_vertices_scatter_than_their_sigma
     assert res.sigma_scale == 1.0
 
 
+def test_zero_tilt_names_a_frame_that_was_not_level(rig640):
+    """One frame of 24 taken with the platform nudged (its vertices 0.3 px off, ten times
+    their sigma) is named; the others are not."""
+    from dataclasses import replace
+
+    world = true_rig(rig640, (15.0, -6.0), (0.7, -0.4))
+    dets = _level_detections(
+        rig640, world, np.radians(np.arange(-180, 180, 15.0)), 0.03, np.random.default_rng(8)
+    )
+    dets[7] = replace(dets[7], points_n=dets[7].points_n + 0.3 / rig640.camera.fx)
+    res = calibrate_zero_tilt(dets, rig640)
+    # named alone (it pulled the common offsets, and its neighbours in yaw with them,
+    # until it was left out), and the offsets are those of the level frames
+    assert np.flatnonzero(res.outliers).tolist() == [7]
+    np.testing.assert_allclose(
+        res.target_offset_mm, [15.0, -6.0], atol=4 * res.sigma_target_offset_mm.max()
+    )
+    assert res.residual_px[7] > 0.2 > res.residual_px[~res.outliers].max()
+    assert res.dof == 5 * 23 - 4
+    # noise uniformly wider than the sigma (a codec) leaves every frame in
+    wide = _level_detections(
+        rig640, world, np.radians(np.arange(-180, 180, 15.0)), 0.09, np.random.default_rng(8)
+    )
+    wide = [replace(d, cov_n=np.eye(6) * (0.03 / rig640.camera.fx) ** 2) for d in wide]
+    res = calibrate_zero_tilt(wide, rig640)
+    assert not res.outliers.any() and res.sigma_scale > 2.0
+
+
 def test_zero_tilt_needs_spread_yaws(rig640):
     dets = _level_detections(rig640, rig640, np.radians([0.0, 5.0, 10.0, 15.0]))
     with pytest.raises(InputFileError, match="spread over at least 60 deg"):

@@ -38,6 +38,9 @@ MIN_YAW_SPREAD_DEG = 60.0
 # the vertices' scatter counts as wider than their sigma when chi-square exceeds this
 # quantile of its distribution under the covariance (a 1 % false alarm rate)
 SIGMA_CHECK_QUANTILE = 0.99
+# a frame whose own weighted residual (chi-square, 5 degrees of freedom: 6 vertex
+# coordinates less its yaw) exceeds this quantile is named as an outlier
+OUTLIER_QUANTILE = 0.999
 
 
 @dataclass(frozen=True)
@@ -54,6 +57,8 @@ class ZeroTiltResult:
         (sqrt of chi-square per degree of freedom), and sigma_ratio_95 : (2,) its 95 %
         interval; dof : int, the degrees of freedom
     sigma_scale : float, sigma_ratio if significantly above 1, else 1
+    outliers : (K,) bool, frames left out of the fit (see calibrate_zero_tilt); their
+        yaw_deg and residual_px are against the offsets of the others
     """
 
     target_offset_mm: np.ndarray
@@ -70,6 +75,7 @@ class ZeroTiltResult:
     sigma_ratio_95: np.ndarray = field(default_factory=lambda: np.ones(2))
     dof: int = 0
     sigma_scale: float = 1.0
+    outliers: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
 
     def apply(self, rig: Rig) -> Rig:
         """The rig with the calibration applied."""
@@ -122,8 +128,52 @@ def circle_centre(pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return sol[:2], np.sqrt(np.diag(cov)[:2])
 
 
+def _whitened(dets: list[Detection]) -> tuple[np.ndarray, list[np.ndarray]]:
+    """Measured vertices (K, 3, 2) and, per frame, the Cholesky factor of the inverse
+    covariance that whitens its residuals."""
+    meas = np.stack([d.points_n for d in dets])
+    return meas, [np.linalg.cholesky(np.linalg.inv(d.cov_n)).T for d in dets]
+
+
+def _fit(dets: list[Detection], rig: Rig, yaw0: np.ndarray, x0: np.ndarray | None = None):
+    """Weighted least squares of [dx, dy, a, b, yaw_1..yaw_K] over the frames' vertices
+    (x0: the four offsets to start from)."""
+    n = len(dets)
+    meas, Ls = _whitened(dets)
+
+    def fun(p: np.ndarray) -> np.ndarray:
+        r = (_model(p, rig, n) - meas).reshape(n, 6)
+        return np.concatenate([L @ ri for L, ri in zip(Ls, r, strict=True)])
+
+    start = np.concatenate([np.zeros(4) if x0 is None else x0, yaw0])
+    scale = np.concatenate([[10.0, 10.0, 0.01, 0.01], np.full(n, 0.01)])
+    return least_squares(
+        fun, start, x_scale=scale, method="trf", xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=200
+    )
+
+
+def _yaw_alone(det: Detection, rig: Rig, offsets: np.ndarray, yaw0: float) -> tuple:
+    """The yaw of one frame left out of the fit, with the offsets fixed, and its whitened
+    residuals."""
+    meas, (L,) = _whitened([det])
+
+    def fun(y: np.ndarray) -> np.ndarray:
+        return L @ (_model(np.concatenate([offsets, y]), rig, 1) - meas).reshape(6)
+
+    sol = least_squares(fun, [yaw0], x_scale=[0.01], method="trf", xtol=1e-12, ftol=1e-12)
+    return float(sol.x[0]), sol.fun
+
+
 def calibrate_zero_tilt(dets: list[Detection], rig: Rig) -> ZeroTiltResult:
     """Zero-tilt offsets from ok detections of frames taken with the platform level.
+
+    Frames far outside their sigma (a platform nudged or not at rest, a bad frame) are
+    left out one at a time, worst first, while one is beyond the 99.9 % point of its
+    chi-square (5 degrees of freedom) after scaling by the frames' median, so that a
+    uniformly wider noise leaves every frame in; at most a fifth of the frames, and only
+    while the yaws left still spread over 60 degrees. One such frame pulls the common
+    offsets and with them the residuals of its neighbours in yaw, so they are judged
+    again after each one is left out.
 
     Raises
     ------
@@ -138,42 +188,52 @@ def calibrate_zero_tilt(dets: list[Detection], rig: Rig) -> ZeroTiltResult:
             f"the triangle found; got {n}"
         )
     yaw0 = np.array([_initial_yaw(d, rig) for d in dets])
-    spread = np.degrees(np.ptp(np.unwrap(np.sort(yaw0))))
+    spread = _yaw_spread_deg(yaw0)
     if spread < MIN_YAW_SPREAD_DEG:
         raise InputFileError(
             f"zero-tilt calibration needs frames at yaws spread over at least "
             f"{MIN_YAW_SPREAD_DEG:.0f} deg (turn the level platform between frames); "
             f"these span {spread:.1f} deg"
         )
-    meas = np.stack([d.points_n for d in dets])
-    # whitening: residuals scaled by the Cholesky factor of each frame's inverse covariance
-    Ls = [np.linalg.cholesky(np.linalg.inv(d.cov_n)).T for d in dets]
-
-    def fun(p: np.ndarray) -> np.ndarray:
-        r = (_model(p, rig, n) - meas).reshape(n, 6)
-        return np.concatenate([L @ ri for L, ri in zip(Ls, r, strict=True)])
-
-    x0 = np.concatenate([[0.0, 0.0, 0.0, 0.0], yaw0])
-    scale = np.concatenate([[10.0, 10.0, 0.01, 0.01], np.full(n, 0.01)])
-    sol = least_squares(
-        fun, x0, x_scale=scale, method="trf", xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=200
-    )
+    own = rig.detect.sigma_scale**2  # the detections' covariance over the detector's own
+    keep = np.ones(n, dtype=bool)
+    limit = chi2_dist.ppf(OUTLIER_QUANTILE, 5)
+    while True:
+        idx = np.flatnonzero(keep)
+        sol = _fit([dets[i] for i in idx], rig, yaw0[idx])
+        frame_chi2 = (sol.fun.reshape(len(idx), 6) ** 2).sum(axis=1) * own
+        s2 = max(1.0, float(np.median(frame_chi2)) / chi2_dist.median(5))
+        worst = int(np.argmax(frame_chi2))
+        rest = np.delete(idx, worst)
+        if (
+            frame_chi2[worst] / s2 <= limit
+            or len(rest) < max(MIN_FRAMES, np.ceil(0.8 * n))
+            or _yaw_spread_deg(yaw0[rest]) < MIN_YAW_SPREAD_DEG
+        ):
+            break
+        keep[idx[worst]] = False
+    m = len(idx)
     J = sol.jac
-    dof = max(6 * n - len(x0), 1)
+    dof = max(5 * m - 4, 1)
     chi2 = float(sol.fun @ sol.fun)
     cov = np.linalg.pinv(J.T @ J) * max(1.0, chi2 / dof)
-    # the sigma check, against the detector's own covariance (the detections carry the
-    # rig's sigma_scale, if any, squared)
-    chi2_own = chi2 * rig.detect.sigma_scale**2
+    # the sigma check, against the detector's own covariance
+    chi2_own = chi2 * own
     ratio = float(np.sqrt(chi2_own / dof))
     # 95 % interval of the ratio: chi2_own / ratio^2 ~ chi-square(dof)
     ratio_95 = ratio * np.sqrt(dof / chi2_dist.ppf([0.975, 0.025], dof))
     wider = chi2_own > chi2_dist.ppf(SIGMA_CHECK_QUANTILE, dof)
     sig = np.sqrt(np.diag(cov))
-    r = (_model(sol.x, rig, n) - meas) * rig.camera.fx
+    # every frame's yaw: the fit's, or for a frame left out its own with the offsets fixed
+    yaw = np.empty(n)
+    yaw[idx] = sol.x[4:]
+    for i in np.flatnonzero(~keep):
+        yaw[i] = _yaw_alone(dets[i], rig, sol.x[:4], yaw0[i])[0]
+    params = np.concatenate([sol.x[:4], yaw])
+    r = (_model(params, rig, n) - np.stack([d.points_n for d in dets])) * rig.camera.fx
     per_frame = np.sqrt((r**2).reshape(n, 6).mean(axis=1))
-    cents = np.stack([d.points_px.mean(axis=0) for d in dets])
-    cen, cen_sig = circle_centre(cents) if n >= 3 else (cents.mean(axis=0), np.zeros(2))
+    cents = np.stack([d.points_px.mean(axis=0) for d in dets])[keep]
+    cen, cen_sig = circle_centre(cents) if m >= 3 else (cents.mean(axis=0), np.zeros(2))
     return ZeroTiltResult(
         target_offset_mm=sol.x[:2],
         sigma_target_offset_mm=sig[:2],
@@ -181,15 +241,23 @@ def calibrate_zero_tilt(dets: list[Detection], rig: Rig) -> ZeroTiltResult:
         sigma_camera_tilt_deg=np.degrees(sig[2:4]),
         centroid_px=cen,
         sigma_centroid_px=cen_sig,
-        yaw_deg=np.degrees((sol.x[4:] + np.pi) % (2 * np.pi) - np.pi),
+        yaw_deg=np.degrees((yaw + np.pi) % (2 * np.pi) - np.pi),
         residual_px=per_frame,
-        rms_px=float(np.sqrt(np.mean(r**2))),
+        rms_px=float(np.sqrt(np.mean(r[keep] ** 2))),
         converged=bool(sol.success),
         sigma_ratio=ratio,
         sigma_ratio_95=ratio_95,
         dof=dof,
         sigma_scale=ratio if wider else 1.0,
+        outliers=~keep,
     )
+
+
+def _yaw_spread_deg(yaw: np.ndarray) -> float:
+    """How far the yaws spread (deg): 360 less the largest gap between neighbours."""
+    a = np.sort(np.mod(yaw, 2 * np.pi))
+    gaps = np.diff(np.concatenate([a, [a[0] + 2 * np.pi]]))
+    return float(np.degrees(2 * np.pi - gaps.max()))
 
 
 def calibration_sections(res: ZeroTiltResult, rig: Rig) -> dict[str, dict[str, object]]:

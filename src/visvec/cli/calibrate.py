@@ -60,10 +60,13 @@ def zero_tilt(frames, rig_path, calibration, out):
         # (`| head`) loses none of it
         header = (
             f"visvec zero-tilt calibration, {datetime.now(UTC):%Y-%m-%d %H:%M} UTC\n"
-            f"rig {rig_path}, frames {frames} ({len(dets)} used)"
+            f"rig {rig_path}, frames {frames} ({len(dets) - int(res.outliers.sum())} used)"
         )
         Path(out).write_text(dumps(calibration_sections(res, rig), header))
-    click.echo(f"zero-tilt calibration from {len(dets)} frames ({bad} skipped)")
+    click.echo(
+        f"zero-tilt calibration from {len(dets) - int(res.outliers.sum())} frames "
+        f"({bad} skipped, {int(res.outliers.sum())} left out)"
+    )
     click.echo(
         f"  target offset from the axis: dx {res.target_offset_mm[0]:+.2f} +- "
         f"{res.sigma_target_offset_mm[0]:.2f} mm, dy {res.target_offset_mm[1]:+.2f} +- "
@@ -97,9 +100,16 @@ def zero_tilt(frames, rig_path, calibration, out):
         click.echo(
             "    (for a tighter check, record a few seconds at each yaw: every frame counts)"
         )
+    n_out = int(res.outliers.sum())
+    if n_out:
+        click.echo(
+            f"  {n_out} frame(s) left out, far outside their sigma (marked below: the "
+            f"platform nudged, not at rest or not level, or a bad frame?)"
+        )
     click.echo("  per frame (yaw found, rms vertex residual):")
-    for name, yaw, r in zip(names, res.yaw_deg, res.residual_px, strict=True):
-        click.echo(f"    {name}: yaw {yaw:+9.3f} deg, {r:.4f} px")
+    for name, yaw, r, out_ in zip(names, res.yaw_deg, res.residual_px, res.outliers, strict=True):
+        flag = "  <- left out" if out_ else ""
+        click.echo(f"    {name}: yaw {yaw:+9.3f} deg, {r:.4f} px{flag}")
     if not res.converged:
         click.echo("visvec: error: the calibration did not converge; nothing written", err=True)
         raise SystemExit(1)
