@@ -77,6 +77,7 @@ def sigma_check(rig, images: list[np.ndarray]) -> dict:
     cal = calibrate_zero_tilt(dets, rig)
     return {
         "frames": len(dets),
+        "left_out": int(cal.outliers.sum()),
         "sigma_ratio": round(cal.sigma_ratio, 3),
         "sigma_ratio_95": cal.sigma_ratio_95.round(3).tolist(),
         "sigma_scale": round(cal.sigma_scale, 3),

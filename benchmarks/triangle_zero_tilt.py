@@ -60,6 +60,7 @@ def main() -> None:
                 "sigma_camera_tilt_deg": cal.sigma_camera_tilt_deg.round(4).tolist(),
                 "rms_px": round(cal.rms_px, 4),
                 "frames": len(dets),
+                "left_out": int(cal.outliers.sum()),
                 "sigma_ratio": round(cal.sigma_ratio, 3),
                 "sigma_ratio_95": cal.sigma_ratio_95.round(3).tolist(),
                 "sigma_scale": round(cal.sigma_scale, 3),
