@@ -196,6 +196,31 @@ def test_ctrl_c_ends_cleanly_with_every_row_written(tmp_path):
     assert len(rows_of(out.read_text())) == 3
 
 
+def test_status_lines_for_an_operator(tmp_path, capsys):
+    """With the rows going to a file, `track` at a terminal prints a status line every
+    few seconds and one at the end: frames, ok share, rate, the last ok attitude."""
+    rig = load_rig(RIG)
+    imgs = [cv2.imread(str(p), cv2.IMREAD_GRAYSCALE) for p in sorted(SAMPLES.glob("*.png"))[:3]]
+    frames = [Frame(i, i / 30, im, f"f{i}") for i, im in enumerate(imgs)]
+    frames.append(Frame(3, 0.1, None, "f3", error="empty frame"))
+    out = tmp_path / "rows.csv"
+    run_frames(
+        rig,
+        frames,
+        out=str(out),
+        fmt="csv",
+        method=None,
+        overlay=None,
+        max_frames=None,
+        progress=0.0,
+    )
+    lines = [x for x in capsys.readouterr().err.splitlines() if "frames/s" in x]
+    assert len(lines) == 5  # one per frame at a 0 s interval, and the last
+    assert lines[-1].startswith("visvec: 4 frames, 3 ok (75.0 %),")
+    last = rows_of(out.read_text())[2]
+    assert f"last ok (frame 2): yaw {float(last['yaw_deg']):+.4f}, pitch" in lines[-1]
+
+
 def test_a_long_run_does_not_hold_its_rows_in_memory(tmp_path):
     """`track` can run for hours: the loop's memory must not grow with the frame count."""
     import tracemalloc
@@ -318,6 +343,7 @@ def test_track_asks_the_camera_for_the_rigs_frame_size_and_rate(monkeypatch):
     assert cams[-1].props[cv2.CAP_PROP_FRAME_WIDTH] == 320
     assert cams[-1].props[cv2.CAP_PROP_FRAME_HEIGHT] == 240
     assert cams[-1].props[cv2.CAP_PROP_FPS] == load_rig(rig320).fps
+    assert cams[-1].props[cv2.CAP_PROP_BUFFERSIZE] == 1  # the newest frame, not a queued one
     assert [x["status"] for x in rows_of(r.stdout)] == ["ok"] * 3
     monkeypatch.setattr(cv2, "VideoCapture", capture([(640, 480)]))
     r = CliRunner().invoke(cli, ["track", "--rig", rig320, "--camera", "0"])

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import sys
+import time
 from pathlib import Path
 
 import click
@@ -116,6 +117,42 @@ class FrameRecorder:
         self._times.close()
 
 
+class Progress:
+    """A status line on stderr every ``interval`` seconds, for an operator watching a run
+    whose rows go to a file: frames, the ok share, the frame rate, the last ok values."""
+
+    def __init__(self, interval: float):
+        self.interval = interval
+        self.t0 = time.monotonic()
+        self.next = self.t0 + interval
+        self.n = self.n_ok = 0
+        self.last: Row | None = None
+
+    def update(self, row: Row) -> None:
+        self.n += 1
+        if row.ok:
+            self.n_ok += 1
+            self.last = row
+        now = time.monotonic()
+        if now >= self.next:
+            self.next = now + self.interval
+            click.echo(self.line(now), err=True)
+
+    def line(self, now: float | None = None) -> str:
+        dt = (time.monotonic() if now is None else now) - self.t0
+        text = (
+            f"visvec: {self.n} frames, {self.n_ok} ok ({100.0 * self.n_ok / max(self.n, 1):.1f} %)"
+            f", {self.n / max(dt, 1e-9):.1f} frames/s"
+        )
+        if self.last is not None:
+            vals = ", ".join(
+                f"{name.removesuffix('_deg').removesuffix('_mm').removesuffix('_dps')} {v:+.4f}"
+                for name, v in zip(type(self.last).value_columns, self.last.values(), strict=True)
+            )
+            text += f"; last ok (frame {self.last.frame}): {vals}"
+        return text
+
+
 def run_frames(
     rig: Rig,
     frames,
@@ -127,12 +164,14 @@ def run_frames(
     max_frames: int | None,
     keep_rows: bool = False,
     save_frames: str | None = None,
+    progress: float | None = None,
 ) -> list[Row]:
     """Process frames, writing each row as it is made; Ctrl-C ends the loop cleanly.
 
     Returns the rows only with ``keep_rows`` (a live camera can run for hours: rows are
     not held in memory unless the caller needs them). ``save_frames``: a folder where
-    every readable frame is kept losslessly (see :class:`FrameRecorder`).
+    every readable frame is kept losslessly (see :class:`FrameRecorder`). ``progress``:
+    seconds between status lines on stderr (see :class:`Progress`), and one at the end.
     """
     pipe = make_pipeline(rig, method)
     rows: list[Row] = []
@@ -141,6 +180,7 @@ def run_frames(
     if ov is not None:
         ov.mkdir(parents=True, exist_ok=True)
     rec = FrameRecorder(save_frames) if save_frames else None
+    status = Progress(progress) if progress is not None else None
     with open_out(out) as stream:
         sink = open_sink(fmt, stream, pipe.row_type.columns)
         try:
@@ -150,6 +190,8 @@ def run_frames(
                 n += 1
                 if keep_rows:
                     rows.append(row)
+                if status is not None:
+                    status.update(row)
                 if row.status == "read_error":
                     click.echo(
                         f"visvec: frame {frame.index}: {frame.error or pipe.check_frame(frame)}",
@@ -176,4 +218,6 @@ def run_frames(
         finally:
             if rec is not None:
                 rec.close()
+    if status is not None:
+        click.echo(status.line(), err=True)
     return rows

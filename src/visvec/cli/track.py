@@ -2,10 +2,14 @@
 
 from __future__ import annotations
 
+import sys
+
 import click
 
 from visvec.cli.common import load, output_options, rig_options, run_frames
 from visvec.sources import open_source
+
+STATUS_EVERY_S = 2.0
 
 
 @click.command()
@@ -56,4 +60,6 @@ def track(
         overlay=overlay,
         max_frames=max_frames,
         save_frames=save_frames,
+        # rows to a file and a person at the terminal: a status line every 2 s
+        progress=STATUS_EVERY_S if out is not None and sys.stderr.isatty() else None,
     )

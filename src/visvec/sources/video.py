@@ -60,6 +60,10 @@ class VideoSource:
             self.cap.set(cv2.CAP_PROP_FRAME_WIDTH, float(size[0]))
             self.cap.set(cv2.CAP_PROP_FRAME_HEIGHT, float(size[1]))
             self.cap.set(cv2.CAP_PROP_FPS, float(fps))
+            # one buffered frame: read() returns the newest one, not one that waited in
+            # the driver's queue while the last was processed (the latency column counts
+            # from the frame in hand, so a queue would hide its age)
+            self.cap.set(cv2.CAP_PROP_BUFFERSIZE, 1.0)
         src_fps = self.cap.get(cv2.CAP_PROP_FPS)
         self.fps = src_fps if src_fps and src_fps > 0 and not isinstance(spec, int) else fps
         self.retry_s = retry_s
