@@ -69,6 +69,7 @@ def test_example_configs_load():
             "sigma_scale = 0.0",
             ["[detect] sigma_scale", "expected a number > 0"],
         ),
+        ("readout_ms = 0.0", "readout_ms = 40.0", ["[camera] readout_ms", "expected a number in"]),
         ("[platform]", "[plaftorm]", ["unknown section", "plaftorm"]),
         (
             "rotation = [[1, 0, 0], [0, 1, 0], [0, 0, 1]]",

@@ -36,7 +36,7 @@ from visvec.estimate.rate import MIN_STARS, RateSolution, estimate_rate, unit_ve
 from visvec.lamps import Catalog
 from visvec.output import AttitudeRow, PoseRow, RateRow, Row, attitude_row
 from visvec.rig import Rig
-from visvec.rotations import expmap
+from visvec.rotations import expmap, logmap
 
 TRIANGLE_METHODS = tuple(ESTIMATORS)
 MARKER_METHODS = ("full", *PNP_FLAGS)
@@ -151,6 +151,11 @@ class AttitudePipeline(Pipeline):
         return status, warnings
 
 
+# a rolling shutter's rate comes from the last two ok frames only if neither is older
+# than this before the next (s)
+MAX_RATE_GAP_S = 0.5
+
+
 class TrianglePipeline(AttitudePipeline):
     """The triangle target; ``method`` "full" (default) or "paper"."""
 
@@ -163,13 +168,29 @@ class TrianglePipeline(AttitudePipeline):
         self.detector = TriangleDetector(rig)
         self.solve = ESTIMATORS[method]
         self.R_last: np.ndarray | None = None
+        # (time_s, R_nb) of the last two ok frames in a row: the rate for a rolling shutter
+        self._recent: list[tuple[float, np.ndarray]] = []
 
     def reset(self) -> None:
         self.detector.reset()
         self.R_last = None
+        self._recent = []
+
+    def _camera_rate(self, t: float) -> np.ndarray | None:
+        """The camera's angular rate (rad/s, camera frame) from the last two ok frames,
+        for a rolling-shutter rig; None without both or when they are stale."""
+        if self.rig.readout_ms <= 0 or len(self._recent) < 2:
+            return None
+        (t0, R0), (t1, R1) = self._recent
+        dt = t1 - t0
+        if not 0 < dt <= MAX_RATE_GAP_S or not 0 < t - t1 <= MAX_RATE_GAP_S:
+            return None
+        omega_b = logmap(R0.T @ R1) / dt  # R_nb(t1) = R_nb(t0) expm([omega_b] dt)
+        return self.rig.R_bc.T @ omega_b
 
     def estimate(self, frame):
-        det = self.detector.detect(frame.image)
+        omega_c = self._camera_rate(frame.time_s)
+        det = self.detector.detect(frame.image, omega_c)
         self.last_detection = det
         if det.status is not Status.OK:
             return det.status, None, det.warnings
@@ -178,7 +199,14 @@ class TrianglePipeline(AttitudePipeline):
         guess = self.R_last if self.detector.last_was_tracked else None
         sol = self.solve(det, self.rig, guess)
         self.R_last = sol.R_nb if sol.status is Status.OK else None
-        return sol.status, sol, det.warnings + sol.warnings
+        warnings = det.warnings + sol.warnings
+        if sol.status is Status.OK:
+            self._recent = [*self._recent[-1:], (frame.time_s, sol.R_nb)]
+            if self.rig.readout_ms > 0 and omega_c is None:
+                # the rate is not known yet (first frame, or after a loss): the rows'
+                # exposure times could not be taken out
+                warnings += ("rolling_shutter_uncorrected",)
+        return sol.status, sol, warnings
 
 
 @dataclass(frozen=True)

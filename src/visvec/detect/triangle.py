@@ -104,6 +104,7 @@ class TriangleDetector:
         self._prev_points: np.ndarray | None = None
         self._last_width: np.ndarray | None = None
         self._fit_width: np.ndarray | None = None
+        self._shutter: tuple[np.ndarray, float] | None = None
         # the last detection came from the previous frame's vertices (small motion)
         self.last_was_tracked = False
 
@@ -127,8 +128,17 @@ class TriangleDetector:
         self._last_width = None
 
     # ------------------------------------------------------------------ public
-    def detect(self, image: np.ndarray) -> Detection:
-        """Detection of the triangle in one (H, W) uint8 image (never raises on content)."""
+    def detect(self, image: np.ndarray, omega_c: np.ndarray | None = None) -> Detection:
+        """Detection of the triangle in one (H, W) uint8 image (never raises on content).
+
+        ``omega_c``: the camera's angular rate (rad/s, camera frame) for a rolling-shutter
+        rig (``readout_ms`` > 0): the vertices are then those of the centre row's
+        exposure (see fit_edges)."""
+        self._shutter = (
+            (np.asarray(omega_c, float), self.rig.readout_ms / 1000.0)
+            if omega_c is not None and self.rig.readout_ms > 0
+            else None
+        )
         s = self.rig.detect
         mean = float(cv2.mean(image)[0])
         warnings: list[str] = []
@@ -230,6 +240,7 @@ class TriangleDetector:
                 cam,
                 sigma_floor=s.pixel_sigma_floor,
                 width=self._last_width if cand.tracked else None,
+                shutter=self._shutter,
             )
             self._fit_width = fit.width
             if not fit.ok:

@@ -1,0 +1,94 @@
+"""The triangle sensor on a rolling-shutter webcam while the platform turns.
+
+Most webcams read their rows one after another: with a readout of 25 ms over the frame,
+the bottom row is exposed 25 ms after the top one, and a platform turning in yaw shears
+the triangle between its vertices. Frames are rendered with the renderer's rolling
+shutter (`sim/render.py`: bands of 4 rows, each at the attitude of its exposure time)
+at yaw rates of 0-20 deg/s and scored against the attitude of the centre row's
+exposure. First cold frames at random attitudes (as in the accuracy benchmark), which
+the sensor cannot correct (no rate yet); then tracked recordings turning at a constant
+rate (60 frames at 30 fps, the first two left out of the scores), with the rig's
+`[camera] readout_ms` unset (uncorrected) and set (corrected: edge points taken back
+to the centre row's exposure with the rate of the last two frames).
+
+    python benchmarks/triangle_rolling_shutter.py [--frames 80] [--readout-ms 25]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import replace
+
+import numpy as np
+
+from visvec.bench.triangle import Case, evaluate, machine, random_cases
+from visvec.rig import load_rig
+from visvec.rotations import euler_to_matrix
+from visvec.sim.render import render_frame
+from visvec.sim.scene import Scene
+
+from _common import CONFIGS, command, save_json, summarise
+
+RATES_DPS = (0.0, 2.0, 5.0, 10.0, 20.0)
+
+
+def _render(args) -> np.ndarray:
+    rig, case, readout_s, omega_b = args
+    return render_frame(
+        rig, euler_to_matrix(*case.euler), case.scene, case.seed, readout_s, omega_b
+    )
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--frames", type=int, default=80)
+    ap.add_argument("--readout-ms", type=float, default=25.0)
+    args = ap.parse_args()
+    readout = args.readout_ms / 1000.0
+    results = {
+        "command": command(),
+        "machine": machine(),
+        "date": time.strftime("%Y-%m-%d"),
+        "readout_ms": args.readout_ms,
+    }
+    for cfg in ("triangle-320.toml", "triangle.toml"):
+        rig = load_rig(CONFIGS / cfg)
+        cases = random_cases(args.frames, Scene(), seed=41)
+        res = {}
+        for rate in RATES_DPS:
+            omega = np.radians([0.0, 0.0, rate])  # yaw, about b3
+            with ProcessPoolExecutor(os.cpu_count() or 1) as ex:
+                images = list(ex.map(_render, [(rig, c, readout, omega) for c in cases]))
+            out = evaluate(rig, images, cases, "full")
+            s = summarise(out)
+            if out.n_ok:
+                e = np.array(out.err_deg)
+                s["mean_abs_err_deg"] = np.round(np.abs(e).mean(axis=0), 5).tolist()
+            res[f"yaw_rate_{rate}"] = s
+            print(cfg, rate, s)
+        for rate in RATES_DPS:
+            omega = np.radians([0.0, 0.0, rate])
+            cases = [
+                Case(
+                    np.array([0.3 + omega[2] * k / 30.0, np.radians(2.0), np.radians(-1.0)]),
+                    Scene(),
+                    4100 + k,
+                )
+                for k in range(60)
+            ]
+            with ProcessPoolExecutor(os.cpu_count() or 1) as ex:
+                images = list(ex.map(_render, [(rig, c, readout, omega) for c in cases]))
+            for label, ro in (("uncorrected", 0.0), ("corrected", args.readout_ms)):
+                out = evaluate(replace(rig, readout_ms=ro), images, cases, "full", track=True)
+                s = summarise(out.part(2, 60))
+                res[f"tracked_{label}_yaw_rate_{rate}"] = s
+                print(cfg, "tracked", label, rate, s)
+        results[cfg] = res
+    print(save_json("triangle_rolling_shutter", results))
+
+
+if __name__ == "__main__":
+    main()
