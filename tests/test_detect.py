@@ -123,6 +123,23 @@ def test_rolling_shutter_is_taken_out_while_tracking(rig640):
     assert not rows[0].ok and uncorrected == [1, 2]
 
 
+def test_rolling_shutter_rate_only_from_related_frames(rig640):
+    """The rate comes from the last two ok frames when they are a turn (below
+    MAX_RATE_DPS), not from two unrelated frames of a folder (level frames 30 deg apart)
+    nor from stale ones."""
+    from visvec.pipeline import MAX_RATE_DPS, TrianglePipeline
+
+    pipe = TrianglePipeline(replace(rig640, readout_ms=25.0))
+    turn = np.radians(10.0) / 30.0  # 10 deg/s at 30 fps
+    pipe._recent = [(0.0, euler_to_matrix(0.2, 0, 0)), (1 / 30, euler_to_matrix(0.2 + turn, 0, 0))]
+    np.testing.assert_allclose(pipe._camera_rate(2 / 30), [0, 0, np.radians(10.0)], atol=1e-9)
+    assert pipe._camera_rate(1.0) is None  # the last ok frame is stale
+    jump = np.radians(30.0)
+    assert np.degrees(jump * 30) > MAX_RATE_DPS
+    pipe._recent = [(0.0, euler_to_matrix(0.2, 0, 0)), (1 / 30, euler_to_matrix(0.2 + jump, 0, 0))]
+    assert pipe._camera_rate(2 / 30) is None
+
+
 def test_sigma_scale_widens_the_vertex_covariance_and_nothing_else(rig640):
     """[detect] sigma_scale (written by `calibrate zero-tilt`) multiplies the vertices'
     sigma; the vertices themselves do not move."""

@@ -152,8 +152,10 @@ class AttitudePipeline(Pipeline):
 
 
 # a rolling shutter's rate comes from the last two ok frames only if neither is older
-# than this before the next (s)
+# than this before the next (s), and only if it is below MAX_RATE_DPS: faster, the two
+# frames are unrelated (a folder of level frames at different yaws), not a turn
 MAX_RATE_GAP_S = 0.5
+MAX_RATE_DPS = 60.0
 
 
 class TrianglePipeline(AttitudePipeline):
@@ -186,6 +188,8 @@ class TrianglePipeline(AttitudePipeline):
         if not 0 < dt <= MAX_RATE_GAP_S or not 0 < t - t1 <= MAX_RATE_GAP_S:
             return None
         omega_b = logmap(R0.T @ R1) / dt  # R_nb(t1) = R_nb(t0) expm([omega_b] dt)
+        if np.degrees(np.linalg.norm(omega_b)) > MAX_RATE_DPS:
+            return None
         return self.rig.R_bc.T @ omega_b
 
     def estimate(self, frame):
