@@ -104,7 +104,6 @@ class TriangleDetector:
         self._prev_points: np.ndarray | None = None
         self._last_width: np.ndarray | None = None
         self._fit_width: np.ndarray | None = None
-        self._shutter: tuple[np.ndarray, float] | None = None
         # the last detection came from the previous frame's vertices (small motion)
         self.last_was_tracked = False
 
@@ -134,7 +133,7 @@ class TriangleDetector:
         ``omega_c``: the camera's angular rate (rad/s, camera frame) for a rolling-shutter
         rig (``readout_ms`` > 0): the vertices are then those of the centre row's
         exposure (see fit_edges)."""
-        self._shutter = (
+        shutter = (
             (np.asarray(omega_c, float), self.rig.readout_ms / 1000.0)
             if omega_c is not None and self.rig.readout_ms > 0
             else None
@@ -155,7 +154,7 @@ class TriangleDetector:
             pred = self._last_points
             if self._prev_points is not None:
                 pred = 2.0 * self._last_points - self._prev_points  # constant velocity
-            det = self._verify(image, self._tracked_candidate(pred), warnings, mean)
+            det = self._verify(image, self._tracked_candidate(pred), warnings, mean, shutter)
             if det.status is Status.OK:
                 self._prev_points, self._last_points = self._last_points, det.points_px
                 self._last_width = self._fit_width
@@ -165,7 +164,7 @@ class TriangleDetector:
         for _attempt in range(2):
             tried = 0
             for cand in iter_candidates(image, self.expected_area, scale=self.scale, levels=levels):
-                det = self._verify(image, cand, warnings, mean)
+                det = self._verify(image, cand, warnings, mean, shutter)
                 if det.status is Status.OK:
                     self._last_level = cand.level
                     self._prev_points, self._last_points = None, det.points_px
@@ -222,8 +221,15 @@ class TriangleDetector:
         )
 
     def _verify(
-        self, image: np.ndarray, cand: Candidate, warnings: list[str], mean: float
+        self,
+        image: np.ndarray,
+        cand: Candidate,
+        warnings: list[str],
+        mean: float,
+        shutter: tuple[np.ndarray, float] | None = None,
     ) -> Detection:
+        """The candidate's vertices and covariance, or the reason it is refused
+        (``shutter``: a rolling shutter's camera rate and readout, see fit_edges)."""
         cam, s = self.rig.camera, self.rig.detect
         if s.refine == "corners":
             mask = np.zeros(image.shape, np.uint8)
@@ -240,7 +246,7 @@ class TriangleDetector:
                 cam,
                 sigma_floor=s.pixel_sigma_floor,
                 width=self._last_width if cand.tracked else None,
-                shutter=self._shutter,
+                shutter=shutter,
             )
             self._fit_width = fit.width
             if not fit.ok:
