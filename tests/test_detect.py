@@ -91,36 +91,85 @@ def test_rolling_shutter_is_taken_out_while_tracking(rig640):
     """A rolling-shutter webcam (25 ms readout) on a platform turning at 20 deg/s: the
     triangle is sheared between its rows and the yaw reads low by more than a sigma on
     average; with the rig's readout_ms the edge points are taken back to the centre
-    row's exposure using the rate of the last two frames, and the errors are the
-    sensor's own again. Frames whose rate is not known yet say so."""
+    row's exposure using the rate of the last two frames (the second frame: detected
+    again with the rate from its own first pass), and the errors are the sensor's own
+    again. The first frame has no rate: it says so, and its sigma covers the platform's
+    max_rate_dps."""
     from visvec.data import Frame
     from visvec.pipeline import TrianglePipeline
 
-    w = np.radians([0.0, 0.0, 20.0])
+    w_lab = np.radians([0.0, 0.0, 20.0])  # a yaw turn about n3
     frames, truth = [], []
     for k in range(20):
-        e = np.array([0.3 + w[2] * k / 30.0, np.radians(2.0), np.radians(-1.0)])
-        img = render_frame(rig640, euler_to_matrix(*e), Scene(), 900 + k, 0.025, w)
+        e = np.array([0.3 + w_lab[2] * k / 30.0, np.radians(2.0), np.radians(-1.0)])
+        R = euler_to_matrix(*e)
+        img = render_frame(rig640, R, Scene(), 900 + k, 0.025, R.T @ w_lab)
         frames.append(Frame(k, k / 30.0, img))
         truth.append(np.degrees(e))
 
     def run(readout_ms):
-        pipe = TrianglePipeline(replace(rig640, readout_ms=readout_ms))
+        pipe = TrianglePipeline(replace(rig640, readout_ms=readout_ms, max_rate_dps=20.0))
         rows = [pipe.process(f) for f in frames]
         z = [
-            (r.euler_deg[0] - t[0]) / r.sigma_deg[0] if r.ok else np.nan
+            (r.euler_deg - t) / r.sigma_deg if r.ok else np.full(3, np.nan)
             for r, t in zip(rows, truth, strict=True)
         ]
         return np.array(z), rows
 
     z_raw, _ = run(0.0)
     z_fix, rows = run(25.0)
-    assert np.all(np.isfinite(z_fix[3:]))  # tracked and corrected: every frame ok
-    assert np.nanmean(z_raw[3:]) < -1.0  # sheared: the yaw biased low
-    assert abs(np.mean(z_fix[3:])) < 0.5 and np.abs(z_fix[3:]).max() < 3.0
+    assert np.all(np.isfinite(z_fix))  # every frame ok
+    assert np.nanmean(z_raw[3:, 0]) < -1.0  # sheared: the yaw biased low
+    assert abs(np.mean(z_fix[1:, 0])) < 0.5 and np.abs(z_fix[1:]).max() < 3.0
     uncorrected = [k for k, r in enumerate(rows) if "rolling_shutter_uncorrected" in r.warnings]
-    # frame 0 is refused (its shear fits no rigid triangle), then two frames without a rate
-    assert not rows[0].ok and uncorrected == [1, 2]
+    assert uncorrected == [0]
+    # the first frame's sigma is widened by the unknown rate, and covers its error
+    assert rows[0].sigma_deg[0] > 2.0 * np.median([r.sigma_deg[0] for r in rows[1:]])
+    assert np.abs(z_fix[0]).max() < 3.0
+
+
+def test_rolling_shutter_covariance_is_the_linearised_correction(rig640):
+    """shutter_cov's A omega is the first-order shift _unroll makes for a rate omega
+    (finite differences), and its covariance is A cov_omega A^T."""
+    from visvec.detect.edges import _unroll, shutter_cov
+
+    cam = rig640.camera
+    xy = np.array([[0.31, -0.12], [-0.22, 0.25], [-0.05, -0.33]])
+    rows = cam.cy + xy[:, 1] * cam.fy
+    readout, h = 0.025, 1e-4
+    A = np.zeros((6, 3))
+    for j in range(3):
+        w = np.zeros(3)
+        w[j] = h
+        A[:, j] = (
+            (_unroll(xy, rows, cam, w, readout) - _unroll(xy, rows, cam, -w, readout)) / (2 * h)
+        ).ravel()
+    cov_w = np.diag([0.01, 0.02, 0.3])
+    np.testing.assert_allclose(
+        shutter_cov(xy, rows, cam, readout, cov_w), A @ cov_w @ A.T, rtol=1e-6
+    )
+
+
+def test_still_frames_need_no_rate_and_keep_their_sigma(rig640):
+    """`calibrate zero-tilt` runs on still frames: a rolling-shutter rig neither warns
+    nor widens their sigma there, and gives the global-shutter rig's attitude. A frame
+    without a rate (not known to be still) gets the same attitude with a wider sigma."""
+    from visvec.data import Frame
+    from visvec.pipeline import TrianglePipeline
+
+    img = render_frame(rig640, euler_to_matrix(0.7, 0.0, 0.0), Scene(), 77)
+    rolling = replace(rig640, readout_ms=25.0)
+    plain = TrianglePipeline(rig640).process(Frame(0, 0.0, img))
+    still = TrianglePipeline(rolling, still=True).process(Frame(0, 0.0, img))
+    moving = TrianglePipeline(rolling).process(Frame(0, 0.0, img))
+    assert plain.ok and still.ok and moving.ok
+    np.testing.assert_allclose(still.euler_deg, plain.euler_deg, atol=1e-9)
+    np.testing.assert_allclose(still.sigma_deg, plain.sigma_deg, rtol=1e-9)
+    assert "rolling_shutter_uncorrected" not in still.warnings
+    assert "rolling_shutter_uncorrected" in moving.warnings
+    # the unknown rate is a consider covariance: the same attitude, a wider sigma
+    np.testing.assert_allclose(moving.euler_deg, plain.euler_deg, atol=1e-9)
+    assert np.all(moving.sigma_deg > plain.sigma_deg)
 
 
 def test_rolling_shutter_rate_only_from_related_frames(rig640):

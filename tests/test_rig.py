@@ -70,6 +70,11 @@ def test_example_configs_load():
             ["[detect] sigma_scale", "expected a number > 0"],
         ),
         ("readout_ms = 0.0", "readout_ms = 40.0", ["[camera] readout_ms", "expected a number in"]),
+        (
+            "max_rate_dps = 10.0",
+            "max_rate_dps = -5.0",
+            ["[platform] max_rate_dps", "expected a number"],
+        ),
         ("[platform]", "[plaftorm]", ["unknown section", "plaftorm"]),
         (
             "rotation = [[1, 0, 0], [0, 1, 0], [0, 0, 1]]",

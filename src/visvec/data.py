@@ -58,6 +58,11 @@ class Detection:
         The same vertices undistorted, in normalised image coordinates (x/z, y/z).
     cov_n : (6, 6) float ndarray
         Covariance of ``points_n.ravel()``.
+    consider_n : (6, 6) float ndarray or None
+        Covariance of ``points_n.ravel()`` from an error shared by the vertices that
+        the estimator cannot weigh frame by frame (a rolling shutter's unknown rate):
+        kept out of the fit's weights, added to the attitude's covariance (a Schmidt
+        "consider" covariance).
     warnings : tuple of str
         Warning codes (for the ``warnings`` column).
     reason : str
@@ -72,6 +77,7 @@ class Detection:
     points_px: np.ndarray = field(default_factory=lambda: np.full((3, 2), np.nan))
     points_n: np.ndarray = field(default_factory=lambda: np.full((3, 2), np.nan))
     cov_n: np.ndarray = field(default_factory=lambda: np.full((6, 6), np.nan))
+    consider_n: np.ndarray | None = None
     warnings: tuple[str, ...] = ()
     reason: str = ""
     mean_brightness: float = float("nan")

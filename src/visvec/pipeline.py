@@ -163,12 +163,15 @@ class TrianglePipeline(AttitudePipeline):
 
     methods = TRIANGLE_METHODS
 
-    def __init__(self, rig: Rig, method: str = "full"):
+    def __init__(self, rig: Rig, method: str = "full", still: bool = False):
         if rig.kind != "triangle":
             raise ConfigError(f"TrianglePipeline needs a triangle rig, not {rig.kind!r}")
         super().__init__(rig, method)
         self.detector = TriangleDetector(rig)
         self.solve = ESTIMATORS[method]
+        # every frame taken at rest (zero-tilt calibration): a rolling shutter has no
+        # motion to correct, and unrelated frames need no rate
+        self.still = still
         self.R_last: np.ndarray | None = None
         # (time_s, R_nb) of the last two ok frames in a row: the rate for a rolling shutter
         self._recent: list[tuple[float, np.ndarray]] = []
@@ -178,19 +181,27 @@ class TrianglePipeline(AttitudePipeline):
         self.R_last = None
         self._recent = []
 
-    def _camera_rate(self, t: float) -> np.ndarray | None:
-        """The camera's angular rate (rad/s, camera frame) from the last two ok frames,
-        for a rolling-shutter rig; None without both or when they are stale."""
-        if self.rig.readout_ms <= 0 or len(self._recent) < 2:
+    def _rate(self, a: tuple[float, np.ndarray], b: tuple[float, np.ndarray]) -> np.ndarray | None:
+        """The camera's angular rate (rad/s, camera frame) between two ok frames' (time_s,
+        R_nb); None when they are too far apart in time or in angle to be one turn."""
+        (t0, R0), (t1, R1) = a, b
+        if not 0 < t1 - t0 <= MAX_RATE_GAP_S:
             return None
-        (t0, R0), (t1, R1) = self._recent
-        dt = t1 - t0
-        if not 0 < dt <= MAX_RATE_GAP_S or not 0 < t - t1 <= MAX_RATE_GAP_S:
-            return None
-        omega_b = logmap(R0.T @ R1) / dt  # R_nb(t1) = R_nb(t0) expm([omega_b] dt)
+        omega_b = logmap(R0.T @ R1) / (t1 - t0)  # R_nb(t1) = R_nb(t0) expm([omega_b] dt)
         if np.degrees(np.linalg.norm(omega_b)) > MAX_RATE_DPS:
             return None
         return self.rig.R_bc.T @ omega_b
+
+    def _camera_rate(self, t: float) -> np.ndarray | None:
+        """The rate for a rolling-shutter frame at time t: zero for still frames, else
+        from the last two ok frames; None without both or when they are stale."""
+        if self.rig.readout_ms <= 0:
+            return None
+        if self.still:
+            return np.zeros(3)
+        if len(self._recent) < 2 or not 0 < t - self._recent[-1][0] <= MAX_RATE_GAP_S:
+            return None
+        return self._rate(*self._recent)
 
     def estimate(self, frame):
         omega_c = self._camera_rate(frame.time_s)
@@ -202,15 +213,36 @@ class TrianglePipeline(AttitudePipeline):
         # start for Gauss-Newton than the closed form, and cheaper (same minimum)
         guess = self.R_last if self.detector.last_was_tracked else None
         sol = self.solve(det, self.rig, guess)
+        if sol.status is Status.OK and omega_c is None and self.rig.readout_ms > 0:
+            det, sol, omega_c = self._redetect(frame, det, sol)
         self.R_last = sol.R_nb if sol.status is Status.OK else None
         warnings = det.warnings + sol.warnings
         if sol.status is Status.OK:
             self._recent = [*self._recent[-1:], (frame.time_s, sol.R_nb)]
-            if self.rig.readout_ms > 0 and omega_c is None:
-                # the rate is not known yet (first frame, or after a loss): the rows'
-                # exposure times could not be taken out
+            if omega_c is None:
+                # the rate is not known (first frame, or after a loss): the rows'
+                # exposure times could not be taken out; the sigma covers max_rate_dps
                 warnings += ("rolling_shutter_uncorrected",)
         return sol.status, sol, warnings
+
+    def _redetect(self, frame, det, sol):
+        """A rolling-shutter frame detected without a rate (the second after an
+        acquisition): its own attitude and the last ok frame's give the rate, and it is
+        detected again with it. (det, sol, omega_c), unchanged (omega_c None) when
+        there is no such last frame or the second pass fails."""
+        if not self._recent:
+            return det, sol, None
+        omega_c = self._rate(self._recent[-1], (frame.time_s, sol.R_nb))
+        if omega_c is None:
+            return det, sol, None
+        det2 = self.detector.redetect(frame.image, omega_c)
+        if det2.status is not Status.OK:
+            return det, sol, None
+        sol2 = self.solve(det2, self.rig, sol.R_nb)
+        if sol2.status is not Status.OK:
+            return det, sol, None
+        self.last_detection = det2
+        return det2, sol2, omega_c
 
 
 @dataclass(frozen=True)

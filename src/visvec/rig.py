@@ -151,6 +151,10 @@ class Rig:
     mount: Mount
     target: TriangleTarget | MarkerTarget | StarfieldTarget | LampTarget
     max_tilt_deg: float = 10.0
+    # the platform's fastest yaw turn and tilting (deg/s): the sigma of a rolling-shutter
+    # frame whose rate is not known yet covers them
+    max_rate_dps: float = 10.0
+    max_tilt_rate_dps: float = 2.0
     detect: DetectSettings = field(default_factory=DetectSettings)
     zero_tilt: ZeroTilt = field(default_factory=ZeroTilt)
     device: int | str | None = None
@@ -395,6 +399,8 @@ def rig_from_dict(raw: Mapping[str, Any], src: str = "<rig>", base_dir: Path | N
 
     plat = _Section(src, "platform", raw.get("platform", {}))
     max_tilt = plat.number("max_tilt_deg", 10.0, positive=True, hi=60.0)
+    max_rate = plat.number("max_rate_dps", 10.0, positive=True, hi=360.0)
+    max_tilt_rate = plat.number("max_tilt_rate_dps", 2.0, positive=True, hi=360.0)
     plat.check_unknown()
 
     det = _Section(src, "detect", raw.get("detect", {}))
@@ -427,6 +433,8 @@ def rig_from_dict(raw: Mapping[str, Any], src: str = "<rig>", base_dir: Path | N
         mount=mount,
         target=target,
         max_tilt_deg=max_tilt,
+        max_rate_dps=max_rate,
+        max_tilt_rate_dps=max_tilt_rate,
         detect=detect,
         zero_tilt=zero,
         device=device,

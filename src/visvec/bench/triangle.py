@@ -116,7 +116,7 @@ def evaluate(
     out = Outcome()
     for i, (img, case) in enumerate(zip(images, cases, strict=True)):
         if not track:
-            pipe.detector.reset()
+            pipe.reset()  # a cold frame: no tracking, no rate
         row = pipe.process(Frame(i, i / 30.0, img))
         out.status.append(str(row.status))
         out.warnings.append(row.warnings)

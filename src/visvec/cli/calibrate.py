@@ -42,7 +42,7 @@ def zero_tilt(frames, rig_path, calibration, out):
     several yaws: target offset from the rotation axis and camera mounting tilt (for
     --method full), zero-tilt centroid (for --method paper)."""
     rig = load(rig_path, calibration, "triangle", "zero-tilt calibration")
-    pipe = TrianglePipeline(rig, "full")
+    pipe = TrianglePipeline(rig, "full", still=True)
     dets, names, bad = [], [], 0
     for frame in open_source(frames, fps=rig.fps, retry_s=0.0):
         row = pipe.process(frame)

@@ -526,6 +526,29 @@ def _unroll(
     return d0[:, :2] / d0[:, 2:3]
 
 
+def shutter_cov(
+    xy: np.ndarray, rows: np.ndarray, camera: CameraModel, readout_s: float, cov_omega: np.ndarray
+) -> np.ndarray:
+    """(6, 6) covariance that an unknown camera rate (covariance ``cov_omega``, (3, 3),
+    (rad/s)^2, camera axes) adds to three normalised vertices xy (3, 2) seen at image
+    rows ``rows`` by a rolling shutter left uncorrected.
+
+    The linearisation of :func:`_unroll` at omega = 0: with d = (x, y, 1) and
+    t = (v - cy) / H * readout_s, the vertex moves by A omega,
+    A = t [[-x y, 1 + x^2, -y], [-1 - y^2, x y, x]], which gives A cov_omega A^T,
+    correlated between the vertices because they share the rate. (A vertex is an
+    intersection of fitted lines whose points have their own rows; its own row's shift
+    is the first-order value.) A tilt rate matters most: it stretches the triangle
+    along the columns, which turns its apex direction (the yaw).
+    """
+    t = (np.asarray(rows, float) - camera.cy) / camera.height * readout_s
+    x, y = xy[:, 0], xy[:, 1]
+    A = np.zeros((6, 3))
+    A[0::2] = np.column_stack([-x * y, 1.0 + x * x, -y]) * t[:, None]
+    A[1::2] = np.column_stack([-1.0 - y * y, x * y, x]) * t[:, None]
+    return A @ cov_omega @ A.T
+
+
 def _vertices(fit: EdgeFit) -> tuple[np.ndarray, list | None]:
     """Vertices (3, 2) in ideal pixels and, per vertex i, the inverse of the 2x2 matrix
     [n_j; n_k] of its two lines (Cramer's rule: x = A^-1 [o_j, o_k]); all NaN and None

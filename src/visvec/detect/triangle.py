@@ -16,7 +16,7 @@ import numpy as np
 
 from visvec.data import Detection, Status
 from visvec.detect.candidates import Candidate, iter_candidates
-from visvec.detect.edges import fit_edges, intersect
+from visvec.detect.edges import fit_edges, intersect, shutter_cov
 from visvec.geometry import project_target
 from visvec.rig import Rig
 
@@ -99,6 +99,11 @@ class TriangleDetector:
         # the paper's minimum corner distance, 45 px at 320x240, scaled with resolution
         # (and kept below the shortest side the rig's triangle can show)
         self.min_corner_distance = min(45.0 * cam.width / 320.0, 0.8 * float(np.min(sides)))
+        # the rate prior for a rolling-shutter frame without a measured rate: uniform
+        # within +-max_rate_dps about b3 and +-max_tilt_rate_dps about b1 and b2
+        # (sigma = bound / sqrt(3)), in camera axes
+        sd = np.radians([rig.max_tilt_rate_dps, rig.max_tilt_rate_dps, rig.max_rate_dps])
+        self._cov_omega = rig.R_bc.T @ np.diag(sd**2 / 3.0) @ rig.R_bc
         self._last_level: float | None = None
         self._last_points: np.ndarray | None = None
         self._prev_points: np.ndarray | None = None
@@ -138,14 +143,7 @@ class TriangleDetector:
             if omega_c is not None and self.rig.readout_ms > 0
             else None
         )
-        s = self.rig.detect
-        mean = float(cv2.mean(image)[0])
-        warnings: list[str] = []
-        if mean < s.brightness_band[0]:
-            warnings.append("low_brightness")
-        elif mean > s.brightness_band[1]:
-            warnings.append("high_brightness")
-
+        mean, warnings = self._brightness(image)
         reason, contour = "", np.zeros((0, 2))
         self.last_was_tracked = False
         if self._last_points is not None:
@@ -202,7 +200,34 @@ class TriangleDetector:
             contour_px=contour,
         )
 
+    def redetect(self, image: np.ndarray, omega_c: np.ndarray) -> Detection:
+        """The last detection's triangle in the same ``image`` again, its edge points
+        taken to the centre row's exposure with the camera rate ``omega_c`` (rad/s,
+        camera frame): a rolling-shutter frame whose rate became known only from its
+        own first detection. On success it replaces the last detection's vertices."""
+        if self._last_points is None or self.rig.readout_ms <= 0:
+            raise ValueError("redetect needs a rolling-shutter rig and a last detection")
+        shutter = (np.asarray(omega_c, float), self.rig.readout_ms / 1000.0)
+        mean, warnings = self._brightness(image)
+        det = self._verify(
+            image, self._tracked_candidate(self._last_points), warnings, mean, shutter
+        )
+        if det.status is Status.OK:
+            self._last_points = det.points_px
+            self._last_width = self._fit_width
+        return det
+
     # ------------------------------------------------------------------ steps
+    def _brightness(self, image: np.ndarray) -> tuple[float, list[str]]:
+        """Mean grey level and its warning when outside the rig's brightness band."""
+        band = self.rig.detect.brightness_band
+        mean = float(cv2.mean(image)[0])
+        if mean < band[0]:
+            return mean, ["low_brightness"]
+        if mean > band[1]:
+            return mean, ["high_brightness"]
+        return mean, []
+
     def _reject(
         self,
         reason: str,
@@ -317,11 +342,18 @@ class TriangleDetector:
         w = list(warnings)
         if not np.all(cam.in_image(pts_px, BORDER_MARGIN_PX + 0.02 * cam.width)):
             w.append("near_fov_edge")
+        consider = None
+        if shutter is None and self.rig.readout_ms > 0:
+            # a rolling shutter whose rate is not known yet (first frame): the rows'
+            # exposure times stay in the vertices, by up to the platform's fastest turn
+            readout_s = self.rig.readout_ms / 1000.0
+            consider = shutter_cov(xy / cam.fx, pts_px[:, 1], cam, readout_s, self._cov_omega)
         return Detection(
             Status.OK,
             points_px=pts_px,
             points_n=xy / cam.fx,
             cov_n=cov_n,
+            consider_n=consider,
             warnings=tuple(w),
             mean_brightness=mean,
             contour_px=cand.contour_px,

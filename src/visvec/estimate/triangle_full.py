@@ -12,7 +12,9 @@ no small-angle approximation. R_CN is found in closed form from the three bearin
 (depth from |P_C - t_c| = |P_N|, then an orthogonal Procrustes fit), then refined by
 Gauss-Newton on the multiplicative update R_CN <- exp([d]x) R_CN, minimising the
 Mahalanobis distance of the undistorted vertex positions with the detector's (6, 6)
-covariance. The attitude covariance is the inverse normal matrix.
+covariance. The attitude covariance is the inverse normal matrix, plus the effect of
+any error the detector could not weigh (a rolling shutter's unknown rate, passed as a
+consider covariance).
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ from __future__ import annotations
 import numpy as np
 
 from visvec.data import AttitudeSolution, Detection, Status
-from visvec.estimate.rotation import fit_rotation
+from visvec.estimate.rotation import fit_rotation, residuals_and_jacobian
 from visvec.geometry import camera_offset_c
 from visvec.rig import Rig
 
@@ -63,8 +65,18 @@ def solve_full(det: Detection, rig: Rig, R_nb_guess: np.ndarray | None = None) -
             iterations=fit.iterations,
             warnings=("not_converged",),
         )
-    chi2 = fit.chi2
-    cov_d = fit.cov_d * max(1.0, chi2 / DOF)
+    chi2, cov_d = fit.chi2, fit.cov_d
+    if det.consider_n is not None:
+        # a consider covariance C (Schmidt; e.g. Tapley, Schutz & Born, Statistical
+        # Orbit Determination, Sec. 6.3): the fit moves by dd = cov_d J^T W dxy for a
+        # vertex shift dxy, so C adds S C S^T with S = cov_d J^T W; the residuals are
+        # judged against cov_n + C (an unknown rate also shears the triangle)
+        _, J = residuals_and_jacobian(fit.R, t_c, p_n, det.points_n)
+        S = cov_d @ J.T @ W
+        chi2 = float(fit.r @ np.linalg.solve(det.cov_n + det.consider_n, fit.r))
+        cov_d = cov_d * max(1.0, chi2 / DOF) + S @ det.consider_n @ S.T
+    else:
+        cov_d = cov_d * max(1.0, chi2 / DOF)
     R_cn = fit.R
     it = fit.iterations
     R_nb = R_cn.T @ rig.R_bc.T

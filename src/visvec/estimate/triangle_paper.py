@@ -62,7 +62,8 @@ def solve_paper(det: Detection, rig: Rig, R_nb_guess: np.ndarray | None = None) 
     R_nb = paper_attitude(pts, rig, z0)
     e0 = np.array(matrix_to_euler(R_nb))
     # numerical propagation of the vertex covariance (pixels ~ fx * normalised)
-    cov_px = det.cov_n * rig.camera.fx**2
+    cov_n = det.cov_n if det.consider_n is None else det.cov_n + det.consider_n
+    cov_px = cov_n * rig.camera.fx**2
     J = np.zeros((3, 6))
     h = 1e-3
     for k in range(6):
