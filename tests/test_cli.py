@@ -381,6 +381,53 @@ def test_simulate_writes_frames_and_truth(tmp_path):
     assert img.shape == (240, 320) and img.dtype == np.uint8
 
 
+def test_simulate_a_rolling_shutter_sweep_that_batch_corrects(tmp_path):
+    """`simulate --readout-ms` renders a sweep with each frame's rates; `batch` with the
+    rig's readout_ms corrects every frame after the first, which says it is uncorrected
+    and whose sigma covers the turn."""
+    rig = tmp_path / "rig.toml"
+    text = (CONFIGS / "triangle.toml").read_text()
+    rig.write_text(
+        text.replace("readout_ms = 0.0", "readout_ms = 25.0").replace(
+            "max_rate_dps = 10.0", "max_rate_dps = 20.0"
+        )
+    )
+    sim = ["simulate", "--rig", RIG, "--frames", "10", "--seed", "5", "--motion", "sweep"]
+    fast = ["--yaw-rate-dps", "20", "--max-tilt-deg", "3"]
+    assert run(*sim, "--out", tmp_path / "g", *fast).exit_code == 0
+    r = run(*sim, "--out", tmp_path / "s", *fast, "--readout-ms", "25")
+    assert r.exit_code == 0, r.output
+    a = cv2.imread(str(tmp_path / "g" / "frame_0004.png"), cv2.IMREAD_GRAYSCALE)
+    b = cv2.imread(str(tmp_path / "s" / "frame_0004.png"), cv2.IMREAD_GRAYSCALE)
+    assert np.count_nonzero(a != b) > 500  # rows exposed at their own attitudes
+    truth = list(csv.DictReader(open(tmp_path / "s" / "truth.csv")))
+    yaw = np.unwrap(np.radians([float(t["yaw_deg"]) for t in truth]))
+    np.testing.assert_allclose(np.degrees(np.diff(yaw)) * 30.0, 20.0, rtol=1e-6)
+    r = run("batch", tmp_path / "s", "--rig", rig)
+    rows = rows_of(r.stdout)
+    assert r.exit_code == 0 and [x["status"] for x in rows] == ["ok"] * 10
+    uncorrected = [i for i, x in enumerate(rows) if "rolling_shutter_uncorrected" in x["warnings"]]
+    assert uncorrected == [0]
+    for x, t in zip(rows, truth, strict=True):
+        for k in ("yaw", "pitch", "roll"):
+            err = (float(x[f"{k}_deg"]) - float(t[f"{k}_deg"]) + 180.0) % 360.0 - 180.0
+            assert abs(err) < 3.0 * float(x[f"sigma_{k}_deg"]), (x["frame"], k)
+    bad = run(*sim, "--out", tmp_path / "x", "--readout-ms", "40")
+    assert bad.exit_code == 2 and "--readout-ms" in bad.output
+    bad = run("simulate", "--rig", RIG, "--out", tmp_path / "x", "--yaw-rate-dps", "5")
+    assert bad.exit_code == 2 and "--motion sweep" in bad.output
+
+
+def test_body_rates_of_a_turn_about_the_lab_vertical():
+    from visvec.rotations import euler_to_matrix
+    from visvec.sim.simulate import body_rates
+
+    w = np.radians(15.0)
+    R = np.array([euler_to_matrix(0.4 + w * k / 30.0, 0.05, -0.03) for k in range(5)])
+    for k, om in enumerate(body_rates(R, 1.0 / 30.0)):
+        np.testing.assert_allclose(om, R[k].T @ [0.0, 0.0, w], atol=1e-12)
+
+
 def test_unexpected_error_is_one_line_exit_1(monkeypatch):
     import visvec.cli.batch as b
 

@@ -127,6 +127,19 @@ from visvec.sim.stars import PAPER_CASES, StarScene, simulate_stars
     "faults) and imu_truth.csv over the frames' time span.",
 )
 @click.option(
+    "--readout-ms",
+    type=click.FloatRange(min=0),
+    default=None,
+    help="Triangle: a rolling shutter's readout, first to last row (default: the rig's "
+    "[camera] readout_ms); a --motion sweep is rendered with its rates.",
+)
+@click.option(
+    "--yaw-rate-dps",
+    type=float,
+    default=None,
+    help="Triangle: the yaw rate of a --motion sweep (default: 0.8 of a turn over the frames).",
+)
+@click.option(
     "--fps",
     type=click.FloatRange(min=0.01),
     default=None,
@@ -154,6 +167,8 @@ def simulate(
     rate_dps,
     spurious,
     imu,
+    readout_ms,
+    yaw_rate_dps,
     fps,
 ):
     """Render frames of the rig's target at known attitudes (or, for a starfield rig, a
@@ -176,11 +191,24 @@ def simulate(
     if case is not None or rate_dps is not None:
         raise click.UsageError("--case and --rate-dps apply to starfield rigs only")
     if rig.kind != "triangle" and (
-        lights or occluder or no_triangle or any(target_offset_mm) or any(camera_askew_deg)
+        lights
+        or occluder
+        or no_triangle
+        or any(target_offset_mm)
+        or any(camera_askew_deg)
+        or readout_ms is not None
+        or yaw_rate_dps is not None
     ):
         raise click.UsageError(
-            "--lights, --occluder, --no-triangle, --target-offset-mm and "
-            "--camera-askew-deg apply to triangle rigs only"
+            "--lights, --occluder, --no-triangle, --target-offset-mm, --camera-askew-deg, "
+            "--readout-ms and --yaw-rate-dps apply to triangle rigs only"
+        )
+    if yaw_rate_dps is not None and motion != "sweep":
+        raise click.UsageError("--yaw-rate-dps sets the rate of --motion sweep")
+    if readout_ms is not None and readout_ms > 1000.0 / rig.fps:
+        raise click.BadParameter(
+            f"{readout_ms:g} ms: expected at most a frame interval ({1000.0 / rig.fps:g} ms)",
+            param_hint="--readout-ms",
         )
     spots = SpotScene(noise_sigma=noise, reflections=reflections)
     scene = replace(
@@ -205,6 +233,8 @@ def simulate(
             render_rig=world,
             spot_scene=spots,
             progress=lambda i: bar.update(1),
+            readout_ms=readout_ms,
+            yaw_rate_dps=yaw_rate_dps,
         )
     click.echo(f"wrote {n_frames} frames and {truth}", err=True)
 

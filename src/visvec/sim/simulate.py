@@ -12,7 +12,14 @@ import numpy as np
 
 from visvec.output import ATTITUDE_COLUMNS
 from visvec.rig import Rig
-from visvec.rotations import euler_to_matrix, matrix_to_euler, matrix_to_quat, rot_x, rot_y
+from visvec.rotations import (
+    euler_to_matrix,
+    logmap,
+    matrix_to_euler,
+    matrix_to_quat,
+    rot_x,
+    rot_y,
+)
 from visvec.sim.markers import SpotScene, render_markers
 from visvec.sim.render import render_frame
 from visvec.sim.scene import Light, Occluder, Scene
@@ -21,12 +28,18 @@ TRUTH_COLUMNS = ("frame", "file", "time_s", *ATTITUDE_COLUMNS[3:10])
 
 
 def random_attitudes(
-    n: int, max_tilt_deg: float, rng: np.random.Generator, motion: str = "random"
+    n: int,
+    max_tilt_deg: float,
+    rng: np.random.Generator,
+    motion: str = "random",
+    turn_rad: float = 0.8 * 2.0 * np.pi,
+    wobble_cycles: tuple[float, float] = (1.3, 0.9),
 ) -> np.ndarray:
     """(n, 3) yaw, pitch, roll in radians.
 
     ``random``: yaw uniform over the circle, pitch and roll uniform within +-max_tilt.
-    ``sweep``: a smooth motion like a recording (slow yaw turn, tilt wobble).
+    ``sweep``: a smooth motion like a recording (a steady yaw turn by ``turn_rad`` over
+    the sequence, pitch and roll wobbling by ``wobble_cycles`` over it).
     ``level``: pitch = roll = 0 at yaws spread over the circle (for zero-tilt
     calibration).
     """
@@ -41,15 +54,28 @@ def random_attitudes(
     if motion == "sweep":
         t = np.linspace(0.0, 1.0, n)
         ph = rng.uniform(0, 2 * np.pi, 2)
-        yaw = (rng.uniform(-np.pi, np.pi) + 2.0 * np.pi * 0.8 * t + np.pi) % (2 * np.pi) - np.pi
+        yaw = (rng.uniform(-np.pi, np.pi) + turn_rad * t + np.pi) % (2 * np.pi) - np.pi
         return np.column_stack(
             [
                 yaw,
-                0.8 * m * np.sin(2 * np.pi * 1.3 * t + ph[0]),
-                0.8 * m * np.sin(2 * np.pi * 0.9 * t + ph[1]),
+                0.8 * m * np.sin(2 * np.pi * wobble_cycles[0] * t + ph[0]),
+                0.8 * m * np.sin(2 * np.pi * wobble_cycles[1] * t + ph[1]),
             ]
         )
     raise ValueError(f"motion = {motion!r}: expected 'random', 'sweep' or 'level'")
+
+
+def body_rates(R: np.ndarray, dt: float) -> np.ndarray:
+    """(n, 3) body rates (rad/s) of a smooth sequence of attitudes R (n, 3, 3) sampled
+    every ``dt`` s: central differences, omega_k = log(R_{k-1}^T R_{k+1}) / (2 dt)
+    (second order in dt), one-sided at the ends; zeros for a single frame."""
+    n = len(R)
+    out = np.zeros((n, 3))
+    for k in range(n):
+        a, b = max(k - 1, 0), min(k + 1, n - 1)
+        if b > a:
+            out[k] = logmap(R[a].T @ R[b]) / ((b - a) * dt)
+    return out
 
 
 def true_rig(
@@ -124,6 +150,8 @@ def simulate(
     render_rig: Rig | None = None,
     spot_scene: SpotScene | None = None,
     progress: Callable[[int], None] | None = None,
+    readout_ms: float | None = None,
+    yaw_rate_dps: float | None = None,
 ) -> Path:
     """Render ``n_frames`` frames into ``out_dir`` and write ``out_dir/truth.csv``.
 
@@ -133,6 +161,13 @@ def simulate(
         The rig (its camera gives the image size).
     render_rig : Rig, optional
         The true geometry to render with (see :func:`true_rig`); ``rig`` by default.
+    readout_ms : float, optional
+        A rolling shutter's readout (triangle rigs; default the rig's
+        ``[camera] readout_ms``): each frame of a ``sweep`` is rendered with its body
+        rate, the truth being the centre row's attitude. Other motions are still frames.
+    yaw_rate_dps : float, optional
+        The ``sweep``'s yaw rate (default: 0.8 of a turn over the sequence, the tilts
+        wobbling 1.3 and 0.9 times; with a rate, they nutate every 7.7 and 11 s).
 
     Returns
     -------
@@ -144,20 +179,28 @@ def simulate(
     out.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(seed)
     fps = fps or rig.fps
-    eul = random_attitudes(n_frames, max_tilt_deg, rng, motion)
+    turn, wobble = 0.8 * 2.0 * np.pi, (1.3, 0.9)
+    if yaw_rate_dps is not None:
+        # a turn at a set rate: the tilts nutate with periods of 7.7 s and 11 s
+        span_s = (n_frames - 1) / fps
+        turn, wobble = np.radians(yaw_rate_dps) * span_s, (0.13 * span_s, 0.09 * span_s)
+    eul = random_attitudes(n_frames, max_tilt_deg, rng, motion, turn, wobble)
     world = render_rig or rig
+    readout_s = (rig.readout_ms if readout_ms is None else readout_ms) / 1000.0
+    Rs = np.array([euler_to_matrix(*e) for e in eul])
+    # the platform moves between frames only in a sweep (the others are still frames)
+    rates = body_rates(Rs, 1.0 / fps) if motion == "sweep" else np.zeros((n_frames, 3))
     truth = out / "truth.csv"
     width = max(4, len(str(n_frames - 1)))
     with open(truth, "w", newline="") as fh:
         w = csv.writer(fh, lineterminator="\n")
         w.writerow(TRUTH_COLUMNS)
-        for i, (yaw, pitch, roll) in enumerate(eul):
-            R = euler_to_matrix(yaw, pitch, roll)
+        for i, R in enumerate(Rs):
             if world.kind == "markers":
                 img = render_markers(world, R, spot_scene or SpotScene(), rng)
             else:
                 sc = scene_for_frame(scene, clutter, world, rng)
-                img = render_frame(world, R, sc, rng)
+                img = render_frame(world, R, sc, rng, readout_s, rates[i])
             name = f"frame_{i:0{width}d}.png"
             cv2.imwrite(str(out / name), img)
             e = np.degrees(matrix_to_euler(R))
