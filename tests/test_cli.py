@@ -292,6 +292,62 @@ def test_camera_that_stops_delivering_is_retried_then_raises(monkeypatch):
         next(iter(src))
 
 
+class _StampedCamera:
+    """A camera whose driver stamps each frame (CAP_PROP_POS_MSEC) with ``stamps_ms``,
+    while frames are read at ``reads_s`` on our clock."""
+
+    def __init__(self, stamps_ms, reads_s, clock):
+        self.stamps, self.reads, self.clock, self.k = stamps_ms, reads_s, clock, -1
+
+    def isOpened(self):
+        return True
+
+    def set(self, prop, value):
+        return True
+
+    def get(self, prop):
+        return float(self.stamps[self.k]) if prop == cv2.CAP_PROP_POS_MSEC else 0.0
+
+    def read(self):
+        self.k += 1
+        self.clock[0] = self.reads[self.k]
+        return True, np.zeros((4, 4), np.uint8)
+
+    def release(self):
+        pass
+
+
+@pytest.mark.parametrize(
+    "stamps_ms, expect_s, clock",
+    [
+        # the driver's capture times: regular, though the reads jitter by a frame
+        ([5000.0, 5033.3, 5066.7, 5100.0], [0.0, 0.0333, 0.0667, 0.1], "source"),
+        # a backend without timestamps: the read times
+        ([0.0, 0.0, 0.0, 0.0], [0.0, 0.05, 0.07, 0.13], "read"),
+        # timestamps that stop increasing: the read times from there on
+        ([5000.0, 5033.3, 5033.3, 5100.0], [0.0, 0.0333, 0.07, 0.13], "read"),
+        # a clock that has run 0.6 s slower than ours by the fourth frame: not the frames'
+        ([5000.0, 5033.3, 5066.7, 5100.0], [0.0, 0.0333, 0.0667, 0.7], "read"),
+    ],
+)
+def test_live_frame_times_come_from_the_driver_when_it_stamps_them(
+    monkeypatch, capsys, stamps_ms, expect_s, clock
+):
+    reads = [100.0, 100.05, 100.07, 100.13 if expect_s[3] < 0.5 else 100.7]
+    now = [0.0]
+    monkeypatch.setattr(cv2, "VideoCapture", lambda spec: _StampedCamera(stamps_ms, reads, now))
+    import visvec.sources.video as video
+
+    monkeypatch.setattr(video.time, "monotonic", lambda: now[0])
+    src = VideoSource(0, max_frames=4)
+    times = [f.time_s for f in src]
+    np.testing.assert_allclose(times, expect_s, atol=1e-9)
+    assert src.clock == clock
+    # a switch away from timestamps that were in use is reported; none were: no message
+    reported = "stopped making sense" in capsys.readouterr().err
+    assert reported == (clock == "read" and stamps_ms[0] > 0)
+
+
 class _FakeCamera:
     """A cv2.VideoCapture stand-in for a camera whose modes are ``modes`` (w, h)."""
 

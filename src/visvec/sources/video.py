@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 import time
 from collections.abc import Iterator
 
@@ -10,6 +11,10 @@ import cv2
 from visvec.data import Frame
 from visvec.errors import SourceError
 from visvec.sources.folder import to_gray
+
+# a live source's timestamps are used while their elapsed time stays within this of
+# ours (s): a clock that is not running at real time (or jumped) is not the frames'
+SOURCE_CLOCK_TOLERANCE_S = 0.5
 
 
 class VideoSource:
@@ -69,6 +74,10 @@ class VideoSource:
         self.retry_s = retry_s
         self.max_frames = max_frames
         self._t0: float | None = None
+        # a live source's own frame timestamps (CAP_PROP_POS_MSEC: V4L2's buffer time,
+        # a stream's presentation time) as (first, last) in s, while they stay usable
+        self._src: tuple[float, float] | None = None
+        self.clock = "source" if self.live else "file"
 
     def __iter__(self) -> Iterator[Frame]:
         i = 0
@@ -84,7 +93,7 @@ class VideoSource:
                 if self._t0 is None:
                     self._t0 = now
                 if self.live:
-                    t = now - self._t0
+                    t = self._live_time(now - self._t0)
                 else:
                     ms = self.cap.get(cv2.CAP_PROP_POS_MSEC)
                     t = ms / 1000.0 if ms and ms > 0 else i / self.fps
@@ -97,6 +106,34 @@ class VideoSource:
                 i += 1
         finally:
             self.cap.release()
+
+    def _live_time(self, t_read: float) -> float:
+        """A live frame's time (s from the first frame): the source's own timestamp
+        (the driver's capture time, not when this program got round to reading the
+        frame, which lags by up to a frame and jitters with the processing load) while
+        it is positive, increasing and in step with our clock within
+        SOURCE_CLOCK_TOLERANCE_S; the read time ``t_read`` from the first frame that is
+        not (a backend without timestamps gives 0), for the rest of the run."""
+        if self.clock != "source":
+            return t_read
+        ms = self.cap.get(cv2.CAP_PROP_POS_MSEC)
+        ts = ms / 1000.0 if ms and ms > 0 else None
+        if ts is not None and self._src is None:
+            self._src = (ts, ts)
+            return 0.0
+        if ts is not None and ts > self._src[1]:
+            t = ts - self._src[0]
+            if abs(t - t_read) < SOURCE_CLOCK_TOLERANCE_S:
+                self._src = (self._src[0], ts)
+                return t
+        if self._src is not None:
+            print(
+                f"{self.spec}: the source's frame timestamps stopped making sense at "
+                f"{t_read:.3f} s; times are now those at which frames are read",
+                file=sys.stderr,
+            )
+        self.clock = "read"
+        return t_read
 
     def _check_size(self, img) -> None:
         """The first good frame of a camera asked for ``size``: refuse another size."""
