@@ -14,7 +14,7 @@ from visvec.errors import ConfigError
 from visvec.output import Row
 from visvec.pipeline import METHODS, make_pipeline
 from visvec.rig import Rig, load_rig
-from visvec.sinks import open_sink
+from visvec.sinks import UdpStream, open_sink
 
 
 def rig_options(f=None, *, required: bool = True):
@@ -72,7 +72,7 @@ def output_options(f):
         "--out",
         type=click.Path(dir_okay=False),
         default=None,
-        help="Output file (default: standard output).",
+        help="Output file, or udp://HOST:PORT for one datagram per row (default: standard output).",
     )(f)
     return f
 
@@ -87,8 +87,21 @@ def load(rig_path: str, calibration: str | None, kind: str | None = None, what: 
 
 @contextlib.contextmanager
 def open_out(path: str | None):
+    """The text stream rows go to: stdout, the file ``path``, or with
+    ``udp://HOST:PORT`` one datagram per row (:class:`~visvec.sinks.UdpStream`)."""
     if path is None:
         yield sys.stdout
+    elif path.startswith("udp://"):
+        try:
+            stream = UdpStream(path)
+        except ValueError as exc:
+            raise click.BadParameter(str(exc), param_hint="--out") from exc
+        try:
+            yield stream
+        finally:
+            stream.close()
+            if stream.dropped:
+                click.echo(f"visvec: {path}: {stream.dropped} rows could not be sent", err=True)
     else:
         Path(path).parent.mkdir(parents=True, exist_ok=True)
         with open(path, "w", newline="") as fh:

@@ -26,7 +26,8 @@ from visvec.sinks import open_sink
               help="visvec output rows (planar pose or attitude); time_s is the exposure, "
               "latency_ms when it became available.")  # fmt: skip
 @click.option("--out", default=None, type=click.Path(dir_okay=False),
-              help="Output file (default: stdout).")  # fmt: skip
+              help="Output file, or udp://HOST:PORT for one datagram per row (default: "
+              "stdout).")  # fmt: skip
 @click.option("--format", "fmt", type=click.Choice(["csv", "jsonl"]), default="csv",
               show_default=True)  # fmt: skip
 @click.option(

@@ -5,8 +5,10 @@ from __future__ import annotations
 
 import csv
 import json
+import socket
 from collections.abc import Sequence
 from typing import IO
+from urllib.parse import urlsplit
 
 
 class CsvSink:
@@ -33,6 +35,57 @@ class JsonlSink:
     def write(self, row: dict[str, object]) -> None:
         self.stream.write(json.dumps({k: row.get(k) for k in self.columns}) + "\n")
         self.stream.flush()
+
+
+class UdpStream:
+    """A text stream whose every flush is one UDP datagram to ``url`` =
+    ``udp://HOST:PORT``: with a sink, one datagram per row (and the CSV header first).
+
+    Rows are fire-and-forget, as UDP is: a receiver that is not there, or a full
+    network buffer, never stops the sensor; ``dropped`` counts the datagrams the system
+    refused to send.
+
+    Raises
+    ------
+    ValueError
+        If ``url`` is not udp://HOST:PORT or HOST does not resolve.
+    """
+
+    def __init__(self, url: str):
+        parts = urlsplit(url)
+        try:
+            port = parts.port
+        except ValueError:
+            port = None
+        if parts.scheme != "udp" or not parts.hostname or port is None or parts.path:
+            raise ValueError(f"{url}: expected udp://HOST:PORT (for example udp://127.0.0.1:5005)")
+        try:
+            info = socket.getaddrinfo(parts.hostname, port, type=socket.SOCK_DGRAM)
+        except socket.gaierror as exc:
+            raise ValueError(f"{url}: cannot resolve {parts.hostname!r} ({exc.strerror})") from exc
+        family, _, _, _, self.address = info[0]
+        self.sock = socket.socket(family, socket.SOCK_DGRAM)
+        self.url = url
+        self.dropped = 0
+        self._buf: list[str] = []
+
+    def write(self, text: str) -> int:
+        self._buf.append(text)
+        return len(text)
+
+    def flush(self) -> None:
+        if not self._buf:
+            return
+        data = "".join(self._buf).encode()
+        self._buf = []
+        try:
+            self.sock.sendto(data, self.address)
+        except OSError:
+            self.dropped += 1
+
+    def close(self) -> None:
+        self.flush()
+        self.sock.close()
 
 
 def open_sink(fmt: str, stream: IO[str], columns: Sequence[str]) -> CsvSink | JsonlSink:
