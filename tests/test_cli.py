@@ -58,6 +58,7 @@ def test_batch_on_sample_frames_with_truth(tmp_path):
         "warnings",
     ]
     assert all(row["status"] == "ok" for row in rows)
+    assert all(row["warnings"] == "" for row in rows)  # clean frames: nothing to warn of
     truth = {int(t["frame"]): t for t in csv.DictReader(open(SAMPLES / "truth.csv"))}
     for row in rows:
         t = truth[int(row["frame"])]

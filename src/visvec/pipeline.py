@@ -219,7 +219,7 @@ class TrianglePipeline(AttitudePipeline):
         warnings = det.warnings + sol.warnings
         if sol.status is Status.OK:
             self._recent = [*self._recent[-1:], (frame.time_s, sol.R_nb)]
-            if omega_c is None:
+            if omega_c is None and self.rig.readout_ms > 0:
                 # the rate is not known (first frame, or after a loss): the rows'
                 # exposure times could not be taken out; the sigma covers max_rate_dps
                 warnings += ("rolling_shutter_uncorrected",)
