@@ -6,6 +6,7 @@ read at all; 1 anything unexpected (one line, the traceback only with --debug).
 
 from __future__ import annotations
 
+import logging
 import sys
 
 import click
@@ -48,6 +49,20 @@ class VisvecGroup(click.Group):
             sys.exit(1)
 
 
+class _EchoHandler(logging.Handler):
+    """The library's warnings (logger ``visvec``) as one line on stderr each."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        click.echo(f"visvec: {record.getMessage()}", err=True)
+
+
+def _route_library_warnings() -> None:
+    log = logging.getLogger("visvec")
+    if not any(isinstance(h, _EchoHandler) for h in log.handlers):
+        log.addHandler(_EchoHandler(logging.WARNING))
+        log.propagate = False
+
+
 @click.group(cls=VisvecGroup, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(__version__, prog_name="visvec")
 @click.option("--debug", is_flag=True, help="Show tracebacks of unexpected errors.")
@@ -56,6 +71,7 @@ def cli(debug: bool) -> None:
 
     Units are mm and degrees; see the README for the frames and the rig file.
     """
+    _route_library_warnings()
     if not debug:
         # OpenCV's own warnings (for instance every backend it tried on a camera that
         # cannot be opened) would bury visvec's one-line message; --debug keeps them

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-import sys
+import logging
 import time
 from collections.abc import Iterator
 
@@ -11,6 +11,8 @@ import cv2
 from visvec.data import Frame
 from visvec.errors import SourceError
 from visvec.sources.folder import to_gray
+
+_log = logging.getLogger(__name__)
 
 # a live source's timestamps are used while their elapsed time stays within this of
 # ours (s): a clock that is not running at real time (or jumped) is not the frames'
@@ -127,10 +129,11 @@ class VideoSource:
                 self._src = (self._src[0], ts)
                 return t
         if self._src is not None:
-            print(
-                f"{self.spec}: the source's frame timestamps stopped making sense at "
-                f"{t_read:.3f} s; times are now those at which frames are read",
-                file=sys.stderr,
+            _log.warning(
+                "%s: the source's frame timestamps stopped making sense at %.3f s; times "
+                "are now those at which frames are read",
+                self.spec,
+                t_read,
             )
         self.clock = "read"
         return t_read
