@@ -370,7 +370,7 @@ def fit_edges(
     step: float = 0.5,
     trim: float = 0.06,
     width: np.ndarray | None = None,
-    shutter: tuple[np.ndarray, float] | None = None,
+    shutter: tuple[np.ndarray, float, np.ndarray | None] | None = None,
 ) -> EdgeFit:
     """Fit the three edges of the triangle whose coarse corners are ``corners_px`` (3, 2).
 
@@ -387,13 +387,13 @@ def fit_edges(
     lens refocusing); the fine pass is repeated if the vertices move by more than
     ``TRACK_RECENTRE_PX``.
 
-    With ``shutter`` = (omega_c, readout_s), a rolling shutter: image row v is exposed
-    t = (v - cy) / H * readout_s after the centre row while the camera turns at omega_c
-    (rad/s, camera frame). Each edge point's ray d is taken back to the centre row's
-    exposure, d0 = expm([omega_c] t) d ~ d + t omega_c x d, before the lines are fitted,
-    so the lines and vertices are those of one instant. First order in the rotation;
-    the camera's translation on its lever arm (about a tenth of the effect for a camera
-    0.2 m off the axis and a target 2 m away) is not corrected.
+    With ``shutter`` = (omega_c, readout_s, lever), a rolling shutter: image row v is
+    exposed t = (v - cy) / H * readout_s after the centre row while the camera turns at
+    omega_c (rad/s, camera frame) about the platform's centre of rotation. Each edge
+    point's ray d is taken back to the centre row's exposure, d0 = d + t omega_c x
+    (d + lever) (see :func:`_unroll`: the rotation, and the camera's translation on its
+    lever arm), before the lines are fitted, so the lines and vertices are those of one
+    instant. First order in the rotation.
     """
     reach = MAX_HALF_PX + LEVEL_EXTENT_PX + 3.0
     lo = np.floor(corners_px.min(axis=0) - reach).astype(int)
@@ -516,36 +516,58 @@ def fit_edges(
 
 
 def _unroll(
-    xy: np.ndarray, rows: np.ndarray, camera: CameraModel, omega_c: np.ndarray, readout_s: float
+    xy: np.ndarray,
+    rows: np.ndarray,
+    camera: CameraModel,
+    omega_c: np.ndarray,
+    readout_s: float,
+    lever: np.ndarray | None = None,
 ) -> np.ndarray:
     """Normalised points (N, 2) seen at image rows ``rows`` by a rolling shutter, taken to
-    the centre row's exposure: d0 = d + t omega_c x d, t = (v - cy) / H * readout_s."""
+    the centre row's exposure.
+
+    The camera rides on the platform, which turns about the lab origin at omega_c
+    (camera axes): a lab point seen at time t after the centre row is, to first order,
+    P(t) = P(0) - t omega_c x (P(0) + b), b = R_BC^T t_B the camera's position in B in
+    camera axes (its lever arm: turning about the origin also moves the camera). With
+    P = Z d, d = (x, y, 1): d0 = d + t omega_c x (d + ``lever``), ``lever`` = b / Z for
+    the target's depth Z (None: a camera on the axis), t = (v - cy) / H * readout_s.
+    """
     t = (rows - camera.cy) / camera.height * readout_s
     d = np.column_stack([xy, np.ones(len(xy))])
-    d0 = d + t[:, None] * np.cross(np.asarray(omega_c, float), d)
+    arm = d if lever is None else d + lever
+    d0 = d + t[:, None] * np.cross(np.asarray(omega_c, float), arm)
     return d0[:, :2] / d0[:, 2:3]
 
 
 def shutter_cov(
-    xy: np.ndarray, rows: np.ndarray, camera: CameraModel, readout_s: float, cov_omega: np.ndarray
+    xy: np.ndarray,
+    rows: np.ndarray,
+    camera: CameraModel,
+    readout_s: float,
+    cov_omega: np.ndarray,
+    lever: np.ndarray | None = None,
 ) -> np.ndarray:
     """(6, 6) covariance that an unknown camera rate (covariance ``cov_omega``, (3, 3),
     (rad/s)^2, camera axes) adds to three normalised vertices xy (3, 2) seen at image
     rows ``rows`` by a rolling shutter left uncorrected.
 
-    The linearisation of :func:`_unroll` at omega = 0: with d = (x, y, 1) and
-    t = (v - cy) / H * readout_s, the vertex moves by A omega,
-    A = t [[-x y, 1 + x^2, -y], [-1 - y^2, x y, x]], which gives A cov_omega A^T,
-    correlated between the vertices because they share the rate. (A vertex is an
-    intersection of fitted lines whose points have their own rows; its own row's shift
-    is the first-order value.) A tilt rate matters most: it stretches the triangle
-    along the columns, which turns its apex direction (the yaw).
+    The linearisation of :func:`_unroll` at omega = 0: with e = d + lever = (ex, ey, ez)
+    and t = (v - cy) / H * readout_s, the vertex moves by A omega,
+    A = t [[-x ey, ez + x ex, -ey], [-ez - y ey, y ex, ex]] (for a camera on the axis,
+    e = (x, y, 1): t [[-x y, 1 + x^2, -y], [-1 - y^2, x y, x]]), which gives
+    A cov_omega A^T, correlated between the vertices because they share the rate. (A
+    vertex is an intersection of fitted lines whose points have their own rows; its own
+    row's shift is the first-order value.) A tilt rate matters most: it stretches the
+    triangle along the columns, which turns its apex direction (the yaw).
     """
     t = (np.asarray(rows, float) - camera.cy) / camera.height * readout_s
     x, y = xy[:, 0], xy[:, 1]
+    lx, ly, lz = (0.0, 0.0, 0.0) if lever is None else np.asarray(lever, float)
+    ex, ey, ez = x + lx, y + ly, 1.0 + lz
     A = np.zeros((6, 3))
-    A[0::2] = np.column_stack([-x * y, 1.0 + x * x, -y]) * t[:, None]
-    A[1::2] = np.column_stack([-1.0 - y * y, x * y, x]) * t[:, None]
+    A[0::2] = np.column_stack([-x * ey, ez + x * ex, -ey]) * t[:, None]
+    A[1::2] = np.column_stack([-ez - y * ey, y * ex, ex]) * t[:, None]
     return A @ cov_omega @ A.T
 
 

@@ -104,6 +104,12 @@ class TriangleDetector:
         # (sigma = bound / sqrt(3)), in camera axes
         sd = np.radians([rig.max_tilt_rate_dps, rig.max_tilt_rate_dps, rig.max_rate_dps])
         self._cov_omega = rig.R_bc.T @ np.diag(sd**2 / 3.0) @ rig.R_bc
+        # a rolling shutter's lever arm b / Z (see edges._unroll): the camera's position
+        # in B in camera axes over the target's depth (at zero attitude: within 2 % at
+        # the tilts an air bearing allows)
+        b_c = rig.R_bc.T @ rig.t_b
+        depth = float(np.mean((rig.target.vertices_mm - rig.t_b) @ rig.R_bc[:, 2]))
+        self._lever_c = b_c / depth
         self._last_level: float | None = None
         self._last_points: np.ndarray | None = None
         self._prev_points: np.ndarray | None = None
@@ -139,7 +145,7 @@ class TriangleDetector:
         rig (``readout_ms`` > 0): the vertices are then those of the centre row's
         exposure (see fit_edges)."""
         shutter = (
-            (np.asarray(omega_c, float), self.rig.readout_ms / 1000.0)
+            (np.asarray(omega_c, float), self.rig.readout_ms / 1000.0, self._lever_c)
             if omega_c is not None and self.rig.readout_ms > 0
             else None
         )
@@ -207,7 +213,7 @@ class TriangleDetector:
         own first detection. On success it replaces the last detection's vertices."""
         if self._last_points is None or self.rig.readout_ms <= 0:
             raise ValueError("redetect needs a rolling-shutter rig and a last detection")
-        shutter = (np.asarray(omega_c, float), self.rig.readout_ms / 1000.0)
+        shutter = (np.asarray(omega_c, float), self.rig.readout_ms / 1000.0, self._lever_c)
         mean, warnings = self._brightness(image)
         det = self._verify(
             image, self._tracked_candidate(self._last_points), warnings, mean, shutter
@@ -251,10 +257,11 @@ class TriangleDetector:
         cand: Candidate,
         warnings: list[str],
         mean: float,
-        shutter: tuple[np.ndarray, float] | None = None,
+        shutter: tuple[np.ndarray, float, np.ndarray] | None = None,
     ) -> Detection:
         """The candidate's vertices and covariance, or the reason it is refused
-        (``shutter``: a rolling shutter's camera rate and readout, see fit_edges)."""
+        (``shutter``: a rolling shutter's camera rate, readout and lever arm, see
+        fit_edges)."""
         cam, s = self.rig.camera, self.rig.detect
         if s.refine == "corners":
             mask = np.zeros(image.shape, np.uint8)
@@ -347,7 +354,9 @@ class TriangleDetector:
             # a rolling shutter whose rate is not known yet (first frame): the rows'
             # exposure times stay in the vertices, by up to the platform's fastest turn
             readout_s = self.rig.readout_ms / 1000.0
-            consider = shutter_cov(xy / cam.fx, pts_px[:, 1], cam, readout_s, self._cov_omega)
+            consider = shutter_cov(
+                xy / cam.fx, pts_px[:, 1], cam, readout_s, self._cov_omega, self._lever_c
+            )
         return Detection(
             Status.OK,
             points_px=pts_px,
