@@ -11,7 +11,9 @@ set (then their sigma covers `[platform] max_rate_dps`, here 20 deg/s); then tra
 recordings turning at a constant rate (60 frames at 30 fps, every frame scored),
 with `readout_ms` unset (uncorrected) and set (corrected: edge points taken back to
 the centre row's exposure with the rate of the last two frames; the second frame
-detected again with the rate from its own first pass; the first frame widened).
+detected again with the rate from its own first pass; the first frame widened), and
+the same with the camera mounted 250 mm off the rotation axis (turning also moves it:
+its translation during the readout shears the image too).
 
     python benchmarks/triangle_rolling_shutter.py [--frames 80] [--readout-ms 25]
 """
@@ -35,6 +37,8 @@ from visvec.sim.scene import Scene
 from _common import CONFIGS, command, save_json, summarise
 
 RATES_DPS = (0.0, 2.0, 5.0, 10.0, 20.0)
+OFF_AXIS_MM = (250.0, 0.0, 150.0)
+OFF_AXIS_RATES_DPS = (0.0, 10.0, 20.0)
 
 
 def _render(args) -> np.ndarray:
@@ -64,6 +68,8 @@ def main() -> None:
         # the rig as the user would set it up for this camera: readout_ms, and the
         # platform's fastest turn (the benchmark's) as max_rate_dps
         rolling = replace(rig, readout_ms=args.readout_ms, max_rate_dps=max(RATES_DPS))
+        # the camera mounted 250 mm off the rotation axis: turning also moves it
+        off_axis = replace(rig, mount=replace(rig.mount, position_mm=np.array(OFF_AXIS_MM)))
         for rate in RATES_DPS:
             omega = np.radians([0.0, 0.0, rate])  # a yaw turn about n3
             with ProcessPoolExecutor(os.cpu_count() or 1) as ex:
@@ -87,13 +93,17 @@ def main() -> None:
                 )
                 for k in range(60)
             ]
-            with ProcessPoolExecutor(os.cpu_count() or 1) as ex:
-                images = list(ex.map(_render, [(rig, c, readout, omega) for c in cases]))
-            for label, r in (("uncorrected", rig), ("corrected", rolling)):
-                out = evaluate(r, images, cases, "full", track=True)
-                s = summarise(out)
-                res[f"tracked_{label}_yaw_rate_{rate}"] = s
-                print(cfg, "tracked", label, rate, s)
+            for where, r0 in (("", rig), ("off_axis_", off_axis)):
+                if where and rate not in OFF_AXIS_RATES_DPS:
+                    continue
+                with ProcessPoolExecutor(os.cpu_count() or 1) as ex:
+                    images = list(ex.map(_render, [(r0, c, readout, omega) for c in cases]))
+                rolled = replace(r0, readout_ms=args.readout_ms, max_rate_dps=max(RATES_DPS))
+                for label, r in (("uncorrected", r0), ("corrected", rolled)):
+                    out = evaluate(r, images, cases, "full", track=True)
+                    s = summarise(out)
+                    res[f"tracked_{where}{label}_yaw_rate_{rate}"] = s
+                    print(cfg, "tracked", where, label, rate, s)
         results[cfg] = res
     print(save_json("triangle_rolling_shutter", results))
 
