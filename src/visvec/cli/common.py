@@ -94,7 +94,7 @@ def open_out(path: str | None):
     elif path.startswith("udp://"):
         try:
             stream = UdpStream(path)
-        except ValueError as exc:
+        except ConfigError as exc:
             raise click.BadParameter(str(exc), param_hint="--out") from exc
         try:
             yield stream

@@ -10,6 +10,8 @@ from collections.abc import Sequence
 from typing import IO
 from urllib.parse import urlsplit
 
+from visvec.errors import ConfigError
+
 
 class CsvSink:
     """CSV with a header line; empty fields for None."""
@@ -47,7 +49,7 @@ class UdpStream:
 
     Raises
     ------
-    ValueError
+    ConfigError
         If ``url`` is not udp://HOST:PORT or HOST does not resolve.
     """
 
@@ -58,11 +60,11 @@ class UdpStream:
         except ValueError:
             port = None
         if parts.scheme != "udp" or not parts.hostname or port is None or parts.path:
-            raise ValueError(f"{url}: expected udp://HOST:PORT (for example udp://127.0.0.1:5005)")
+            raise ConfigError(f"{url}: expected udp://HOST:PORT (for example udp://127.0.0.1:5005)")
         try:
             info = socket.getaddrinfo(parts.hostname, port, type=socket.SOCK_DGRAM)
         except socket.gaierror as exc:
-            raise ValueError(f"{url}: cannot resolve {parts.hostname!r} ({exc.strerror})") from exc
+            raise ConfigError(f"{url}: cannot resolve {parts.hostname!r} ({exc.strerror})") from exc
         family, _, _, _, self.address = info[0]
         self.sock = socket.socket(family, socket.SOCK_DGRAM)
         self.url = url
