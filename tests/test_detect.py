@@ -237,6 +237,38 @@ def test_rolling_shutter_of_a_camera_off_the_axis_is_taken_out_while_tracking(ri
     assert abs(z[:, 0].mean()) < 0.5 and np.abs(z).max() < 3.0
 
 
+def test_rolling_shutter_read_bottom_up_is_taken_out_too(rig640):
+    """A negative readout (the last row read first, as with a flipped image): the shear
+    and the yaw bias change sign, and the correction takes them out the same way."""
+    from visvec.data import Frame
+    from visvec.pipeline import TrianglePipeline
+
+    w = np.radians(20.0)
+    frames, truth = [], []
+    for k in range(12):
+        e = np.array([0.3 + w * k / 30.0, np.radians(2.0), np.radians(-1.0)])
+        R = euler_to_matrix(*e)
+        frames.append(
+            Frame(k, k / 30.0, render_frame(rig640, R, Scene(), 950 + k, -0.025, R.T @ [0, 0, w]))
+        )
+        truth.append(np.degrees(e))
+
+    def yaw_z(readout_ms):
+        pipe = TrianglePipeline(replace(rig640, readout_ms=readout_ms))
+        rows = [pipe.process(f) for f in frames]
+        assert all(r.ok for r in rows[1:])
+        return np.array(
+            [
+                (r.euler_deg[0] - t[0]) / r.sigma_deg[0]
+                for r, t in zip(rows[1:], truth[1:], strict=True)
+            ]
+        )
+
+    assert yaw_z(0.0).mean() > 1.0  # uncorrected: biased high
+    z = yaw_z(-25.0)
+    assert abs(z.mean()) < 0.6 and np.abs(z).max() < 3.0
+
+
 def test_rolling_shutter_rate_only_from_related_frames(rig640):
     """The rate comes from the last two ok frames when they are a turn (below
     MAX_RATE_DPS), not from two unrelated frames of a folder (level frames 30 deg apart)

@@ -70,6 +70,7 @@ def test_example_configs_load():
             ["[detect] sigma_scale", "expected a number > 0"],
         ),
         ("readout_ms = 0.0", "readout_ms = 40.0", ["[camera] readout_ms", "expected a number in"]),
+        ("readout_ms = 0.0", "readout_ms = -34.0", ["[camera] readout_ms", "expected a number in"]),
         (
             "max_rate_dps = 10.0",
             "max_rate_dps = -5.0",

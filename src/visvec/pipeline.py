@@ -195,7 +195,7 @@ class TrianglePipeline(AttitudePipeline):
     def _camera_rate(self, t: float) -> np.ndarray | None:
         """The rate for a rolling-shutter frame at time t: zero for still frames, else
         from the last two ok frames; None without both or when they are stale."""
-        if self.rig.readout_ms <= 0:
+        if self.rig.readout_ms == 0:
             return None
         if self.still:
             return np.zeros(3)
@@ -213,13 +213,13 @@ class TrianglePipeline(AttitudePipeline):
         # start for Gauss-Newton than the closed form, and cheaper (same minimum)
         guess = self.R_last if self.detector.last_was_tracked else None
         sol = self.solve(det, self.rig, guess)
-        if sol.status is Status.OK and omega_c is None and self.rig.readout_ms > 0:
+        if sol.status is Status.OK and omega_c is None and self.rig.readout_ms != 0:
             det, sol, omega_c = self._redetect(frame, det, sol)
         self.R_last = sol.R_nb if sol.status is Status.OK else None
         warnings = det.warnings + sol.warnings
         if sol.status is Status.OK:
             self._recent = [*self._recent[-1:], (frame.time_s, sol.R_nb)]
-            if omega_c is None and self.rig.readout_ms > 0:
+            if omega_c is None and self.rig.readout_ms != 0:
                 # the rate is not known (first frame, or after a loss): the rows'
                 # exposure times could not be taken out; the sigma covers max_rate_dps
                 warnings += ("rolling_shutter_uncorrected",)

@@ -160,7 +160,8 @@ class Rig:
     device: int | str | None = None
     fps: float = 30.0
     exposure_ms: float | None = None
-    # rolling shutter: time from the first row's exposure to the last's (0: global)
+    # rolling shutter: time from the first row's exposure to the last's (0: global;
+    # negative: the last row is read first)
     readout_ms: float = 0.0
     path: Path | None = None
 
@@ -370,7 +371,7 @@ def rig_from_dict(raw: Mapping[str, Any], src: str = "<rig>", base_dir: Path | N
             f"{src}: [camera] exposure_ms = {exposure_ms}: longer than one frame "
             f"({1000.0 / fps:.1f} ms at fps = {fps})"
         )
-    readout_ms = cam.number("readout_ms", 0.0, lo=0.0, hi=1000.0 / fps)
+    readout_ms = cam.number("readout_ms", 0.0, lo=-1000.0 / fps, hi=1000.0 / fps)
     cam.check_unknown()
 
     mnt = _Section(src, "mount", raw["mount"])

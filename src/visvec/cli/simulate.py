@@ -128,7 +128,7 @@ from visvec.sim.stars import PAPER_CASES, StarScene, simulate_stars
 )
 @click.option(
     "--readout-ms",
-    type=click.FloatRange(min=0),
+    type=float,
     default=None,
     help="Triangle: a rolling shutter's readout, first to last row (default: the rig's "
     "[camera] readout_ms); a --motion sweep is rendered with its rates.",
@@ -205,9 +205,10 @@ def simulate(
         )
     if yaw_rate_dps is not None and motion != "sweep":
         raise click.UsageError("--yaw-rate-dps sets the rate of --motion sweep")
-    if readout_ms is not None and readout_ms > 1000.0 / rig.fps:
+    if readout_ms is not None and abs(readout_ms) > 1000.0 / rig.fps:
         raise click.BadParameter(
-            f"{readout_ms:g} ms: expected at most a frame interval ({1000.0 / rig.fps:g} ms)",
+            f"{readout_ms:g} ms: expected at most a frame interval ({1000.0 / rig.fps:g} ms; "
+            "negative: the last row read first)",
             param_hint="--readout-ms",
         )
     spots = SpotScene(noise_sigma=noise, reflections=reflections)

@@ -142,11 +142,11 @@ class TriangleDetector:
         """Detection of the triangle in one (H, W) uint8 image (never raises on content).
 
         ``omega_c``: the camera's angular rate (rad/s, camera frame) for a rolling-shutter
-        rig (``readout_ms`` > 0): the vertices are then those of the centre row's
+        rig (``readout_ms`` != 0): the vertices are then those of the centre row's
         exposure (see fit_edges)."""
         shutter = (
             (np.asarray(omega_c, float), self.rig.readout_ms / 1000.0, self._lever_c)
-            if omega_c is not None and self.rig.readout_ms > 0
+            if omega_c is not None and self.rig.readout_ms != 0
             else None
         )
         mean, warnings = self._brightness(image)
@@ -211,7 +211,7 @@ class TriangleDetector:
         taken to the centre row's exposure with the camera rate ``omega_c`` (rad/s,
         camera frame): a rolling-shutter frame whose rate became known only from its
         own first detection. On success it replaces the last detection's vertices."""
-        if self._last_points is None or self.rig.readout_ms <= 0:
+        if self._last_points is None or self.rig.readout_ms == 0:
             raise ValueError("redetect needs a rolling-shutter rig and a last detection")
         shutter = (np.asarray(omega_c, float), self.rig.readout_ms / 1000.0, self._lever_c)
         mean, warnings = self._brightness(image)
@@ -350,7 +350,7 @@ class TriangleDetector:
         if not np.all(cam.in_image(pts_px, BORDER_MARGIN_PX + 0.02 * cam.width)):
             w.append("near_fov_edge")
         consider = None
-        if shutter is None and self.rig.readout_ms > 0:
+        if shutter is None and self.rig.readout_ms != 0:
             # a rolling shutter whose rate is not known yet (first frame): the rows'
             # exposure times stay in the vertices, by up to the platform's fastest turn
             readout_s = self.rig.readout_ms / 1000.0

@@ -131,16 +131,17 @@ def render_clean(
     Pixels whose 3x3 neighbourhood holds more than one surface are averaged over
     ``scene.supersample``^2 sub-pixel rays (box pixel response).
 
-    Rolling shutter: with ``readout_s`` > 0 and a body rate ``omega_b`` (rad/s), row v
-    is exposed (v - cy) / H * readout_s after the centre row, at attitude
-    R_nb expm([omega_b] t) (R_nb is the centre row's); bands of ROLLING_BAND_ROWS rows
-    share one attitude (at 20 deg/s and 25 ms the attitude moves 0.004 deg in a band).
+    Rolling shutter: with ``readout_s`` != 0 (negative: the last row read first) and a
+    body rate ``omega_b`` (rad/s), row v is exposed (v - cy) / H * readout_s after the
+    centre row, at attitude R_nb expm([omega_b] t) (R_nb is the centre row's); bands of
+    ROLLING_BAND_ROWS rows share one attitude (at 20 deg/s and 25 ms the attitude moves
+    0.004 deg in a band).
     """
     cam = rig.camera
     grid = _ray_grid(
         cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy, tuple(float(k) for k in cam.dist)
     )
-    rolling = readout_s > 0 and omega_b is not None and np.any(omega_b)
+    rolling = readout_s != 0 and omega_b is not None and np.any(omega_b)
     bands = range(0, cam.height, ROLLING_BAND_ROWS) if rolling else [0]  # first row of each band
     band_h = ROLLING_BAND_ROWS if rolling else cam.height
     shaders = []
