@@ -103,6 +103,8 @@ class AttitudeSolution:
     iterations : int
         Solver iterations.
     warnings : tuple of str
+    chi2 : float
+        Mahalanobis residual of the fit (NaN where the estimator has none).
     """
 
     status: Status
@@ -112,3 +114,4 @@ class AttitudeSolution:
     n_points: int = 0
     iterations: int = 0
     warnings: tuple[str, ...] = ()
+    chi2: float = float("nan")

@@ -1,4 +1,4 @@
-"""`visvec calibrate zero-tilt` and `visvec calibrate camera`."""
+"""`visvec calibrate zero-tilt`, `readout`, `camera` and `system`."""
 
 from __future__ import annotations
 
@@ -9,6 +9,7 @@ import click
 import numpy as np
 
 from visvec.calib.camera import RECIPES, calibrate_camera, camera_section, parse_pattern
+from visvec.calib.readout import calibrate_readout, readout_sections
 from visvec.calib.system import Observations, calibrate_system, initial_attitudes
 from visvec.calib.system import calibration_sections as system_sections
 from visvec.calib.tomlout import dumps
@@ -25,7 +26,8 @@ from visvec.sources.folder import IMAGE_SUFFIXES, natural_key
 
 @click.group()
 def calibrate():
-    """Calibrate the rig: zero-tilt offsets, camera intrinsics."""
+    """Calibrate the rig: zero-tilt offsets, rolling-shutter readout, camera intrinsics,
+    markers system."""
 
 
 @calibrate.command("zero-tilt")
@@ -114,6 +116,60 @@ def zero_tilt(frames, rig_path, calibration, out):
         click.echo("visvec: error: the calibration did not converge; nothing written", err=True)
         raise SystemExit(1)
     click.echo(f"wrote {out}")
+
+
+@calibrate.command("readout")
+@click.argument("frames", type=click.Path())
+@rig_options
+@click.option(
+    "--out",
+    required=True,
+    type=click.Path(dir_okay=False),
+    help="Calibration file to write ([camera] readout_ms; use with --calibration).",
+)
+@click.option(
+    "--max-frames",
+    type=click.IntRange(min=10),
+    default=300,
+    show_default=True,
+    help="Frames of FRAMES to use (each trial readout re-runs them all).",
+)
+def readout(frames, rig_path, calibration, out, max_frames):
+    """A rolling shutter's readout time ([camera] readout_ms) from FRAMES (a folder with
+    its times.csv, from `track --save-frames`, or a video) of the platform turning at
+    5-20 deg/s: the readout whose correction leaves the triangle rigid (least
+    chi-square)."""
+    rig = load(rig_path, calibration, "triangle", "readout calibration")
+    src = open_source(frames, fps=rig.fps, retry_s=0.0, max_frames=max_frames)
+    res = calibrate_readout(list(src), rig)
+    if res.converged:
+        sections = readout_sections(res)
+        if abs(res.readout_ms) < 2.0 * res.sigma_ms:
+            sections["camera"]["readout_ms"] = 0.0  # no rolling shutter seen
+        header = (
+            f"visvec readout calibration, {datetime.now(UTC):%Y-%m-%d %H:%M} UTC\n"
+            f"rig {rig_path}, frames {frames} ({res.n_used} used)"
+        )
+        Path(out).write_text(dumps(sections, header))  # before the report
+    click.echo(
+        f"readout calibration from {res.n_frames} frames (the platform turning at "
+        f"{res.rate_dps:.1f} deg/s, median)"
+    )
+    if not res.converged:
+        click.echo(f"visvec: error: {res.reason}; nothing written", err=True)
+        raise SystemExit(1)
+    click.echo(
+        f"  readout (first to last row): {res.readout_ms:+.2f} +- {res.sigma_ms:.2f} ms"
+        + ("  (negative: the last row is read first)" if res.readout_ms < 0 else "")
+    )
+    click.echo(
+        f"  chi-square per degree of freedom: {res.chi2_per_dof:.3f} corrected, "
+        f"{res.chi2_per_dof_global:.3f} without the correction ({res.n_used} frames)"
+    )
+    if abs(res.readout_ms) < 2.0 * res.sigma_ms:
+        click.echo("  no rolling shutter seen (within 2 sigma of 0): readout_ms = 0 written")
+    value = sections["camera"]["readout_ms"]
+    click.echo(f"wrote {out}: put readout_ms = {value:g} in the rig's [camera] section")
 
 
 @calibrate.command("camera")

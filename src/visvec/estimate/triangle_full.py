@@ -86,5 +86,12 @@ def solve_full(det: Detection, rig: Rig, R_nb_guess: np.ndarray | None = None) -
     if chi2 > CHI2_REJECT:
         status, warnings = Status.REJECTED, ("inconsistent_geometry",)
     return AttitudeSolution(
-        status, R_nb=R_nb, cov_b=cov_b, rms_px=rms_px, n_points=3, iterations=it, warnings=warnings
+        status,
+        R_nb=R_nb,
+        cov_b=cov_b,
+        rms_px=rms_px,
+        n_points=3,
+        iterations=it,
+        warnings=warnings,
+        chi2=chi2,
     )

@@ -1,0 +1,174 @@
+"""A rolling shutter's readout time, measured on a recording of the platform turning.
+
+While the platform turns, each image row sees the triangle at the attitude of its own
+exposure. The sensor takes every edge point back to the centre row's exposure with the
+rig's ``[camera] readout_ms`` (:func:`visvec.detect.edges._unroll`); with the wrong
+readout the corrected triangle is sheared, no rigid triangle fits its vertices, and
+their chi-square (the fit's Mahalanobis residual, 3 degrees of freedom per frame)
+grows. The readout is the one that minimises the recording's total chi-square; its
+1-sigma comes from the curvature of that total (a change of 1 in chi-square),
+scaled by sqrt(chi2 / dof) when the residuals exceed the vertices' sigma.
+
+Each frame's chi-square is capped at the solver's refusal threshold, and a frame that
+is refused, or not corrected (the first after an acquisition), counts the cap: a trial
+readout that makes the sensor refuse frames is penalised without the cost jumping as
+frames come and go. Nothing can be measured on a platform at rest: the recording must
+turn (MIN_RATE_DPS).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from visvec.data import Frame
+from visvec.estimate.triangle_full import CHI2_REJECT, DOF
+from visvec.pipeline import TrianglePipeline
+from visvec.rig import Rig
+from visvec.rotations import logmap
+
+# below this median rate (deg/s) the recording does not shear the triangle enough
+MIN_RATE_DPS = 3.0
+# spacing of the first, coarse search over readout times (ms), then its refinement
+COARSE_STEP_MS = 4.0
+FINE_STEP_MS = 1.0
+# the readout of "no rolling shutter" in a trial: tiny, so that every trial treats the
+# first frame alike (uncorrected) and only the correction changes
+ZERO_MS = 1e-3
+# frames more than this apart (s) or turning faster than this (deg/s) are not one turn
+RATE_GAP_S = 0.5
+MAX_RATE_DPS = 60.0
+
+
+@dataclass(frozen=True)
+class ReadoutCalibration:
+    """Result of :func:`calibrate_readout`.
+
+    readout_ms, sigma_ms : the estimate and its 1-sigma (NaN when not determined)
+    rate_dps : median angular rate of the platform over the recording
+    n_frames : frames in the recording; n_used : frames ok and corrected at the estimate
+    chi2_per_dof : at the estimate, and ``chi2_per_dof_global`` with no correction
+    trials_ms, costs : every trial readout and its capped total chi-square
+    converged : False with ``reason`` when the readout could not be determined
+    """
+
+    readout_ms: float
+    sigma_ms: float
+    rate_dps: float
+    n_frames: int
+    n_used: int
+    chi2_per_dof: float
+    chi2_per_dof_global: float
+    trials_ms: np.ndarray
+    costs: np.ndarray
+    converged: bool
+    reason: str = ""
+
+
+def _cost(frames: Sequence[Frame], rig: Rig, readout_ms: float) -> tuple[float, int, list]:
+    """Capped total chi-square of the recording tracked with ``readout_ms``, the number
+    of frames that were ok and corrected, and the (time_s, R_nb) of every ok row."""
+    pipe = TrianglePipeline(replace(rig, readout_ms=readout_ms))
+    total, used, attitudes = 0.0, 0, []
+    for frame in frames:
+        row = pipe.process(frame)
+        sol = pipe.last_solution
+        if row.ok and sol is not None:
+            attitudes.append((frame.time_s, sol.R_nb))
+        if row.ok and sol is not None and "rolling_shutter_uncorrected" not in row.warnings:
+            total += min(float(sol.chi2), CHI2_REJECT)
+            used += 1
+        else:
+            total += CHI2_REJECT
+    return total, used, attitudes
+
+
+def _per_dof(total: float, used: int, n: int) -> float:
+    """Chi-square per degree of freedom of the frames used (each capped), from a total
+    that counts CHI2_REJECT for each of the n - used others."""
+    return (total - CHI2_REJECT * (n - used)) / (DOF * max(used, 1))
+
+
+def _median_rate_dps(attitudes: list) -> float:
+    """Median angular rate (deg/s) between consecutive ok rows of one turn."""
+    rates = []
+    for (t0, R0), (t1, R1) in zip(attitudes, attitudes[1:], strict=False):
+        dt = t1 - t0
+        if 0 < dt <= RATE_GAP_S:
+            w = np.degrees(np.linalg.norm(logmap(R0.T @ R1))) / dt
+            if w <= MAX_RATE_DPS:
+                rates.append(w)
+    return float(np.median(rates)) if rates else 0.0
+
+
+def calibrate_readout(frames: Sequence[Frame], rig: Rig) -> ReadoutCalibration:
+    """The rolling-shutter readout time of the rig's camera from ``frames`` of the
+    platform turning (a tracked recording with its times, as `visvec track` or a video
+    gives them); triangle rigs.
+
+    The search runs over readouts from minus to plus one frame interval (1000 / fps ms;
+    negative: the last row read first): a coarse grid, then a parabola through the
+    finer steps around its best point.
+    """
+    frames = [f for f in frames if f.image is not None]
+    span = 1000.0 / rig.fps
+    base, base_used, attitudes = _cost(frames, rig, ZERO_MS)
+    base_dof = _per_dof(base, base_used, len(frames))
+    rate = _median_rate_dps(attitudes)
+    trials: dict[float, float] = {ZERO_MS: base}
+
+    def fail(reason: str, readout: float = float("nan")) -> ReadoutCalibration:
+        grid = np.array(sorted(trials))
+        return ReadoutCalibration(
+            readout, float("nan"), rate, len(frames), 0, float("nan"), base_dof, grid,
+            np.array([trials[g] for g in grid]), False, reason,
+        )  # fmt: skip
+
+    if len(attitudes) < 10:
+        return fail(f"only {len(attitudes)} frames with the triangle found: record more")
+    if rate < MIN_RATE_DPS:
+        return fail(
+            f"the platform turns at {rate:.1f} deg/s: the rows' times cannot be seen at "
+            f"under {MIN_RATE_DPS:g} deg/s; record it turning (5-20 deg/s)"
+        )
+    for r in np.arange(-span, span + 1e-9, COARSE_STEP_MS):
+        if abs(r) > ZERO_MS:
+            trials[float(r)] = _cost(frames, rig, float(r))[0]
+    best = min(trials, key=trials.get)
+    for r in best + FINE_STEP_MS * np.arange(-3, 4):
+        if abs(r) <= span and float(r) not in trials:
+            trials[float(r)] = _cost(frames, rig, float(r))[0]
+    near = np.array([r for r in trials if abs(r - best) <= 3 * FINE_STEP_MS + 1e-9])
+    cost = np.array([trials[r] for r in near])
+    a2, a1, _ = np.polyfit(near, cost, 2)
+    if a2 <= 0:
+        return fail("the total chi-square has no minimum near its best trial")
+    readout = float(-a1 / (2 * a2))
+    if abs(readout) > span - FINE_STEP_MS:
+        return fail(f"the best readout ({readout:.1f} ms) is at the end of the search", readout)
+    total, used, _ = _cost(frames, rig, readout)
+    chi2_dof = _per_dof(total, used, len(frames))
+    # the curvature of the total chi-square gives the 1-sigma (delta chi2 = 1 at sigma)
+    sigma = float(np.sqrt(1.0 / a2) * np.sqrt(max(1.0, chi2_dof)))
+    grid = np.array(sorted(trials))
+    return ReadoutCalibration(
+        readout, sigma, rate, len(frames), used, chi2_dof, base_dof, grid,
+        np.array([trials[g] for g in grid]), True,
+    )  # fmt: skip
+
+
+def readout_sections(res: ReadoutCalibration) -> dict[str, dict[str, object]]:
+    """Sections of the calibration file (``[camera] readout_ms`` and a report)."""
+    return {
+        "camera": {"readout_ms": round(res.readout_ms, 2)},
+        "report": {
+            "sigma_readout_ms": round(res.sigma_ms, 3),
+            "rate_dps": round(res.rate_dps, 2),
+            "frames": res.n_frames,
+            "frames_used": res.n_used,
+            "chi2_per_dof": round(res.chi2_per_dof, 4),
+            "chi2_per_dof_uncorrected": round(res.chi2_per_dof_global, 4),
+        },
+    }
