@@ -5,9 +5,10 @@ exposure. The sensor takes every edge point back to the centre row's exposure wi
 rig's ``[camera] readout_ms`` (:func:`visvec.detect.edges._unroll`); with the wrong
 readout the corrected triangle is sheared, no rigid triangle fits its vertices, and
 their chi-square (the fit's Mahalanobis residual, 3 degrees of freedom per frame)
-grows. The readout is the one that minimises the recording's total chi-square; its
-1-sigma comes from the curvature of that total (a change of 1 in chi-square),
-scaled by sqrt(chi2 / dof) when the residuals exceed the vertices' sigma.
+grows. The readout is the one that minimises the recording's total chi-square (a
+least-squares fit of one parameter shared by all frames); its 1-sigma comes from the
+curvature of that total (a change of 1 in chi-square), scaled by sqrt(chi2 / dof) when
+the residuals exceed the vertices' sigma.
 
 Each frame's chi-square is capped at the solver's refusal threshold, and a frame that
 is refused, or not corrected (the first after an acquisition), counts the cap: a trial
@@ -34,6 +35,8 @@ MIN_RATE_DPS = 3.0
 # spacing of the first, coarse search over readout times (ms), then its refinement
 COARSE_STEP_MS = 4.0
 FINE_STEP_MS = 1.0
+# a readout less certain than this fraction of the frame interval is not reported
+MAX_SIGMA_FRACTION = 0.25
 # the readout of "no rolling shutter" in a trial: tiny, so that every trial treats the
 # first frame alike (uncorrected) and only the correction changes
 ZERO_MS = 1e-3
@@ -109,8 +112,10 @@ def calibrate_readout(frames: Sequence[Frame], rig: Rig) -> ReadoutCalibration:
     gives them); triangle rigs.
 
     The search runs over readouts from minus to plus one frame interval (1000 / fps ms;
-    negative: the last row read first): a coarse grid, then a parabola through the
-    finer steps around its best point.
+    negative: the last row read first): a coarse grid, 1 ms steps around its best point,
+    then a parabola over the trials within +-2.5 sigma of it. Not converged (with the
+    reason) when the platform does not turn, the minimum is flat or at the end of the
+    search, or its sigma exceeds a quarter of the frame interval.
     """
     frames = [f for f in frames if f.image is not None]
     span = 1000.0 / rig.fps
@@ -140,11 +145,20 @@ def calibrate_readout(frames: Sequence[Frame], rig: Rig) -> ReadoutCalibration:
     for r in best + FINE_STEP_MS * np.arange(-3, 4):
         if abs(r) <= span and float(r) not in trials:
             trials[float(r)] = _cost(frames, rig, float(r))[0]
-    near = np.array([r for r in trials if abs(r - best) <= 3 * FINE_STEP_MS + 1e-9])
-    cost = np.array([trials[r] for r in near])
-    a2, a1, _ = np.polyfit(near, cost, 2)
-    if a2 <= 0:
-        return fail("the total chi-square has no minimum near its best trial")
+    # a parabola over the trials within +-half of the best, the window set to +-2.5
+    # sigma of the last fit: wide enough that a shallow minimum's curvature (a small
+    # image, a slow turn: sigma of several ms) is not the cost's own roughness over a few
+    # ms, narrow enough that a sharp one's is not flattened by frames reaching the cap
+    half = 4.0 * COARSE_STEP_MS
+    for _ in range(4):
+        near = np.array([r for r in trials if abs(r - best) <= half + 1e-9])
+        a2, a1, _ = np.polyfit(near, np.array([trials[r] for r in near]), 2)
+        if a2 <= 0:
+            return fail("the total chi-square has no minimum near its best trial")
+        new_half = float(np.clip(2.5 / np.sqrt(a2), 3.0 * FINE_STEP_MS, span))
+        if abs(new_half - half) < FINE_STEP_MS:
+            break
+        half = new_half
     readout = float(-a1 / (2 * a2))
     if abs(readout) > span - FINE_STEP_MS:
         return fail(f"the best readout ({readout:.1f} ms) is at the end of the search", readout)
@@ -152,6 +166,12 @@ def calibrate_readout(frames: Sequence[Frame], rig: Rig) -> ReadoutCalibration:
     chi2_dof = _per_dof(total, used, len(frames))
     # the curvature of the total chi-square gives the 1-sigma (delta chi2 = 1 at sigma)
     sigma = float(np.sqrt(1.0 / a2) * np.sqrt(max(1.0, chi2_dof)))
+    if sigma > MAX_SIGMA_FRACTION * span:
+        return fail(
+            f"the readout is poorly determined ({readout:.1f} +- {sigma:.1f} ms): record "
+            "longer or turn faster",
+            readout,
+        )
     grid = np.array(sorted(trials))
     return ReadoutCalibration(
         readout, sigma, rate, len(frames), used, chi2_dof, base_dof, grid,
