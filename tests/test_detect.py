@@ -237,6 +237,33 @@ def test_rolling_shutter_of_a_camera_off_the_axis_is_taken_out_while_tracking(ri
     assert abs(z[:, 0].mean()) < 0.5 and np.abs(z).max() < 3.0
 
 
+def test_a_turn_faster_than_the_rate_bounds_is_acquired_at_the_second_frame(rig640):
+    """Turning at 20 deg/s with the apex along the image columns and tilting at 2.6 deg/s
+    (the rig says 2 at most): the first frame's shear exceeds what its widened sigma
+    covers and it is refused, but its attitude gives the second frame a rate, so
+    tracking starts there (before, every frame was a refused first one, 8 of 10)."""
+    from visvec.data import Frame
+    from visvec.pipeline import TrianglePipeline
+    from visvec.sim.simulate import body_rates
+
+    rig = replace(rig640, readout_ms=25.0)
+    rate = np.radians([20.0, -2.6, -0.6])  # yaw, pitch, roll per second
+    eul = [np.radians([-83.3, 0.15, 3.0]) + rate * k / 30.0 for k in range(8)]
+    R = np.array([euler_to_matrix(*e) for e in eul])
+    w_b = body_rates(R, 1.0 / 30.0)
+    pipe = TrianglePipeline(rig)
+    rows = [
+        pipe.process(Frame(k, k / 30.0, render_frame(rig, R[k], Scene(), 73000 + k, 0.025, w_b[k])))
+        for k in range(8)
+    ]
+    assert not rows[0].ok and "inconsistent_geometry" in rows[0].warnings
+    assert all(r.ok and r.warnings == () for r in rows[1:])
+    z = [
+        (r.euler_deg - np.degrees(e)) / r.sigma_deg for r, e in zip(rows[1:], eul[1:], strict=True)
+    ]
+    assert np.abs(z).max() < 3.0
+
+
 def test_rolling_shutter_read_bottom_up_is_taken_out_too(rig640):
     """A negative readout (the last row read first, as with a flipped image): the shear
     and the yaw bias change sign, and the correction takes them out the same way."""

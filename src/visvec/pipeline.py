@@ -175,11 +175,21 @@ class TrianglePipeline(AttitudePipeline):
         self.R_last: np.ndarray | None = None
         # (time_s, R_nb) of the last two ok frames in a row: the rate for a rolling shutter
         self._recent: list[tuple[float, np.ndarray]] = []
+        # (time_s, R_nb) of the last frame refused only because its uncorrected rolling
+        # shutter sheared it (a turn faster than the rig's rate bounds): near enough to
+        # give the next frame a rate
+        self._sheared: tuple[float, np.ndarray] | None = None
 
     def reset(self) -> None:
         self.detector.reset()
         self.R_last = None
         self._recent = []
+        self._sheared = None
+
+    def after_failure(self) -> None:
+        sheared = self._sheared
+        self.reset()
+        self._sheared = sheared
 
     def _rate(self, a: tuple[float, np.ndarray], b: tuple[float, np.ndarray]) -> np.ndarray | None:
         """The camera's angular rate (rad/s, camera frame) between two ok frames' (time_s,
@@ -213,8 +223,11 @@ class TrianglePipeline(AttitudePipeline):
         # start for Gauss-Newton than the closed form, and cheaper (same minimum)
         guess = self.R_last if self.detector.last_was_tracked else None
         sol = self.solve(det, self.rig, guess)
-        if sol.status is Status.OK and omega_c is None and self.rig.readout_ms != 0:
+        sheared = sol.status is Status.REJECTED and "inconsistent_geometry" in sol.warnings
+        if omega_c is None and self.rig.readout_ms != 0 and (sol.status is Status.OK or sheared):
             det, sol, omega_c = self._redetect(frame, det, sol)
+            sheared = sol.status is Status.REJECTED and "inconsistent_geometry" in sol.warnings
+        self._sheared = (frame.time_s, sol.R_nb) if sheared and omega_c is None else None
         self.R_last = sol.R_nb if sol.status is Status.OK else None
         warnings = det.warnings + sol.warnings
         if sol.status is Status.OK:
@@ -227,12 +240,14 @@ class TrianglePipeline(AttitudePipeline):
 
     def _redetect(self, frame, det, sol):
         """A rolling-shutter frame detected without a rate (the second after an
-        acquisition): its own attitude and the last ok frame's give the rate, and it is
-        detected again with it. (det, sol, omega_c), unchanged (omega_c None) when
-        there is no such last frame or the second pass fails."""
-        if not self._recent:
+        acquisition, or one whose uncorrected shear no rigid triangle fits): its own
+        attitude and the last frame's (ok, or refused only for that shear) give the rate,
+        and it is detected again with it. (det, sol, omega_c), unchanged (omega_c None)
+        when there is no such last frame or the second pass fails."""
+        last = self._recent[-1] if self._recent else self._sheared
+        if last is None:
             return det, sol, None
-        omega_c = self._rate(self._recent[-1], (frame.time_s, sol.R_nb))
+        omega_c = self._rate(last, (frame.time_s, sol.R_nb))
         if omega_c is None:
             return det, sol, None
         det2 = self.detector.redetect(frame.image, omega_c)
