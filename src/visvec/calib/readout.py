@@ -32,6 +32,8 @@ from visvec.rotations import logmap
 
 # below this median rate (deg/s) the recording does not shear the triangle enough
 MIN_RATE_DPS = 3.0
+# the least number of frames with the triangle found
+MIN_FRAMES = 10
 # spacing of the first, coarse search over readout times (ms), then its refinement
 COARSE_STEP_MS = 4.0
 FINE_STEP_MS = 1.0
@@ -131,13 +133,16 @@ def calibrate_readout(frames: Sequence[Frame], rig: Rig) -> ReadoutCalibration:
             np.array([trials[g] for g in grid]), False, reason,
         )  # fmt: skip
 
-    if len(attitudes) < 10:
-        return fail(f"only {len(attitudes)} frames with the triangle found: record more")
-    if rate < MIN_RATE_DPS:
+    def too_slow() -> ReadoutCalibration:
         return fail(
             f"the platform turns at {rate:.1f} deg/s: the rows' times cannot be seen at "
             f"under {MIN_RATE_DPS:g} deg/s; record it turning (5-20 deg/s)"
         )
+
+    # uncorrected, a fast turn may have most frames refused (their shear fits no rigid
+    # triangle): the frames found and the rate are judged again at the estimate
+    if len(attitudes) >= MIN_FRAMES and rate < MIN_RATE_DPS:
+        return too_slow()
     for r in np.arange(-span, span + 1e-9, COARSE_STEP_MS):
         if abs(r) > ZERO_MS:
             trials[float(r)] = _cost(frames, rig, float(r))[0]
@@ -162,7 +167,12 @@ def calibrate_readout(frames: Sequence[Frame], rig: Rig) -> ReadoutCalibration:
     readout = float(-a1 / (2 * a2))
     if abs(readout) > span - FINE_STEP_MS:
         return fail(f"the best readout ({readout:.1f} ms) is at the end of the search", readout)
-    total, used, _ = _cost(frames, rig, readout)
+    total, used, attitudes = _cost(frames, rig, readout)
+    rate = _median_rate_dps(attitudes)
+    if len(attitudes) < MIN_FRAMES:
+        return fail(f"only {len(attitudes)} frames with the triangle found: record more")
+    if rate < MIN_RATE_DPS:
+        return too_slow()
     chi2_dof = _per_dof(total, used, len(frames))
     # the curvature of the total chi-square gives the 1-sigma (delta chi2 = 1 at sigma)
     sigma = float(np.sqrt(1.0 / a2) * np.sqrt(max(1.0, chi2_dof)))
