@@ -158,6 +158,19 @@ MAX_RATE_GAP_S = 0.5
 MAX_RATE_DPS = 60.0
 
 
+def body_rate(a: tuple[float, np.ndarray], b: tuple[float, np.ndarray]) -> np.ndarray | None:
+    """The platform's body rate (rad/s) between two frames' (time_s, R_nb),
+    R_nb(t1) = R_nb(t0) expm([omega_b] dt); None when they are too far apart in time
+    (MAX_RATE_GAP_S) or in angle (MAX_RATE_DPS) to be one turn."""
+    (t0, R0), (t1, R1) = a, b
+    if not 0 < t1 - t0 <= MAX_RATE_GAP_S:
+        return None
+    omega_b = logmap(R0.T @ R1) / (t1 - t0)
+    if np.degrees(np.linalg.norm(omega_b)) > MAX_RATE_DPS:
+        return None
+    return omega_b
+
+
 class TrianglePipeline(AttitudePipeline):
     """The triangle target; ``method`` "full" (default) or "paper"."""
 
@@ -192,15 +205,10 @@ class TrianglePipeline(AttitudePipeline):
         self._sheared = sheared
 
     def _rate(self, a: tuple[float, np.ndarray], b: tuple[float, np.ndarray]) -> np.ndarray | None:
-        """The camera's angular rate (rad/s, camera frame) between two ok frames' (time_s,
-        R_nb); None when they are too far apart in time or in angle to be one turn."""
-        (t0, R0), (t1, R1) = a, b
-        if not 0 < t1 - t0 <= MAX_RATE_GAP_S:
-            return None
-        omega_b = logmap(R0.T @ R1) / (t1 - t0)  # R_nb(t1) = R_nb(t0) expm([omega_b] dt)
-        if np.degrees(np.linalg.norm(omega_b)) > MAX_RATE_DPS:
-            return None
-        return self.rig.R_bc.T @ omega_b
+        """The camera's angular rate (rad/s, camera frame) between two frames' (time_s,
+        R_nb); None when they are not one turn (see :func:`body_rate`)."""
+        omega_b = body_rate(a, b)
+        return None if omega_b is None else self.rig.R_bc.T @ omega_b
 
     def _camera_rate(self, t: float) -> np.ndarray | None:
         """The rate for a rolling-shutter frame at time t: zero for still frames, else

@@ -26,9 +26,8 @@ import numpy as np
 
 from visvec.data import Frame
 from visvec.estimate.triangle_full import CHI2_REJECT, DOF
-from visvec.pipeline import TrianglePipeline
+from visvec.pipeline import TrianglePipeline, body_rate
 from visvec.rig import Rig
-from visvec.rotations import logmap
 
 # below this median rate (deg/s) the recording does not shear the triangle enough
 MIN_RATE_DPS = 3.0
@@ -42,9 +41,6 @@ MAX_SIGMA_FRACTION = 0.25
 # the readout of "no rolling shutter" in a trial: tiny, so that every trial treats the
 # first frame alike (uncorrected) and only the correction changes
 ZERO_MS = 1e-3
-# frames more than this apart (s) or turning faster than this (deg/s) are not one turn
-RATE_GAP_S = 0.5
-MAX_RATE_DPS = 60.0
 
 
 @dataclass(frozen=True)
@@ -98,14 +94,9 @@ def _per_dof(total: float, used: int, n: int) -> float:
 
 def _median_rate_dps(attitudes: list) -> float:
     """Median angular rate (deg/s) between consecutive ok rows of one turn."""
-    rates = []
-    for (t0, R0), (t1, R1) in zip(attitudes, attitudes[1:], strict=False):
-        dt = t1 - t0
-        if 0 < dt <= RATE_GAP_S:
-            w = np.degrees(np.linalg.norm(logmap(R0.T @ R1))) / dt
-            if w <= MAX_RATE_DPS:
-                rates.append(w)
-    return float(np.median(rates)) if rates else 0.0
+    rates = [body_rate(a, b) for a, b in zip(attitudes, attitudes[1:], strict=False)]
+    speeds = [np.degrees(np.linalg.norm(w)) for w in rates if w is not None]
+    return float(np.median(speeds)) if speeds else 0.0
 
 
 def calibrate_readout(frames: Sequence[Frame], rig: Rig) -> ReadoutCalibration:
