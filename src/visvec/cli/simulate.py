@@ -134,6 +134,13 @@ from visvec.sim.stars import PAPER_CASES, StarScene, simulate_stars
     "[camera] readout_ms); a --motion sweep is rendered with its rates.",
 )
 @click.option(
+    "--exposure-ms",
+    type=click.FloatRange(min=0),
+    default=None,
+    help="Triangle: each row's exposure time, blurring a --motion sweep (default: the "
+    "rig's [camera] exposure_ms, else 0).",
+)
+@click.option(
     "--yaw-rate-dps",
     type=float,
     default=None,
@@ -168,6 +175,7 @@ def simulate(
     spurious,
     imu,
     readout_ms,
+    exposure_ms,
     yaw_rate_dps,
     fps,
 ):
@@ -197,11 +205,17 @@ def simulate(
         or any(target_offset_mm)
         or any(camera_askew_deg)
         or readout_ms is not None
+        or exposure_ms is not None
         or yaw_rate_dps is not None
     ):
         raise click.UsageError(
             "--lights, --occluder, --no-triangle, --target-offset-mm, --camera-askew-deg, "
-            "--readout-ms and --yaw-rate-dps apply to triangle rigs only"
+            "--readout-ms, --exposure-ms and --yaw-rate-dps apply to triangle rigs only"
+        )
+    if exposure_ms is not None and exposure_ms > 1000.0 / rig.fps:
+        raise click.BadParameter(
+            f"{exposure_ms:g} ms: expected at most a frame interval ({1000.0 / rig.fps:g} ms)",
+            param_hint="--exposure-ms",
         )
     if yaw_rate_dps is not None and motion != "sweep":
         raise click.UsageError("--yaw-rate-dps sets the rate of --motion sweep")
@@ -236,6 +250,7 @@ def simulate(
             progress=lambda i: bar.update(1),
             readout_ms=readout_ms,
             yaw_rate_dps=yaw_rate_dps,
+            exposure_ms=exposure_ms,
         )
     click.echo(f"wrote {n_frames} frames and {truth}", err=True)
 

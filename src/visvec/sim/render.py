@@ -117,6 +117,10 @@ class _Shader:
 
 # rows per band of a rolling-shutter frame rendered at one attitude
 ROLLING_BAND_ROWS = 4
+# motion blur: sub-frames close enough that the image moves at most this between two
+# (px), and at most this many
+MOTION_STEP_PX = 0.25
+MAX_MOTION_SUBFRAMES = 25
 
 
 def render_clean(
@@ -125,8 +129,14 @@ def render_clean(
     scene: Scene,
     readout_s: float = 0.0,
     omega_b: np.ndarray | None = None,
+    exposure_s: float = 0.0,
 ) -> np.ndarray:
     """Noise-free radiance image (H, W) float64 of the scene at attitude ``R_nb``.
+
+    Motion blur: with ``exposure_s`` > 0 and a body rate ``omega_b``, each row collects
+    light over its exposure, centred on its own time: the mean of sub-frames at
+    attitudes R_nb expm([omega_b] tau) over tau in [-exposure_s / 2, exposure_s / 2],
+    as many that the image moves at most MOTION_STEP_PX between two of them.
 
     Pixels whose 3x3 neighbourhood holds more than one surface are averaged over
     ``scene.supersample``^2 sub-pixel rays (box pixel response).
@@ -138,6 +148,20 @@ def render_clean(
     0.004 deg in a band).
     """
     cam = rig.camera
+    if exposure_s > 0 and omega_b is not None and np.any(omega_b):
+        w = np.asarray(omega_b, float)
+        # the image moves fastest at the corners: f (1 + (r/f)^2) per rad across the
+        # boresight, r per rad about it (camera axes)
+        w_c = np.abs(rig.R_bc.T @ w) if rig.mount.on == "platform" else np.abs(w)
+        f = max(cam.fx, cam.fy)
+        r = float(np.hypot(max(cam.cx, cam.width - cam.cx), max(cam.cy, cam.height - cam.cy)))
+        travel_px = exposure_s * (float(np.hypot(w_c[0], w_c[1])) * (f + r * r / f) + w_c[2] * r)
+        n = int(np.clip(np.ceil(travel_px / MOTION_STEP_PX), 1, MAX_MOTION_SUBFRAMES))
+        taus = ((np.arange(n) + 0.5) / n - 0.5) * exposure_s
+        return np.mean(
+            [render_clean(rig, R_nb @ expmap(w * tau), scene, readout_s, w) for tau in taus],
+            axis=0,
+        )
     grid = _ray_grid(
         cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy, tuple(float(k) for k in cam.dist)
     )
@@ -184,6 +208,7 @@ def render_frame(
     rng: np.random.Generator | int | None = None,
     readout_s: float = 0.0,
     omega_b: np.ndarray | None = None,
+    exposure_s: float = 0.0,
 ) -> np.ndarray:
     """One 8-bit grey frame (H, W) of the scene at attitude ``R_nb``.
 
@@ -200,9 +225,11 @@ def render_frame(
     readout_s, omega_b : float, (3,) ndarray
         A rolling shutter's readout time (s) and the platform's body rate (rad/s): see
         :func:`render_clean` (R_nb is then the attitude when the centre row is exposed).
+    exposure_s : float
+        Each row's exposure time (s): motion blur while the platform turns.
     """
     rng = np.random.default_rng(rng)
-    img = render_clean(rig, R_nb, scene, readout_s, omega_b) * scene.exposure
+    img = render_clean(rig, R_nb, scene, readout_s, omega_b, exposure_s) * scene.exposure
     if scene.blur_sigma_px > 0:
         img = cv2.GaussianBlur(img, (0, 0), scene.blur_sigma_px)
     if scene.shot_gain > 0:

@@ -152,6 +152,7 @@ def simulate(
     progress: Callable[[int], None] | None = None,
     readout_ms: float | None = None,
     yaw_rate_dps: float | None = None,
+    exposure_ms: float | None = None,
 ) -> Path:
     """Render ``n_frames`` frames into ``out_dir`` and write ``out_dir/truth.csv``.
 
@@ -165,6 +166,9 @@ def simulate(
         A rolling shutter's readout (triangle rigs; default the rig's
         ``[camera] readout_ms``): each frame of a ``sweep`` is rendered with its body
         rate, the truth being the centre row's attitude. Other motions are still frames.
+    exposure_ms : float, optional
+        Each row's exposure time (triangle rigs; default the rig's ``[camera]
+        exposure_ms``, else 0): a ``sweep``'s frames are blurred by their motion.
     yaw_rate_dps : float, optional
         The ``sweep``'s yaw rate (default: 0.8 of a turn over the sequence, the tilts
         wobbling 1.3 and 0.9 times; with a rate, they nutate every 7.7 and 11 s).
@@ -187,6 +191,8 @@ def simulate(
     eul = random_attitudes(n_frames, max_tilt_deg, rng, motion, turn, wobble)
     world = render_rig or rig
     readout_s = (rig.readout_ms if readout_ms is None else readout_ms) / 1000.0
+    if exposure_ms is None:
+        exposure_ms = rig.exposure_ms or 0.0
     Rs = np.array([euler_to_matrix(*e) for e in eul])
     # the platform moves between frames only in a sweep (the others are still frames)
     rates = body_rates(Rs, 1.0 / fps) if motion == "sweep" else np.zeros((n_frames, 3))
@@ -200,7 +206,7 @@ def simulate(
                 img = render_markers(world, R, spot_scene or SpotScene(), rng)
             else:
                 sc = scene_for_frame(scene, clutter, world, rng)
-                img = render_frame(world, R, sc, rng, readout_s, rates[i])
+                img = render_frame(world, R, sc, rng, readout_s, rates[i], exposure_ms / 1000.0)
             name = f"frame_{i:0{width}d}.png"
             cv2.imwrite(str(out / name), img)
             e = np.degrees(matrix_to_euler(R))
