@@ -179,6 +179,32 @@ def triangle_features(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return order, feats
 
 
+def neighbour_triangles(xy: np.ndarray, k: int) -> np.ndarray:
+    """(T, 3) index triples, each point with every pair of its ``k`` nearest neighbours
+    (each triple once, sorted)."""
+    n = len(xy)
+    k = min(k, n - 1)
+    if k < 2:
+        return np.zeros((0, 3), dtype=int)
+    _, nb = cKDTree(xy).query(xy, k + 1)
+    nb = nb[:, 1:]
+    a, b = np.triu_indices(k, 1)
+    tri = np.column_stack([np.repeat(np.arange(n), len(a)), nb[:, a].ravel(), nb[:, b].ravel()])
+    return np.unique(np.sort(tri, axis=1), axis=0)
+
+
+def build_neighbour_catalog(lamps: LampMap, k: int) -> Catalog:
+    """The catalogue of every lamp's triangles with pairs of its ``k`` nearest lamps,
+    slivers left out: what a frame whose nearer lamps are dark still shows (the
+    Delaunay triangles of the lamps left lit are not the map's)."""
+    xy = lamps.xyz_mm[:, :2]
+    tri = neighbour_triangles(xy, k)
+    order, feats = triangle_features(xy[tri])
+    tri = np.take_along_axis(tri, order, axis=1)
+    keep = feats[:, 0] >= SLIVER_DEG
+    return Catalog(lamps.xyz_mm, tri[keep], feats[keep])
+
+
 def build_catalog(lamps: LampMap) -> Catalog:
     """The Delaunay catalogue of a lamp map; sliver triangles (an angle under 3 deg,
     three nearly collinear lamps) cannot be recognised by shape and are left out with

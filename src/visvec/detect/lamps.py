@@ -27,7 +27,14 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import Delaunay, QhullError, cKDTree
 
-from visvec.lamps import SLIVER_DEG, Catalog, build_catalog, triangle_features
+from visvec.lamps import (
+    SLIVER_DEG,
+    Catalog,
+    build_catalog,
+    build_neighbour_catalog,
+    neighbour_triangles,
+    triangle_features,
+)
 from visvec.rig import Rig
 
 ANGLE_TOL_DEG = 2.0  # feature lookup tolerance (smallest and largest angle)
@@ -39,6 +46,12 @@ MIN_VERIFIED = 5  # spots explained by the winning pose
 VERIFY_GATE_PX = 6.0  # a spot this close (on the ceiling) to a predicted lamp is that lamp
 TRACK_GATE_PX = 15.0
 AMBIGUOUS_RATIO = 0.6  # a rival with this fraction of the winner's verified lamps
+# dark lamps: each spot's triangles with pairs of its FRAME_NEIGHBOURS nearest spots are
+# looked up among each lamp's triangles with pairs of its MAP_NEIGHBOURS nearest lamps
+# (a lit lamp's nearest lit neighbours are among its nearest few on the map)
+FALLBACK_REASONS = frozenset({"no_catalogue_match", "no_consensus"})
+FRAME_NEIGHBOURS = 4
+MAP_NEIGHBOURS = 10
 
 
 @dataclass(frozen=True)
@@ -70,6 +83,9 @@ class LampIdentifier:
         self.verify_gate_mm = VERIFY_GATE_PX * self.mm_per_px
         cat_pts = self.lamps[self.catalog.triangles, :2]
         self.cat_perimeter = _perimeter(cat_pts)
+        # the nearest-neighbour catalogue, built on first need (dark lamps)
+        self._neighbours: Catalog | None = None
+        self._neighbour_perimeter = np.zeros(0)
 
     def body_points(self, xy_n: np.ndarray) -> np.ndarray:
         """Spots put on the ceiling plane, in body coordinates (x, y mm; level table)."""
@@ -107,7 +123,10 @@ class LampIdentifier:
         return Identification(ids, pose_pred if (ids >= 0).any() else None)
 
     def lost_in_space(self, xy_n: np.ndarray) -> Identification:
-        """The paper's Delaunay-triangle lookup with votes, then verification."""
+        """The paper's Delaunay-triangle lookup with votes, then verification; when that
+        finds no pose (dark lamps: the frame's Delaunay triangles are not the map's), the
+        same with every spot's triangles with its nearest spots, looked up among every
+        lamp's triangles with its nearest lamps."""
         n = len(xy_n)
         none = np.full(n, -1)
         pts = self.body_points(xy_n)
@@ -119,6 +138,24 @@ class LampIdentifier:
             tri = idx[Delaunay(pts[fin]).simplices]
         except (QhullError, ValueError):
             return Identification(none, None, reason="lamps_collinear")
+        first = self._lookup(pts, tri, self.catalog, self.cat_perimeter)
+        if first.pose is not None or first.reason not in FALLBACK_REASONS:
+            return first
+        if self._neighbours is None:
+            self._neighbours = build_neighbour_catalog(self.rig.target.lamps, MAP_NEIGHBOURS)
+            self._neighbour_perimeter = _perimeter(self.lamps[self._neighbours.triangles, :2])
+        tri_nb = idx[neighbour_triangles(pts[fin], FRAME_NEIGHBOURS)]
+        second = self._lookup(pts, tri_nb, self._neighbours, self._neighbour_perimeter)
+        return second if second.pose is not None else first
+
+    def _lookup(
+        self, pts: np.ndarray, tri: np.ndarray, catalog: Catalog, cat_perimeter: np.ndarray
+    ) -> Identification:
+        """Frame triangles ``tri`` (T, 3) of spots ``pts`` (body, mm) looked up in
+        ``catalog``: hypotheses, votes, verification (see :meth:`lost_in_space`)."""
+        none = np.full(len(pts), -1)
+        if not len(tri):
+            return Identification(none, None, reason="no_triangles")
         order, feats = triangle_features(pts[tri])
         tri = np.take_along_axis(tri, order, axis=1)
         usable = feats[:, 0] >= SLIVER_DEG
@@ -127,19 +164,19 @@ class LampIdentifier:
             return Identification(none, None, reason="no_triangles")
         perim = _perimeter(pts[tri])
         # all frame triangles looked up at once (the k-d tree takes many points)
-        near = self.catalog.tree.query_ball_point(feats, ANGLE_TOL_DEG * np.sqrt(2.0))
+        near = catalog.tree.query_ball_point(feats, ANGLE_TOL_DEG * np.sqrt(2.0))
         pairs_t = np.repeat(np.arange(len(tri)), [len(c) for c in near])
         pairs_c = np.fromiter((c for cs in near for c in cs), dtype=int, count=len(pairs_t))
         if len(pairs_t):
-            close = np.all(np.abs(self.catalog.features[pairs_c] - feats[pairs_t])
+            close = np.all(np.abs(catalog.features[pairs_c] - feats[pairs_t])
                            <= ANGLE_TOL_DEG, axis=1)  # fmt: skip
-            size = np.abs(self.cat_perimeter[pairs_c] / perim[pairs_t] - 1.0) <= SIZE_TOL
+            size = np.abs(cat_perimeter[pairs_c] / perim[pairs_t] - 1.0) <= SIZE_TOL
             pairs_t, pairs_c = pairs_t[close & size], pairs_c[close & size]
         if not len(pairs_t):
             return Identification(none, None, reason="no_catalogue_match")
         pt, pc = pairs_t, pairs_c
         src = pts[tri[pt]]  # (m, 3, 2) body
-        dst = self.lamps[self.catalog.triangles[pc], :2]  # (m, 3, 2) map
+        dst = self.lamps[catalog.triangles[pc], :2]  # (m, 3, 2) map
         hyp, err = _procrustes(src, dst)
         good = err < self.verify_gate_mm
         if not good.any():
