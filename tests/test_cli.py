@@ -28,6 +28,14 @@ def run(*args):
     return CliRunner().invoke(cli, [str(a) for a in args], catch_exceptions=False)
 
 
+def assert_within_3_sigma(rows, truth):
+    """Every row's yaw, pitch and roll within 3 of its sigma of the truth file's."""
+    for x, t in zip(rows, truth, strict=True):
+        for k in ("yaw", "pitch", "roll"):
+            err = (float(x[f"{k}_deg"]) - float(t[f"{k}_deg"]) + 180.0) % 360.0 - 180.0
+            assert abs(err) < 3.0 * float(x[f"sigma_{k}_deg"]), (x["frame"], k)
+
+
 def rows_of(text):
     return list(csv.DictReader(io.StringIO(text)))
 
@@ -465,10 +473,7 @@ def test_simulate_a_rolling_shutter_sweep_that_batch_corrects(tmp_path):
     assert r.exit_code == 0 and [x["status"] for x in rows] == ["ok"] * 10
     uncorrected = [i for i, x in enumerate(rows) if "rolling_shutter_uncorrected" in x["warnings"]]
     assert uncorrected == [0]
-    for x, t in zip(rows, truth, strict=True):
-        for k in ("yaw", "pitch", "roll"):
-            err = (float(x[f"{k}_deg"]) - float(t[f"{k}_deg"]) + 180.0) % 360.0 - 180.0
-            assert abs(err) < 3.0 * float(x[f"sigma_{k}_deg"]), (x["frame"], k)
+    assert_within_3_sigma(rows, truth)
     bad = run(*sim, "--out", tmp_path / "x", "--readout-ms", "40")
     assert bad.exit_code == 2 and "--readout-ms" in bad.output
     bad = run("simulate", "--rig", RIG, "--out", tmp_path / "x", "--yaw-rate-dps", "5")
@@ -492,10 +497,7 @@ def test_motion_blur_of_a_long_exposure_neither_loses_nor_biases_the_triangle(tm
     rows = rows_of(r.stdout)
     truth = list(csv.DictReader(open(tmp_path / "blur" / "truth.csv")))
     assert [x["status"] for x in rows] == ["ok"] * 10
-    for x, t in zip(rows, truth, strict=True):
-        for k in ("yaw", "pitch", "roll"):
-            err = (float(x[f"{k}_deg"]) - float(t[f"{k}_deg"]) + 180.0) % 360.0 - 180.0
-            assert abs(err) < 3.0 * float(x[f"sigma_{k}_deg"]), (x["frame"], k)
+    assert_within_3_sigma(rows, truth)
     bad = run(*sim, "--out", tmp_path / "x", "--exposure-ms", "50")
     assert bad.exit_code == 2 and "--exposure-ms" in bad.output
 
