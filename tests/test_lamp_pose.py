@@ -74,6 +74,14 @@ def test_solver_recovers_a_pose_with_consistent_sigma(rng):
     assert np.all((z.std(axis=0) > 0.8) & (z.std(axis=0) < 1.25))
 
 
+def lost_in_space_rows(pipe, poses, scene, rng):
+    """(row, pose) of a frame rendered at each pose, each processed from scratch."""
+    for i, pose in enumerate(poses):
+        pipe.reset()
+        img = render_lamps(RIG, still(*pose[:2], np.degrees(pose[2])), 0.0, scene, rng)
+        yield pipe.process(Frame(i, 0.0, img)), pose
+
+
 def test_lost_in_space_everywhere_on_the_map(rng):
     """Every frame with >= 6 lamps identified from scratch, to a fraction of a mm."""
     pipe = LampPipeline(RIG)
@@ -93,10 +101,7 @@ def test_spurious_spots_and_missing_lamps_never_give_a_wrong_fix(rng):
     dark = tuple(rng.choice(180, 60, replace=False).tolist())
     scene = LampScene(spurious=0.5, hidden=dark)
     n_ok = 0
-    for i, pose in enumerate(random_poses(rng, 25, min_lamps=0)):
-        pipe.reset()
-        img = render_lamps(RIG, still(*pose[:2], np.degrees(pose[2])), 0.0, scene, rng)
-        row = pipe.process(Frame(i, 0.0, img))
+    for row, pose in lost_in_space_rows(pipe, random_poses(rng, 25, min_lamps=0), scene, rng):
         if row.ok:
             n_ok += 1
             assert np.all(np.abs(truth_err(row, pose)) < [3.0, 3.0, 0.2])
@@ -117,10 +122,7 @@ def test_two_lamps_in_three_dark_are_still_identified(rng):
         if lamps_in_view(RIG, p, hidden=dark) >= 6:
             poses.append(p)
     n_ok = 0
-    for i, pose in enumerate(poses):
-        pipe.reset()
-        img = render_lamps(RIG, still(*pose[:2], np.degrees(pose[2])), 0.0, scene, rng)
-        row = pipe.process(Frame(i, 0.0, img))
+    for row, pose in lost_in_space_rows(pipe, poses, scene, rng):
         if row.ok:
             n_ok += 1
             assert np.all(np.abs(truth_err(row, pose)) < [3.0, 3.0, 0.2])

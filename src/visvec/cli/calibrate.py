@@ -24,6 +24,16 @@ from visvec.sources import open_source
 from visvec.sources.folder import IMAGE_SUFFIXES, natural_key
 
 
+def calibration_out(what: str = ""):
+    """The required --out of a calibration command (``what``: the keys it writes)."""
+    return click.option(
+        "--out",
+        required=True,
+        type=click.Path(dir_okay=False),
+        help=f"Calibration file to write ({what}use with --calibration).",
+    )
+
+
 @click.group()
 def calibrate():
     """Calibrate the rig: zero-tilt offsets, rolling-shutter readout, camera intrinsics,
@@ -33,12 +43,7 @@ def calibrate():
 @calibrate.command("zero-tilt")
 @click.argument("frames", type=click.Path())
 @rig_options
-@click.option(
-    "--out",
-    required=True,
-    type=click.Path(dir_okay=False),
-    help="Calibration file to write (use with --calibration).",
-)
+@calibration_out()
 def zero_tilt(frames, rig_path, calibration, out):
     """Zero-tilt offsets from FRAMES (folder or video) taken with the platform level at
     several yaws: target offset from the rotation axis and camera mounting tilt (for
@@ -121,12 +126,7 @@ def zero_tilt(frames, rig_path, calibration, out):
 @calibrate.command("readout")
 @click.argument("frames", type=click.Path())
 @rig_options
-@click.option(
-    "--out",
-    required=True,
-    type=click.Path(dir_okay=False),
-    help="Calibration file to write ([camera] readout_ms; use with --calibration).",
-)
+@calibration_out("[camera] readout_ms; ")
 @click.option(
     "--max-frames",
     type=click.IntRange(min=10),
@@ -238,12 +238,7 @@ CAL_GATE_PX = 10.0
 @calibrate.command("system")
 @click.argument("frames", type=click.Path())
 @rig_options
-@click.option(
-    "--out",
-    required=True,
-    type=click.Path(dir_okay=False),
-    help="Calibration file to write (use with --calibration).",
-)
+@calibration_out()
 @click.option("--max-iterations", type=click.IntRange(min=1), default=30, show_default=True)
 def system(frames, rig_path, calibration, out, max_iterations):
     """Self-calibrate a markers rig from FRAMES (a folder or video of the platform moved
