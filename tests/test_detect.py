@@ -11,12 +11,13 @@ from hypothesis import strategies as st
 
 from visvec.data import Status
 from visvec.detect import TriangleDetector
+from visvec.detect.candidates import partial_triangle
 from visvec.geometry import project_target
 from visvec.rig import load_rig
 from visvec.rotations import euler_to_matrix
 from visvec.sim.render import render_frame
 from visvec.sim.scene import Light, Occluder, Scene
-from visvec.sim.simulate import random_attitudes
+from visvec.sim.simulate import random_attitudes, true_rig
 
 from conftest import CONFIGS
 
@@ -501,9 +502,12 @@ def test_lens_distortion_is_modelled(rig640):
     [
         (Scene(show_triangle=False), Status.NO_TARGET, "no_triangle"),
         (Scene(contrast=3.0, noise_sigma=1.0), None, None),
+        # a faint triangle under a steep lighting gradient joins the board's bright side
+        (Scene(contrast=6.0, gradient_per_m=0.3), Status.REJECTED, "low_contrast"),
         (Scene(exposure=3.0), Status.REJECTED, "overexposed"),
-        # a dark head over the acute vertex, a bright one over a base edge
-        (Scene(occluder=Occluder(214.0, 0.0, 1300.0, 40.0, 50.0)), None, None),
+        # a dark head over the acute vertex (the base corners still show: obstructed,
+        # also in a first frame), a bright one over a base edge
+        (Scene(occluder=Occluder(214.0, 0.0, 1300.0, 40.0, 50.0)), Status.REJECTED, "obstructed"),
         (Scene(occluder=Occluder(-107.0, 0.0, 1300.0, 45.0, 200.0)), None, None),
     ],
 )
@@ -514,6 +518,60 @@ def test_bad_scenes_are_never_ok(rig640, scene, status, reason):
     if status is not None:
         assert d.status is status
         assert reason in d.warnings
+
+
+def test_first_frame_of_a_triangle_cut_by_the_image_edge_says_so(rig640):
+    # the target hung 800 mm off the axis: at yaw 90 one vertex is out of the image and
+    # the rest of the triangle is a quadrilateral region; no last frame to go by
+    world = true_rig(rig640, (800.0, 0.0))
+    R = euler_to_matrix(np.radians(90.0), 0.0, 0.0)
+    assert rig640.camera.in_image(project_target(world, R)).sum() == 2
+    d = TriangleDetector(world).detect(render_frame(world, R, Scene(), rng=5))
+    assert d.status is Status.REJECTED
+    assert "partly_out_of_view" in d.warnings
+
+
+def test_a_board_without_triangle_is_no_triangle_whatever_is_in_front(rig640):
+    # lights beside and on the board, a head in front of it: none shows a triangle corner
+    R = euler_to_matrix(0.3, 0.02, -0.01)
+    lights = (Light(300.0, 200.0), Light(-650.0, -600.0, 150.0), Light(900.0, -300.0))
+    for sc in (
+        Scene(show_triangle=False, lights=lights),
+        Scene(show_triangle=False, occluder=Occluder(60.0, 30.0, 1300.0, 80.0, 200.0)),
+    ):
+        d = TriangleDetector(rig640).detect(render_frame(rig640, R, sc, rng=3))
+        assert d.status is Status.NO_TARGET
+        assert "no_triangle" in d.warnings
+
+
+def test_partial_triangle_needs_a_corner_of_the_triangle():
+    # the paper's corners: apex 37.6 deg, base 71.2 deg; sides 114 and 177 px
+    angles, sides = np.array([37.6, 71.2, 71.2]), np.array([114.0, 177.0, 177.0])
+    tri = np.array([[200.0, 60.0], [140.0, 225.0], [250.0, 225.0]])
+    img = np.full((300, 400), 60, np.uint8)
+    cv2.fillPoly(img, [np.rint(tri).astype(np.int32)], 100)
+    cv2.circle(img, (195, 200), 45, 110, -1)  # a head over the base, joined to it
+    found = partial_triangle(img, angles, sides, scale=2)
+    assert found is not None
+    # the outline is that of the joined region, around the apex; the step across the
+    # corner's sides is the triangle's or the head's over the board (40 or 50)
+    assert np.min(np.linalg.norm(found.outline_px - tri[0], axis=1)) < 4.0
+    assert found.area_px > 8000.0
+    assert 38.0 <= found.step <= 52.0
+    assert 99.0 <= found.inside_level <= 111.0
+    # too faint an edge is not one
+    assert partial_triangle(img, angles, sides, scale=2, min_step=55.0) is None
+    # a dark board's corners (90 deg) and round lights show no corner of the triangle
+    img = np.full((300, 400), 150, np.uint8)
+    cv2.rectangle(img, (60, 40), (340, 260), 60, -1)
+    cv2.circle(img, (200, 150), 30, 255, -1)
+    cv2.circle(img, (20, 20), 15, 255, -1)
+    assert partial_triangle(img, angles, sides, scale=2) is None
+    # a wedge whose inside is dark is not the bright triangle's corner
+    img = np.full((300, 400), 100, np.uint8)
+    cv2.fillPoly(img, [np.rint(tri).astype(np.int32)], 60)
+    cv2.rectangle(img, (0, 0), (399, 299), 60, 20)
+    assert partial_triangle(img, angles, sides, scale=2) is None
 
 
 def test_occluder_inside_the_triangle_leaves_it_exact(rig640):

@@ -105,7 +105,15 @@ class Outcome:
             # a Gaussian 3-axis estimate falls outside 3 sigma on some axis in 0.81% of rows
             "expected_outside_3sigma_if_gaussian": round(0.0081 * self.n_ok, 2),
             "statuses": {s: self.status.count(s) for s in sorted(set(self.status))},
+            "reasons": self.reasons(),
         }
+
+    def reasons(self) -> dict[str, int]:
+        """How often each warning code is on a row that is not ok (the reasons given)."""
+        codes = [
+            w for st, ws in zip(self.status, self.warnings, strict=True) if st != "ok" for w in ws
+        ]
+        return {c: codes.count(c) for c in sorted(set(codes))}
 
 
 def evaluate(

@@ -173,3 +173,151 @@ def _at_level(
             )
         )
     return found
+
+
+@dataclass(frozen=True)
+class PartialTriangle:
+    """A bright region showing a corner of the triangle (see :func:`partial_triangle`).
+
+    outline_px : (K, 2) ndarray, the region's outline (full-resolution px)
+    area_px : float, the region's area (full-resolution px)
+    step : float, the smaller grey-level step across the corner's two sides
+    inside_level : float, mean grey level just inside the corner
+    edge_fraction : float, share of the outline (off the image border) with a step of
+        at least ``min_step`` across it: low where the threshold crosses a lighting
+        gradient on the board, so that the triangle joins a brighter part of it
+    """
+
+    outline_px: np.ndarray
+    area_px: float
+    step: float
+    inside_level: float
+    edge_fraction: float
+
+
+def _across(small: np.ndarray, a: np.ndarray, d: np.ndarray, n: np.ndarray) -> tuple[float, float]:
+    """Mean grey levels 2 px either side (+n, -n) of the segment a -> a + d, at a quarter,
+    half and three quarters of its length."""
+    h, w = small.shape
+    pts = a + np.array([0.25, 0.5, 0.75])[:, None] * d
+    ins = np.rint(pts + 2.0 * n).astype(int)
+    out = np.rint(pts - 2.0 * n).astype(int)
+    both = np.vstack([ins, out])
+    if np.any(both < 0) or np.any(both[:, 0] >= w) or np.any(both[:, 1] >= h):
+        return 0.0, 0.0
+    return float(small[ins[:, 1], ins[:, 0]].mean()), float(small[out[:, 1], out[:, 0]].mean())
+
+
+def partial_triangle(
+    image: np.ndarray,
+    angles_deg: np.ndarray,
+    sides_px: np.ndarray,
+    *,
+    scale: int = 1,
+    n_levels: int = 12,
+    angle_tol_deg: float = 10.0,
+    min_side: float = 0.3,
+    min_step: float = 4.0,
+) -> PartialTriangle | None:
+    """A bright region that shows one of the triangle's corners, or None: evidence that
+    the triangle is in view but not whole (a person over it, a light touching it, the
+    image edge across it) when no region has its shape.
+
+    A corner of the region's outline (polygon approximation at each threshold of
+    :func:`iter_candidates`) matches corner i of the triangle when its angle is within
+    ``angle_tol_deg`` of ``angles_deg[i]``, both its sides run at least ``min_side`` of
+    the shorter of the triangle's sides at that corner (``sides_px[i]`` is the side
+    opposite vertex i), and both sides are edges: the wedge between them brighter than
+    their outside by at least ``min_step`` grey levels. Outline segments along the image
+    border are not sides (the border cuts regions at any angle), nor are the ragged
+    outlines a threshold draws across a lighting gradient (no step across them). The
+    board's corners (90 degrees, dark inside) and round lights never match the paper's
+    triangle (38 and 71 degrees).
+    """
+    small = shrink(image, scale)
+    h, w = small.shape
+    sides = np.asarray(sides_px, float) / scale
+    need = np.array([min_side * min(sides[(i + 1) % 3], sides[(i + 2) % 3]) for i in range(3)])
+    angles = np.asarray(angles_deg, float)
+    # brightest level first: the first to show a corner is then nearest the middle of
+    # the triangle's step, where its outline is cleanest (just above the board's grey
+    # it is ragged)
+    min_len = 2.0 * float(need.min())
+    for level in _levels(small, n_levels)[::-1]:
+        _, binary = cv2.threshold(small, float(level), 255, cv2.THRESH_BINARY)
+        # outer outlines and holes: a triangle joined to the ceiling by a person shows
+        # its corners on the outline of the board's hole
+        cnts, _ = cv2.findContours(binary, cv2.RETR_CCOMP, cv2.CHAIN_APPROX_NONE)
+        cnts = [c for c in cnts if len(c) >= min_len]
+        polys = [cv2.approxPolyDP(c, 1.0, True).reshape(-1, 2) for c in cnts]
+        keep = [k for k, q in enumerate(polys) if len(q) >= 3]
+        if not keep:
+            continue
+        # every outline's polygon at once: vertex j's neighbours within its own polygon
+        sizes = np.array([len(polys[k]) for k in keep])
+        poly = np.concatenate([polys[k] for k in keep]).astype(float)
+        owner = np.repeat(np.arange(len(keep)), sizes)
+        first = np.repeat(np.cumsum(sizes) - sizes, sizes)
+        j_prev = first + (np.arange(len(poly)) - first - 1) % sizes[owner]
+        j_next = first + (np.arange(len(poly)) - first + 1) % sizes[owner]
+        prev, nxt = poly[j_prev] - poly, poly[j_next] - poly
+        lp, ln = np.hypot(prev[:, 0], prev[:, 1]), np.hypot(nxt[:, 0], nxt[:, 1])
+        cos = np.einsum("ij,ij->i", prev, nxt) / np.maximum(lp * ln, 1e-9)
+        ang = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+        # a segment with both ends on (within a pixel of) the same image border is
+        # the border's cut
+        on = np.column_stack(
+            [poly[:, 0] <= 1, poly[:, 0] >= w - 2, poly[:, 1] <= 1, poly[:, 1] >= h - 2]
+        )
+        border_next = np.any(on & on[j_next], axis=1)
+        border_prev = border_next[j_prev]
+        short = np.minimum(lp, ln)
+        match = np.any(
+            (np.abs(ang[:, None] - angles[None, :]) <= angle_tol_deg)
+            & (short[:, None] >= need[None, :]),
+            axis=1,
+        )
+        match &= ~(border_next | border_prev)
+        for k in np.flatnonzero(match):
+            a, dp, dn = poly[k], prev[k] / lp[k], nxt[k] / ln[k]
+            # each side's normal toward the wedge (the other side's direction)
+            n_p = np.array([-dp[1], dp[0]])
+            n_p *= np.sign(n_p @ dn)
+            n_n = np.array([-dn[1], dn[0]])
+            n_n *= np.sign(n_n @ dp)
+            in_p, out_p = _across(small, a, prev[k], n_p)
+            in_n, out_n = _across(small, a, nxt[k], n_n)
+            step = min(in_p - out_p, in_n - out_n)
+            if step >= min_step:
+                cnt = cnts[keep[owner[k]]]
+                mine = owner == owner[k]
+                return PartialTriangle(
+                    (cnt.reshape(-1, 2) + 0.5) * scale - 0.5,
+                    abs(cv2.contourArea(cnt)) * scale**2,
+                    step,
+                    0.5 * (in_p + in_n),
+                    _edge_fraction(
+                        small, poly[mine], nxt[mine], ln[mine], border_next[mine], min_step
+                    ),
+                )
+    return None
+
+
+def _edge_fraction(
+    small: np.ndarray,
+    poly: np.ndarray,
+    nxt: np.ndarray,
+    ln: np.ndarray,
+    border: np.ndarray,
+    min_step: float,
+) -> float:
+    """Share of the length of a polygon's segments (poly[i] -> poly[i] + nxt[i], those
+    not along the image ``border``) with a grey-level step of ``min_step`` or more
+    across them."""
+    total = stepped = 0.0
+    for i in np.flatnonzero(~border & (ln >= 1.0)):
+        n = np.array([-nxt[i, 1], nxt[i, 0]]) / ln[i]
+        a, b = _across(small, poly[i], nxt[i], n)
+        total += ln[i]
+        stepped += ln[i] * (abs(a - b) >= min_step)
+    return stepped / total if total > 0 else 0.0

@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 
 from visvec.data import Detection, Status
-from visvec.detect.candidates import Candidate, iter_candidates
+from visvec.detect.candidates import Candidate, iter_candidates, partial_triangle
 from visvec.detect.edges import fit_edges, intersect, shutter_cov
 from visvec.geometry import project_target
 from visvec.rig import Rig
@@ -43,6 +43,13 @@ REGION_AREA_TOL = 0.08
 EDGE_OUTLIER_MAX = 0.25
 BORDER_MARGIN_PX = 3.0
 SATURATED_MAX = 0.2
+# a region showing a corner of the triangle (no last frame to go by) with less than this
+# share of its outline an edge is the triangle joined to a brighter part of the board
+# (measured: 0.5-0.74 for 98 % of such regions, 0.9-1.0 for most of those joined to a
+# person or a light)
+PARTIAL_EDGE_FRACTION = 0.75
+# a corner whose inside averages this grey level or more is saturated
+SATURATED_LEVEL = 250.0
 # per-coordinate noise of cornerSubPix vertices, measured on simulated frames (0.26 px
 # at the base vertices, 0.45 px at the blunted acute one; tests/benchmarks)
 CORNER_SIGMA_PX = 0.35
@@ -86,7 +93,9 @@ class TriangleDetector:
         self.expected_sign = np.sign(_signed_area(xy))
         sides = np.array([np.linalg.norm(xy[(i + 1) % 3] - xy[(i + 2) % 3]) for i in range(3)])
         self.expected_side_ratio = sides / sides.sum()
-        self.expected_apex_deg = float(np.degrees(_angles(xy)[0]))
+        self.expected_angles_deg = np.degrees(_angles(xy))
+        self.expected_apex_deg = float(self.expected_angles_deg[0])
+        self.expected_sides_px = sides
         # search on a shrunk image where the triangle is about 40 px tall
         height_px = (
             float(
@@ -191,6 +200,10 @@ class TriangleDetector:
             # is in front of it
             near_edge = not np.all(self.rig.camera.in_image(last, 0.05 * self.rig.camera.width))
             reason = "partly_out_of_view" if near_edge else "obstructed"
+        elif not reason:
+            # no last frame to go by: a region showing one of the triangle's corners
+            # says it is there, but not whole or not usable
+            reason, contour = self._partial_reason(image)
         if not reason:
             return Detection(
                 Status.NO_TARGET,
@@ -367,6 +380,42 @@ class TriangleDetector:
             mean_brightness=mean,
             contour_px=cand.contour_px,
         )
+
+    def _partial_reason(self, image: np.ndarray) -> tuple[str, np.ndarray]:
+        """Why no region had the triangle's shape, when one shows a corner of it (see
+        partial_triangle): the corner's inside saturated, its edges too faint, the image
+        border across the triangle, or something over it; ("", empty) when none does."""
+        s = self.rig.detect
+        seen = partial_triangle(
+            image,
+            self.expected_angles_deg,
+            self.expected_sides_px,
+            scale=self.scale,
+            min_step=0.5 * s.min_contrast,
+        )
+        if seen is None:
+            return "", np.zeros((0, 2))
+        outline = seen.outline_px
+        h, w = image.shape[:2]
+        at_border = np.any(outline < 0.5 * self.scale) or np.any(
+            outline > np.array([w, h]) - 0.5 * self.scale - 1
+        )
+        if seen.inside_level >= SATURATED_LEVEL:
+            reason = "overexposed"
+        elif seen.step < s.min_contrast or (
+            seen.edge_fraction < PARTIAL_EDGE_FRACTION and seen.step < 1.5 * s.min_contrast
+        ):
+            # faint edges, or marginal ones on a region joined to a brighter part of the
+            # board (no step where the threshold crosses its lighting gradient): the
+            # triangle stands out too little from the board's lighting
+            reason = "low_contrast"
+        elif at_border and seen.area_px < (1.0 + AREA_TOL) * self.expected_area:
+            # a region no larger than the triangle that reaches the border is the
+            # triangle cut by it (a larger one is the triangle joined to something)
+            reason = "partly_out_of_view"
+        else:
+            reason = "obstructed"
+        return reason, outline
 
     def _region_matches(self, image: np.ndarray, pts_px: np.ndarray, level: float) -> bool:
         """Pixels above the board/triangle mid-level near the triangle fill it, no more.
