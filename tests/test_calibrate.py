@@ -34,8 +34,10 @@ def _level_detections(rig, world, yaws, sigma_px=0.03, rng=None):
     return dets
 
 
-def test_zero_tilt_recovers_target_offset_and_camera_tilt(rig640, rng):
-    world = true_rig(rig640, (15.0, -6.0), (0.7, -0.4))
+@pytest.mark.parametrize("height_mm", [0.0, 12.0])
+def test_zero_tilt_recovers_target_offset_height_and_camera_tilt(rig640, rng, height_mm):
+    # the target also hung 12 mm higher than the rig file says: a ceiling measured wrong
+    world = true_rig(rig640, (15.0, -6.0), (0.7, -0.4), height_mm)
     dets = _level_detections(rig640, world, np.radians(np.arange(-180, 180, 30)), rng=rng)
     res = calibrate_zero_tilt(dets, rig640)
     assert res.converged
@@ -45,7 +47,11 @@ def test_zero_tilt_recovers_target_offset_and_camera_tilt(rig640, rng):
     np.testing.assert_allclose(
         res.camera_tilt_deg, [0.7, -0.4], atol=4 * res.sigma_camera_tilt_deg.max() + 1e-3
     )
+    assert abs(res.height_offset_mm - height_mm) < 4 * res.sigma_height_offset_mm
+    assert res.sigma_height_offset_mm < 0.5
     assert res.rms_px < 0.1
+    # the height taken up: the vertices' scatter is their noise, not a misfit
+    assert res.sigma_scale == 1.0
     # applied, the calibrated rig reproduces the true one
     cal = res.apply(rig640)
     np.testing.assert_allclose(cal.target.vertices_mm, world.target.vertices_mm, atol=0.5)
@@ -67,7 +73,7 @@ def test_zero_tilt_measures_how_much_wider_the_vertices_scatter_than_their_sigma
     own = (0.02 / rig.camera.fx) ** 2  # what the edge model says
     dets = [replace(d, cov_n=np.eye(6) * own * scale_in_rig**2) for d in dets]
     res = calibrate_zero_tilt(dets, rig)
-    assert res.dof == 5 * len(dets) - 4
+    assert res.dof == 5 * len(dets) - 5  # 5 offsets: dx, dy, dh and the two tilts
     lo, hi = res.sigma_ratio_95
     assert lo < 1.5 < hi and hi - lo < 0.2
     assert res.sigma_scale == res.sigma_ratio
@@ -98,7 +104,7 @@ def test_zero_tilt_names_a_frame_that_was_not_level(rig640):
         res.target_offset_mm, [15.0, -6.0], atol=4 * res.sigma_target_offset_mm.max()
     )
     assert res.residual_px[7] > 0.2 > res.residual_px[~res.outliers].max()
-    assert res.dof == 5 * 23 - 4
+    assert res.dof == 5 * 23 - 5
     # noise uniformly wider than the sigma (a codec) leaves every frame in
     wide = _level_detections(
         rig640, world, np.radians(np.arange(-180, 180, 15.0)), 0.09, np.random.default_rng(8)

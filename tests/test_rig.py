@@ -76,6 +76,11 @@ def test_example_configs_load():
             "max_rate_dps = -5.0",
             ["[platform] max_rate_dps", "expected a number"],
         ),
+        (
+            "height_sigma_mm = 20.0",
+            "height_sigma_mm = -1.0",
+            ["[target] height_sigma_mm", "expected a number in"],
+        ),
         ("[platform]", "[plaftorm]", ["unknown section", "plaftorm"]),
         (
             "rotation = [[1, 0, 0], [0, 1, 0], [0, 0, 1]]",

@@ -37,10 +37,17 @@ class Mount:
 
 @dataclass(frozen=True)
 class TriangleTarget:
-    """A planar triangle on the ceiling; ``vertices_mm`` (3, 3) in N, most acute first."""
+    """A planar triangle on the ceiling; ``vertices_mm`` (3, 3) in N, most acute first.
+
+    ``height_sigma_mm``: 1-sigma uncertainty of the vertices' height z as the file gives
+    it (a tape-measured ceiling; it also covers a print's scale and a camera's tone
+    curve, which change the triangle's apparent size alike). Each frame's fit then
+    estimates the height with this prior (0: the height is taken as exact).
+    """
 
     vertices_mm: np.ndarray
     kind: str = "triangle"
+    height_sigma_mm: float = 20.0
 
     @property
     def centroid_mm(self) -> np.ndarray:
@@ -483,9 +490,10 @@ def _triangle_target(tgt: _Section, mount: Mount, src: str) -> TriangleTarget:
             'on the platform (on = "platform")'
         )
     verts = tgt.array("vertices_mm", (3, 3), required=True)
+    height_sigma = tgt.number("height_sigma_mm", 20.0, lo=0.0, hi=500.0)
     tgt.check_unknown()
     _check_triangle(verts, src)
-    return TriangleTarget(vertices_mm=verts)
+    return TriangleTarget(vertices_mm=verts, height_sigma_mm=height_sigma)
 
 
 def _lamp_target(tgt: _Section, mount: Mount, src: str, base_dir: Path | None) -> LampTarget:

@@ -1,8 +1,10 @@
 """Zero-tilt calibration of the triangle rig from frames taken with the platform level.
 
 For the "full" estimator: the target's horizontal offset from the rotation axis
-(dx, dy in N) and the camera's mounting tilt (small rotations about b1 and b2), jointly
-with each frame's unknown yaw, by weighted least squares on the vertex positions
+(dx, dy in N), its height's error against the rig file (dh: the triangle's image size;
+it also takes up a print's scale and the camera's tone curve, which change that size
+alike) and the camera's mounting tilt (small rotations about b1 and b2), jointly with
+each frame's unknown yaw, by weighted least squares on the vertex positions
 (scipy.optimize.least_squares). A camera rotation about b3 cannot be told from a yaw
 offset without a yaw reference and is not estimated; nor can a sideways camera offset be
 told from a camera tilt (the target is one plane), so the rig's camera position is kept.
@@ -48,6 +50,7 @@ class ZeroTiltResult:
     """Estimated offsets with 1-sigma uncertainties.
 
     target_offset_mm : (2,) and sigma_target_offset_mm : (2,)
+    height_offset_mm, sigma_height_offset_mm : the target's height less the rig's
     camera_tilt_deg : (2,) rotation of the camera about b1 then b2, and its sigma
     centroid_px : (2,) zero-tilt centroid for the paper estimator, and its sigma
     yaw_deg : (K,) each frame's yaw
@@ -65,6 +68,8 @@ class ZeroTiltResult:
     sigma_target_offset_mm: np.ndarray
     camera_tilt_deg: np.ndarray
     sigma_camera_tilt_deg: np.ndarray
+    height_offset_mm: float
+    sigma_height_offset_mm: float
     centroid_px: np.ndarray
     sigma_centroid_px: np.ndarray
     yaw_deg: np.ndarray
@@ -81,6 +86,7 @@ class ZeroTiltResult:
         """The rig with the calibration applied."""
         v = rig.target.vertices_mm.copy()
         v[:, :2] += self.target_offset_mm
+        v[:, 2] += self.height_offset_mm
         a = np.radians(self.camera_tilt_deg)
         R_bc = rot_x(a[0]) @ rot_y(a[1]) @ rig.R_bc
         return replace(
@@ -92,14 +98,18 @@ class ZeroTiltResult:
         )
 
 
+# the offsets fitted besides each frame's yaw: dx, dy, a, b, dh
+N_COMMON = 5
+
+
 def _model(params: np.ndarray, rig: Rig, n: int) -> np.ndarray:
-    """(n, 3, 2) normalised projections for params = [dx, dy, a, b, yaw_1..yaw_n]."""
-    dx, dy, a, b = params[:4]
-    v = rig.target.vertices_mm + np.array([dx, dy, 0.0])
+    """(n, 3, 2) normalised projections for params = [dx, dy, a, b, dh, yaw_1..yaw_n]."""
+    dx, dy, a, b, dh = params[:N_COMMON]
+    v = rig.target.vertices_mm + np.array([dx, dy, dh])
     R_bc = rot_x(a) @ rot_y(b) @ rig.R_bc
     t_c = -R_bc.T @ rig.t_b
     out = np.empty((n, 3, 2))
-    for k, yaw in enumerate(params[4:]):
+    for k, yaw in enumerate(params[N_COMMON:]):
         p = v @ (R_bc.T @ rot_z(yaw).T).T + t_c
         out[k] = p[:, :2] / p[:, 2:3]
     return out
@@ -136,8 +146,8 @@ def _whitened(dets: list[Detection]) -> tuple[np.ndarray, list[np.ndarray]]:
 
 
 def _fit(dets: list[Detection], rig: Rig, yaw0: np.ndarray, x0: np.ndarray | None = None):
-    """Weighted least squares of [dx, dy, a, b, yaw_1..yaw_K] over the frames' vertices
-    (x0: the four offsets to start from)."""
+    """Weighted least squares of [dx, dy, a, b, dh, yaw_1..yaw_K] over the frames'
+    vertices (x0: the N_COMMON offsets to start from)."""
     n = len(dets)
     meas, Ls = _whitened(dets)
 
@@ -145,8 +155,8 @@ def _fit(dets: list[Detection], rig: Rig, yaw0: np.ndarray, x0: np.ndarray | Non
         r = (_model(p, rig, n) - meas).reshape(n, 6)
         return np.concatenate([L @ ri for L, ri in zip(Ls, r, strict=True)])
 
-    start = np.concatenate([np.zeros(4) if x0 is None else x0, yaw0])
-    scale = np.concatenate([[10.0, 10.0, 0.01, 0.01], np.full(n, 0.01)])
+    start = np.concatenate([np.zeros(N_COMMON) if x0 is None else x0, yaw0])
+    scale = np.concatenate([[10.0, 10.0, 0.01, 0.01, 10.0], np.full(n, 0.01)])
     return least_squares(
         fun, start, x_scale=scale, method="trf", xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=200
     )
@@ -214,7 +224,7 @@ def calibrate_zero_tilt(dets: list[Detection], rig: Rig) -> ZeroTiltResult:
         keep[idx[worst]] = False
     m = len(idx)
     J = sol.jac
-    dof = max(5 * m - 4, 1)
+    dof = max(5 * m - N_COMMON, 1)
     chi2 = float(sol.fun @ sol.fun)
     cov = np.linalg.pinv(J.T @ J) * max(1.0, chi2 / dof)
     # the sigma check, against the detector's own covariance
@@ -226,10 +236,10 @@ def calibrate_zero_tilt(dets: list[Detection], rig: Rig) -> ZeroTiltResult:
     sig = np.sqrt(np.diag(cov))
     # every frame's yaw: the fit's, or for a frame left out its own with the offsets fixed
     yaw = np.empty(n)
-    yaw[idx] = sol.x[4:]
+    yaw[idx] = sol.x[N_COMMON:]
     for i in np.flatnonzero(~keep):
-        yaw[i] = _yaw_alone(dets[i], rig, sol.x[:4], yaw0[i])[0]
-    params = np.concatenate([sol.x[:4], yaw])
+        yaw[i] = _yaw_alone(dets[i], rig, sol.x[:N_COMMON], yaw0[i])[0]
+    params = np.concatenate([sol.x[:N_COMMON], yaw])
     r = (_model(params, rig, n) - np.stack([d.points_n for d in dets])) * rig.camera.fx
     per_frame = np.sqrt((r**2).reshape(n, 6).mean(axis=1))
     cents = np.stack([d.points_px.mean(axis=0) for d in dets])[keep]
@@ -239,6 +249,8 @@ def calibrate_zero_tilt(dets: list[Detection], rig: Rig) -> ZeroTiltResult:
         sigma_target_offset_mm=sig[:2],
         camera_tilt_deg=np.degrees(sol.x[2:4]),
         sigma_camera_tilt_deg=np.degrees(sig[2:4]),
+        height_offset_mm=float(sol.x[4]),
+        sigma_height_offset_mm=float(sig[4]),
         centroid_px=cen,
         sigma_centroid_px=cen_sig,
         yaw_deg=np.degrees((yaw + np.pi) % (2 * np.pi) - np.pi),
@@ -277,6 +289,8 @@ def calibration_sections(res: ZeroTiltResult, rig: Rig) -> dict[str, dict[str, o
             "sigma_target_offset_mm": np.round(res.sigma_target_offset_mm, 4),
             "camera_tilt_deg": np.round(res.camera_tilt_deg, 5),
             "sigma_camera_tilt_deg": np.round(res.sigma_camera_tilt_deg, 5),
+            "height_offset_mm": round(res.height_offset_mm, 3),
+            "sigma_height_offset_mm": round(res.sigma_height_offset_mm, 3),
             "sigma_centroid_px": np.round(res.sigma_centroid_px, 4),
             "sigma_ratio": round(res.sigma_ratio, 4),
             "sigma_ratio_95": np.round(res.sigma_ratio_95, 4),

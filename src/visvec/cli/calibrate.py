@@ -80,6 +80,11 @@ def zero_tilt(frames, rig_path, calibration, out):
         f"{res.sigma_target_offset_mm[1]:.2f} mm"
     )
     click.echo(
+        f"  target height against the rig file: {res.height_offset_mm:+.2f} +- "
+        f"{res.sigma_height_offset_mm:.2f} mm (a tape's error, or the print's scale or "
+        "the camera's tone curve, which look alike)"
+    )
+    click.echo(
         f"  camera mounting tilt: about b1 {res.camera_tilt_deg[0]:+.4f} +- "
         f"{res.sigma_camera_tilt_deg[0]:.4f} deg, about b2 {res.camera_tilt_deg[1]:+.4f}"
         f" +- {res.sigma_camera_tilt_deg[1]:.4f} deg"

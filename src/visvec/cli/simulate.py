@@ -93,6 +93,12 @@ from visvec.sim.stars import PAPER_CASES, StarScene, simulate_stars
     help="Shift the real target on the ceiling (dx dy) against the rig file.",
 )
 @click.option(
+    "--target-height-mm",
+    type=float,
+    default=0.0,
+    help="Hang the real target this much higher than the rig file says (a ceiling measured wrong).",
+)
+@click.option(
     "--camera-askew-deg",
     nargs=2,
     type=float,
@@ -169,6 +175,7 @@ def simulate(
     no_triangle,
     reflections,
     target_offset_mm,
+    target_height_mm,
     camera_askew_deg,
     case,
     rate_dps,
@@ -203,14 +210,16 @@ def simulate(
         or occluder
         or no_triangle
         or any(target_offset_mm)
+        or target_height_mm
         or any(camera_askew_deg)
         or readout_ms is not None
         or exposure_ms is not None
         or yaw_rate_dps is not None
     ):
         raise click.UsageError(
-            "--lights, --occluder, --no-triangle, --target-offset-mm, --camera-askew-deg, "
-            "--readout-ms, --exposure-ms and --yaw-rate-dps apply to triangle rigs only"
+            "--lights, --occluder, --no-triangle, --target-offset-mm, --target-height-mm, "
+            "--camera-askew-deg, --readout-ms, --exposure-ms and --yaw-rate-dps apply to "
+            "triangle rigs only"
         )
     if exposure_ms is not None and exposure_ms > 1000.0 / rig.fps:
         raise click.BadParameter(
@@ -234,7 +243,7 @@ def simulate(
         exposure=exposure,
         show_triangle=not no_triangle,
     )
-    world = true_rig(rig, tuple(target_offset_mm), tuple(camera_askew_deg))
+    world = true_rig(rig, tuple(target_offset_mm), tuple(camera_askew_deg), target_height_mm)
     with click.progressbar(length=n_frames, label="rendering", file=sys.stderr) as bar:
         truth = run_simulation(
             rig,

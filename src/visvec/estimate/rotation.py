@@ -36,13 +36,19 @@ STEP_TOL_RAD = 1e-6
 RELINEARISE_RAD = 1e-2
 
 
+# with a ShiftPrior, its step must also fall under this (in the shift's units, mm)
+STEP_TOL_SHIFT = 1e-3
+
+
 @dataclass(frozen=True)
 class RotationFit:
     """Result of :func:`fit_rotation`.
 
     R : (3, 3) rotation of Eq. (1); cov_d : (3, 3) covariance of the left increment d
-    (rad^2, camera axes), not scaled by the residuals; chi2 : Mahalanobis residual;
-    r : (2N,) final residuals (normalised units); iterations; converged.
+    (rad^2, camera axes), not scaled by the residuals; chi2 : Mahalanobis residual (with
+    a ShiftPrior, plus the prior's term); r : (2N,) final residuals (normalised units);
+    iterations; converged. With a ShiftPrior also: shift, the estimated s; jac (2N, 4)
+    and cov_p (4, 4), the final Jacobian in (d, s) and the covariance of (d, s).
     """
 
     R: np.ndarray
@@ -51,6 +57,21 @@ class RotationFit:
     r: np.ndarray
     iterations: int
     converged: bool
+    shift: float = 0.0
+    jac: np.ndarray | None = None
+    cov_p: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class ShiftPrior:
+    """A fourth parameter for :func:`fit_rotation`: every point X moves by s along
+    ``axis`` (X's frame), s with the Gaussian prior N(mean, sigma^2). For the triangle,
+    the target's height above the centre of rotation, known from a tape measure to
+    millimetres while its image pins it to a fraction of one."""
+
+    axis: np.ndarray
+    mean: float
+    sigma: float
 
 
 def residuals_and_jacobian(
@@ -122,18 +143,42 @@ def initial_rotation(t_c: np.ndarray, p_n: np.ndarray, xy: np.ndarray) -> np.nda
     return best
 
 
+def shift_jacobian(R: np.ndarray, t_c: np.ndarray, X: np.ndarray, axis: np.ndarray):
+    """(2N,) derivative of the residuals of :func:`residuals_and_jacobian` with respect
+    to a shift s of every point along ``axis``: dp/ds = R axis = e, and
+    d(x/z, y/z) = ((e_x - u e_z) / z, (e_y - v e_z) / z)."""
+    p = X @ R.T + t_c
+    iz = 1.0 / p[:, 2]
+    u, v = p[:, 0] * iz, p[:, 1] * iz
+    e = R @ axis
+    return np.column_stack([(e[0] - u * e[2]) * iz, (e[1] - v * e[2]) * iz]).ravel()
+
+
 def fit_rotation(
-    t_c: np.ndarray, X: np.ndarray, xy: np.ndarray, W: np.ndarray, R0: np.ndarray | None = None
+    t_c: np.ndarray,
+    X: np.ndarray,
+    xy: np.ndarray,
+    W: np.ndarray,
+    R0: np.ndarray | None = None,
+    shift: ShiftPrior | None = None,
 ) -> RotationFit | None:
     """Gauss-Newton for R in Eq. (1) from points X (N, 3) seen at normalised xy (N, 2)
     with weight (inverse covariance) W (2N, 2N), or a scalar for equal independent
     weights (then :func:`_fit_equal_weights`). Starts from R0, or from the closed form.
-    None when no start exists (a bearing that cannot reach its point)."""
-    R = R0 if R0 is not None else initial_rotation(t_c, X, xy)
+    None when no start exists (a bearing that cannot reach its point).
+
+    With ``shift`` (full W only), the points are X + s axis and s is estimated with its
+    prior as a fourth parameter (maximum a posteriori: the prior is one more residual,
+    (s - mean) / sigma); the rotation's covariance is then the marginal one, which
+    carries the shift's uncertainty."""
+    X0 = X if shift is None else X + shift.mean * shift.axis
+    R = R0 if R0 is not None else initial_rotation(t_c, X0, xy)
     if R is None:
         return None
     if isinstance(W, float) or np.ndim(W) == 0:
         return _fit_equal_weights(t_c, X, xy, float(W), R)
+    if shift is not None:
+        return _fit_with_shift(t_c, X, xy, W, R, shift)
     converged = False
     it = 0
     while it < MAX_ITERATIONS:
@@ -151,6 +196,39 @@ def fit_rotation(
         r, J = residuals_and_jacobian(R, t_c, X, xy)
     N = J.T @ W @ J
     return RotationFit(R, np.linalg.inv(N), float(r @ W @ r), r, it, converged)
+
+
+def _fit_with_shift(
+    t_c: np.ndarray, X: np.ndarray, xy: np.ndarray, W: np.ndarray, R: np.ndarray, prior
+) -> RotationFit:
+    """:func:`fit_rotation` with the ShiftPrior ``prior``: Gauss-Newton in (d, s)."""
+    s = prior.mean
+    w_s = 1.0 / prior.sigma**2
+    converged = False
+    it = 0
+    while True:
+        Xs = X + s * prior.axis
+        r, J3 = residuals_and_jacobian(R, t_c, Xs, xy)
+        J = np.column_stack([J3, shift_jacobian(R, t_c, Xs, prior.axis)])
+        JtW = J.T @ W
+        N = JtW @ J
+        N[3, 3] += w_s
+        if it == MAX_ITERATIONS:
+            break
+        it += 1
+        g = JtW @ r
+        g[3] += (s - prior.mean) * w_s
+        step = -np.linalg.solve(N, g)
+        R = expmap(step[:3]) @ R
+        s += step[3]
+        if step[:3] @ step[:3] < STEP_TOL_RAD**2 and abs(step[3]) < STEP_TOL_SHIFT:
+            converged = True
+            # the residual after this last small step, to second order in it
+            r = r + J @ step
+            break
+    cov_p = np.linalg.inv(N)
+    chi2 = float(r @ W @ r) + (s - prior.mean) ** 2 * w_s
+    return RotationFit(R, cov_p[:3, :3], chi2, r, it, converged, s, J, cov_p)
 
 
 def _jacobian_table() -> np.ndarray:

@@ -82,16 +82,19 @@ def true_rig(
     rig: Rig,
     target_offset_mm: tuple[float, float] = (0.0, 0.0),
     camera_askew_deg: tuple[float, float] = (0.0, 0.0),
+    height_offset_mm: float = 0.0,
 ) -> Rig:
-    """The lab as it really is: the target shifted on the ceiling and the camera tilted
-    on its mount (about b1 and b2) against what the rig file says (triangle rigs)."""
+    """The lab as it really is: the target shifted on the ceiling (and ``height_offset_mm``
+    higher) and the camera tilted on its mount (about b1 and b2) against what the rig
+    file says (triangle rigs)."""
     if rig.kind != "triangle":
-        if any(target_offset_mm) or any(camera_askew_deg):
+        if any(target_offset_mm) or any(camera_askew_deg) or height_offset_mm:
             raise ValueError("target offset and camera askew apply to triangle rigs only")
         return rig
     v = rig.target.vertices_mm.copy()
     v[:, 0] += target_offset_mm[0]
     v[:, 1] += target_offset_mm[1]
+    v[:, 2] += height_offset_mm
     a = np.radians(camera_askew_deg)
     R_bc = rot_x(a[0]) @ rot_y(a[1]) @ rig.R_bc
     return replace(
