@@ -88,6 +88,24 @@ def test_rolling_shutter_rendering_exposes_each_row_band_at_its_own_attitude(rig
         assert np.abs(ref[rows] - render_clean(rig640, R, Scene())[rows]).max() > 1.0
 
 
+def test_tone_curve_keeps_the_output_levels_and_moves_the_edges_outwards(rig640):
+    """A webcam's gamma (2.2): the board, triangle and ceiling keep their output grey
+    levels, but the blurred edge is bent towards the dark side, so the triangle's
+    bright region grows (each edge 0.1-0.2 px outwards: tens of pixels over the
+    triangle's outline of about 470 px)."""
+    R = euler_to_matrix(0.4, 0.03, -0.02)
+    sc = Scene(noise_sigma=0.0, gradient_per_m=0.0, blur_sigma_px=1.0)
+    lin = render_frame(rig640, R, sc, rng=0).astype(float)
+    bent = render_frame(rig640, R, replace(sc, tone_gamma=2.2), rng=0).astype(float)
+    c = np.rint(project_target(rig640, R).mean(axis=0)).astype(int)
+    assert bent[c[1], c[0]] == lin[c[1], c[0]] == 98.0  # inside the triangle
+    assert bent[5, 5] == lin[5, 5] == 150.0  # the ceiling
+    # pixels nearer the triangle's grey than the board's, inside a box round the board
+    box = (slice(c[1] - 120, c[1] + 120), slice(c[0] - 120, c[0] + 120))
+    grow = np.sum(bent[box] > 84.0) - np.sum(lin[box] > 84.0)
+    assert 40 < grow < 250, grow
+
+
 def test_rolling_shutter_is_taken_out_while_tracking(rig640):
     """A rolling-shutter webcam (25 ms readout) on a platform turning at 20 deg/s: the
     triangle is sheared between its rows and the yaw reads low by more than a sigma on

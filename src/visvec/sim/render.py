@@ -7,6 +7,7 @@ coverage; then defocus blur, shot and read noise and 8-bit quantisation are appl
 
 from __future__ import annotations
 
+from dataclasses import replace
 from functools import lru_cache
 
 import cv2
@@ -201,6 +202,26 @@ def render_clean(
     return img
 
 
+def _linear_scene(scene: Scene) -> Scene:
+    """The scene with its output grey levels taken back through the tone curve to the
+    linear exposures that give them."""
+
+    def lin(v: float) -> float:
+        return 255.0 * (max(v, 0.0) / 255.0) ** scene.tone_gamma
+
+    board = lin(scene.board_level)
+    return replace(
+        scene,
+        board_level=board,
+        contrast=lin(scene.board_level + scene.contrast) - board,
+        ceiling_level=lin(scene.ceiling_level),
+        lights=tuple(replace(li, level=lin(li.level)) for li in scene.lights),
+        occluder=None
+        if scene.occluder is None
+        else replace(scene.occluder, level=lin(scene.occluder.level)),
+    )
+
+
 def render_frame(
     rig: Rig,
     R_nb: np.ndarray,
@@ -229,9 +250,14 @@ def render_frame(
         Each row's exposure time (s): motion blur while the platform turns.
     """
     rng = np.random.default_rng(rng)
-    img = render_clean(rig, R_nb, scene, readout_s, omega_b, exposure_s) * scene.exposure
+    g = scene.tone_gamma
+    linear = scene if g == 1.0 else _linear_scene(scene)
+    img = render_clean(rig, R_nb, linear, readout_s, omega_b, exposure_s) * scene.exposure
     if scene.blur_sigma_px > 0:
         img = cv2.GaussianBlur(img, (0, 0), scene.blur_sigma_px)
+    if g != 1.0:
+        # the tone curve, after the sensor clips (noise is output-referred here)
+        img = 255.0 * (np.clip(img, 0.0, 255.0) / 255.0) ** (1.0 / g)
     if scene.shot_gain > 0:
         # shot noise: variance = signal * gain (grey levels^2)
         img = img + rng.standard_normal(img.shape) * np.sqrt(np.maximum(img, 0.0) * scene.shot_gain)

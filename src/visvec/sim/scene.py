@@ -40,6 +40,10 @@ class Scene:
     blur_sigma_px : Gaussian defocus blur.
     exposure : multiplies every radiance before clipping (over-exposure > 1).
     show_triangle : False renders the board without a triangle.
+    tone_gamma : the camera's tone curve, grey = 255 (E / 255)^(1 / tone_gamma) for the
+        linear exposure E (1: linear; about 2.2 for most webcams). The grey levels above
+        (board, contrast, ceiling, lights, occluder) are those of the output; the optics
+        (coverage, gradient, blur, exposure) act on the linear E.
     """
 
     board_mm: tuple[float, float] = (1219.2, 914.4)
@@ -56,3 +60,4 @@ class Scene:
     lights: tuple[Light, ...] = field(default_factory=tuple)
     occluder: Occluder | None = None
     supersample: int = 8
+    tone_gamma: float = 1.0
