@@ -81,8 +81,8 @@ def zero_tilt(frames, rig_path, calibration, out):
     )
     click.echo(
         f"  target height against the rig file: {res.height_offset_mm:+.2f} +- "
-        f"{res.sigma_height_offset_mm:.2f} mm (a tape's error, or the print's scale or "
-        "the camera's tone curve, which look alike)"
+        f"{res.sigma_height_offset_mm:.2f} mm (a ceiling measured wrong; a camera's tone "
+        "curve and a print's scale also show here)"
     )
     click.echo(
         f"  camera mounting tilt: about b1 {res.camera_tilt_deg[0]:+.4f} +- "
