@@ -25,7 +25,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from visvec.data import Frame
-from visvec.estimate.triangle_full import CHI2_REJECT, DOF
+from visvec.estimate.triangle_full import CHI2_REJECT, residual_dof
 from visvec.pipeline import TrianglePipeline, body_rate
 from visvec.rig import Rig
 
@@ -72,6 +72,7 @@ def _cost(frames: Sequence[Frame], rig: Rig, readout_ms: float) -> tuple[float, 
     """Capped total chi-square of the recording tracked with ``readout_ms``, the number
     of frames that were ok and corrected, and the (time_s, R_nb) of every ok row."""
     pipe = TrianglePipeline(replace(rig, readout_ms=readout_ms))
+    cap = CHI2_REJECT[residual_dof(rig)]
     total, used, attitudes = 0.0, 0, []
     for frame in frames:
         row = pipe.process(frame)
@@ -79,17 +80,17 @@ def _cost(frames: Sequence[Frame], rig: Rig, readout_ms: float) -> tuple[float, 
         if row.ok and sol is not None:
             attitudes.append((frame.time_s, sol.R_nb))
         if row.ok and sol is not None and "rolling_shutter_uncorrected" not in row.warnings:
-            total += min(float(sol.chi2), CHI2_REJECT)
+            total += min(float(sol.chi2), cap)
             used += 1
         else:
-            total += CHI2_REJECT
+            total += cap
     return total, used, attitudes
 
 
-def _per_dof(total: float, used: int, n: int) -> float:
+def _per_dof(total: float, used: int, n: int, dof: int) -> float:
     """Chi-square per degree of freedom of the frames used (each capped), from a total
-    that counts CHI2_REJECT for each of the n - used others."""
-    return (total - CHI2_REJECT * (n - used)) / (DOF * max(used, 1))
+    that counts CHI2_REJECT[dof] for each of the n - used others (dof: a frame's)."""
+    return (total - CHI2_REJECT[dof] * (n - used)) / (dof * max(used, 1))
 
 
 def _median_rate_dps(attitudes: list) -> float:
@@ -113,7 +114,7 @@ def calibrate_readout(frames: Sequence[Frame], rig: Rig) -> ReadoutCalibration:
     frames = [f for f in frames if f.image is not None]
     span = 1000.0 / rig.fps
     base, base_used, attitudes = _cost(frames, rig, ZERO_MS)
-    base_dof = _per_dof(base, base_used, len(frames))
+    base_dof = _per_dof(base, base_used, len(frames), residual_dof(rig))
     rate = _median_rate_dps(attitudes)
     trials: dict[float, float] = {ZERO_MS: base}
 
@@ -164,7 +165,7 @@ def calibrate_readout(frames: Sequence[Frame], rig: Rig) -> ReadoutCalibration:
         return fail(f"only {len(attitudes)} frames with the triangle found: record more")
     if rate < MIN_RATE_DPS:
         return too_slow()
-    chi2_dof = _per_dof(total, used, len(frames))
+    chi2_dof = _per_dof(total, used, len(frames), residual_dof(rig))
     # the curvature of the total chi-square gives the 1-sigma (delta chi2 = 1 at sigma)
     sigma = float(np.sqrt(1.0 / a2) * np.sqrt(max(1.0, chi2_dof)))
     if sigma > MAX_SIGMA_FRACTION * span:

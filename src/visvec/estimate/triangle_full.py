@@ -32,11 +32,19 @@ from visvec.estimate.rotation import ShiftPrior, fit_rotation, residuals_and_jac
 from visvec.geometry import camera_offset_c
 from visvec.rig import Rig
 
-# chi-square with 3 degrees of freedom (6 coordinates, 3 parameters; with the target's
-# height estimated, 6 coordinates and its prior, 4 parameters): a detection that cannot
-# be the rig's triangle under any attitude is refused (P(false refusal) = 1e-4).
-CHI2_REJECT = 21.1
-DOF = 3
+# The vertices' chi-square has 3 degrees of freedom (6 coordinates, 3 parameters), or 2
+# with the target's height estimated (a 4th parameter): its prior, tens of millimetres
+# where the image pins the height to a fraction of one, takes up almost nothing, so its
+# term is judged on its own. A detection that cannot be the rig's triangle under any
+# attitude is refused at P(false refusal) = 1e-4: chi-square(dof).ppf(1 - 1e-4).
+CHI2_REJECT = {2: 18.42, 3: 21.11}
+# and a height more than 3.9 of its prior's sigma from the rig's (chi-square(1) at 1e-4)
+HEIGHT_REJECT = 15.14
+
+
+def residual_dof(rig: Rig) -> int:
+    """Degrees of freedom of a frame's vertex chi-square (see CHI2_REJECT)."""
+    return 2 if rig.target.height_sigma_mm > 0 else 3
 
 
 def solve_full(det: Detection, rig: Rig, R_nb_guess: np.ndarray | None = None) -> AttitudeSolution:
@@ -75,7 +83,10 @@ def solve_full(det: Detection, rig: Rig, R_nb_guess: np.ndarray | None = None) -
             iterations=fit.iterations,
             warnings=("not_converged",),
         )
-    chi2, cov_d = fit.chi2, fit.cov_d
+    dof = residual_dof(rig)
+    # the prior's share of the fit's chi-square, judged on its own (see HEIGHT_REJECT)
+    prior_term = 0.0 if height is None else (fit.shift - height.mean) ** 2 / height.sigma**2
+    chi2, cov_d = fit.chi2 - prior_term, fit.cov_d
     if det.consider_n is not None:
         # a consider covariance C (Schmidt; e.g. Tapley, Schutz & Born, Statistical
         # Orbit Determination, Sec. 6.3): the fit moves by dd = cov_d J^T W dxy for a
@@ -84,22 +95,20 @@ def solve_full(det: Detection, rig: Rig, R_nb_guess: np.ndarray | None = None) -
         if fit.jac is not None:
             # with the height: the first three rows of the (d, s) gain
             S = (fit.cov_p @ fit.jac.T @ W)[:3]
-            prior_term = (fit.shift - height.mean) ** 2 / height.sigma**2
         else:
             _, J = residuals_and_jacobian(fit.R, t_c, p_n, det.points_n)
             S = cov_d @ J.T @ W
-            prior_term = 0.0
-        chi2 = float(fit.r @ np.linalg.solve(det.cov_n + det.consider_n, fit.r)) + prior_term
-        cov_d = cov_d * max(1.0, chi2 / DOF) + S @ det.consider_n @ S.T
+        chi2 = float(fit.r @ np.linalg.solve(det.cov_n + det.consider_n, fit.r))
+        cov_d = cov_d * max(1.0, chi2 / dof) + S @ det.consider_n @ S.T
     else:
-        cov_d = cov_d * max(1.0, chi2 / DOF)
+        cov_d = cov_d * max(1.0, chi2 / dof)
     R_cn = fit.R
     it = fit.iterations
     R_nb = R_cn.T @ rig.R_bc.T
     # R_nb_true = R_nb exp(-[R_BC d]x): body-axis error eps = -R_BC d
     cov_b = rig.R_bc @ cov_d @ rig.R_bc.T
     status, warnings = Status.OK, ()
-    if chi2 > CHI2_REJECT:
+    if chi2 > CHI2_REJECT[dof] or prior_term > HEIGHT_REJECT:
         status, warnings = Status.REJECTED, ("inconsistent_geometry",)
     return AttitudeSolution(
         status,
