@@ -87,6 +87,19 @@ def test_full_takes_a_wrong_target_height_in_its_stride(rig640, rng, height_mm):
     assert 0.6 < np.sqrt(np.mean(np.square(z))) < 1.4
 
 
+def test_a_height_far_beyond_its_prior_is_refused(rig640, rng):
+    """A triangle 150 mm (7.5 prior sigmas) higher than the rig says is not the rig's
+    target as described: refused, while 60 mm (3 sigmas) passes."""
+    R = euler_to_matrix(0.7, 0.03, -0.02)
+    for dz, ok in ((60.0, True), (150.0, False)):
+        v = rig640.target.vertices_mm + [0.0, 0.0, dz]
+        world = replace(rig640, target=replace(rig640.target, vertices_mm=v))
+        sol = solve_full(_detection(world, R, 0.03, rng), rig640)
+        assert (sol.status is Status.OK) is ok, (dz, sol.warnings)
+        if not ok:
+            assert "inconsistent_geometry" in sol.warnings
+
+
 @pytest.mark.parametrize("yaw_deg", [-179.0, -90.0, 0.0, 45.0, 180.0])
 def test_closed_form_start_is_exact_on_exact_points(rig640, yaw_deg):
     R = euler_to_matrix(np.radians(yaw_deg), np.radians(4.0), np.radians(-6.0))
