@@ -12,8 +12,10 @@ no small-angle approximation. The target's height is estimated beside it, with t
 file's value as a Gaussian prior (``[target] height_sigma_mm``): the image pins the
 triangle's size to a few hundredths of a percent, closer than a tape measures a
 ceiling, and with the height held fixed a 5 mm error in it (0.25 %) made every frame
-fail the chi-square test. The height hardly correlates with the attitude (the image
-scales about the target's own image point), so it costs the tilts about 1 %.
+fail the chi-square test. With the camera on the rotation axis the height hardly
+correlates with the attitude (the image scales about the target's own image point) and
+costs the tilts about 1 %; a camera 250 mm off the axis sees the target 7 deg from that
+point, and its tilts lose 1.4-1.7x.
 
 R_CN is found in closed form from the three bearings (depth from |P_C - t_c| = |P_N|,
 then an orthogonal Procrustes fit), then refined by Gauss-Newton on the multiplicative
