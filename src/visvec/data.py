@@ -105,6 +105,9 @@ class AttitudeSolution:
     warnings : tuple of str
     chi2 : float
         Mahalanobis residual of the fit (NaN where the estimator has none).
+    height_mm : float
+        Triangle: the target's height against the rig's as the fit estimated it (0 when
+        the rig holds it, ``height_sigma_mm = 0``).
     """
 
     status: Status
@@ -115,3 +118,4 @@ class AttitudeSolution:
     iterations: int = 0
     warnings: tuple[str, ...] = ()
     chi2: float = float("nan")
+    height_mm: float = 0.0

@@ -42,11 +42,15 @@ from visvec.rig import Rig
 CHI2_REJECT = {2: 18.42, 3: 21.11}
 # and a height more than 3.9 of its prior's sigma from the rig's (chi-square(1) at 1e-4)
 HEIGHT_REJECT = 15.14
+# a height prior this tight (mm) holds the height rather than leaving it to the image (a
+# frame's own estimate is good to about 0.4 mm at 640x480): its term then joins the
+# vertices' chi-square, of 3 degrees of freedom
+HELD_HEIGHT_SIGMA_MM = 1.0
 
 
 def residual_dof(rig: Rig) -> int:
     """Degrees of freedom of a frame's vertex chi-square (see CHI2_REJECT)."""
-    return 2 if rig.target.height_sigma_mm > 0 else 3
+    return 2 if rig.target.height_sigma_mm > HELD_HEIGHT_SIGMA_MM else 3
 
 
 def solve_full(det: Detection, rig: Rig, R_nb_guess: np.ndarray | None = None) -> AttitudeSolution:
@@ -86,8 +90,10 @@ def solve_full(det: Detection, rig: Rig, R_nb_guess: np.ndarray | None = None) -
             warnings=("not_converged",),
         )
     dof = residual_dof(rig)
-    # the prior's share of the fit's chi-square, judged on its own (see HEIGHT_REJECT)
+    # a loose prior's share of the fit's chi-square is judged on its own (HEIGHT_REJECT)
     prior_term = 0.0 if height is None else (fit.shift - height.mean) ** 2 / height.sigma**2
+    if dof == 3:
+        prior_term = 0.0  # held (or no) height: its term stays in the chi-square
     chi2, cov_d = fit.chi2 - prior_term, fit.cov_d
     if det.consider_n is not None:
         # a consider covariance C (Schmidt; e.g. Tapley, Schutz & Born, Statistical
@@ -101,6 +107,8 @@ def solve_full(det: Detection, rig: Rig, R_nb_guess: np.ndarray | None = None) -
             _, J = residuals_and_jacobian(fit.R, t_c, p_n, det.points_n)
             S = cov_d @ J.T @ W
         chi2 = float(fit.r @ np.linalg.solve(det.cov_n + det.consider_n, fit.r))
+        if dof == 3 and height is not None:
+            chi2 += (fit.shift - height.mean) ** 2 / height.sigma**2
         cov_d = cov_d * max(1.0, chi2 / dof) + S @ det.consider_n @ S.T
     else:
         cov_d = cov_d * max(1.0, chi2 / dof)
@@ -121,4 +129,5 @@ def solve_full(det: Detection, rig: Rig, R_nb_guess: np.ndarray | None = None) -
         iterations=it,
         warnings=warnings,
         chi2=chi2,
+        height_mm=fit.shift,
     )
