@@ -11,10 +11,13 @@ import time
 
 import numpy as np
 
-from visvec.bench.triangle import Case, evaluate, machine, random_cases, render_cases
-from visvec.calib.zero_tilt import calibrate_zero_tilt
-from visvec.data import Frame, Status
-from visvec.pipeline import TrianglePipeline
+from visvec.bench.triangle import (
+    evaluate,
+    level_calibration,
+    machine,
+    random_cases,
+    render_cases,
+)
 from visvec.rig import load_rig
 from visvec.sim.scene import Scene
 from visvec.sim.simulate import true_rig
@@ -38,17 +41,7 @@ def main() -> None:
     for cfg in ("triangle-320.toml", "triangle.toml"):
         rig = load_rig(CONFIGS / cfg)
         world = true_rig(rig, (15.0, 0.0), (ASKEW, ASKEW))
-        yaws = np.linspace(-np.pi, np.pi, args.level, endpoint=False) + 0.1
-        level = [Case(np.array([y, 0.0, 0.0]), Scene(), 500 + k) for k, y in enumerate(yaws)]
-        level_imgs = render_cases(world, level)
-        pipe = TrianglePipeline(rig)
-        dets = []
-        for i, img in enumerate(level_imgs):
-            pipe.detector.reset()
-            pipe.process(Frame(i, 0.0, img))
-            if pipe.last_detection is not None and pipe.last_detection.status is Status.OK:
-                dets.append(pipe.last_detection)
-        cal = calibrate_zero_tilt(dets, rig)
+        cal, n_found = level_calibration(rig, world, args.level)
         cal_rig = cal.apply(rig)
         cases = random_cases(args.frames, Scene(), seed=31)
         imgs = render_cases(world, cases)
@@ -58,8 +51,10 @@ def main() -> None:
                 "sigma_target_offset_mm": cal.sigma_target_offset_mm.round(3).tolist(),
                 "camera_tilt_deg": cal.camera_tilt_deg.round(4).tolist(),
                 "sigma_camera_tilt_deg": cal.sigma_camera_tilt_deg.round(4).tolist(),
+                "height_offset_mm": round(cal.height_offset_mm, 3),
+                "sigma_height_offset_mm": round(cal.sigma_height_offset_mm, 3),
                 "rms_px": round(cal.rms_px, 4),
-                "frames": len(dets),
+                "frames": n_found,
                 "left_out": int(cal.outliers.sum()),
                 "sigma_ratio": round(cal.sigma_ratio, 3),
                 "sigma_ratio_95": cal.sigma_ratio_95.round(3).tolist(),

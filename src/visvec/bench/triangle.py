@@ -11,6 +11,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from visvec.calib.zero_tilt import ZeroTiltResult, calibrate_zero_tilt
 from visvec.data import Frame, Status
 from visvec.pipeline import TrianglePipeline
 from visvec.rig import Rig
@@ -147,6 +148,24 @@ def random_cases(n: int, scene: Scene, seed: int, max_tilt_deg: float = 5.0) -> 
         )
         for k in range(n)
     ]
+
+
+def level_calibration(
+    rig: Rig, world: Rig, n_level: int = 12, scene: Scene | None = None, seed: int = 500
+) -> tuple[ZeroTiltResult, int]:
+    """`calibrate zero-tilt` on ``n_level`` frames of the lab ``world`` with the platform
+    level at yaws spread over the circle, processed cold with ``rig``: the result and the
+    number of frames whose triangle was found."""
+    yaws = np.linspace(-np.pi, np.pi, n_level, endpoint=False) + 0.1
+    level = [Case(np.array([y, 0.0, 0.0]), scene or Scene(), seed + k) for k, y in enumerate(yaws)]
+    pipe = TrianglePipeline(rig)
+    dets = []
+    for i, img in enumerate(render_cases(world, level)):
+        pipe.detector.reset()
+        pipe.process(Frame(i, 0.0, img))
+        if pipe.last_detection is not None and pipe.last_detection.status is Status.OK:
+            dets.append(pipe.last_detection)
+    return calibrate_zero_tilt(dets, rig), len(dets)
 
 
 def with_refine(rig: Rig, refine: str) -> Rig:
