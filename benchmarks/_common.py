@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -30,6 +31,13 @@ def command() -> str:
             *sys.argv[1:],
         ]
     )
+
+
+def run_record() -> dict:
+    """What every result file starts with: the command, the machine and the date."""
+    from visvec.bench.triangle import machine
+
+    return {"command": command(), "machine": machine(), "date": time.strftime("%Y-%m-%d")}
 
 
 def summarise(out) -> dict:

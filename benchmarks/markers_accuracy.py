@@ -19,7 +19,6 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 import cv2
 import numpy as np
 
-from visvec.bench.triangle import machine
 from visvec.data import Frame
 from visvec.estimate.markers import solve_markers
 from visvec.estimate.pnp import PNP_FLAGS, solve_pnp
@@ -31,7 +30,7 @@ from visvec.rotations import euler_rates_from_body, euler_to_matrix, matrix_to_e
 from visvec.sim.markers import SpotScene, render_markers
 from visvec.sim.simulate import random_attitudes
 
-from _common import CONFIGS, command, save_json
+from _common import CONFIGS, run_record, save_json
 
 ARCSEC = 3600.0
 
@@ -148,7 +147,7 @@ def main():
     rig = load_rig(CONFIGS / "markers.toml")
     rng = np.random.default_rng(7)
     poses = [euler_to_matrix(*e) for e in random_attitudes(args.poses, 22.0, rng, "random")]
-    res = {"command": command(), "machine": machine(), "date": time.strftime("%Y-%m-%d")}
+    res = run_record()
     res["noise_only_0.12px"] = study(rig, poses, 0.12, 0.0, rng)
     print("noise only", res["noise_only_0.12px"])
     res["paper_0.12px_0.05mm"] = study(rig, poses, 0.12, 0.05, rng)

@@ -29,7 +29,6 @@ from concurrent.futures import ProcessPoolExecutor
 import numpy as np
 
 from visvec.bench.markers import perturbed_lab
-from visvec.bench.triangle import machine
 from visvec.calib.system import Observations, calibrate_system, initial_attitudes
 from visvec.estimate.markers import solve_markers
 from visvec.geometry import markers_to_camera
@@ -37,7 +36,7 @@ from visvec.rig import load_rig
 from visvec.rotations import euler_to_matrix, expmap, logmap, matrix_to_euler
 from visvec.sim.simulate import random_attitudes
 
-from _common import CONFIGS, command, save_json
+from _common import CONFIGS, run_record, save_json
 
 SIGMA_C, SIGMA_M, FRAMES, POSES = 0.12, float(os.environ.get("SIGMA_M", 0.05)), 350, 500
 TRACKED = ("fx", "fy", "cx", "cy", "k1", "t_N z mm", "pattern0 x mm", "pattern1 x mm")
@@ -139,9 +138,7 @@ def main():
     err = np.array([r["error"] for r in ok])
     sig = np.array([r["sigma"] for r in ok])
     res = {
-        "command": command(),
-        "machine": machine(),
-        "date": time.strftime("%Y-%m-%d"),
+        **run_record(),
         "runs": args.runs,
         "converged": len(ok),
         "converged_in_10": sum(r["iterations"] <= 10 for r in ok),

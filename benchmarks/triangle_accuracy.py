@@ -18,18 +18,18 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
-from visvec.bench.triangle import evaluate, machine, random_cases, render_cases, with_refine
+from visvec.bench.triangle import evaluate, random_cases, render_cases, with_refine
 from visvec.rig import load_rig
 from visvec.sim.scene import Scene
 
-from _common import CONFIGS, OUT, command, save_json
+from _common import CONFIGS, OUT, run_record, save_json
 
 
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--frames", type=int, default=300)
     args = ap.parse_args()
-    results = {"command": command(), "machine": machine(), "date": time.strftime("%Y-%m-%d")}
+    results = run_record()
     fig, axes = plt.subplots(2, 4, figsize=(16, 7))
     for row, (name, cfg) in enumerate(
         (("320x240", "triangle-320.toml"), ("640x480", "triangle.toml"))

@@ -19,14 +19,13 @@ from __future__ import annotations
 
 import argparse
 import tempfile
-import time
 from dataclasses import replace
 from pathlib import Path
 
 import cv2
 import numpy as np
 
-from visvec.bench.triangle import Case, evaluate, machine, render_cases
+from visvec.bench.triangle import Case, evaluate, render_cases
 from visvec.calib.zero_tilt import calibrate_zero_tilt
 from visvec.data import Frame, Status
 from visvec.pipeline import TrianglePipeline
@@ -34,7 +33,7 @@ from visvec.rig import load_rig
 from visvec.sim.scene import Scene
 from visvec.sim.simulate import random_attitudes
 
-from _common import CONFIGS, command, save_json, summarise
+from _common import CONFIGS, run_record, save_json, summarise
 
 
 def jpeg(images: list[np.ndarray], quality: int) -> list[np.ndarray]:
@@ -97,7 +96,7 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--frames", type=int, default=300)
     args = ap.parse_args()
-    results = {"command": command(), "machine": machine(), "date": time.strftime("%Y-%m-%d")}
+    results = run_record()
     for cfg in ("triangle-320.toml", "triangle.toml"):
         rig = load_rig(CONFIGS / cfg)
         eul = random_attitudes(args.frames, 5.0, np.random.default_rng(31), "sweep")

@@ -13,17 +13,16 @@ recording (a smooth sweep at 30 fps) whose lens refocuses every 100 frames
 from __future__ import annotations
 
 import argparse
-import time
 from dataclasses import replace
 
 import numpy as np
 
-from visvec.bench.triangle import Case, evaluate, machine, random_cases, render_cases
+from visvec.bench.triangle import Case, evaluate, random_cases, render_cases
 from visvec.rig import load_rig
 from visvec.sim.scene import Scene
 from visvec.sim.simulate import random_attitudes
 
-from _common import CONFIGS, command, save_json, summarise
+from _common import CONFIGS, run_record, save_json, summarise
 
 BLURS_PX = (0.6, 1.0, 1.5, 2.0, 3.0)
 # blur sigma (px) of each 100-frame stretch of the tracked recording
@@ -34,7 +33,7 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--frames", type=int, default=100)
     args = ap.parse_args()
-    results = {"command": command(), "machine": machine(), "date": time.strftime("%Y-%m-%d")}
+    results = run_record()
     for cfg in ("triangle-320.toml", "triangle.toml"):
         rig = load_rig(CONFIGS / cfg)
         res = {}

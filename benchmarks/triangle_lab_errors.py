@@ -10,15 +10,14 @@ eleventh session) and estimated under its prior (the default, 20 mm); then after
 from __future__ import annotations
 
 import argparse
-import time
 from dataclasses import replace
 
-from visvec.bench.triangle import evaluate, level_calibration, machine, random_cases, render_cases
+from visvec.bench.triangle import evaluate, level_calibration, random_cases, render_cases
 from visvec.rig import load_rig
 from visvec.sim.scene import Scene
 from visvec.sim.simulate import true_rig
 
-from _common import CONFIGS, command, save_json, summarise
+from _common import CONFIGS, run_record, save_json, summarise
 
 
 def labs(rig):
@@ -40,7 +39,7 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--frames", type=int, default=100)
     args = ap.parse_args()
-    results = {"command": command(), "machine": machine(), "date": time.strftime("%Y-%m-%d")}
+    results = run_record()
     for cfg in ("triangle-320.toml", "triangle.toml"):
         rig = load_rig(CONFIGS / cfg)
         fixed = replace(rig, target=replace(rig.target, height_sigma_mm=0.0))

@@ -19,7 +19,6 @@ from concurrent.futures import ProcessPoolExecutor
 
 import numpy as np
 
-from visvec.bench.triangle import machine
 from visvec.calib.readout import calibrate_readout
 from visvec.data import Frame
 from visvec.rig import load_rig
@@ -28,7 +27,7 @@ from visvec.sim.render import render_frame
 from visvec.sim.scene import Scene
 from visvec.sim.simulate import body_rates, random_attitudes
 
-from _common import CONFIGS, command, save_json
+from _common import CONFIGS, run_record, save_json
 
 FRAMES = 60
 FPS = 30.0
@@ -57,9 +56,7 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, default=4)
     args = ap.parse_args()
     results = {
-        "command": command(),
-        "machine": machine(),
-        "date": time.strftime("%Y-%m-%d"),
+        **run_record(),
         "frames": FRAMES,
         "fps": FPS,
     }

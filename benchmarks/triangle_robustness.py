@@ -10,17 +10,16 @@ triangle partly out of view.
 from __future__ import annotations
 
 import argparse
-import time
 from dataclasses import replace
 
 import numpy as np
 
-from visvec.bench.triangle import Case, evaluate, machine, render_cases
+from visvec.bench.triangle import Case, evaluate, render_cases
 from visvec.rig import load_rig
 from visvec.sim.scene import Light, Occluder, Scene
 from visvec.sim.simulate import true_rig
 
-from _common import CONFIGS, command, save_json
+from _common import CONFIGS, run_record, save_json
 
 
 def scenario_cases(kind: str, n: int, rig, seed: int) -> tuple[list[Case], object]:
@@ -65,7 +64,7 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--frames", type=int, default=150)
     args = ap.parse_args()
-    results = {"command": command(), "machine": machine(), "date": time.strftime("%Y-%m-%d")}
+    results = run_record()
     for cfg in ("triangle-320.toml", "triangle.toml"):
         rig = load_rig(CONFIGS / cfg)
         res = {}

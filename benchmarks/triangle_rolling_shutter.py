@@ -22,19 +22,18 @@ from __future__ import annotations
 
 import argparse
 import os
-import time
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import replace
 
 import numpy as np
 
-from visvec.bench.triangle import Case, evaluate, machine, random_cases
+from visvec.bench.triangle import Case, evaluate, random_cases
 from visvec.rig import load_rig
 from visvec.rotations import euler_to_matrix
 from visvec.sim.render import render_frame
 from visvec.sim.scene import Scene
 
-from _common import CONFIGS, command, save_json, summarise
+from _common import CONFIGS, run_record, save_json, summarise
 
 RATES_DPS = (0.0, 2.0, 5.0, 10.0, 20.0)
 OFF_AXIS_MM = (250.0, 0.0, 150.0)
@@ -56,9 +55,7 @@ def main() -> None:
     args = ap.parse_args()
     readout = args.readout_ms / 1000.0
     results = {
-        "command": command(),
-        "machine": machine(),
-        "date": time.strftime("%Y-%m-%d"),
+        **run_record(),
         "readout_ms": args.readout_ms,
     }
     for cfg in ("triangle-320.toml", "triangle.toml"):

@@ -22,14 +22,14 @@ import time  # noqa: E402
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-from visvec.bench.triangle import Case, machine, render_cases  # noqa: E402
+from visvec.bench.triangle import Case, render_cases  # noqa: E402
 from visvec.data import Frame  # noqa: E402
 from visvec.pipeline import TrianglePipeline  # noqa: E402
 from visvec.rig import load_rig  # noqa: E402
 from visvec.sim.scene import Scene  # noqa: E402
 from visvec.sim.simulate import random_attitudes  # noqa: E402
 
-from _common import CONFIGS, command, save_json  # noqa: E402
+from _common import CONFIGS, run_record, save_json  # noqa: E402
 
 
 def main() -> None:
@@ -46,9 +46,7 @@ def main() -> None:
     images = render_cases(rig, cases)
     pngs = [cv2.imencode(".png", im)[1] for im in images]
     res = {
-        "command": command(),
-        "machine": machine(),
-        "date": time.strftime("%Y-%m-%d"),
+        **run_record(),
         "frames": args.frames,
         "repeats": args.repeats,
     }

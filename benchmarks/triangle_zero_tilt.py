@@ -7,14 +7,12 @@ mounted 0.7 deg askew; tilt errors before and after `calibrate zero-tilt`.
 from __future__ import annotations
 
 import argparse
-import time
 
 import numpy as np
 
 from visvec.bench.triangle import (
     evaluate,
     level_calibration,
-    machine,
     random_cases,
     render_cases,
 )
@@ -22,7 +20,7 @@ from visvec.rig import load_rig
 from visvec.sim.scene import Scene
 from visvec.sim.simulate import true_rig
 
-from _common import CONFIGS, command, save_json
+from _common import CONFIGS, run_record, save_json
 
 ASKEW = 0.7 / np.sqrt(2.0)  # 0.7 deg in all, about an axis between b1 and b2
 
@@ -33,9 +31,7 @@ def main() -> None:
     ap.add_argument("--level", type=int, default=12)
     args = ap.parse_args()
     results = {
-        "command": command(),
-        "machine": machine(),
-        "date": time.strftime("%Y-%m-%d"),
+        **run_record(),
         "truth": {"target_offset_mm": [15.0, 0.0], "camera_askew_deg": [ASKEW, ASKEW]},
     }
     for cfg in ("triangle-320.toml", "triangle.toml"):
