@@ -90,11 +90,11 @@ def solve_full(det: Detection, rig: Rig, R_nb_guess: np.ndarray | None = None) -
             warnings=("not_converged",),
         )
     dof = residual_dof(rig)
-    # a loose prior's share of the fit's chi-square is judged on its own (HEIGHT_REJECT)
-    prior_term = 0.0 if height is None else (fit.shift - height.mean) ** 2 / height.sigma**2
-    if dof == 3:
-        prior_term = 0.0  # held (or no) height: its term stays in the chi-square
-    chi2, cov_d = fit.chi2 - prior_term, fit.cov_d
+    held = dof == 3
+    # the height prior's term: in the chi-square when it holds the height, judged on
+    # its own when loose (HEIGHT_REJECT)
+    prior = 0.0 if height is None else (fit.shift - height.mean) ** 2 / height.sigma**2
+    chi2, cov_d = fit.chi2 - (0.0 if held else prior), fit.cov_d
     if det.consider_n is not None:
         # a consider covariance C (Schmidt; e.g. Tapley, Schutz & Born, Statistical
         # Orbit Determination, Sec. 6.3): the fit moves by dd = cov_d J^T W dxy for a
@@ -107,8 +107,7 @@ def solve_full(det: Detection, rig: Rig, R_nb_guess: np.ndarray | None = None) -
             _, J = residuals_and_jacobian(fit.R, t_c, p_n, det.points_n)
             S = cov_d @ J.T @ W
         chi2 = float(fit.r @ np.linalg.solve(det.cov_n + det.consider_n, fit.r))
-        if dof == 3 and height is not None:
-            chi2 += (fit.shift - height.mean) ** 2 / height.sigma**2
+        chi2 += prior if held else 0.0
         cov_d = cov_d * max(1.0, chi2 / dof) + S @ det.consider_n @ S.T
     else:
         cov_d = cov_d * max(1.0, chi2 / dof)
@@ -118,7 +117,7 @@ def solve_full(det: Detection, rig: Rig, R_nb_guess: np.ndarray | None = None) -
     # R_nb_true = R_nb exp(-[R_BC d]x): body-axis error eps = -R_BC d
     cov_b = rig.R_bc @ cov_d @ rig.R_bc.T
     status, warnings = Status.OK, ()
-    if chi2 > CHI2_REJECT[dof] or prior_term > HEIGHT_REJECT:
+    if chi2 > CHI2_REJECT[dof] or (not held and prior > HEIGHT_REJECT):
         status, warnings = Status.REJECTED, ("inconsistent_geometry",)
     return AttitudeSolution(
         status,
