@@ -100,6 +100,22 @@ def test_a_height_far_beyond_its_prior_is_refused(rig640, rng):
             assert "inconsistent_geometry" in sol.warnings
 
 
+def test_a_tight_height_prior_holds_the_height(rig640, rng):
+    """A lab that measured its height (prior 0.5 mm, under HELD_HEIGHT_SIGMA_MM): the
+    prior's term is part of a 3-dof chi-square, so a height 0.3 mm off passes and one
+    3 mm off (6 prior sigmas) is refused, where the default 20 mm prior takes it."""
+    R = euler_to_matrix(-0.9, 0.02, 0.04)
+    tight = replace(rig640, target=replace(rig640.target, height_sigma_mm=0.5))
+    for dz, ok in ((0.3, True), (3.0, False)):
+        v = rig640.target.vertices_mm + [0.0, 0.0, dz]
+        world = replace(rig640, target=replace(rig640.target, vertices_mm=v))
+        det = _detection(world, R, 0.02, rng)
+        sol = solve_full(det, tight)
+        assert (sol.status is Status.OK) is ok, (dz, sol.chi2)
+        assert solve_full(det, rig640).status is Status.OK
+        assert abs(solve_full(det, rig640).height_mm - dz) < 1.0
+
+
 @pytest.mark.parametrize("yaw_deg", [-179.0, -90.0, 0.0, 45.0, 180.0])
 def test_closed_form_start_is_exact_on_exact_points(rig640, yaw_deg):
     R = euler_to_matrix(np.radians(yaw_deg), np.radians(4.0), np.radians(-6.0))
