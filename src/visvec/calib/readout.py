@@ -5,10 +5,10 @@ exposure. The sensor takes every edge point back to the centre row's exposure wi
 rig's ``[camera] readout_ms`` (:func:`visvec.detect.edges._unroll`); with the wrong
 readout the corrected triangle is sheared, no rigid triangle fits its vertices, and
 their chi-square (the fit's Mahalanobis residual, 2 or 3 degrees of freedom per frame:
-residual_dof) grows. The readout is the one that minimises the recording's total chi-square (a
-least-squares fit of one parameter shared by all frames); its 1-sigma comes from the
-curvature of that total (a change of 1 in chi-square), scaled by sqrt(chi2 / dof) when
-the residuals exceed the vertices' sigma.
+residual_dof) grows. The readout is the one that minimises the recording's total
+chi-square (a least-squares fit of one parameter shared by all frames); its 1-sigma
+comes from the curvature of that total (a change of 1 in chi-square), scaled by
+sqrt(chi2 / dof) when the residuals exceed the vertices' sigma.
 
 Each frame's fit estimates the target's height as usual (``[target] height_sigma_mm``),
 which takes up part of the shear (a stretch along the columns) and leaves the minimum

@@ -2,8 +2,8 @@
 
 For the "full" estimator: the target's horizontal offset from the rotation axis
 (dx, dy in N), its height's error against the rig file (dh: the triangle's image size;
-it also takes up a print's scale and the camera's tone curve, which change that size
-alike) and the camera's mounting tilt (small rotations about b1 and b2), jointly with
+a camera's tone curve and most of a print's scale show here too) and the camera's
+mounting tilt (small rotations about b1 and b2), jointly with
 each frame's unknown yaw, by weighted least squares on the vertex positions
 (scipy.optimize.least_squares). A camera rotation about b3 cannot be told from a yaw
 offset without a yaw reference and is not estimated; nor can a sideways camera offset be

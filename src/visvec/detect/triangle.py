@@ -396,10 +396,6 @@ class TriangleDetector:
         if seen is None:
             return "", np.zeros((0, 2))
         outline = seen.outline_px
-        h, w = image.shape[:2]
-        at_border = np.any(outline < 0.5 * self.scale) or np.any(
-            outline > np.array([w, h]) - 0.5 * self.scale - 1
-        )
         if seen.inside_level >= SATURATED_LEVEL:
             reason = "overexposed"
         elif seen.step < s.min_contrast or (
@@ -409,9 +405,12 @@ class TriangleDetector:
             # board (no step where the threshold crosses its lighting gradient): the
             # triangle stands out too little from the board's lighting
             reason = "low_contrast"
-        elif at_border and seen.area_px < (1.0 + AREA_TOL) * self.expected_area:
-            # a region no larger than the triangle that reaches the border is the
-            # triangle cut by it (a larger one is the triangle joined to something)
+        elif seen.area_px < (1.0 + AREA_TOL) * self.expected_area and not np.all(
+            self.rig.camera.in_image(outline, self.scale)
+        ):
+            # a region no larger than the triangle that reaches the border (its outline
+            # on the shrunk image's first or last pixels) is the triangle cut by it (a
+            # larger one is the triangle joined to something)
             reason = "partly_out_of_view"
         else:
             reason = "obstructed"
