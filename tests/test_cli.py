@@ -546,6 +546,25 @@ def test_public_api_docstring_example_runs():
     assert len(rows) == 12 and all(r.ok for r in rows)
 
 
+def test_batch_says_when_the_target_is_not_where_the_rig_file_puts_it(tmp_path):
+    """A ceiling 6 mm higher than the rig file says: every row is still ok (the height is
+    estimated), and the run ends with a note of the height over the frames."""
+    frames = tmp_path / "frames"
+    sim = ["simulate", "--rig", RIG, "--frames", 14, "--seed", 3, "--motion", "sweep"]
+    assert run(*sim, "--out", frames, "--target-height-mm", 6).exit_code == 0
+    r = run("batch", frames, "--rig", RIG, "--out", tmp_path / "rows.csv")
+    assert r.exit_code == 0, r.output
+    assert all(row["status"] == "ok" for row in rows_of((tmp_path / "rows.csv").read_text()))
+    note = [line for line in r.output.splitlines() if "mm higher than the rig file" in line]
+    assert len(note) == 1, r.output
+    height = float(note[0].split("looks ")[1].split(" +-")[0])
+    assert abs(height - 6.0) < 0.5, note
+    # the rig's own lab: no note
+    assert run(*sim, "--out", tmp_path / "exact").exit_code == 0
+    r = run("batch", tmp_path / "exact", "--rig", RIG, "--out", tmp_path / "rows2.csv")
+    assert r.exit_code == 0 and "than the rig file" not in r.output
+
+
 def test_batch_on_a_video_file_uses_its_clock(tmp_path):
     video = tmp_path / "rec.avi"
     w = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 10, (640, 480), False)

@@ -108,6 +108,10 @@ class AttitudeSolution:
     height_mm : float
         Triangle: the target's height against the rig's as the fit estimated it (0 when
         the rig holds it, ``height_sigma_mm = 0``).
+    height_sigma_mm : float
+        Its 1-sigma (NaN when not estimated).
+    dof : int
+        Degrees of freedom of ``chi2`` (0 where the estimator has none).
     """
 
     status: Status
@@ -119,3 +123,5 @@ class AttitudeSolution:
     warnings: tuple[str, ...] = ()
     chi2: float = float("nan")
     height_mm: float = 0.0
+    height_sigma_mm: float = float("nan")
+    dof: int = 0

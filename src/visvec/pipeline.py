@@ -33,6 +33,7 @@ from visvec.estimate.markers import solve_markers
 from visvec.estimate.planar import MIN_LAMPS, PlanarSolution, solve_planar
 from visvec.estimate.pnp import PNP_FLAGS, solve_pnp
 from visvec.estimate.rate import MIN_STARS, RateSolution, estimate_rate, unit_vectors
+from visvec.estimate.triangle_full import HeightTrack
 from visvec.lamps import Catalog
 from visvec.output import AttitudeRow, PoseRow, RateRow, Row, attitude_row
 from visvec.rig import Rig
@@ -103,6 +104,14 @@ class Pipeline:
         """A last physical check of an ok solution (none by default)."""
         return status, warnings
 
+    def after_success(self, sol: object) -> None:
+        """Called with the solution of every row that is ok (nothing by default)."""
+
+    def notes(self) -> list[str]:
+        """What the run found out about the rig, for the operator at its end (none by
+        default)."""
+        return []
+
     def process(self, frame: Frame, t_in: float | None = None) -> Row:
         """The row of one frame; never raises on frame content."""
         t_in = time.perf_counter() if t_in is None else t_in
@@ -121,7 +130,9 @@ class Pipeline:
         self.last_solution = sol
         if status is Status.OK and sol is not None:
             status, warnings = self.check_solution(status, sol, warnings)
-        if status is not Status.OK:
+        if status is Status.OK:
+            self.after_success(sol)
+        else:
             self.after_failure()
         return self.make_row(frame, status, sol, warnings, _ms(t_in))
 
@@ -156,6 +167,11 @@ class AttitudePipeline(Pipeline):
 # frames are unrelated (a folder of level frames at different yaws), not a turn
 MAX_RATE_GAP_S = 0.5
 MAX_RATE_DPS = 60.0
+# the run's closing note on the target's height: after this many ok frames, when the
+# running estimate is this many of its sigma and this many mm off the rig file's
+MIN_HEIGHT_FRAMES = 10
+HEIGHT_NOTE_SIGMAS = 5.0
+HEIGHT_NOTE_MM = 1.0
 
 
 def body_rate(a: tuple[float, np.ndarray], b: tuple[float, np.ndarray]) -> np.ndarray | None:
@@ -182,6 +198,12 @@ class TrianglePipeline(AttitudePipeline):
         super().__init__(rig, method)
         self.detector = TriangleDetector(rig)
         self.solve = ESTIMATORS[method]
+        # the target's height, a constant of the lab, estimated over the frames ("full")
+        self.height = (
+            HeightTrack(rig.target.height_sigma_mm)
+            if method == "full" and rig.target.height_sigma_mm > 0
+            else None
+        )
         # every frame taken at rest (zero-tilt calibration): a rolling shutter has no
         # motion to correct, and unrelated frames need no rate
         self.still = still
@@ -203,6 +225,42 @@ class TrianglePipeline(AttitudePipeline):
         sheared = self._sheared
         self.reset()
         self._sheared = sheared
+
+    def after_success(self, sol) -> None:
+        if self.height is not None:
+            self.height.update(sol)
+
+    def notes(self) -> list[str]:
+        """The target's height, when the frames put it off the rig file's."""
+        h = self.height
+        if h is None or h.n < MIN_HEIGHT_FRAMES:
+            return []
+        sigma = float(np.sqrt(h.var_mm2))
+        if abs(h.mean_mm) < max(HEIGHT_NOTE_SIGMAS * sigma, HEIGHT_NOTE_MM):
+            return []
+        where = "higher" if h.mean_mm > 0 else "lower"
+        return [
+            f"visvec: the triangle looks {abs(h.mean_mm):.2f} +- {sigma:.2f} mm {where} than "
+            f"the rig file's [target] vertices_mm put it (the ceiling's height, the print's "
+            f"size or the focal length is off); measure it, or let `visvec calibrate "
+            f"zero-tilt` write it"
+        ]
+
+    def _solve(self, det, guess) -> AttitudeSolution:
+        """The frame's attitude; "full" with the running height as the prior."""
+        if self.height is None:
+            return self.solve(det, self.rig, guess)
+        sol = self.solve(det, self.rig, guess, self.height.prior())
+        refused = sol.status is Status.REJECTED and "inconsistent_geometry" in sol.warnings
+        if refused and self.height.n > 0:
+            # the running height may be what refuses it (the lab changed: a lens
+            # refocused, a zoom): judged against the rig file's prior alone, a frame
+            # that passes restarts the track from itself
+            alone = self.solve(det, self.rig, guess)
+            if alone.status is Status.OK:
+                self.height.restart()
+                return alone
+        return sol
 
     def _rate(self, a: tuple[float, np.ndarray], b: tuple[float, np.ndarray]) -> np.ndarray | None:
         """The camera's angular rate (rad/s, camera frame) between two frames' (time_s,
@@ -230,7 +288,7 @@ class TrianglePipeline(AttitudePipeline):
         # tracked vertices moved little since the last frame: its attitude is a closer
         # start for Gauss-Newton than the closed form, and cheaper (same minimum)
         guess = self.R_last if self.detector.last_was_tracked else None
-        sol = self.solve(det, self.rig, guess)
+        sol = self._solve(det, guess)
         sheared = sol.status is Status.REJECTED and "inconsistent_geometry" in sol.warnings
         if omega_c is None and self.rig.readout_ms != 0 and (sol.status is Status.OK or sheared):
             det, sol, omega_c = self._redetect(frame, det, sol)
@@ -261,7 +319,7 @@ class TrianglePipeline(AttitudePipeline):
         det2 = self.detector.redetect(frame.image, omega_c)
         if det2.status is not Status.OK:
             return det, sol, None
-        sol2 = self.solve(det2, self.rig, sol.R_nb)
+        sol2 = self._solve(det2, sol.R_nb)
         if sol2.status is not Status.OK:
             return det, sol, None
         self.last_detection = det2

@@ -31,7 +31,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from visvec.data import Frame
-from visvec.estimate.triangle_full import CHI2_REJECT, residual_dof
+from visvec.estimate.triangle_full import CHI2_REJECT
 from visvec.pipeline import TrianglePipeline, body_rate
 from visvec.rig import Rig
 
@@ -74,29 +74,43 @@ class ReadoutCalibration:
     reason: str = ""
 
 
-def _cost(frames: Sequence[Frame], rig: Rig, readout_ms: float) -> tuple[float, int, list]:
-    """Capped total chi-square of the recording tracked with ``readout_ms``, the number
-    of frames that were ok and corrected, and the (time_s, R_nb) of every ok row."""
+@dataclass(frozen=True)
+class _Trial:
+    """One trial readout: the capped total chi-square of the recording, the frames ok
+    and corrected (used) with their chi-square and degrees of freedom, and the
+    (time_s, R_nb) of every ok row."""
+
+    total: float
+    used: int
+    chi2_used: float
+    dof_used: int
+    attitudes: list
+
+    def per_dof(self) -> float:
+        """Chi-square per degree of freedom of the frames used (each capped)."""
+        return self.chi2_used / max(self.dof_used, 1)
+
+
+def _cost(frames: Sequence[Frame], rig: Rig, readout_ms: float) -> _Trial:
+    """The recording tracked with ``readout_ms``: each used frame counts its chi-square
+    capped at its refusal threshold (its degrees of freedom: 3 with the height known
+    over the frames, 2 on a frame estimating it alone), every other frame the cap of 3."""
     pipe = TrianglePipeline(replace(rig, readout_ms=readout_ms))
-    cap = CHI2_REJECT[residual_dof(rig)]
-    total, used, attitudes = 0.0, 0, []
+    total, used, chi2_used, dof_used, attitudes = 0.0, 0, 0.0, 0, []
     for frame in frames:
         row = pipe.process(frame)
         sol = pipe.last_solution
         if row.ok and sol is not None:
             attitudes.append((frame.time_s, sol.R_nb))
         if row.ok and sol is not None and "rolling_shutter_uncorrected" not in row.warnings:
-            total += min(float(sol.chi2), cap)
+            chi2 = min(float(sol.chi2), CHI2_REJECT[sol.dof])
+            total += chi2
+            chi2_used += chi2
+            dof_used += sol.dof
             used += 1
         else:
-            total += cap
-    return total, used, attitudes
-
-
-def _per_dof(total: float, used: int, n: int, dof: int) -> float:
-    """Chi-square per degree of freedom of the frames used (each capped), from a total
-    that counts CHI2_REJECT[dof] for each of the n - used others (dof: a frame's)."""
-    return (total - CHI2_REJECT[dof] * (n - used)) / (dof * max(used, 1))
+            total += CHI2_REJECT[3]
+    return _Trial(total, used, chi2_used, dof_used, attitudes)
 
 
 def _median_rate_dps(attitudes: list) -> float:
@@ -119,10 +133,11 @@ def calibrate_readout(frames: Sequence[Frame], rig: Rig) -> ReadoutCalibration:
     """
     frames = [f for f in frames if f.image is not None]
     span = 1000.0 / rig.fps
-    base, base_used, attitudes = _cost(frames, rig, ZERO_MS)
-    base_dof = _per_dof(base, base_used, len(frames), residual_dof(rig))
+    base = _cost(frames, rig, ZERO_MS)
+    base_dof = base.per_dof()
+    attitudes = base.attitudes
     rate = _median_rate_dps(attitudes)
-    trials: dict[float, float] = {ZERO_MS: base}
+    trials: dict[float, float] = {ZERO_MS: base.total}
 
     def fail(reason: str, readout: float = float("nan")) -> ReadoutCalibration:
         grid = np.array(sorted(trials))
@@ -143,11 +158,11 @@ def calibrate_readout(frames: Sequence[Frame], rig: Rig) -> ReadoutCalibration:
         return too_slow()
     for r in np.arange(-span, span + 1e-9, COARSE_STEP_MS):
         if abs(r) > ZERO_MS:
-            trials[float(r)] = _cost(frames, rig, float(r))[0]
+            trials[float(r)] = _cost(frames, rig, float(r)).total
     best = min(trials, key=trials.get)
     for r in best + FINE_STEP_MS * np.arange(-3, 4):
         if abs(r) <= span and float(r) not in trials:
-            trials[float(r)] = _cost(frames, rig, float(r))[0]
+            trials[float(r)] = _cost(frames, rig, float(r)).total
     # a parabola over the trials within +-half of the best, the window set to +-2.5
     # sigma of the last fit: wide enough that a shallow minimum's curvature (a small
     # image, a slow turn: sigma of several ms) is not the cost's own roughness over a few
@@ -165,13 +180,14 @@ def calibrate_readout(frames: Sequence[Frame], rig: Rig) -> ReadoutCalibration:
     readout = float(-a1 / (2 * a2))
     if abs(readout) > span - FINE_STEP_MS:
         return fail(f"the best readout ({readout:.1f} ms) is at the end of the search", readout)
-    total, used, attitudes = _cost(frames, rig, readout)
+    final = _cost(frames, rig, readout)
+    used, attitudes = final.used, final.attitudes
     rate = _median_rate_dps(attitudes)
     if len(attitudes) < MIN_FRAMES:
         return fail(f"only {len(attitudes)} frames with the triangle found: record more")
     if rate < MIN_RATE_DPS:
         return too_slow()
-    chi2_dof = _per_dof(total, used, len(frames), residual_dof(rig))
+    chi2_dof = final.per_dof()
     # the curvature of the total chi-square gives the 1-sigma (delta chi2 = 1 at sigma)
     sigma = float(np.sqrt(1.0 / a2) * np.sqrt(max(1.0, chi2_dof)))
     if sigma > MAX_SIGMA_FRACTION * span:

@@ -185,6 +185,8 @@ def run_frames(
     not held in memory unless the caller needs them). ``save_frames``: a folder where
     every readable frame is kept losslessly (see :class:`FrameRecorder`). ``progress``:
     seconds between status lines on stderr (see :class:`Progress`), and one at the end.
+    What the run found out about the rig (the pipeline's notes: a target's height off
+    the rig file's) goes to stderr at the end.
     """
     pipe = make_pipeline(rig, method)
     rows: list[Row] = []
@@ -233,4 +235,6 @@ def run_frames(
                 rec.close()
     if status is not None:
         click.echo(status.line(), err=True)
+    for line in pipe.notes():
+        click.echo(line, err=True)
     return rows

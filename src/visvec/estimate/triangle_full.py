@@ -15,7 +15,9 @@ ceiling, and with the height held fixed a 5 mm error in it (0.25 %) made every f
 fail the chi-square test. With the camera on the rotation axis the height hardly
 correlates with the attitude (the image scales about the target's own image point) and
 costs the tilts about 1 %; a camera 250 mm off the axis sees the target 7 deg from that
-point, and its tilts lose 1.4-1.7x.
+point, and its tilts lose 1.4-1.7x in a frame alone. The height is a constant of the
+lab, so the pipeline carries it from frame to frame (:class:`HeightTrack`: each frame's
+estimate is the next one's prior), which gives those tilts back.
 
 R_CN is found in closed form from the three bearings (depth from |P_C - t_c| = |P_N|,
 then an orthogonal Procrustes fit), then refined by Gauss-Newton on the multiplicative
@@ -27,6 +29,8 @@ could not weigh (a rolling shutter's unknown rate, passed as a consider covarian
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
+
 import numpy as np
 
 from visvec.data import AttitudeSolution, Detection, Status
@@ -35,25 +39,76 @@ from visvec.geometry import camera_offset_c
 from visvec.rig import Rig
 
 # The vertices' chi-square has 3 degrees of freedom (6 coordinates, 3 parameters), or 2
-# with the target's height estimated (a 4th parameter): its prior, tens of millimetres
-# where the image pins the height to a fraction of one, takes up almost nothing, so its
-# term is judged on its own. A detection that cannot be the rig's triangle under any
-# attitude is refused at P(false refusal) = 1e-4: chi-square(dof).ppf(1 - 1e-4).
+# when a frame estimates the target's height (a 4th parameter) alone: the rig's prior,
+# tens of millimetres where the image pins the height to a fraction of one, takes up
+# almost nothing, so its term is judged on its own. A detection that cannot be the
+# rig's triangle under any attitude is refused at P(false refusal) = 1e-4:
+# chi-square(dof).ppf(1 - 1e-4).
 CHI2_REJECT = {2: 18.42, 3: 21.11}
 # and a height more than 3.9 of its prior's sigma from the rig's (chi-square(1) at 1e-4)
 HEIGHT_REJECT = 15.14
-# a height prior this tight (mm) holds the height rather than leaving it to the image (a
-# frame's own estimate is good to about 0.4 mm at 640x480): its term then joins the
-# vertices' chi-square, of 3 degrees of freedom
+# a height prior this tight (mm; the running estimate over the frames after one or two,
+# or a rig's own) holds the height rather than leaving it to the image (a frame's own
+# estimate is good to about 0.4 mm at 640x480): its term then joins the vertices'
+# chi-square, of 3 degrees of freedom
 HELD_HEIGHT_SIGMA_MM = 1.0
 
 
-def residual_dof(rig: Rig) -> int:
-    """Degrees of freedom of a frame's vertex chi-square (see CHI2_REJECT)."""
-    return 2 if rig.target.height_sigma_mm > HELD_HEIGHT_SIGMA_MM else 3
+# The height's random walk from one frame to the next (mm, 1-sigma per frame): the running
+# estimate's memory. With a frame's own estimate good to r (0.4 mm at 640x480, about
+# 1.2 at 320x240 on the rig files' camera), the prior settles at about sqrt(q r) (0.09
+# and 0.15 mm) and forgets over about r / q frames (20 and 60): a lens that slowly
+# refocuses (its focal length looks like a height) is followed, a sudden change is
+# caught by the fallback (see HeightTrack).
+HEIGHT_DRIFT_MM = 0.02
 
 
-def solve_full(det: Detection, rig: Rig, R_nb_guess: np.ndarray | None = None) -> AttitudeSolution:
+@dataclass
+class HeightTrack:
+    """The target's height against the rig file's as a constant of the lab, estimated
+    over the frames rather than in each: a scalar Kalman filter on a random walk.
+
+    The ok frames' fits are its updates (a frame's MAP estimate with the track's
+    prediction as its prior is the filter's posterior: mean ``height_mm``, variance
+    ``height_sigma_mm`` squared); the prediction adds HEIGHT_DRIFT_MM^2 and never
+    exceeds the rig's prior. A camera off the rotation axis sees the target away from
+    the zenith point about which a height change scales the image, so a frame's own
+    height correlates with its tilts (1.4-1.7x their sigma for 250 mm off the axis at
+    2 m); a height known over many frames gives them back. The track survives lost
+    frames (the lab did not change); a frame its prediction refuses but the rig's
+    prior passes restarts it (see TrianglePipeline).
+    """
+
+    rig_sigma_mm: float
+    mean_mm: float = 0.0
+    var_mm2: float = field(init=False)
+    n: int = 0  # ok frames since the (re)start
+
+    def __post_init__(self) -> None:
+        self.restart()
+
+    def restart(self) -> None:
+        """Back to the rig file's prior."""
+        self.mean_mm, self.var_mm2, self.n = 0.0, self.rig_sigma_mm**2, 0
+
+    def prior(self) -> tuple[float, float]:
+        """(mean_mm, sigma_mm): the prediction for the next frame."""
+        var = min(self.var_mm2 + HEIGHT_DRIFT_MM**2, self.rig_sigma_mm**2)
+        return self.mean_mm, float(np.sqrt(var))
+
+    def update(self, sol: AttitudeSolution) -> None:
+        """Take an ok frame's estimate, fitted with :meth:`prior`."""
+        if np.isfinite(sol.height_sigma_mm) and sol.height_sigma_mm > 0:
+            self.mean_mm, self.var_mm2 = sol.height_mm, sol.height_sigma_mm**2
+            self.n += 1
+
+
+def solve_full(
+    det: Detection,
+    rig: Rig,
+    R_nb_guess: np.ndarray | None = None,
+    height_prior: tuple[float, float] | None = None,
+) -> AttitudeSolution:
     """Attitude from the three identified vertices of ``det``.
 
     Parameters
@@ -63,6 +118,10 @@ def solve_full(det: Detection, rig: Rig, R_nb_guess: np.ndarray | None = None) -
     rig : Rig
     R_nb_guess : (3, 3) ndarray, optional
         Previous attitude (tracking); the closed form is used otherwise.
+    height_prior : (mean_mm, sigma_mm), optional
+        The prior of the target's height against the rig file's: the running estimate
+        over the frames (:class:`HeightTrack`); the rig's (0, ``height_sigma_mm``)
+        otherwise. Ignored when the rig holds the height (``height_sigma_mm = 0``).
 
     Returns
     -------
@@ -74,9 +133,12 @@ def solve_full(det: Detection, rig: Rig, R_nb_guess: np.ndarray | None = None) -
     t_c = camera_offset_c(rig)
     W = np.linalg.inv(det.cov_n)
     R0 = rig.R_bc.T @ R_nb_guess.T if R_nb_guess is not None else None
-    # the target's height as a fourth parameter, with the rig's value as its prior
-    sh = rig.target.height_sigma_mm
-    height = ShiftPrior(np.array([0.0, 0.0, 1.0]), 0.0, sh) if sh > 0 else None
+    # the target's height as a fourth parameter, with the rig's value as its prior (or
+    # the running estimate's)
+    height = None
+    if rig.target.height_sigma_mm > 0:
+        mean, sigma = height_prior or (0.0, rig.target.height_sigma_mm)
+        height = ShiftPrior(np.array([0.0, 0.0, 1.0]), mean, sigma)
     fit = fit_rotation(t_c, p_n, det.points_n, W, R0, height)
     if fit is None:
         return AttitudeSolution(Status.NOT_CONVERGED, warnings=("no_initial_solution",))
@@ -89,28 +151,35 @@ def solve_full(det: Detection, rig: Rig, R_nb_guess: np.ndarray | None = None) -
             iterations=fit.iterations,
             warnings=("not_converged",),
         )
-    dof = residual_dof(rig)
-    held = dof == 3
+    held = height is None or height.sigma <= HELD_HEIGHT_SIGMA_MM
+    dof = 3 if held else 2
     # the height prior's term: in the chi-square when it holds the height, judged on
     # its own when loose (HEIGHT_REJECT)
     prior = 0.0 if height is None else (fit.shift - height.mean) ** 2 / height.sigma**2
-    chi2, cov_d = fit.chi2 - (0.0 if held else prior), fit.cov_d
+    chi2 = fit.chi2 - (0.0 if held else prior)
+    # the consider covariance's share of the attitude's and the height's covariance
+    extra_d, extra_h = np.zeros((3, 3)), 0.0
     if det.consider_n is not None:
         # a consider covariance C (Schmidt; e.g. Tapley, Schutz & Born, Statistical
         # Orbit Determination, Sec. 6.3): the fit moves by dd = cov_d J^T W dxy for a
         # vertex shift dxy, so C adds S C S^T with S = cov_d J^T W; the residuals are
         # judged against cov_n + C (an unknown rate also shears the triangle)
         if fit.jac is not None:
-            # with the height: the first three rows of the (d, s) gain
-            S = (fit.cov_p @ fit.jac.T @ W)[:3]
+            # with the height: the (d, s) gain, whose last row is the height's
+            G = fit.cov_p @ fit.jac.T @ W
+            S = G[:3]
+            extra_h = float(G[3] @ det.consider_n @ G[3])
         else:
             _, J = residuals_and_jacobian(fit.R, t_c, p_n, det.points_n)
-            S = cov_d @ J.T @ W
+            S = fit.cov_d @ J.T @ W
+        extra_d = S @ det.consider_n @ S.T
         chi2 = float(fit.r @ np.linalg.solve(det.cov_n + det.consider_n, fit.r))
         chi2 += prior if held else 0.0
-        cov_d = cov_d * max(1.0, chi2 / dof) + S @ det.consider_n @ S.T
-    else:
-        cov_d = cov_d * max(1.0, chi2 / dof)
+    scale = max(1.0, chi2 / dof)
+    cov_d = fit.cov_d * scale + extra_d
+    height_sigma = float("nan")
+    if fit.cov_p is not None:
+        height_sigma = float(np.sqrt(fit.cov_p[3, 3] * scale + extra_h))
     R_cn = fit.R
     it = fit.iterations
     R_nb = R_cn.T @ rig.R_bc.T
@@ -129,4 +198,6 @@ def solve_full(det: Detection, rig: Rig, R_nb_guess: np.ndarray | None = None) -
         warnings=warnings,
         chi2=chi2,
         height_mm=fit.shift,
+        height_sigma_mm=height_sigma,
+        dof=dof,
     )
