@@ -565,6 +565,25 @@ def test_batch_says_when_the_target_is_not_where_the_rig_file_puts_it(tmp_path):
     assert r.exit_code == 0 and "than the rig file" not in r.output
 
 
+def test_batch_says_when_the_frames_show_a_rolling_shutter_the_rig_does_not(tmp_path):
+    """A rolling-shutter webcam (25 ms) turning at 20 deg/s under a rig file that says
+    global shutter: every frame is refused (sheared), and the run ends saying why and
+    what to do; the same turn seen by a global shutter has nothing to say."""
+    sim = ["simulate", "--rig", RIG, "--frames", 20, "--seed", 4, "--motion", "sweep"]
+    fast = ["--yaw-rate-dps", 20]
+    assert run(*sim, *fast, "--out", tmp_path / "rs", "--readout-ms", 25).exit_code == 0
+    assert run(*sim, *fast, "--out", tmp_path / "gs").exit_code == 0
+    r = run("batch", tmp_path / "rs", "--rig", RIG, "--out", tmp_path / "rs.csv")
+    assert r.exit_code == 0
+    note = [line for line in r.output.splitlines() if "rolling shutter" in line]
+    assert len(note) == 1 and "calibrate readout" in note[0], r.output
+    readout = float(note[0].split("reading out in about ")[1].split(" ms")[0])
+    assert 15 <= readout <= 35, note  # first order: a rough figure
+    r = run("batch", tmp_path / "gs", "--rig", RIG, "--out", tmp_path / "gs.csv")
+    assert r.exit_code == 0 and "rolling shutter" not in r.output
+    assert all(row["status"] == "ok" for row in rows_of((tmp_path / "gs.csv").read_text()))
+
+
 def test_batch_on_a_video_file_uses_its_clock(tmp_path):
     video = tmp_path / "rec.avi"
     w = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 10, (640, 480), False)

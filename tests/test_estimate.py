@@ -181,6 +181,24 @@ def test_the_running_height_learns_the_lab_and_restarts_when_it_changes(rig640):
     assert pipe.notes() == []
 
 
+def test_the_residuals_measure_a_shear_no_attitude_explains(rig640):
+    """Vertices seen shifted by k g, for a rolling shutter's pattern g: the fit takes up
+    what an attitude and a height can, and VertexResidual.explain recovers k from the
+    rest (the readout evidence of an undeclared rolling shutter); a frame with no shear
+    gives 0."""
+    from visvec.detect.edges import shutter_matrix
+
+    R = euler_to_matrix(0.6, 0.04, -0.03)
+    exact = _detection(rig640, R)
+    xy, rows = exact.points_n, exact.points_px[:, 1]
+    g = -shutter_matrix(xy, rows, rig640.camera, 1.0) @ np.radians([2.0, -1.0, 20.0])
+    for k in (0.0, 0.025):
+        det = replace(exact, points_n=xy + k * g.reshape(3, 2))
+        a, b = solve_full(det, rig640).residual.explain(g)
+        assert abs(a / b - k) < 1e-3 * 0.025, (k, a / b)
+        assert 1.0 / np.sqrt(b) < 0.01  # one frame pins k to 10 ms at 0.05 px
+
+
 @pytest.mark.parametrize("yaw_deg", [-179.0, -90.0, 0.0, 45.0, 180.0])
 def test_closed_form_start_is_exact_on_exact_points(rig640, yaw_deg):
     R = euler_to_matrix(np.radians(yaw_deg), np.radians(4.0), np.radians(-6.0))

@@ -112,6 +112,9 @@ class AttitudeSolution:
         Its 1-sigma (NaN when not estimated).
     dof : int
         Degrees of freedom of ``chi2`` (0 where the estimator has none).
+    residual : object, optional
+        Triangle "full": the fit's vertex residuals and what the fit could absorb of a
+        pattern of vertex shifts (``estimate.triangle_full.VertexResidual``).
     """
 
     status: Status
@@ -125,3 +128,4 @@ class AttitudeSolution:
     height_mm: float = 0.0
     height_sigma_mm: float = float("nan")
     dof: int = 0
+    residual: object | None = None

@@ -33,7 +33,8 @@ from visvec.estimate.markers import solve_markers
 from visvec.estimate.planar import MIN_LAMPS, PlanarSolution, solve_planar
 from visvec.estimate.pnp import PNP_FLAGS, solve_pnp
 from visvec.estimate.rate import MIN_STARS, RateSolution, estimate_rate, unit_vectors
-from visvec.estimate.triangle_full import HeightTrack
+from visvec.estimate.shear import ReadoutEvidence
+from visvec.estimate.triangle_full import CHI2_REJECT, HeightTrack
 from visvec.lamps import Catalog
 from visvec.output import AttitudeRow, PoseRow, RateRow, Row, attitude_row
 from visvec.rig import Rig
@@ -170,6 +171,9 @@ MAX_RATE_DPS = 60.0
 # the run's closing note on the target's height: after this many ok frames, when the
 # running estimate is this many of its sigma and this many mm off the rig file's
 MIN_HEIGHT_FRAMES = 10
+# a refused frame's residuals count as evidence of a rolling shutter up to this
+# chi-square (four times the refusal threshold; a shear's, not a wrong triangle's)
+SHEAR_EVIDENCE_CHI2 = 4.0 * CHI2_REJECT[3]
 HEIGHT_NOTE_SIGMAS = 5.0
 HEIGHT_NOTE_MM = 1.0
 
@@ -204,6 +208,8 @@ class TrianglePipeline(AttitudePipeline):
             if method == "full" and rig.target.height_sigma_mm > 0
             else None
         )
+        # a rig that says its camera has a global shutter: do the frames agree?
+        self.shear = ReadoutEvidence() if method == "full" and rig.readout_ms == 0 else None
         # every frame taken at rest (zero-tilt calibration): a rolling shutter has no
         # motion to correct, and unrelated frames need no rate
         self.still = still
@@ -231,20 +237,33 @@ class TrianglePipeline(AttitudePipeline):
             self.height.update(sol)
 
     def notes(self) -> list[str]:
-        """The target's height, when the frames put it off the rig file's."""
+        """The target's height, when the frames put it off the rig file's; a rolling
+        shutter the rig file does not declare."""
+        notes = []
         h = self.height
-        if h is None or h.n < MIN_HEIGHT_FRAMES:
-            return []
-        sigma = float(np.sqrt(h.var_mm2))
-        if abs(h.mean_mm) < max(HEIGHT_NOTE_SIGMAS * sigma, HEIGHT_NOTE_MM):
-            return []
-        where = "higher" if h.mean_mm > 0 else "lower"
-        return [
-            f"visvec: the triangle looks {abs(h.mean_mm):.2f} +- {sigma:.2f} mm {where} than "
-            f"the rig file's [target] vertices_mm put it (the ceiling's height, the print's "
-            f"size or the focal length is off); measure it, or let `visvec calibrate "
-            f"zero-tilt` write it"
-        ]
+        sigma = np.sqrt(h.var_mm2) if h is not None else 0.0
+        if (
+            h is not None
+            and h.n >= MIN_HEIGHT_FRAMES
+            and abs(h.mean_mm) > max(HEIGHT_NOTE_SIGMAS * sigma, HEIGHT_NOTE_MM)
+        ):
+            where = "higher" if h.mean_mm > 0 else "lower"
+            notes.append(
+                f"visvec: the triangle looks {abs(h.mean_mm):.2f} +- {sigma:.2f} mm {where} "
+                f"than the rig file's [target] vertices_mm put it (the ceiling's height, the "
+                f"print's size or the focal length is off); measure it, or let `visvec "
+                f"calibrate zero-tilt` write it"
+            )
+        if self.shear is not None and self.shear.suspected():
+            # first order, from frames the shear may have refused: a rough figure
+            k, _ = self.shear.readout_ms()
+            notes.append(
+                f"visvec: the frames are sheared as by a rolling shutter reading out in about "
+                f"{k:.0f} ms ({self.shear.n} turning frames), but the rig's [camera] readout_ms "
+                f"is 0: turns bias the yaw or get frames refused. Measure it with `visvec "
+                f"calibrate readout` on a recording of the platform turning"
+            )
+        return notes
 
     def _solve(self, det, guess) -> AttitudeSolution:
         """The frame's attitude; "full" with the running height as the prior."""
@@ -293,6 +312,8 @@ class TrianglePipeline(AttitudePipeline):
         if omega_c is None and self.rig.readout_ms != 0 and (sol.status is Status.OK or sheared):
             det, sol, omega_c = self._redetect(frame, det, sol)
             sheared = sol.status is Status.REJECTED and "inconsistent_geometry" in sol.warnings
+        if self.shear is not None and (sol.status is Status.OK or sheared):
+            self._add_shear_evidence(frame.time_s, det, sol)
         self._sheared = (frame.time_s, sol.R_nb) if sheared and omega_c is None else None
         self.R_last = sol.R_nb if sol.status is Status.OK else None
         warnings = det.warnings + sol.warnings
@@ -303,6 +324,19 @@ class TrianglePipeline(AttitudePipeline):
                 # exposure times could not be taken out; the sigma covers max_rate_dps
                 warnings += ("rolling_shutter_uncorrected",)
         return sol.status, sol, warnings
+
+    def _add_shear_evidence(self, t: float, det, sol: AttitudeSolution) -> None:
+        """A frame ok, or refused for a shear a rolling shutter could make (chi-square
+        under SHEAR_EVIDENCE_CHI2: at 20 deg/s every frame of a rolling-shutter webcam
+        may be refused), with the rate since the last such frame: its residuals measure
+        the readout (see :mod:`visvec.estimate.shear`)."""
+        last = self._recent[-1] if self._recent else self._sheared
+        if last is None or sol.residual is None or not sol.chi2 < SHEAR_EVIDENCE_CHI2:
+            return
+        omega = self._rate(last, (t, sol.R_nb))
+        if omega is not None:
+            rows, cam, lever = det.points_px[:, 1], self.rig.camera, self.detector.lever_c
+            self.shear.add(sol.residual, det.points_n, rows, cam, omega, lever)
 
     def _redetect(self, frame, det, sol):
         """A rolling-shutter frame detected without a rate (the second after an

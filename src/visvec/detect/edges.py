@@ -540,6 +540,34 @@ def _unroll(
     return d0[:, :2] / d0[:, 2:3]
 
 
+def shutter_matrix(
+    xy: np.ndarray,
+    rows: np.ndarray,
+    camera: CameraModel,
+    readout_s: float,
+    lever: np.ndarray | None = None,
+) -> np.ndarray:
+    """(6, 3) A: three normalised vertices xy (3, 2) seen at image ``rows`` by a rolling
+    shutter of ``readout_s`` move by A omega (x1, y1, x2, ...) when taken to the centre
+    row's exposure (:func:`_unroll` linearised at omega = 0; omega in rad/s, camera
+    axes): the vertices as seen are those of the centre row less A omega.
+
+    With e = d + lever = (ex, ey, ez) and t = (v - cy) / H * readout_s,
+    A = t [[-x ey, ez + x ex, -ey], [-ez - y ey, y ex, ex]] (for a camera on the axis,
+    e = (x, y, 1): t [[-x y, 1 + x^2, -y], [-1 - y^2, x y, x]]). (A vertex is an
+    intersection of fitted lines whose points have their own rows; its own row's shift
+    is the first-order value.)
+    """
+    t = (np.asarray(rows, float) - camera.cy) / camera.height * readout_s
+    x, y = xy[:, 0], xy[:, 1]
+    lx, ly, lz = (0.0, 0.0, 0.0) if lever is None else np.asarray(lever, float)
+    ex, ey, ez = x + lx, y + ly, 1.0 + lz
+    A = np.zeros((6, 3))
+    A[0::2] = np.column_stack([-x * ey, ez + x * ex, -ey]) * t[:, None]
+    A[1::2] = np.column_stack([-ez - y * ey, y * ex, ex]) * t[:, None]
+    return A
+
+
 def shutter_cov(
     xy: np.ndarray,
     rows: np.ndarray,
@@ -550,24 +578,12 @@ def shutter_cov(
 ) -> np.ndarray:
     """(6, 6) covariance that an unknown camera rate (covariance ``cov_omega``, (3, 3),
     (rad/s)^2, camera axes) adds to three normalised vertices xy (3, 2) seen at image
-    rows ``rows`` by a rolling shutter left uncorrected.
-
-    The linearisation of :func:`_unroll` at omega = 0: with e = d + lever = (ex, ey, ez)
-    and t = (v - cy) / H * readout_s, the vertex moves by A omega,
-    A = t [[-x ey, ez + x ex, -ey], [-ez - y ey, y ex, ex]] (for a camera on the axis,
-    e = (x, y, 1): t [[-x y, 1 + x^2, -y], [-1 - y^2, x y, x]]), which gives
-    A cov_omega A^T, correlated between the vertices because they share the rate. (A
-    vertex is an intersection of fitted lines whose points have their own rows; its own
-    row's shift is the first-order value.) A tilt rate matters most: it stretches the
-    triangle along the columns, which turns its apex direction (the yaw).
+    rows ``rows`` by a rolling shutter left uncorrected: A cov_omega A^T with A of
+    :func:`shutter_matrix`, correlated between the vertices because they share the
+    rate. A tilt rate matters most: it stretches the triangle along the columns, which
+    turns its apex direction (the yaw).
     """
-    t = (np.asarray(rows, float) - camera.cy) / camera.height * readout_s
-    x, y = xy[:, 0], xy[:, 1]
-    lx, ly, lz = (0.0, 0.0, 0.0) if lever is None else np.asarray(lever, float)
-    ex, ey, ez = x + lx, y + ly, 1.0 + lz
-    A = np.zeros((6, 3))
-    A[0::2] = np.column_stack([-x * ey, ez + x * ex, -ey]) * t[:, None]
-    A[1::2] = np.column_stack([-ez - y * ey, y * ex, ex]) * t[:, None]
+    A = shutter_matrix(xy, rows, camera, readout_s, lever)
     return A @ cov_omega @ A.T
 
 

@@ -118,7 +118,7 @@ class TriangleDetector:
         # the tilts an air bearing allows)
         b_c = rig.R_bc.T @ rig.t_b
         depth = float(np.mean((rig.target.vertices_mm - rig.t_b) @ rig.R_bc[:, 2]))
-        self._lever_c = b_c / depth
+        self.lever_c = b_c / depth
         self._last_level: float | None = None
         self._last_points: np.ndarray | None = None
         self._prev_points: np.ndarray | None = None
@@ -154,7 +154,7 @@ class TriangleDetector:
         rig (``readout_ms`` != 0): the vertices are then those of the centre row's
         exposure (see fit_edges)."""
         shutter = (
-            (np.asarray(omega_c, float), self.rig.readout_ms / 1000.0, self._lever_c)
+            (np.asarray(omega_c, float), self.rig.readout_ms / 1000.0, self.lever_c)
             if omega_c is not None and self.rig.readout_ms != 0
             else None
         )
@@ -226,7 +226,7 @@ class TriangleDetector:
         own first detection. On success it replaces the last detection's vertices."""
         if self._last_points is None or self.rig.readout_ms == 0:
             raise ValueError("redetect needs a rolling-shutter rig and a last detection")
-        shutter = (np.asarray(omega_c, float), self.rig.readout_ms / 1000.0, self._lever_c)
+        shutter = (np.asarray(omega_c, float), self.rig.readout_ms / 1000.0, self.lever_c)
         mean, warnings = self._brightness(image)
         det = self._verify(
             image, self._tracked_candidate(self._last_points), warnings, mean, shutter
@@ -368,7 +368,7 @@ class TriangleDetector:
             # exposure times stay in the vertices, by up to the platform's fastest turn
             readout_s = self.rig.readout_ms / 1000.0
             consider = shutter_cov(
-                xy / cam.fx, pts_px[:, 1], cam, readout_s, self._cov_omega, self._lever_c
+                xy / cam.fx, pts_px[:, 1], cam, readout_s, self._cov_omega, self.lever_c
             )
         return Detection(
             Status.OK,

@@ -54,6 +54,28 @@ HEIGHT_REJECT = 15.14
 HELD_HEIGHT_SIGMA_MM = 1.0
 
 
+@dataclass(frozen=True)
+class VertexResidual:
+    """A fit's vertex residuals r = model - seen (6,) (normalised units), their weight W
+    (6, 6), the Jacobian J (6, p) of the fitted parameters and their covariance C
+    (p, p), prior included."""
+
+    r: np.ndarray
+    W: np.ndarray
+    J: np.ndarray
+    C: np.ndarray
+
+    def explain(self, g: np.ndarray) -> tuple[float, float]:
+        """For vertices seen shifted by k g (g (6,), k unknown), the terms (a, b) of k's
+        least-squares estimate from the residuals, summed over frames: k = sum a / sum b,
+        variance 1 / sum b. The fit takes up the part of g its parameters can mimic and
+        leaves r = -(I - J C J^T W)(n + k g) for noise n, so a = -g^T W r and
+        b = g^T (W - W J C J^T W) g (the part of g no attitude or height explains)."""
+        Wg = self.W @ g
+        JWg = self.J.T @ Wg
+        return float(-Wg @ self.r), float(g @ Wg - JWg @ self.C @ JWg)
+
+
 # The height's random walk from one frame to the next (mm, 1-sigma per frame): the running
 # estimate's memory. With a frame's own estimate good to r (0.4 mm at 640x480, about
 # 1.2 at 320x240 on the rig files' camera), the prior settles at about sqrt(q r) (0.09
@@ -157,6 +179,12 @@ def solve_full(
     # its own when loose (HEIGHT_REJECT)
     prior = 0.0 if height is None else (fit.shift - height.mean) ** 2 / height.sigma**2
     chi2 = fit.chi2 - (0.0 if held else prior)
+    # the fit's Jacobian in its parameters (d, and s with the height) and their covariance
+    if fit.jac is not None:
+        residual = VertexResidual(fit.r, W, fit.jac, fit.cov_p)
+    else:
+        _, J = residuals_and_jacobian(fit.R, t_c, p_n, det.points_n)
+        residual = VertexResidual(fit.r, W, J, fit.cov_d)
     # the consider covariance's share of the attitude's and the height's covariance
     extra_d, extra_h = np.zeros((3, 3)), 0.0
     if det.consider_n is not None:
@@ -164,14 +192,11 @@ def solve_full(
         # Orbit Determination, Sec. 6.3): the fit moves by dd = cov_d J^T W dxy for a
         # vertex shift dxy, so C adds S C S^T with S = cov_d J^T W; the residuals are
         # judged against cov_n + C (an unknown rate also shears the triangle)
+        # the gain of the parameters; with the height its last row is the height's
+        G = residual.C @ residual.J.T @ W
+        S = G[:3]
         if fit.jac is not None:
-            # with the height: the (d, s) gain, whose last row is the height's
-            G = fit.cov_p @ fit.jac.T @ W
-            S = G[:3]
             extra_h = float(G[3] @ det.consider_n @ G[3])
-        else:
-            _, J = residuals_and_jacobian(fit.R, t_c, p_n, det.points_n)
-            S = fit.cov_d @ J.T @ W
         extra_d = S @ det.consider_n @ S.T
         chi2 = float(fit.r @ np.linalg.solve(det.cov_n + det.consider_n, fit.r))
         chi2 += prior if held else 0.0
@@ -200,4 +225,5 @@ def solve_full(
         height_mm=fit.shift,
         height_sigma_mm=height_sigma,
         dof=dof,
+        residual=residual,
     )
