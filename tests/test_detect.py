@@ -149,8 +149,9 @@ def test_rolling_shutter_is_taken_out_while_tracking(rig640):
 
 def test_rolling_shutter_covariance_is_the_linearised_correction(rig640):
     """shutter_cov's A omega is the first-order shift _unroll makes for a rate omega
-    (finite differences), and its covariance is A cov_omega A^T."""
-    from visvec.detect.edges import _unroll, shutter_cov
+    (finite differences), and its covariance is A cov_omega A^T; shutter_shift gives
+    A omega itself."""
+    from visvec.detect.edges import _unroll, shutter_cov, shutter_shift
 
     cam = rig640.camera
     xy = np.array([[0.31, -0.12], [-0.22, 0.25], [-0.05, -0.33]])
@@ -175,6 +176,10 @@ def test_rolling_shutter_covariance_is_the_linearised_correction(rig640):
         A[:, j] = ((plus - minus) / (2 * h)).ravel()
     got = shutter_cov(xy, rows, cam, readout, cov_w, lever)
     np.testing.assert_allclose(got, A @ cov_w @ A.T, rtol=1e-6)
+    # and shutter_shift, A omega for one rate, is the same linearisation
+    omega = np.array([0.03, -0.02, 0.35])
+    got = shutter_shift(xy, rows, cam, readout, omega, lever)
+    np.testing.assert_allclose(got, A @ omega, rtol=1e-6, atol=1e-12)
 
 
 def test_rolling_shutter_correction_follows_a_camera_off_the_axis(rig640):

@@ -4,17 +4,20 @@ While the platform turns, each image row sees the triangle at the attitude of it
 exposure. The sensor takes every edge point back to the centre row's exposure with the
 rig's ``[camera] readout_ms`` (:func:`visvec.detect.edges._unroll`); with the wrong
 readout the corrected triangle is sheared, no rigid triangle fits its vertices, and
-their chi-square (the fit's Mahalanobis residual, 2 or 3 degrees of freedom per frame:
-residual_dof) grows. The readout is the one that minimises the recording's total
-chi-square (a least-squares fit of one parameter shared by all frames); its 1-sigma
-comes from the curvature of that total (a change of 1 in chi-square), scaled by
-sqrt(chi2 / dof) when the residuals exceed the vertices' sigma.
+their chi-square (the fit's Mahalanobis residual, 3 degrees of freedom per frame once
+the height is known over the frames, 2 before) grows. The readout is the one that
+minimises the recording's total chi-square (a least-squares fit of one parameter
+shared by all frames); its 1-sigma comes from the curvature of that total (a change of
+1 in chi-square), scaled by sqrt(chi2 / dof) when the residuals exceed the vertices'
+sigma.
 
-Each frame's fit estimates the target's height as usual (``[target] height_sigma_mm``),
-which takes up part of the shear (a stretch along the columns) and leaves the minimum
-flatter: sigma about 1.5 ms at 640x480, against 1.1 ms with the height held exact.
-Holding it at the frames' median estimate, from the uncorrected frames or near a first
-estimate, was tried and biased the readout (RESULTS.md, readout calibration).
+Each trial's run estimates the target's height as the sensor does (``[target]
+height_sigma_mm``, carried from frame to frame), so each trial readout has its own
+height; where it is not yet known (the first frames) it takes up part of the shear (a
+stretch along the columns) and leaves the minimum flatter: sigma about 1.35 ms at
+640x480, against 1.1 ms with the height held exact. Holding it at the frames' median
+estimate, from the uncorrected frames or near a first estimate, was tried and biased the
+readout (RESULTS.md, readout calibration).
 
 Each frame's chi-square is capped at the solver's refusal threshold, and a frame that
 is refused, or not corrected (the first after an acquisition), counts the cap: a trial

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from visvec.camera import CameraModel
-from visvec.detect.edges import shutter_matrix
+from visvec.detect.edges import shutter_shift
 from visvec.estimate.triangle_full import VertexResidual
 
 # a rolling shutter is reported when the run's readout estimate is this many of its
@@ -49,7 +49,7 @@ class ReadoutEvidence:
         """One frame: its fit's residuals, its normalised vertices xy (3, 2) at image
         ``rows`` and the camera rate omega_c (rad/s, camera axes) at the time."""
         # seen = centre row - A omega readout: the pattern of a unit (1 s) readout
-        g = -shutter_matrix(xy, rows, camera, 1.0, lever) @ omega_c
+        g = -shutter_shift(xy, rows, camera, 1.0, omega_c, lever)
         a, b = residual.explain(g)
         self.a += a
         self.b += b
