@@ -186,7 +186,7 @@ def run_frames(
     every readable frame is kept losslessly (see :class:`FrameRecorder`). ``progress``:
     seconds between status lines on stderr (see :class:`Progress`), and one at the end.
     What the run found out about the rig (the pipeline's notes: a target's height off
-    the rig file's) goes to stderr at the end.
+    the rig file's, a rolling shutter it does not declare) goes to stderr at the end.
     """
     pipe = make_pipeline(rig, method)
     rows: list[Row] = []

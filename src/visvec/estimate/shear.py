@@ -6,10 +6,11 @@ less A omega readout (:func:`visvec.detect.edges.shutter_matrix`). A rig that sa
 (``[camera] readout_ms``) has the detector take it out; one that does not (0, a global
 shutter) gets a yaw biased low at speed with a sigma that does not cover it
 (benchmarks/RESULTS.md, rolling shutter: at 20 deg/s and 640x480, 31 of 78 cold rows
-beyond 3 sigma). Every ok frame whose rate is known from the frame before it measures
-the readout from its own residuals (:meth:`VertexResidual.explain`, least squares on
-the part of the shear no attitude or height explains); summed over the run, a readout
-many sigma from zero says the camera rolls, and the run's closing note says to set it.
+beyond 3 sigma). Every frame ok, or refused only narrowly as a shear refuses it, whose
+rate is known from the frame before it measures the readout from its own residuals
+(:meth:`VertexResidual.explain`, least squares on the part of the shear no attitude or
+height explains); summed over the run, a readout many sigma from zero says the camera
+rolls, and the run's closing note says to set it.
 """
 
 from __future__ import annotations
