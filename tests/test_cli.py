@@ -567,8 +567,10 @@ def test_batch_says_when_the_target_is_not_where_the_rig_file_puts_it(tmp_path):
 
 def test_batch_says_when_the_frames_show_a_rolling_shutter_the_rig_does_not(tmp_path):
     """A rolling-shutter webcam (25 ms) turning at 20 deg/s under a rig file that says
-    global shutter: every frame is refused (sheared), and the run ends saying why and
-    what to do; the same turn seen by a global shutter has nothing to say."""
+    global shutter: the first frames are refused (sheared, every frame was before the
+    readout was estimated from them), the rest are taken out with the frames' own
+    estimate, say so, and are right within their sigma; the run ends saying why and
+    what to do. The same turn seen by a global shutter has nothing to say."""
     sim = ["simulate", "--rig", RIG, "--frames", 20, "--seed", 4, "--motion", "sweep"]
     fast = ["--yaw-rate-dps", 20]
     assert run(*sim, *fast, "--out", tmp_path / "rs", "--readout-ms", 25).exit_code == 0
@@ -577,11 +579,19 @@ def test_batch_says_when_the_frames_show_a_rolling_shutter_the_rig_does_not(tmp_
     assert r.exit_code == 0
     note = [line for line in r.output.splitlines() if "rolling shutter" in line]
     assert len(note) == 1 and "calibrate readout" in note[0], r.output
-    readout = float(note[0].split("reading out in about ")[1].split(" ms")[0])
+    readout = float(note[0].split("reading out in about ")[1].split(" +-")[0])
     assert 15 <= readout <= 35, note  # first order: a rough figure
+    rows = rows_of((tmp_path / "rs.csv").read_text())
+    estimated = [i for i, x in enumerate(rows) if "rolling_shutter_estimated" in x["warnings"]]
+    ok = [i for i, x in enumerate(rows) if x["status"] == "ok"]
+    assert len(ok) >= 15 and estimated == ok and ok[0] <= 4, [x["warnings"] for x in rows]
+    assert f"{len(ok)} ok rows were taken out with this running estimate" in note[0]
+    truth = list(csv.DictReader(open(tmp_path / "rs" / "truth.csv")))
+    assert_within_3_sigma([rows[i] for i in ok], [truth[i] for i in ok])
     r = run("batch", tmp_path / "gs", "--rig", RIG, "--out", tmp_path / "gs.csv")
     assert r.exit_code == 0 and "rolling shutter" not in r.output
-    assert all(row["status"] == "ok" for row in rows_of((tmp_path / "gs.csv").read_text()))
+    rows = rows_of((tmp_path / "gs.csv").read_text())
+    assert all(row["status"] == "ok" and row["warnings"] == "" for row in rows)
 
 
 def test_batch_on_a_video_file_uses_its_clock(tmp_path):

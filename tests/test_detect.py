@@ -126,8 +126,10 @@ def test_rolling_shutter_is_taken_out_while_tracking(rig640):
         frames.append(Frame(k, k / 30.0, img))
         truth.append(np.degrees(e))
 
-    def run(readout_ms):
+    def run(readout_ms, shear=True):
         pipe = TrianglePipeline(replace(rig640, readout_ms=readout_ms, max_rate_dps=20.0))
+        if not shear:
+            pipe.shear = None  # no readout estimated from the frames: the shear as it is
         rows = [pipe.process(f) for f in frames]
         z = [
             (r.euler_deg - t) / r.sigma_deg if r.ok else np.full(3, np.nan)
@@ -135,7 +137,7 @@ def test_rolling_shutter_is_taken_out_while_tracking(rig640):
         ]
         return np.array(z), rows
 
-    z_raw, _ = run(0.0)
+    z_raw, _ = run(0.0, shear=False)
     z_fix, rows = run(25.0)
     assert np.all(np.isfinite(z_fix))  # every frame ok
     assert np.nanmean(z_raw[3:, 0]) < -1.0  # sheared: the yaw biased low
@@ -304,20 +306,22 @@ def test_rolling_shutter_read_bottom_up_is_taken_out_too(rig640):
         )
         truth.append(np.degrees(e))
 
-    def yaw_z(readout_ms):
+    def yaw_z(readout_ms, shear=True):
         pipe = TrianglePipeline(replace(rig640, readout_ms=readout_ms))
+        if not shear:
+            pipe.shear = None  # no readout estimated from the frames
         rows = [pipe.process(f) for f in frames]
         assert all(r.ok for r in rows[1:])
-        return np.array(
-            [
-                (r.euler_deg[0] - t[0]) / r.sigma_deg[0]
-                for r, t in zip(rows[1:], truth[1:], strict=True)
-            ]
-        )
+        z = [(r.euler_deg[0] - t[0]) / r.sigma_deg[0] for r, t in zip(rows, truth, strict=True)]
+        return np.array(z[1:]), pipe
 
-    assert yaw_z(0.0).mean() > 1.0  # uncorrected: biased high
-    z = yaw_z(-25.0)
+    assert yaw_z(0.0, shear=False)[0].mean() > 1.0  # uncorrected: biased high
+    z, _ = yaw_z(-25.0)
     assert abs(z.mean()) < 0.6 and np.abs(z).max() < 3.0
+    # the rig says global shutter: the frames' own estimate has the readout's sign
+    z, pipe = yaw_z(0.0)
+    assert -35.0 < pipe.detector.readout_ms < -15.0
+    assert np.abs(z).max() < 3.0
 
 
 def test_rolling_shutter_rate_only_from_related_frames(rig640):

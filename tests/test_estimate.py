@@ -199,6 +199,30 @@ def test_the_residuals_measure_a_shear_no_attitude_explains(rig640):
         assert 1.0 / np.sqrt(b) < 0.01  # one frame pins k to 10 ms at 0.05 px
 
 
+def test_readout_evidence_counts_what_a_correction_took_out(rig640):
+    """Frames already taken out with a running readout estimate k0 show only k - k0 in
+    their residuals; ReadoutEvidence adds k0 back, so its estimate stays the camera's
+    whatever the pipeline applied; suspected once 5 sigma from 0, not before."""
+    from visvec.detect.edges import shutter_shift
+    from visvec.estimate.shear import ReadoutEvidence
+
+    R = euler_to_matrix(0.6, 0.04, -0.03)
+    exact = _detection(rig640, R)
+    xy, rows = exact.points_n, exact.points_px[:, 1]
+    omega = np.radians([2.0, -1.0, 20.0])
+    g = -shutter_shift(xy, rows, rig640.camera, 1.0, omega)
+    for applied_ms in (0.0, 10.0, 25.0, 40.0):
+        ev = ReadoutEvidence()
+        det = replace(exact, points_n=xy + (0.025 - applied_ms / 1000.0) * g.reshape(3, 2))
+        residual = solve_full(det, rig640).residual
+        for _ in range(4):  # four such frames (one pins k to 9 ms)
+            assert not ev.suspected()
+            ev.add(residual, xy, rows, rig640.camera, omega, None, applied_ms)
+        k, sigma = ev.readout_ms()
+        assert abs(k - 25.0) < 0.05, (applied_ms, k)
+        assert ev.suspected() and sigma < 5.0
+
+
 @pytest.mark.parametrize("yaw_deg", [-179.0, -90.0, 0.0, 45.0, 180.0])
 def test_closed_form_start_is_exact_on_exact_points(rig640, yaw_deg):
     R = euler_to_matrix(np.radians(yaw_deg), np.radians(4.0), np.radians(-6.0))

@@ -208,8 +208,13 @@ class TrianglePipeline(AttitudePipeline):
             if method == "full" and rig.target.height_sigma_mm > 0
             else None
         )
-        # a rig that says its camera has a global shutter: do the frames agree?
-        self.shear = ReadoutEvidence() if method == "full" and rig.readout_ms == 0 else None
+        # a rig that says its camera has a global shutter: do the frames agree? Once
+        # they say it rolls, its readout is estimated from them and taken out
+        self.shear = (
+            ReadoutEvidence() if method == "full" and rig.readout_ms == 0 and not still else None
+        )
+        # ok rows taken out with the frames' own readout estimate
+        self.n_estimated_readout = 0
         # every frame taken at rest (zero-tilt calibration): a rolling shutter has no
         # motion to correct, and unrelated frames need no rate
         self.still = still
@@ -256,12 +261,14 @@ class TrianglePipeline(AttitudePipeline):
             )
         if self.shear is not None and self.shear.suspected():
             # first order, from frames the shear may have refused: a rough figure
-            k, _ = self.shear.readout_ms()
+            k, s = self.shear.readout_ms()
             notes.append(
                 f"visvec: the frames are sheared as by a rolling shutter reading out in about "
-                f"{k:.0f} ms ({self.shear.n} turning frames), but the rig's [camera] readout_ms "
-                f"is 0: turns bias the yaw or get frames refused. Measure it with `visvec "
-                f"calibrate readout` on a recording of the platform turning"
+                f"{k:.0f} +- {s:.0f} ms ({self.shear.n} turning frames), but the rig's "
+                f"[camera] readout_ms is 0: {self.n_estimated_readout} ok rows were taken out "
+                f"with this running estimate (warning rolling_shutter_estimated), the ones "
+                f"before it biased by the turn or refused. Measure it with `visvec calibrate "
+                f"readout` on a recording of the platform turning"
             )
         return notes
 
@@ -290,7 +297,7 @@ class TrianglePipeline(AttitudePipeline):
     def _camera_rate(self, t: float) -> np.ndarray | None:
         """The rate for a rolling-shutter frame at time t: zero for still frames, else
         from the last two ok frames; None without both or when they are stale."""
-        if self.rig.readout_ms == 0:
+        if self.detector.readout_ms == 0:
             return None
         if self.still:
             return np.zeros(3)
@@ -299,6 +306,8 @@ class TrianglePipeline(AttitudePipeline):
         return self._rate(*self._recent)
 
     def estimate(self, frame):
+        rolling = self.detector.readout_ms != 0
+        estimated = rolling and self.shear is not None
         omega_c = self._camera_rate(frame.time_s)
         det = self.detector.detect(frame.image, omega_c)
         self.last_detection = det
@@ -309,34 +318,52 @@ class TrianglePipeline(AttitudePipeline):
         guess = self.R_last if self.detector.last_was_tracked else None
         sol = self._solve(det, guess)
         sheared = sol.status is Status.REJECTED and "inconsistent_geometry" in sol.warnings
-        if omega_c is None and self.rig.readout_ms != 0 and (sol.status is Status.OK or sheared):
+        if omega_c is None and rolling and (sol.status is Status.OK or sheared):
             det, sol, omega_c = self._redetect(frame, det, sol)
             sheared = sol.status is Status.REJECTED and "inconsistent_geometry" in sol.warnings
         if self.shear is not None and (sol.status is Status.OK or sheared):
-            self._add_shear_evidence(frame.time_s, det, sol)
+            applied = self.detector.readout_ms if omega_c is not None else 0.0
+            self._add_shear_evidence(frame.time_s, det, sol, applied)
+            self._use_estimated_readout()
         self._sheared = (frame.time_s, sol.R_nb) if sheared and omega_c is None else None
         self.R_last = sol.R_nb if sol.status is Status.OK else None
         warnings = det.warnings + sol.warnings
         if sol.status is Status.OK:
             self._recent = [*self._recent[-1:], (frame.time_s, sol.R_nb)]
-            if omega_c is None and self.rig.readout_ms != 0:
+            if omega_c is None and rolling:
                 # the rate is not known (first frame, or after a loss): the rows'
                 # exposure times could not be taken out; the sigma covers max_rate_dps
                 warnings += ("rolling_shutter_uncorrected",)
+            if estimated:
+                self.n_estimated_readout += 1
+                warnings += ("rolling_shutter_estimated",)
         return sol.status, sol, warnings
 
-    def _add_shear_evidence(self, t: float, det, sol: AttitudeSolution) -> None:
+    def _add_shear_evidence(self, t: float, det, sol: AttitudeSolution, applied_ms: float) -> None:
         """A frame ok, or refused for a shear a rolling shutter could make (chi-square
         under SHEAR_EVIDENCE_CHI2: at 20 deg/s every frame of a rolling-shutter webcam
         may be refused), with the rate since the last such frame: its residuals measure
-        the readout (see :mod:`visvec.estimate.shear`)."""
+        the readout (see :mod:`visvec.estimate.shear`) beyond the ``applied_ms`` its
+        vertices were already taken out with."""
         last = self._recent[-1] if self._recent else self._sheared
         if last is None or sol.residual is None or not sol.chi2 < SHEAR_EVIDENCE_CHI2:
             return
         omega = self._rate(last, (t, sol.R_nb))
         if omega is not None:
             rows, cam, lever = det.points_px[:, 1], self.rig.camera, self.detector.lever_c
-            self.shear.add(sol.residual, det.points_n, rows, cam, omega, lever)
+            self.shear.add(sol.residual, det.points_n, rows, cam, omega, lever, applied_ms)
+
+    def _use_estimated_readout(self) -> None:
+        """The readout the detector takes out: the frames' running estimate (and its
+        sigma, a consider covariance) while they say the camera rolls
+        (:meth:`ReadoutEvidence.suspected`), else none, as the rig file says. A camera
+        the rig file calls global-shutter is then corrected from the frame after the
+        evidence passes 5 sigma; the frames before are biased by the turn or refused."""
+        if self.shear.suspected():
+            k, s = self.shear.readout_ms()
+        else:
+            k, s = 0.0, 0.0
+        self.detector.readout_ms, self.detector.readout_sigma_ms = k, s
 
     def _redetect(self, frame, det, sol):
         """A rolling-shutter frame detected without a rate (the second after an

@@ -16,7 +16,7 @@ import numpy as np
 
 from visvec.data import Detection, Status
 from visvec.detect.candidates import Candidate, iter_candidates, partial_triangle
-from visvec.detect.edges import fit_edges, intersect, shutter_cov
+from visvec.detect.edges import fit_edges, intersect, shutter_cov, shutter_shift
 from visvec.geometry import project_target
 from visvec.rig import Rig
 
@@ -119,6 +119,10 @@ class TriangleDetector:
         b_c = rig.R_bc.T @ rig.t_b
         depth = float(np.mean((rig.target.vertices_mm - rig.t_b) @ rig.R_bc[:, 2]))
         self.lever_c = b_c / depth
+        # the readout in use (ms) and its 1-sigma: the rig's, or one the pipeline
+        # estimates from the frames of a camera the rig file says has a global shutter
+        self.readout_ms = rig.readout_ms
+        self.readout_sigma_ms = 0.0
         self._last_level: float | None = None
         self._last_points: np.ndarray | None = None
         self._prev_points: np.ndarray | None = None
@@ -154,8 +158,8 @@ class TriangleDetector:
         rig (``readout_ms`` != 0): the vertices are then those of the centre row's
         exposure (see fit_edges)."""
         shutter = (
-            (np.asarray(omega_c, float), self.rig.readout_ms / 1000.0, self.lever_c)
-            if omega_c is not None and self.rig.readout_ms != 0
+            (np.asarray(omega_c, float), self.readout_ms / 1000.0, self.lever_c)
+            if omega_c is not None and self.readout_ms != 0
             else None
         )
         mean, warnings = self._brightness(image)
@@ -224,9 +228,9 @@ class TriangleDetector:
         taken to the centre row's exposure with the camera rate ``omega_c`` (rad/s,
         camera frame): a rolling-shutter frame whose rate became known only from its
         own first detection. On success it replaces the last detection's vertices."""
-        if self._last_points is None or self.rig.readout_ms == 0:
+        if self._last_points is None or self.readout_ms == 0:
             raise ValueError("redetect needs a rolling-shutter rig and a last detection")
-        shutter = (np.asarray(omega_c, float), self.rig.readout_ms / 1000.0, self.lever_c)
+        shutter = (np.asarray(omega_c, float), self.readout_ms / 1000.0, self.lever_c)
         mean, warnings = self._brightness(image)
         det = self._verify(
             image, self._tracked_candidate(self._last_points), warnings, mean, shutter
@@ -363,13 +367,19 @@ class TriangleDetector:
         if not np.all(cam.in_image(pts_px, BORDER_MARGIN_PX + 0.02 * cam.width)):
             w.append("near_fov_edge")
         consider = None
-        if shutter is None and self.rig.readout_ms != 0:
+        if shutter is None and self.readout_ms != 0:
             # a rolling shutter whose rate is not known yet (first frame): the rows'
             # exposure times stay in the vertices, by up to the platform's fastest turn
-            readout_s = self.rig.readout_ms / 1000.0
+            # (an estimated readout k +- s: E[k^2] = k^2 + s^2)
+            readout_s = self.readout_ms / 1000.0
             consider = shutter_cov(
                 xy / cam.fx, pts_px[:, 1], cam, readout_s, self._cov_omega, self.lever_c
-            )
+            ) * (1.0 + (self.readout_sigma_ms / self.readout_ms) ** 2)
+        elif shutter is not None and self.readout_sigma_ms > 0:
+            # taken out with an estimated readout: what its sigma leaves, A omega s
+            omega_c, sigma_s = shutter[0], self.readout_sigma_ms / 1000.0
+            g = shutter_shift(xy / cam.fx, pts_px[:, 1], cam, sigma_s, omega_c, self.lever_c)
+            consider = np.outer(g, g)
         return Detection(
             Status.OK,
             points_px=pts_px,

@@ -10,7 +10,10 @@ beyond 3 sigma). Every frame ok, or refused only narrowly as a shear refuses it,
 rate is known from the frame before it measures the readout from its own residuals
 (:meth:`VertexResidual.explain`, least squares on the part of the shear no attitude or
 height explains); summed over the run, a readout many sigma from zero says the camera
-rolls, and the run's closing note says to set it.
+rolls. From then on the pipeline takes the running estimate out of the frames as if
+the rig had declared it (its sigma a consider covariance; rows warn
+``rolling_shutter_estimated``), frames so corrected measure what is left, and the run's
+closing note says to set it.
 """
 
 from __future__ import annotations
@@ -46,13 +49,16 @@ class ReadoutEvidence:
         camera: CameraModel,
         omega_c: np.ndarray,
         lever: np.ndarray | None,
+        applied_ms: float = 0.0,
     ) -> None:
         """One frame: its fit's residuals, its normalised vertices xy (3, 2) at image
-        ``rows`` and the camera rate omega_c (rad/s, camera axes) at the time."""
+        ``rows`` and the camera rate omega_c (rad/s, camera axes) at the time; its
+        vertices already taken out with a readout of ``applied_ms`` (the residuals then
+        measure what is left, k - applied)."""
         # seen = centre row - A omega readout: the pattern of a unit (1 s) readout
         g = -shutter_shift(xy, rows, camera, 1.0, omega_c, lever)
         a, b = residual.explain(g)
-        self.a += a
+        self.a += a + b * applied_ms / 1000.0
         self.b += b
         self.n += 1
 
