@@ -9,9 +9,11 @@ exposure. First cold frames at random attitudes (as in the accuracy benchmark), 
 the sensor cannot correct (no rate yet), with the rig's `[camera] readout_ms` unset and
 set (then their sigma covers `[platform] max_rate_dps`, here 20 deg/s); then tracked
 recordings turning at a constant rate (60 frames at 30 fps, every frame scored),
-with `readout_ms` unset (uncorrected) and set (corrected: edge points taken back to
-the centre row's exposure with the rate of the last two frames; the second frame
-detected again with the rate from its own first pass; the first frame widened), and
+with `readout_ms` unset (uncorrected: no readout estimated from the frames; estimated:
+the sensor as shipped, which takes out the frames' own readout estimate once it is
+5 sigma from zero) and set (corrected: edge points taken back to the centre row's
+exposure with the rate of the last two frames; the second frame detected again with
+the rate from its own first pass; the first frame widened), and
 the same with the camera mounted 250 mm off the rotation axis (turning also moves it:
 its translation during the readout shears the image too).
 
@@ -96,9 +98,18 @@ def main() -> None:
                 with ProcessPoolExecutor(os.cpu_count() or 1) as ex:
                     images = list(ex.map(_render, [(r0, c, readout, omega) for c in cases]))
                 rolled = replace(r0, readout_ms=args.readout_ms, max_rate_dps=max(RATES_DPS))
-                for label, r in (("uncorrected", r0), ("corrected", rolled)):
-                    out = evaluate(r, images, cases, "full", track=True)
+                for label, r, shear in (
+                    ("uncorrected", r0, False),
+                    ("estimated", r0, True),
+                    ("corrected", rolled, True),
+                ):
+                    out = evaluate(r, images, cases, "full", track=True, shear=shear)
                     s = summarise(out)
+                    estimated = [
+                        i for i, w in enumerate(out.warnings) if "rolling_shutter_estimated" in w
+                    ]
+                    if label == "estimated":
+                        s["first_estimated_frame"] = estimated[0] if estimated else None
                     res[f"tracked_{where}{label}_yaw_rate_{rate}"] = s
                     print(cfg, "tracked", where, label, rate, s)
         results[cfg] = res

@@ -118,10 +118,19 @@ class Outcome:
 
 
 def evaluate(
-    rig: Rig, images: Sequence[np.ndarray], cases: Sequence[Case], method: str, track: bool = False
+    rig: Rig,
+    images: Sequence[np.ndarray],
+    cases: Sequence[Case],
+    method: str,
+    track: bool = False,
+    shear: bool = True,
 ) -> Outcome:
-    """Run the pipeline (estimation rig ``rig``) on ``images`` and compare with the truth."""
+    """Run the pipeline (estimation rig ``rig``) on ``images`` and compare with the truth
+    (``shear`` False: no readout estimated from the frames of a rig that declares none,
+    the sensor before the twelfth session, for comparison)."""
     pipe = TrianglePipeline(rig, method)
+    if not shear:
+        pipe.shear = None
     out = Outcome()
     for i, (img, case) in enumerate(zip(images, cases, strict=True)):
         if not track:
