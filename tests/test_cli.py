@@ -567,11 +567,13 @@ def test_batch_says_when_the_target_is_not_where_the_rig_file_puts_it(tmp_path):
 
 def test_batch_says_when_the_frames_show_a_rolling_shutter_the_rig_does_not(tmp_path):
     """A rolling-shutter webcam (25 ms) turning at 20 deg/s under a rig file that says
-    global shutter: the first frames are refused (sheared, every frame was before the
-    readout was estimated from them), the rest are taken out with the frames' own
-    estimate, say so, and are right within their sigma; the run ends saying why and
-    what to do. The same turn seen by a global shutter has nothing to say."""
-    sim = ["simulate", "--rig", RIG, "--frames", 20, "--seed", 4, "--motion", "sweep"]
+    global shutter: the first frames are refused (sheared), those after the frames'
+    own readout estimate passes 5 sigma are taken out with it, say so, and are right
+    within their sigma; the run ends saying why and what to do. The same turn seen by
+    a global shutter has nothing to say, nor has a slow turn in a lab whose target
+    hangs 15 mm from where the rig file puts it (before `calibrate zero-tilt`: its
+    residuals, fixed in the triangle's frame, looked like a -16 ms shutter)."""
+    sim = ["simulate", "--rig", RIG, "--frames", 30, "--seed", 4, "--motion", "sweep"]
     fast = ["--yaw-rate-dps", 20]
     assert run(*sim, *fast, "--out", tmp_path / "rs", "--readout-ms", 25).exit_code == 0
     assert run(*sim, *fast, "--out", tmp_path / "gs").exit_code == 0
@@ -584,7 +586,7 @@ def test_batch_says_when_the_frames_show_a_rolling_shutter_the_rig_does_not(tmp_
     rows = rows_of((tmp_path / "rs.csv").read_text())
     estimated = [i for i, x in enumerate(rows) if "rolling_shutter_estimated" in x["warnings"]]
     ok = [i for i, x in enumerate(rows) if x["status"] == "ok"]
-    assert len(ok) >= 15 and estimated == ok and ok[0] <= 4, [x["warnings"] for x in rows]
+    assert len(ok) >= 5 and estimated == ok and ok[0] <= 25, [x["warnings"] for x in rows]
     assert f"{len(ok)} ok rows were taken out with this running estimate" in note[0]
     truth = list(csv.DictReader(open(tmp_path / "rs" / "truth.csv")))
     assert_within_3_sigma([rows[i] for i in ok], [truth[i] for i in ok])
@@ -592,6 +594,11 @@ def test_batch_says_when_the_frames_show_a_rolling_shutter_the_rig_does_not(tmp_
     assert r.exit_code == 0 and "rolling shutter" not in r.output
     rows = rows_of((tmp_path / "gs.csv").read_text())
     assert all(row["status"] == "ok" and row["warnings"] == "" for row in rows)
+    slow = ["--yaw-rate-dps", 5, "--target-offset-mm", 15, 0, "--frames", 60, "--seed", 7]
+    assert run(*sim, *slow, "--out", tmp_path / "off").exit_code == 0
+    r = run("batch", tmp_path / "off", "--rig", RIG, "--out", tmp_path / "off.csv")
+    assert r.exit_code == 0 and "rolling shutter" not in r.output
+    assert "rolling_shutter" not in (tmp_path / "off.csv").read_text()
 
 
 def test_batch_on_a_video_file_uses_its_clock(tmp_path):

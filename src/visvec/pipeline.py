@@ -211,7 +211,9 @@ class TrianglePipeline(AttitudePipeline):
         # a rig that says its camera has a global shutter: do the frames agree? Once
         # they say it rolls, its readout is estimated from them and taken out
         self.shear = (
-            ReadoutEvidence() if method == "full" and rig.readout_ms == 0 and not still else None
+            ReadoutEvidence.for_camera(rig.camera)
+            if method == "full" and rig.readout_ms == 0 and not still
+            else None
         )
         # ok rows taken out with the frames' own readout estimate
         self.n_estimated_readout = 0

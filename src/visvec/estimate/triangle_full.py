@@ -65,15 +65,17 @@ class VertexResidual:
     J: np.ndarray
     C: np.ndarray
 
-    def explain(self, g: np.ndarray) -> tuple[float, float]:
+    def explain(self, g: np.ndarray):
         """For vertices seen shifted by k g (g (6,), k unknown), the terms (a, b) of k's
         least-squares estimate from the residuals, summed over frames: k = sum a / sum b,
         variance 1 / sum b. The fit takes up the part of g its parameters can mimic and
         leaves r = -(I - J C J^T W)(n + k g) for noise n, so a = -g^T W r and
-        b = g^T (W - W J C J^T W) g (the part of g no attitude or height explains)."""
+        b = g^T (W - W J C J^T W) g (the part of g no attitude or height explains).
+        With g a (6, m) design of m patterns: the normal equations' a (m,) and b (m, m)."""
         Wg = self.W @ g
         JWg = self.J.T @ Wg
-        return float(-Wg @ self.r), float(g @ Wg - JWg @ self.C @ JWg)
+        a, b = -(Wg.T @ self.r), g.T @ Wg - JWg.T @ self.C @ JWg
+        return (float(a), float(b)) if g.ndim == 1 else (a, b)
 
 
 # The height's random walk from one frame to the next (mm, 1-sigma per frame): the running
