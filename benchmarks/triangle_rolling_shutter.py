@@ -15,7 +15,9 @@ the sensor as shipped, which takes out the frames' own readout estimate once it 
 exposure with the rate of the last two frames; the second frame detected again with
 the rate from its own first pass; the first frame widened), and
 the same with the camera mounted 250 mm off the rotation axis (turning also moves it:
-its translation during the readout shears the image too).
+its translation during the readout shears the image too), and 240-frame recordings
+(8 s) at 10 and 20 deg/s, long enough for the readout estimated from the frames to be
+told apart from a static model error.
 
     python benchmarks/triangle_rolling_shutter.py [--frames 80] [--readout-ms 25]
 """
@@ -40,6 +42,10 @@ from _common import CONFIGS, run_record, save_json, summarise
 RATES_DPS = (0.0, 2.0, 5.0, 10.0, 20.0)
 OFF_AXIS_MM = (250.0, 0.0, 150.0)
 OFF_AXIS_RATES_DPS = (0.0, 10.0, 20.0)
+# longer recordings (8 s), where the readout estimated from the frames has a turn wide
+# enough to be told apart from a static model error
+LONG_FRAMES = 240
+LONG_RATES_DPS = (10.0, 20.0)
 
 
 def _render(args) -> np.ndarray:
@@ -82,36 +88,41 @@ def main() -> None:
                     s["median_sigma_deg"] = np.round(np.median(out.sigma_deg, axis=0), 5).tolist()
                 res[f"{label}yaw_rate_{rate}"] = s
                 print(cfg, label, rate, s)
-        for rate in RATES_DPS:
+        runs = [
+            (rate, where, r0, 60)
+            for rate in RATES_DPS
+            for where, r0 in (("", rig), ("off_axis_", off_axis))
+            if not where or rate in OFF_AXIS_RATES_DPS
+        ]
+        runs += [(rate, "long_", rig, LONG_FRAMES) for rate in LONG_RATES_DPS]
+        for rate, where, r0, n in runs:
             omega = np.radians([0.0, 0.0, rate])
+            seed = 5100 if where == "long_" else 4100
             cases = [
                 Case(
                     np.array([0.3 + omega[2] * k / 30.0, np.radians(2.0), np.radians(-1.0)]),
                     Scene(),
-                    4100 + k,
+                    seed + k,
                 )
-                for k in range(60)
+                for k in range(n)
             ]
-            for where, r0 in (("", rig), ("off_axis_", off_axis)):
-                if where and rate not in OFF_AXIS_RATES_DPS:
-                    continue
-                with ProcessPoolExecutor(os.cpu_count() or 1) as ex:
-                    images = list(ex.map(_render, [(r0, c, readout, omega) for c in cases]))
-                rolled = replace(r0, readout_ms=args.readout_ms, max_rate_dps=max(RATES_DPS))
-                for label, r, shear in (
-                    ("uncorrected", r0, False),
-                    ("estimated", r0, True),
-                    ("corrected", rolled, True),
-                ):
-                    out = evaluate(r, images, cases, "full", track=True, shear=shear)
-                    s = summarise(out)
-                    estimated = [
-                        i for i, w in enumerate(out.warnings) if "rolling_shutter_estimated" in w
-                    ]
-                    if label == "estimated":
-                        s["first_estimated_frame"] = estimated[0] if estimated else None
-                    res[f"tracked_{where}{label}_yaw_rate_{rate}"] = s
-                    print(cfg, "tracked", where, label, rate, s)
+            with ProcessPoolExecutor(os.cpu_count() or 1) as ex:
+                images = list(ex.map(_render, [(r0, c, readout, omega) for c in cases]))
+            rolled = replace(r0, readout_ms=args.readout_ms, max_rate_dps=max(RATES_DPS))
+            for label, r, shear in (
+                ("uncorrected", r0, False),
+                ("estimated", r0, True),
+                ("corrected", rolled, True),
+            ):
+                out = evaluate(r, images, cases, "full", track=True, shear=shear)
+                s = summarise(out)
+                estimated = [
+                    i for i, w in enumerate(out.warnings) if "rolling_shutter_estimated" in w
+                ]
+                if label == "estimated":
+                    s["first_estimated_frame"] = estimated[0] if estimated else None
+                res[f"tracked_{where}{label}_yaw_rate_{rate}"] = s
+                print(cfg, "tracked", where, label, rate, s)
         results[cfg] = res
     print(save_json("triangle_rolling_shutter", results))
 

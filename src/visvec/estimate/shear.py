@@ -73,6 +73,8 @@ class ReadoutEvidence:
     info: np.ndarray = field(default_factory=lambda: np.zeros((7, 7)))
     rhs: np.ndarray = field(default_factory=lambda: np.zeros(7))
     n: int = 0
+    # readout_ms() since the last frame added
+    _cached: tuple[float, float] | None = field(default=None, repr=False)
 
     @classmethod
     def for_camera(cls, camera: CameraModel) -> ReadoutEvidence:
@@ -99,17 +101,21 @@ class ReadoutEvidence:
         self.info += b
         self.rhs += a + b[:, 0] * applied_ms / 1000.0
         self.n += 1
+        self._cached = None
 
     def readout_ms(self) -> tuple[float, float]:
         """(estimate, 1-sigma) in ms, the static pattern marginalised; NaN before any
         frame with a rate."""
+        if self._cached is not None:
+            return self._cached
         if self.info[0, 0] <= 0:
             return float("nan"), float("nan")
         info = self.info.copy()
         info[1:, 1:] += np.eye(6) / self.static_sigma_n**2
         cov = np.linalg.inv(info)
         k = float(cov[0] @ self.rhs)
-        return 1000.0 * k, 1000.0 * float(np.sqrt(cov[0, 0]))
+        self._cached = (1000.0 * k, 1000.0 * float(np.sqrt(cov[0, 0])))
+        return self._cached
 
     def suspected(self) -> bool:
         """True when the frames say the camera rolls (MIN_SIGMAS, MIN_READOUT_MS)."""
