@@ -594,8 +594,9 @@ def test_batch_says_when_the_frames_show_a_rolling_shutter_the_rig_does_not(tmp_
     assert r.exit_code == 0 and "rolling shutter" not in r.output
     rows = rows_of((tmp_path / "gs.csv").read_text())
     assert all(row["status"] == "ok" and row["warnings"] == "" for row in rows)
-    slow = ["--yaw-rate-dps", 5, "--target-offset-mm", 15, 0, "--frames", 60, "--seed", 7]
-    assert run(*sim, *slow, "--out", tmp_path / "off").exit_code == 0
+    off = ["simulate", "--rig", RIG, "--frames", 60, "--seed", 7, "--motion", "sweep"]
+    slow = ["--yaw-rate-dps", 5, "--target-offset-mm", 15, 0]
+    assert run(*off, *slow, "--out", tmp_path / "off").exit_code == 0
     r = run("batch", tmp_path / "off", "--rig", RIG, "--out", tmp_path / "off.csv")
     assert r.exit_code == 0 and "rolling shutter" not in r.output
     assert "rolling_shutter" not in (tmp_path / "off.csv").read_text()
