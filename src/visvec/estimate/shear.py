@@ -74,7 +74,7 @@ class ReadoutEvidence:
     rhs: np.ndarray = field(default_factory=lambda: np.zeros(7))
     n: int = 0
     # readout_ms() since the last frame added
-    _cached: tuple[float, float] | None = field(default=None, repr=False)
+    _cached: tuple[float, float] | None = field(default=None, repr=False, init=False)
 
     @classmethod
     def for_camera(cls, camera: CameraModel) -> ReadoutEvidence:
