@@ -127,7 +127,7 @@ def evaluate(
 ) -> Outcome:
     """Run the pipeline (estimation rig ``rig``) on ``images`` and compare with the truth
     (``shear`` False: no readout estimated from the frames of a rig that declares none,
-    the sensor before the twelfth session, for comparison)."""
+    as the sensor was before the thirteenth session, for comparison)."""
     pipe = TrianglePipeline(rig, method)
     if not shear:
         pipe.shear = None

@@ -55,11 +55,7 @@ def _triangle_frame(xy: np.ndarray) -> np.ndarray:
     centroid-to-apex direction, per vertex) to the image: a rotation per vertex."""
     v = xy[0] - xy.mean(axis=0)
     c, s = v / np.hypot(*v)
-    rot = np.array([[c, -s], [s, c]])
-    M = np.zeros((6, 6))
-    for i in range(3):
-        M[2 * i : 2 * i + 2, 2 * i : 2 * i + 2] = rot
-    return M
+    return np.kron(np.eye(3), np.array([[c, -s], [s, c]]))
 
 
 @dataclass
