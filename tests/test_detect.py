@@ -298,31 +298,33 @@ def test_rolling_shutter_read_bottom_up_is_taken_out_too(rig640):
 
     w = np.radians(20.0)
     frames, truth = [], []
-    for k in range(12):
-        e = np.array([0.3 + w * k / 30.0, np.radians(2.0), np.radians(-1.0)])
+    # 12 frames turning one way, then 12 turning back
+    for k in range(24):
+        rate = w if k < 12 else -w
+        e = np.array([0.3 + w * min(k, 22 - k) / 30.0, np.radians(2.0), np.radians(-1.0)])
         R = euler_to_matrix(*e)
-        frames.append(
-            Frame(k, k / 30.0, render_frame(rig640, R, Scene(), 950 + k, -0.025, R.T @ [0, 0, w]))
-        )
+        img = render_frame(rig640, R, Scene(), 950 + k, -0.025, R.T @ [0, 0, rate])
+        frames.append(Frame(k, k / 30.0, img))
         truth.append(np.degrees(e))
 
-    def yaw_z(readout_ms, shear=True):
+    def yaw_z(readout_ms, shear=True, n=12):
         pipe = TrianglePipeline(replace(rig640, readout_ms=readout_ms))
         if not shear:
             pipe.shear = None  # no readout estimated from the frames
-        rows = [pipe.process(f) for f in frames]
+        rows = [pipe.process(f) for f in frames[:n]]
         assert all(r.ok for r in rows[1:])
-        z = [(r.euler_deg[0] - t[0]) / r.sigma_deg[0] for r, t in zip(rows, truth, strict=True)]
+        z = [(r.euler_deg[0] - t[0]) / r.sigma_deg[0] for r, t in zip(rows, truth, strict=False)]
         return np.array(z[1:]), pipe
 
     assert yaw_z(0.0, shear=False)[0].mean() > 1.0  # uncorrected: biased high
     z, _ = yaw_z(-25.0)
     assert abs(z.mean()) < 0.6 and np.abs(z).max() < 3.0
-    # the rig says global shutter: the frames' own estimate has the readout's sign
-    # (12 frames of a turn through 8 deg: not yet 5 sigma from a static model error)
-    _, pipe = yaw_z(0.0)
+    # the rig says global shutter: the frames' own estimate has the readout's sign once
+    # the turn goes back (one way only, a shear is not told apart from the camera's
+    # principal point a few px off)
+    _, pipe = yaw_z(0.0, n=24)
     k, sigma = pipe.shear.readout_ms()
-    assert k < -2.0 * sigma and abs(k + 25.0) < 2.0 * sigma
+    assert k < -2.0 * sigma and abs(k + 25.0) < 2.0 * sigma, (k, sigma)
 
 
 def test_rolling_shutter_rate_only_from_related_frames(rig640):

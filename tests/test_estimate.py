@@ -202,37 +202,71 @@ def test_the_residuals_measure_a_shear_no_attitude_explains(rig640):
 def test_readout_evidence_counts_what_a_correction_took_out(rig640):
     """Frames already taken out with a running readout estimate k0 show only k - k0 in
     their residuals; ReadoutEvidence adds k0 back, so its estimate stays the camera's
-    whatever the pipeline applied. A model error fixed in the triangle's frame (0.1 px,
-    the target off where the rig file puts it) is told apart from a shear over a turn:
-    alone it reads as no shutter."""
+    whatever the pipeline applied. Over a turn out and back, a model error fixed in the
+    triangle's frame (0.1 px, the target off where the rig file puts it) is told apart
+    from a shear: alone it reads as no shutter. On a one-way turn at a steady rate a
+    principal point 4 px off shears the residuals as a 15 ms shutter would: estimated
+    beside the readout, it reads as none. An aspect error is estimated too; vertices
+    scattered wider than their sigma leave the residuals unexplained: not believed."""
     from visvec.detect.edges import shutter_shift
-    from visvec.estimate.shear import ReadoutEvidence, _triangle_frame
+    from visvec.estimate.shear import MAX_FIT_CHI2_DOF, ReadoutEvidence, _triangle_frame
 
-    omega = np.radians([2.0, -1.0, 20.0])
-    frames = []
-    for yaw in np.radians(np.arange(0.0, 120.0, 3.0)):
-        exact = _detection(rig640, euler_to_matrix(yaw, 0.04, -0.03))
-        xy, rows = exact.points_n, exact.points_px[:, 1]
-        g = -shutter_shift(xy, rows, rig640.camera, 1.0, omega)
-        if not frames:
-            # the worst static error: the first frame's shear pattern, 0.1 px at most
-            static = _triangle_frame(xy).T @ g
-            static *= 0.1 / rig640.camera.fx / np.abs(static).max()
-        frames.append((exact, xy, rows, g, _triangle_frame(xy) @ static))
+    cam = rig640.camera
+    rate = np.radians([2.0, -1.0, 20.0])
+
+    def frames(yaws_deg, rates):
+        out = []
+        for yaw, omega in zip(np.radians(yaws_deg), rates, strict=True):
+            exact = _detection(rig640, euler_to_matrix(yaw, 0.04, -0.03))
+            xy, rows = exact.points_n, exact.points_px[:, 1]
+            g = -shutter_shift(xy, rows, cam, 1.0, omega)
+            out.append((exact, xy, rows, omega, g))
+        return out
+
+    def evidence(frames, k, applied_ms=0.0, static=None, cx_px=0.0, aspect=0.0):
+        ev = ReadoutEvidence.for_camera(cam, 30.0)
+        for exact, xy, rows, omega, g in frames:
+            seen = exact.points_n + ((k - applied_ms / 1000.0) * g).reshape(3, 2)
+            if static is not None:
+                seen = seen + (_triangle_frame(xy) @ static).reshape(3, 2)
+            seen = seen + [cx_px / cam.fx, 0.0]
+            seen[:, 1] *= 1.0 + aspect
+            residual = solve_full(replace(exact, points_n=seen), rig640).residual
+            ev.add(residual, xy, rows, cam, omega, None, applied_ms)
+        return ev
+
+    out = np.arange(0.0, 60.0, 3.0)
+    back_and_forth = frames(np.r_[out, out[::-1]], [rate] * len(out) + [-rate] * len(out))
+    # the worst static error: the first frame's shear pattern, 0.1 px at most
+    _, xy, _, _, g = back_and_forth[0]
+    static = _triangle_frame(xy).T @ g
+    static *= 0.1 / cam.fx / np.abs(static).max()
     for k, applied_ms, m in (
         (0.025, 0.0, 1.0),
         (0.025, 10.0, 1.0),
         (0.025, 40.0, 0.0),
         (0.0, 0.0, 1.0),
     ):
-        ev = ReadoutEvidence.for_camera(rig640.camera)
-        for exact, xy, rows, g, s in frames:
-            seen = xy + ((k - applied_ms / 1000.0) * g + m * s).reshape(3, 2)
-            residual = solve_full(replace(exact, points_n=seen), rig640).residual
-            ev.add(residual, xy, rows, rig640.camera, omega, None, applied_ms)
+        ev = evidence(back_and_forth, k, applied_ms, m * static)
         est, sigma = ev.readout_ms()
         assert abs(est - 1000.0 * k) < 2.0 * sigma, (k, applied_ms, m, est, sigma)
         assert ev.suspected() == (k > 0), (k, est, sigma)
+        assert ev.fit_chi2_per_dof() < 0.1  # noise-free: the model explains them
+    one_way = frames(np.arange(0.0, 120.0, 3.0), [rate] * 40)
+    ev = evidence(one_way, 0.0, cx_px=4.0)
+    est, sigma = ev.readout_ms()
+    assert not ev.suspected() and abs(est) < 3.0 * sigma, (est, sigma)
+    # the aspect is one of the model errors: estimated, the shear still shows
+    ev = evidence(back_and_forth, 0.025, aspect=0.015)
+    assert ev.suspected() and ev.fit_chi2_per_dof() < 0.5, ev.readout_ms()
+    # vertices scattered 4x wider than their sigma: no model explains that
+    rng = np.random.default_rng(3)
+    noisy = [
+        (replace(d, points_n=d.points_n + rng.normal(0, 0.2 / cam.fx, (3, 2))), *rest)
+        for d, *rest in back_and_forth
+    ]
+    ev = evidence(noisy, 0.025)
+    assert ev.fit_chi2_per_dof() > MAX_FIT_CHI2_DOF and not ev.suspected(), ev.readout_ms()
 
 
 @pytest.mark.parametrize("yaw_deg", [-179.0, -90.0, 0.0, 45.0, 180.0])

@@ -211,7 +211,7 @@ class TrianglePipeline(AttitudePipeline):
         # a rig that says its camera has a global shutter: do the frames agree? Once
         # they say it rolls, its readout is estimated from them and taken out
         self.shear = (
-            ReadoutEvidence.for_camera(rig.camera)
+            ReadoutEvidence.for_camera(rig.camera, rig.fps)
             if method == "full" and rig.readout_ms == 0 and not still
             else None
         )

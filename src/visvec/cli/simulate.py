@@ -29,9 +29,10 @@ from visvec.sim.stars import PAPER_CASES, StarScene, simulate_stars
 @click.option("--seed", type=int, default=0, show_default=True)
 @click.option(
     "--motion",
-    type=click.Choice(["random", "sweep", "level", "perimeter", "rest"]),
+    type=click.Choice(["random", "sweep", "swing", "level", "perimeter", "rest"]),
     default=None,
-    help="Attitudes: random (default), a smooth sweep, or level at many yaws; lamps: "
+    help="Attitudes: random (default), a smooth sweep (a steady yaw turn), a swing (the "
+    "yaw out and back once over the frames), or level at many yaws; lamps: "
     "perimeter (default: pushed around the table) or rest.",
 )
 @click.option("--max-tilt-deg", type=click.FloatRange(min=0), default=5.0, show_default=True)
@@ -137,20 +138,21 @@ from visvec.sim.stars import PAPER_CASES, StarScene, simulate_stars
     type=float,
     default=None,
     help="Triangle: a rolling shutter's readout, first to last row (default: the rig's "
-    "[camera] readout_ms); a --motion sweep is rendered with its rates.",
+    "[camera] readout_ms); a --motion sweep or swing is rendered with its rates.",
 )
 @click.option(
     "--exposure-ms",
     type=click.FloatRange(min=0),
     default=None,
-    help="Triangle: each row's exposure time, blurring a --motion sweep (default: the "
+    help="Triangle: each row's exposure time, blurring a --motion sweep or swing (default: the "
     "rig's [camera] exposure_ms, else 0).",
 )
 @click.option(
     "--yaw-rate-dps",
     type=float,
     default=None,
-    help="Triangle: the yaw rate of a --motion sweep (default: 0.8 of a turn over the frames).",
+    help="Triangle: the yaw rate of a --motion sweep, the peak rate of a swing (default: "
+    "0.8 of a turn over the frames).",
 )
 @click.option(
     "--fps",
@@ -226,8 +228,8 @@ def simulate(
             f"{exposure_ms:g} ms: expected at most a frame interval ({1000.0 / rig.fps:g} ms)",
             param_hint="--exposure-ms",
         )
-    if yaw_rate_dps is not None and motion != "sweep":
-        raise click.UsageError("--yaw-rate-dps sets the rate of --motion sweep")
+    if yaw_rate_dps is not None and motion not in ("sweep", "swing"):
+        raise click.UsageError("--yaw-rate-dps sets the rate of --motion sweep or swing")
     if readout_ms is not None and abs(readout_ms) > 1000.0 / rig.fps:
         raise click.BadParameter(
             f"{readout_ms:g} ms: expected at most a frame interval ({1000.0 / rig.fps:g} ms; "

@@ -23,9 +23,25 @@ a shear is not: a shear's pattern turns with the image rows as the yaw changes. 
 are estimated together (the static part, 6 numbers in the triangle's frame, with a
 prior of STATIC_PRIOR_PX; without it a target 15 mm off read as a -4 ms shutter at 20
 deg/s and -16 ms at 5 deg/s, 7 and 20 sigma), and the readout's sigma is its marginal:
-a turn through too little yaw to tell the two apart leaves the readout unsuspected
-(a pure yaw turn at 20 deg/s and 640x480 needs about 45 frames, 30 deg of yaw; one
-that also tilts, fewer).
+a turn through too little yaw to tell the two apart leaves the readout unsuspected.
+
+A calibration error of the camera leaves a pattern fixed in the image instead: a
+principal point a few px off (the tilt takes up its shift, a keystone is left) or an
+aspect fy / fx off. On a one-way turn at a steady rate it turns with the yaw as a shear
+does: a principal point 2 px off read as a 9 ms shutter at 20 deg/s (8 sigma, after
+`calibrate zero-tilt`), 4 px off as 15 ms, and the correction then made the rows worse.
+Only the rate tells them apart: a shear follows it (none when the platform holds
+still, the other sign when it turns back), a calibration error does not. So the
+principal point and the aspect are estimated beside the readout too, with priors of
+a calibrated camera's errors (PRINCIPAL_POINT_PRIOR, ASPECT_PRIOR). A recording whose
+rate changes (turning back and forth, slewing and holding) shows a 25 ms shutter
+within about 75 frames; a steady one-way turn cannot tell it from a principal point
+2 px off, and the readout stays unsuspected for most of it.
+
+The evidence is believed only when it explains the residuals: after the readout and
+the model errors are taken out, the chi-square per degree of freedom must be under
+MAX_FIT_CHI2_DOF (a model error of another kind, an aspect error beyond its prior,
+leaves them several times the noise), and the readout no longer than a frame.
 """
 
 from __future__ import annotations
@@ -48,6 +64,18 @@ MIN_READOUT_MS = 2.0
 # to be told apart (0.1: 60 frames of a 20 deg/s turn, 0.03: 44 but a 30 mm error
 # taken for a -34 ms shutter)
 STATIC_PRIOR_PX = 0.05
+# the priors (1-sigma) of the camera's calibration errors: the principal point, as a
+# share of the image width (5 px at 640), and the aspect fy / fx (relative); what
+# `calibrate camera` leaves on a webcam is about a third of these
+PRINCIPAL_POINT_PRIOR = 0.008
+ASPECT_PRIOR = 0.003
+# the residuals' chi-square per degree of freedom, the readout and the model errors
+# taken out, above which the evidence is not believed (an honest sigma gives 1; a
+# compressed recording's edges up to about 1.8)
+MAX_FIT_CHI2_DOF = 3.0
+# the evidence's parameters: the readout, the static pattern (6), the image-fixed
+# errors (principal point x, y in px; aspect)
+N_PARAMS = 10
 
 
 def _triangle_frame(xy: np.ndarray) -> np.ndarray:
@@ -58,23 +86,46 @@ def _triangle_frame(xy: np.ndarray) -> np.ndarray:
     return np.kron(np.eye(3), np.array([[c, -s], [s, c]]))
 
 
+def _image_fixed(xy: np.ndarray, camera: CameraModel) -> np.ndarray:
+    """(6, 3) the vertices' shift (normalised) per px of principal point error in x and
+    in y, and per unit of relative error in fy (the aspect): x = (u - cx) / fx and
+    y = (v - cy) / fy move by 1 / fx, 1 / fy and y."""
+    F = np.zeros((6, 3))
+    F[0::2, 0] = 1.0 / camera.fx
+    F[1::2, 1] = 1.0 / camera.fy
+    F[1::2, 2] = xy[:, 1]
+    return F
+
+
 @dataclass
 class ReadoutEvidence:
-    """The run's readout (s) and a static residual pattern (6, triangle frame) estimated
-    together from its frames' residuals: the normal equations ``info`` theta = ``rhs``
-    of :meth:`VertexResidual.explain` with the design [g, M], plus the static part's
-    prior; ``static_sigma_n`` is STATIC_PRIOR_PX in normalised units (over fx)."""
+    """The run's readout (s), a static residual pattern (6, triangle frame) and the
+    camera's principal point and aspect errors (3) estimated together from its frames'
+    residuals: the normal equations ``info`` theta = ``rhs`` of
+    :meth:`VertexResidual.explain` with the design [g, M, F], plus the model errors'
+    priors (``prior_sigma``, their 9 1-sigma in the parameters' units), and what the
+    fit leaves: the chi-square ``chi2`` before it and its degrees of freedom ``dof``.
+    ``max_ms``: no readout is longer than a frame."""
 
-    static_sigma_n: float
-    info: np.ndarray = field(default_factory=lambda: np.zeros((7, 7)))
-    rhs: np.ndarray = field(default_factory=lambda: np.zeros(7))
+    prior_sigma: np.ndarray
+    max_ms: float = float("inf")
+    info: np.ndarray = field(default_factory=lambda: np.zeros((N_PARAMS, N_PARAMS)))
+    rhs: np.ndarray = field(default_factory=lambda: np.zeros(N_PARAMS))
+    chi2: float = 0.0
+    dof: float = 0.0
     n: int = 0
-    # readout_ms() since the last frame added
-    _cached: tuple[float, float] | None = field(default=None, repr=False, init=False)
+    # _solve() since the last frame added
+    _cached: tuple[float, float, float] | None = field(default=None, repr=False, init=False)
 
     @classmethod
-    def for_camera(cls, camera: CameraModel) -> ReadoutEvidence:
-        return cls(STATIC_PRIOR_PX / camera.fx)
+    def for_camera(cls, camera: CameraModel, fps: float = float("inf")) -> ReadoutEvidence:
+        """The evidence for a camera at ``fps`` frames per second."""
+        prior = np.r_[
+            np.full(6, STATIC_PRIOR_PX / camera.fx),
+            np.full(2, PRINCIPAL_POINT_PRIOR * camera.width),
+            ASPECT_PRIOR,
+        ]
+        return cls(prior, 1000.0 / fps)
 
     def add(
         self,
@@ -92,28 +143,52 @@ class ReadoutEvidence:
         measure what is left, k - applied, and k0 = applied is added back)."""
         # seen = centre row - A omega readout: the pattern of a unit (1 s) readout
         g = -shutter_shift(xy, rows, camera, 1.0, omega_c, lever)
-        design = np.column_stack([g, _triangle_frame(xy)])
+        design = np.column_stack([g, _triangle_frame(xy), _image_fixed(xy, camera)])
         a, b = residual.explain(design)
+        ka = applied_ms / 1000.0
         self.info += b
-        self.rhs += a + b[:, 0] * applied_ms / 1000.0
+        self.rhs += a + b[:, 0] * ka
+        # the chi-square of theta is chi2 - 2 theta.rhs + theta.info.theta (+ priors): a
+        # frame's r W r, with its residuals' share of k taken as k - ka, gains 2 ka a0 +
+        # ka^2 b00; its degrees of freedom are 6 less what the fit's parameters take
+        self.chi2 += float(residual.r @ residual.W @ residual.r) + 2.0 * ka * a[0]
+        self.chi2 += ka * ka * b[0, 0]
+        self.dof += 6.0 - float(np.trace(residual.C @ (residual.J.T @ residual.W @ residual.J)))
         self.n += 1
         self._cached = None
 
-    def readout_ms(self) -> tuple[float, float]:
-        """(estimate, 1-sigma) in ms, the static pattern marginalised; NaN before any
-        frame with a rate."""
-        if self._cached is not None:
-            return self._cached
-        if self.info[0, 0] <= 0:
-            return float("nan"), float("nan")
-        info = self.info.copy()
-        info[1:, 1:] += np.eye(6) / self.static_sigma_n**2
-        cov = np.linalg.inv(info)
-        k = float(cov[0] @ self.rhs)
-        self._cached = (1000.0 * k, 1000.0 * float(np.sqrt(cov[0, 0])))
+    def _solve(self) -> tuple[float, float, float]:
+        """(k, its 1-sigma, chi-square per degree of freedom left), k in s."""
+        if self._cached is None:
+            info = self.info.copy()
+            info[1:, 1:] += np.diag(1.0 / self.prior_sigma**2)
+            cov = np.linalg.inv(info)
+            theta = cov @ self.rhs
+            left = self.dof - float(np.trace(cov @ self.info))
+            fit = (self.chi2 - float(theta @ self.rhs)) / max(left, 1.0)
+            self._cached = (float(theta[0]), float(np.sqrt(cov[0, 0])), fit)
         return self._cached
 
+    def readout_ms(self) -> tuple[float, float]:
+        """(estimate, 1-sigma) in ms, the model errors marginalised; NaN before any frame
+        with a rate."""
+        if self.info[0, 0] <= 0:
+            return float("nan"), float("nan")
+        k, s, _ = self._solve()
+        return 1000.0 * k, 1000.0 * s
+
+    def fit_chi2_per_dof(self) -> float:
+        """The residuals' chi-square per degree of freedom once the readout and the
+        model errors are taken out (about 1 when they explain the residuals)."""
+        return self._solve()[2] if self.n else float("nan")
+
     def suspected(self) -> bool:
-        """True when the frames say the camera rolls (MIN_SIGMAS, MIN_READOUT_MS)."""
+        """True when the frames say the camera rolls: the readout MIN_SIGMAS from zero
+        and at least MIN_READOUT_MS, no longer than a frame, and the residuals explained
+        (MAX_FIT_CHI2_DOF)."""
         k, s = self.readout_ms()
-        return bool(np.isfinite(k) and abs(k) > max(MIN_SIGMAS * s, MIN_READOUT_MS))
+        return bool(
+            np.isfinite(k)
+            and max(MIN_SIGMAS * s, MIN_READOUT_MS) < abs(k) <= self.max_ms
+            and self.fit_chi2_per_dof() <= MAX_FIT_CHI2_DOF
+        )

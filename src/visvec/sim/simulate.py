@@ -40,6 +40,8 @@ def random_attitudes(
     ``random``: yaw uniform over the circle, pitch and roll uniform within +-max_tilt.
     ``sweep``: a smooth motion like a recording (a steady yaw turn by ``turn_rad`` over
     the sequence, pitch and roll wobbling by ``wobble_cycles`` over it).
+    ``swing``: the same with the yaw swinging out and back once over the sequence (a
+    slew and its return), its peak rate that of the sweep: amplitude turn_rad / 2 pi.
     ``level``: pitch = roll = 0 at yaws spread over the circle (for zero-tilt
     calibration).
     """
@@ -51,10 +53,11 @@ def random_attitudes(
     if motion == "level":
         yaw = np.linspace(-np.pi, np.pi, n, endpoint=False) + rng.uniform(0, 2 * np.pi / n)
         return np.column_stack([(yaw + np.pi) % (2 * np.pi) - np.pi, np.zeros(n), np.zeros(n)])
-    if motion == "sweep":
+    if motion in ("sweep", "swing"):
         t = np.linspace(0.0, 1.0, n)
         ph = rng.uniform(0, 2 * np.pi, 2)
-        yaw = (rng.uniform(-np.pi, np.pi) + turn_rad * t + np.pi) % (2 * np.pi) - np.pi
+        turn = turn_rad * t if motion == "sweep" else turn_rad / (2 * np.pi) * np.sin(2 * np.pi * t)
+        yaw = (rng.uniform(-np.pi, np.pi) + turn + np.pi) % (2 * np.pi) - np.pi
         return np.column_stack(
             [
                 yaw,
@@ -62,7 +65,7 @@ def random_attitudes(
                 0.8 * m * np.sin(2 * np.pi * wobble_cycles[1] * t + ph[1]),
             ]
         )
-    raise ValueError(f"motion = {motion!r}: expected 'random', 'sweep' or 'level'")
+    raise ValueError(f"motion = {motion!r}: expected 'random', 'sweep', 'swing' or 'level'")
 
 
 def body_rates(R: np.ndarray, dt: float) -> np.ndarray:
@@ -167,14 +170,17 @@ def simulate(
         The true geometry to render with (see :func:`true_rig`); ``rig`` by default.
     readout_ms : float, optional
         A rolling shutter's readout (triangle rigs; default the rig's
-        ``[camera] readout_ms``): each frame of a ``sweep`` is rendered with its body
-        rate, the truth being the centre row's attitude. Other motions are still frames.
+        ``[camera] readout_ms``): each frame of a ``sweep`` or ``swing`` is rendered with
+        its body rate, the truth being the centre row's attitude. Other motions are still
+        frames.
     exposure_ms : float, optional
         Each row's exposure time (triangle rigs; default the rig's ``[camera]
-        exposure_ms``, else 0): a ``sweep``'s frames are blurred by their motion.
+        exposure_ms``, else 0): a ``sweep``'s or ``swing``'s frames are blurred by their
+        motion.
     yaw_rate_dps : float, optional
-        The ``sweep``'s yaw rate (default: 0.8 of a turn over the sequence, the tilts
-        wobbling 1.3 and 0.9 times; with a rate, they nutate every 7.7 and 11 s).
+        The ``sweep``'s yaw rate, a ``swing``'s peak rate (default: 0.8 of a turn over
+        the sequence, the tilts wobbling 1.3 and 0.9 times; with a rate, they nutate
+        every 7.7 and 11 s).
 
     Returns
     -------
@@ -197,8 +203,10 @@ def simulate(
     if exposure_ms is None:
         exposure_ms = rig.exposure_ms or 0.0
     Rs = np.array([euler_to_matrix(*e) for e in eul])
-    # the platform moves between frames only in a sweep (the others are still frames)
-    rates = body_rates(Rs, 1.0 / fps) if motion == "sweep" else np.zeros((n_frames, 3))
+    # the platform moves between frames only in a sweep or a swing (the others are
+    # still frames)
+    moving = motion in ("sweep", "swing")
+    rates = body_rates(Rs, 1.0 / fps) if moving else np.zeros((n_frames, 3))
     truth = out / "truth.csv"
     width = max(4, len(str(n_frames - 1)))
     with open(truth, "w", newline="") as fh:
