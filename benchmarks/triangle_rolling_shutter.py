@@ -16,8 +16,11 @@ exposure with the rate of the last two frames; the second frame detected again w
 the rate from its own first pass; the first frame widened), and
 the same with the camera mounted 250 mm off the rotation axis (turning also moves it:
 its translation during the readout shears the image too), and 240-frame recordings
-(8 s) at 10 and 20 deg/s, long enough for the readout estimated from the frames to be
-told apart from a static model error.
+(8 s) at 10 and 20 deg/s: turning one way (where a shear cannot be told apart from a
+principal point a few px off), and swinging out and back once (peak rates 10 and
+20 deg/s), where it can. Last, a global-shutter camera whose principal point is 2 or
+4 px from the rig file's, after `calibrate zero-tilt`, on the one-way 8 s turn at
+20 deg/s: the readout the frames suggest must not be taken out.
 
     python benchmarks/triangle_rolling_shutter.py [--frames 80] [--readout-ms 25]
 """
@@ -31,7 +34,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from visvec.bench.triangle import Case, evaluate, random_cases
+from visvec.bench.triangle import Case, evaluate, level_calibration, random_cases
 from visvec.rig import load_rig
 from visvec.rotations import euler_to_matrix
 from visvec.sim.render import render_frame
@@ -46,6 +49,10 @@ OFF_AXIS_RATES_DPS = (0.0, 10.0, 20.0)
 # enough to be told apart from a static model error
 LONG_FRAMES = 240
 LONG_RATES_DPS = (10.0, 20.0)
+# the swing's period (s): out and back once over the 240 frames
+SWING_PERIOD_S = 8.0
+# a global-shutter camera's principal point this far (px, x) from the rig file's
+PRINCIPAL_POINT_ERRORS_PX = (2.0, 4.0)
 
 
 def _render(args) -> np.ndarray:
@@ -88,32 +95,44 @@ def main() -> None:
                     s["median_sigma_deg"] = np.round(np.median(out.sigma_deg, axis=0), 5).tolist()
                 res[f"{label}yaw_rate_{rate}"] = s
                 print(cfg, label, rate, s)
+        # (label, peak yaw rate, the lab, the rig the sensor is given, frames, motion,
+        # readout rendered)
         runs = [
-            (rate, where, r0, 60)
+            (where, rate, r0, r0, 60, "oneway", readout)
             for rate in RATES_DPS
             for where, r0 in (("", rig), ("off_axis_", off_axis))
             if not where or rate in OFF_AXIS_RATES_DPS
         ]
-        runs += [(rate, "long_", rig, LONG_FRAMES) for rate in LONG_RATES_DPS]
-        for rate, where, r0, n in runs:
-            omega = np.radians([0.0, 0.0, rate])
-            seed = 5100 if where == "long_" else 4100
+        runs += [("long_", r, rig, rig, LONG_FRAMES, "oneway", readout) for r in LONG_RATES_DPS]
+        runs += [("swing_", r, rig, rig, LONG_FRAMES, "swing", readout) for r in LONG_RATES_DPS]
+        for dcx in PRINCIPAL_POINT_ERRORS_PX:
+            lab = replace(rig, camera=replace(rig.camera, cx=rig.camera.cx + dcx))
+            calibrated = level_calibration(rig, lab)[0].apply(rig)
+            where = f"principal_point_{dcx:g}px_global_"
+            runs.append((where, 20.0, lab, calibrated, LONG_FRAMES, "oneway", 0.0))
+        for where, rate, lab, r0, n, motion, readout_s in runs:
+            w, t = np.radians(rate), np.arange(n) / 30.0
+            if motion == "swing":
+                amp = w * SWING_PERIOD_S / (2.0 * np.pi)
+                yaw = 0.3 + amp * np.sin(2.0 * np.pi * t / SWING_PERIOD_S)
+                yaw_rate = w * np.cos(2.0 * np.pi * t / SWING_PERIOD_S)
+            else:
+                yaw, yaw_rate = 0.3 + w * t, np.full(n, w)
+            seed = 5100 if n == LONG_FRAMES else 4100
             cases = [
-                Case(
-                    np.array([0.3 + omega[2] * k / 30.0, np.radians(2.0), np.radians(-1.0)]),
-                    Scene(),
-                    seed + k,
-                )
+                Case(np.array([yaw[k], np.radians(2.0), np.radians(-1.0)]), Scene(), seed + k)
                 for k in range(n)
             ]
+            jobs = [
+                (lab, c, readout_s, np.array([0.0, 0.0, yaw_rate[k]])) for k, c in enumerate(cases)
+            ]
             with ProcessPoolExecutor(os.cpu_count() or 1) as ex:
-                images = list(ex.map(_render, [(r0, c, readout, omega) for c in cases]))
+                images = list(ex.map(_render, jobs))
             rolled = replace(r0, readout_ms=args.readout_ms, max_rate_dps=max(RATES_DPS))
-            for label, r, shear in (
-                ("uncorrected", r0, False),
-                ("estimated", r0, True),
-                ("corrected", rolled, True),
-            ):
+            labels = [("uncorrected", r0, False), ("estimated", r0, True)]
+            if readout_s:
+                labels.append(("corrected", rolled, True))
+            for label, r, shear in labels:
                 out = evaluate(r, images, cases, "full", track=True, shear=shear)
                 s = summarise(out)
                 estimated = [
