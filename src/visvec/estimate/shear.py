@@ -35,7 +35,7 @@ still, the other sign when it turns back), a calibration error does not. So the
 principal point and the aspect are estimated beside the readout too, with priors of
 a calibrated camera's errors (PRINCIPAL_POINT_PRIOR, ASPECT_PRIOR). A recording whose
 rate changes (turning back and forth, slewing and holding) shows a 25 ms shutter
-within about 75 frames; a steady one-way turn cannot tell it from a principal point
+within about 70-90 frames; a steady one-way turn cannot tell it from a principal point
 2 px off, and the readout stays unsuspected for most of it.
 
 The evidence is believed only when it explains the residuals: after the readout and
@@ -97,6 +97,21 @@ def _image_fixed(xy: np.ndarray, camera: CameraModel) -> np.ndarray:
     return F
 
 
+def model_error_design(xy: np.ndarray, camera: CameraModel) -> np.ndarray:
+    """(6, 9) the vertex patterns of the model errors: the static one (6, in the
+    triangle's frame) and the camera's (principal point x, y in px; aspect)."""
+    return np.column_stack([_triangle_frame(xy), _image_fixed(xy, camera)])
+
+
+def model_error_prior(camera: CameraModel) -> np.ndarray:
+    """(9,) the model errors' prior 1-sigma, in the units of model_error_design."""
+    return np.r_[
+        np.full(6, STATIC_PRIOR_PX / camera.fx),
+        np.full(2, PRINCIPAL_POINT_PRIOR * camera.width),
+        ASPECT_PRIOR,
+    ]
+
+
 @dataclass
 class ReadoutEvidence:
     """The run's readout (s), a static residual pattern (6, triangle frame) and the
@@ -120,12 +135,7 @@ class ReadoutEvidence:
     @classmethod
     def for_camera(cls, camera: CameraModel, fps: float = float("inf")) -> ReadoutEvidence:
         """The evidence for a camera at ``fps`` frames per second."""
-        prior = np.r_[
-            np.full(6, STATIC_PRIOR_PX / camera.fx),
-            np.full(2, PRINCIPAL_POINT_PRIOR * camera.width),
-            ASPECT_PRIOR,
-        ]
-        return cls(prior, 1000.0 / fps)
+        return cls(model_error_prior(camera), 1000.0 / fps)
 
     def add(
         self,
@@ -143,7 +153,7 @@ class ReadoutEvidence:
         measure what is left, k - applied, and k0 = applied is added back)."""
         # seen = centre row - A omega readout: the pattern of a unit (1 s) readout
         g = -shutter_shift(xy, rows, camera, 1.0, omega_c, lever)
-        design = np.column_stack([g, _triangle_frame(xy), _image_fixed(xy, camera)])
+        design = np.column_stack([g, model_error_design(xy, camera)])
         a, b = residual.explain(design)
         ka = applied_ms / 1000.0
         self.info += b
