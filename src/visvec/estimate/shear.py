@@ -65,13 +65,14 @@ MIN_READOUT_MS = 2.0
 # taken for a -34 ms shutter)
 STATIC_PRIOR_PX = 0.05
 # the priors (1-sigma) of the camera's calibration errors: the principal point, as a
-# share of the image width (5 px at 640), and the aspect fy / fx (relative); what
-# `calibrate camera` leaves on a webcam is about a third of these
+# share of the image width (5 px at 640), and the aspect fy / fx (relative); a
+# judgement, wide enough for a camera calibrated with `calibrate camera` or one whose
+# principal point is only roughly central
 PRINCIPAL_POINT_PRIOR = 0.008
 ASPECT_PRIOR = 0.003
 # the residuals' chi-square per degree of freedom, the readout and the model errors
-# taken out, above which the evidence is not believed (an honest sigma gives 1; a
-# compressed recording's edges up to about 1.8)
+# taken out, above which the evidence is not believed (an honest sigma gives 1; one a
+# third short, as on a compressed recording's edges, 2.25)
 MAX_FIT_CHI2_DOF = 3.0
 # the evidence's parameters: the readout, the static pattern (6), the image-fixed
 # errors (principal point x, y in px; aspect)
