@@ -178,6 +178,12 @@ HEIGHT_NOTE_SIGMAS = 5.0
 HEIGHT_NOTE_MM = 1.0
 
 
+def _no_rigid_fit(sol: AttitudeSolution) -> bool:
+    """Refused because no attitude fits the vertices as a rigid triangle (a shear, a
+    wrong height prior), not for want of a solution."""
+    return sol.status is Status.REJECTED and "inconsistent_geometry" in sol.warnings
+
+
 def body_rate(a: tuple[float, np.ndarray], b: tuple[float, np.ndarray]) -> np.ndarray | None:
     """The platform's body rate (rad/s) between two frames' (time_s, R_nb),
     R_nb(t1) = R_nb(t0) expm([omega_b] dt); None when they are too far apart in time
@@ -279,7 +285,7 @@ class TrianglePipeline(AttitudePipeline):
         if self.height is None:
             return self.solve(det, self.rig, guess)
         sol = self.solve(det, self.rig, guess, self.height.prior())
-        refused = sol.status is Status.REJECTED and "inconsistent_geometry" in sol.warnings
+        refused = _no_rigid_fit(sol)
         if refused and self.height.n > 0:
             # the running height may be what refuses it (the lab changed: a lens
             # refocused, a zoom): judged against the rig file's prior alone, a frame
@@ -319,10 +325,10 @@ class TrianglePipeline(AttitudePipeline):
         # start for Gauss-Newton than the closed form, and cheaper (same minimum)
         guess = self.R_last if self.detector.last_was_tracked else None
         sol = self._solve(det, guess)
-        sheared = sol.status is Status.REJECTED and "inconsistent_geometry" in sol.warnings
+        sheared = _no_rigid_fit(sol)
         if omega_c is None and rolling and (sol.status is Status.OK or sheared):
             det, sol, omega_c = self._redetect(frame, det, sol)
-            sheared = sol.status is Status.REJECTED and "inconsistent_geometry" in sol.warnings
+            sheared = _no_rigid_fit(sol)
         if self.shear is not None and (sol.status is Status.OK or sheared):
             applied = self.detector.readout_ms if omega_c is not None else 0.0
             self._add_shear_evidence(frame.time_s, det, sol, applied)
