@@ -77,31 +77,34 @@ MAX_FIT_CHI2_DOF = 3.0
 # the evidence's parameters: the readout, the static pattern (6), the image-fixed
 # errors (principal point x, y in px; aspect)
 N_PARAMS = 10
+# the x and y rows of the three vertices in a (6,) pattern (x1, y1, x2, ...)
+_X, _Y = np.arange(0, 6, 2), np.arange(1, 6, 2)
 
 
 def _triangle_frame(xy: np.ndarray) -> np.ndarray:
     """(6, 6) M taking a residual pattern in the triangle's own frame (x along its
-    centroid-to-apex direction, per vertex) to the image: a rotation per vertex."""
-    v = xy[0] - xy.mean(axis=0)
+    centroid-to-apex direction, per vertex) to the image: a rotation per vertex
+    (block-diagonal, written out: np.kron takes 20 us)."""
+    v = xy[0] - (xy[0] + xy[1] + xy[2]) / 3.0
     c, s = v / np.hypot(*v)
-    return np.kron(np.eye(3), np.array([[c, -s], [s, c]]))
-
-
-def _image_fixed(xy: np.ndarray, camera: CameraModel) -> np.ndarray:
-    """(6, 3) the vertices' shift (normalised) per px of principal point error in x and
-    in y, and per unit of relative error in fy (the aspect): x = (u - cx) / fx and
-    y = (v - cy) / fy move by 1 / fx, 1 / fy and y."""
-    F = np.zeros((6, 3))
-    F[0::2, 0] = 1.0 / camera.fx
-    F[1::2, 1] = 1.0 / camera.fy
-    F[1::2, 2] = xy[:, 1]
-    return F
+    M = np.zeros((6, 6))
+    M[_X, _X] = M[_Y, _Y] = c
+    M[_X, _Y], M[_Y, _X] = -s, s
+    return M
 
 
 def model_error_design(xy: np.ndarray, camera: CameraModel) -> np.ndarray:
     """(6, 9) the vertex patterns of the model errors: the static one (6, in the
-    triangle's frame) and the camera's (principal point x, y in px; aspect)."""
-    return np.column_stack([_triangle_frame(xy), _image_fixed(xy, camera)])
+    triangle's frame, :func:`_triangle_frame`) and the camera's: the vertices' shift
+    (normalised) per px of principal point error in x and in y, and per unit of relative
+    error in fy (the aspect): x = (u - cx) / fx and y = (v - cy) / fy move by 1 / fx,
+    1 / fy and y."""
+    D = np.zeros((6, 9))
+    D[:, :6] = _triangle_frame(xy)
+    D[_X, 6] = 1.0 / camera.fx
+    D[_Y, 7] = 1.0 / camera.fy
+    D[_Y, 8] = xy[:, 1]
+    return D
 
 
 def model_error_prior(camera: CameraModel) -> np.ndarray:
@@ -132,6 +135,11 @@ class ReadoutEvidence:
     n: int = 0
     # _solve() since the last frame added
     _cached: tuple[float, float, float] | None = field(default=None, repr=False, init=False)
+    # the priors' information, added to ``info`` (none on the readout)
+    _prior_info: np.ndarray = field(repr=False, init=False)
+
+    def __post_init__(self) -> None:
+        self._prior_info = np.diag(np.r_[0.0, 1.0 / np.asarray(self.prior_sigma) ** 2])
 
     @classmethod
     def for_camera(cls, camera: CameraModel, fps: float = float("inf")) -> ReadoutEvidence:
@@ -153,8 +161,9 @@ class ReadoutEvidence:
         vertices already taken out with a readout of ``applied_ms`` (the residuals then
         measure what is left, k - applied, and k0 = applied is added back)."""
         # seen = centre row - A omega readout: the pattern of a unit (1 s) readout
-        g = -shutter_shift(xy, rows, camera, 1.0, omega_c, lever)
-        design = np.column_stack([g, model_error_design(xy, camera)])
+        design = np.empty((6, N_PARAMS))
+        design[:, 0] = -shutter_shift(xy, rows, camera, 1.0, omega_c, lever)
+        design[:, 1:] = model_error_design(xy, camera)
         a, b = residual.explain(design)
         ka = applied_ms / 1000.0
         self.info += b
@@ -164,18 +173,18 @@ class ReadoutEvidence:
         # ka^2 b00; its degrees of freedom are 6 less what the fit's parameters take
         self.chi2 += float(residual.r @ residual.W @ residual.r) + 2.0 * ka * a[0]
         self.chi2 += ka * ka * b[0, 0]
-        self.dof += 6.0 - float(np.trace(residual.C @ (residual.J.T @ residual.W @ residual.J)))
+        # (trace(C A) of symmetric C and A as their elementwise product's sum)
+        JWJ = residual.J.T @ residual.W @ residual.J
+        self.dof += 6.0 - float(np.vdot(residual.C, JWJ))
         self.n += 1
         self._cached = None
 
     def _solve(self) -> tuple[float, float, float]:
         """(k, its 1-sigma, chi-square per degree of freedom left), k in s."""
         if self._cached is None:
-            info = self.info.copy()
-            info[1:, 1:] += np.diag(1.0 / self.prior_sigma**2)
-            cov = np.linalg.inv(info)
+            cov = np.linalg.inv(self.info + self._prior_info)
             theta = cov @ self.rhs
-            left = self.dof - float(np.trace(cov @ self.info))
+            left = self.dof - float(np.vdot(cov, self.info))
             fit = (self.chi2 - float(theta @ self.rhs)) / max(left, 1.0)
             self._cached = (float(theta[0]), float(np.sqrt(cov[0, 0])), fit)
         return self._cached
