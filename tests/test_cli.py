@@ -170,6 +170,29 @@ def test_bad_frames_are_read_error_rows_and_the_run_goes_on(tmp_path):
     assert [x["status"] for x in rows] == ["ok", "read_error", "ok", "read_error", "read_error"]
     assert rows[1]["yaw_deg"] == ""
     assert "cannot decode" in r.stderr and "expected 640x480" in r.stderr
+    # the run ends saying how many were refused, why, and what to check
+    assert "visvec: 3 of 5 frames not ok (read_error 3); read_error: frames unreadable" in r.stderr
+
+
+def test_the_run_names_its_refusals_only_when_they_are_many():
+    """The closing note on refused frames: by reason, most frequent first, with the
+    hints of the codes named; none when under 10 % of the frames (or under 3) are."""
+    from visvec.pipeline import TrianglePipeline
+
+    rig = load_rig(RIG)
+    good = cv2.imread(str(sorted(SAMPLES.glob("*.png"))[0]), cv2.IMREAD_GRAYSCALE)
+    black = np.zeros_like(good)
+    pipe = TrianglePipeline(rig)
+    for i in range(20):
+        pipe.process(Frame(i, i / 30.0, good if i != 5 else None))
+    assert pipe.refused == {"read_error": 1} and pipe.notes() == []
+    # the lights go out: the triangle tracked vanishes (obstructed), then is not found
+    for i in range(20, 26):
+        pipe.process(Frame(i, i / 30.0, black))
+    [note] = pipe.notes()
+    assert note.startswith("visvec: 7 of 26 frames not ok (low_brightness;no_triangle 5, ")
+    assert "read_error 1, low_brightness;obstructed 1); low_brightness: frames darker" in note
+    assert "no_triangle: no bright region" in note and "read_error: frames unreadable" in note
 
 
 def test_natural_sort_and_sidecar_times(tmp_path):
@@ -563,6 +586,32 @@ def test_batch_says_when_the_target_is_not_where_the_rig_file_puts_it(tmp_path):
     assert run(*sim, "--out", tmp_path / "exact").exit_code == 0
     r = run("batch", tmp_path / "exact", "--rig", RIG, "--out", tmp_path / "rows2.csv")
     assert r.exit_code == 0 and "than the rig file" not in r.output
+
+
+def test_batch_says_when_the_camera_aspect_is_off(tmp_path):
+    """A rig file whose fy is 0.5 % too large for its camera (603 for 600): no attitude
+    fits the triangle as seen, every frame is refused, and the run ends saying so and,
+    from the triangle's shape over a 40 deg turn, that the aspect fy / fx is about 1,
+    not the rig file's 1.005. The rig's own camera: every frame ok, nothing to say."""
+    sim = ["simulate", "--rig", RIG, "--frames", 60, "--seed", 3, "--motion", "sweep"]
+    assert run(*sim, "--yaw-rate-dps", 20, "--out", tmp_path / "frames").exit_code == 0
+    text = Path(RIG).read_text()
+    assert "\nfy = 600.0\n" in text
+    rig = tmp_path / "rig.toml"
+    rig.write_text(text.replace("\nfy = 600.0\n", "\nfy = 603.0\n"))
+    r = run("batch", tmp_path / "frames", "--rig", rig, "--out", tmp_path / "rows.csv")
+    assert r.exit_code == 0
+    rows = rows_of((tmp_path / "rows.csv").read_text())
+    assert {x["status"] for x in rows} == {"rejected"}
+    assert "visvec: 60 of 60 frames not ok (inconsistent_geometry 60); " in r.stderr
+    note = [line for line in r.stderr.splitlines() if "aspect fy / fx is" in line]
+    assert len(note) == 1 and "calibrate camera" in note[0], r.stderr
+    est, sigma = note[0].split("aspect fy / fx is ")[1].split(",")[0].split(" +- ")
+    assert float(sigma) < 0.001 and abs(float(est) - 1.0) < 3 * float(sigma), note
+    assert "not the rig file's 1.0050" in note[0]
+    r = run("batch", tmp_path / "frames", "--rig", RIG, "--out", tmp_path / "exact.csv")
+    assert r.exit_code == 0 and r.stderr == ""
+    assert {x["status"] for x in rows_of((tmp_path / "exact.csv").read_text())} == {"ok"}
 
 
 def test_batch_says_when_the_frames_show_a_rolling_shutter_the_rig_does_not(tmp_path):

@@ -8,6 +8,7 @@ attitude solution. :func:`make_pipeline` picks the class for a rig.
 from __future__ import annotations
 
 import time
+from collections import Counter
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 
@@ -33,7 +34,7 @@ from visvec.estimate.markers import solve_markers
 from visvec.estimate.planar import MIN_LAMPS, PlanarSolution, solve_planar
 from visvec.estimate.pnp import PNP_FLAGS, solve_pnp
 from visvec.estimate.rate import MIN_STARS, RateSolution, estimate_rate, unit_vectors
-from visvec.estimate.shear import ReadoutEvidence
+from visvec.estimate.shear import MAX_FIT_CHI2_DOF, ReadoutEvidence
 from visvec.estimate.triangle_full import CHI2_REJECT, HeightTrack
 from visvec.lamps import Catalog
 from visvec.output import AttitudeRow, PoseRow, RateRow, Row, attitude_row
@@ -45,12 +46,25 @@ MARKER_METHODS = ("full", *PNP_FLAGS)
 METHODS = tuple(dict.fromkeys(TRIANGLE_METHODS + MARKER_METHODS + ("poisson", "crassidis")))
 
 
+# the run's closing note on its refused frames: when at least this share of its frames
+# and at least this many were not ok
+REFUSED_NOTE_SHARE = 0.1
+REFUSED_NOTE_MIN = 3
+# the reasons the note names (the most frequent first)
+REFUSED_NOTE_REASONS = 4
+
+
 class Pipeline:
     """Shared frame loop of every target kind. Subclasses implement :meth:`estimate`
     and :meth:`make_row`."""
 
     methods: tuple[str, ...] = ()
     row_type: type[Row] = Row
+    # what to check when many frames are refused with a warning code (or a status)
+    hints: dict[str, str] = {
+        "read_error": "frames unreadable or not the rig's [camera] width x height",
+        "internal_error": "a bug met on those frames (each printed above): please report it",
+    }
 
     def __init__(self, rig: Rig, method: str = "full"):
         if method not in self.methods:
@@ -62,6 +76,9 @@ class Pipeline:
         self.last_detection: object | None = None
         self.last_solution: AttitudeSolution | None = None
         self.last_error = ""
+        # the run's rows, and its refused ones by reason (their warnings, or the status)
+        self.n_rows = 0
+        self.refused: Counter[str] = Counter()
 
     def check_frame(self, frame: Frame) -> str:
         """Why a frame cannot be used at all ("" if it can)."""
@@ -109,12 +126,36 @@ class Pipeline:
         """Called with the solution of every row that is ok (nothing by default)."""
 
     def notes(self) -> list[str]:
-        """What the run found out about the rig, for the operator at its end (none by
-        default)."""
-        return []
+        """What the run found out about the rig, for the operator at its end: here, why
+        its frames were refused when many were (:meth:`refused_note`)."""
+        note = self.refused_note()
+        return [note] if note else []
+
+    def refused_note(self) -> str:
+        """The refused rows by reason, with what to check for each (``hints``), when
+        REFUSED_NOTE_SHARE of the run's rows (at least REFUSED_NOTE_MIN) were not ok;
+        "" otherwise."""
+        n_bad = sum(self.refused.values())
+        if n_bad < max(REFUSED_NOTE_MIN, REFUSED_NOTE_SHARE * self.n_rows):
+            return ""
+        top = self.refused.most_common(REFUSED_NOTE_REASONS)
+        counts = ", ".join(f"{reason} {n}" for reason, n in top)
+        if len(self.refused) > len(top):
+            counts += ", other reasons " + str(n_bad - sum(n for _, n in top))
+        codes = dict.fromkeys(c for reason, _ in top for c in reason.split(";"))
+        hints = [f"{c}: {self.hints[c]}" for c in codes if c in self.hints]
+        text = f"visvec: {n_bad} of {self.n_rows} frames not ok ({counts})"
+        return text + ("; " + "; ".join(hints) if hints else "")
 
     def process(self, frame: Frame, t_in: float | None = None) -> Row:
         """The row of one frame; never raises on frame content."""
+        row = self._process(frame, t_in)
+        self.n_rows += 1
+        if not row.ok:
+            self.refused[";".join(row.warnings) or row.status.value] += 1
+        return row
+
+    def _process(self, frame: Frame, t_in: float | None) -> Row:
         t_in = time.perf_counter() if t_in is None else t_in
         self.last_detection, self.last_solution, self.last_error = None, None, ""
         if self.check_frame(frame):
@@ -174,6 +215,11 @@ MIN_HEIGHT_FRAMES = 10
 # a refused frame's residuals count as evidence of a rolling shutter up to this
 # chi-square (four times the refusal threshold; a shear's, not a wrong triangle's)
 SHEAR_EVIDENCE_CHI2 = 4.0 * CHI2_REJECT[3]
+# the closing note on the camera's aspect fy / fx: when the frames' estimate (from the
+# same residuals, see ReadoutEvidence.aspect) is this many of its sigma and this far
+# (relative) from the rig file's, over at least MIN_HEIGHT_FRAMES frames
+ASPECT_NOTE_SIGMAS = 5.0
+ASPECT_NOTE_MIN = 0.001
 HEIGHT_NOTE_SIGMAS = 5.0
 HEIGHT_NOTE_MM = 1.0
 
@@ -201,6 +247,28 @@ class TrianglePipeline(AttitudePipeline):
     """The triangle target; ``method`` "full" (default) or "paper"."""
 
     methods = TRIANGLE_METHODS
+    hints = {
+        **Pipeline.hints,
+        "inconsistent_geometry": "no attitude of the rig file's triangle explains the three "
+        "vertices: check the [camera] model (`visvec calibrate camera`: an aspect fy / fx "
+        "0.5 % off or a principal point 10 px off does this), [target] vertices_mm and [mount]; "
+        "on a turning platform, a camera that reads its rows out one after another ([camera] "
+        "readout_ms)",
+        "no_triangle": "no bright region of the triangle's shape and size: is it in view "
+        "(look with --overlay DIR), and are [target] vertices_mm and [camera] fx right?",
+        "low_contrast": "the triangle too faint against the board (under [detect] "
+        "min_contrast): light it, or a longer exposure",
+        "overexposed": "the triangle saturates: a shorter exposure",
+        "low_brightness": "frames darker than [detect] brightness_band: a longer exposure",
+        "high_brightness": "frames brighter than [detect] brightness_band: a shorter exposure",
+        "obstructed": "something over the triangle, or a light touching it",
+        "edge_obstructed": "something over the triangle's edges",
+        "partly_out_of_view": "the triangle leaves the image: tilts beyond the field of view, "
+        "or the target not above the centre of rotation",
+        "no_dark_surround": "the triangle needs the dark board around it in view",
+        "impossible_tilt": "tilts beyond [platform] max_tilt_deg: check [mount] rotation, or "
+        "the limit",
+    }
 
     def __init__(self, rig: Rig, method: str = "full", still: bool = False):
         if rig.kind != "triangle":
@@ -250,9 +318,10 @@ class TrianglePipeline(AttitudePipeline):
             self.height.update(sol)
 
     def notes(self) -> list[str]:
-        """The target's height, when the frames put it off the rig file's; a rolling
-        shutter the rig file does not declare."""
-        notes = []
+        """Why many frames were refused; the target's height, when the frames put it off
+        the rig file's; the camera's aspect, likewise; a rolling shutter the rig file
+        does not declare."""
+        notes = super().notes()
         h = self.height
         sigma = np.sqrt(h.var_mm2) if h is not None else 0.0
         if (
@@ -267,6 +336,8 @@ class TrianglePipeline(AttitudePipeline):
                 f"print's size or the focal length is off); measure it, or let `visvec "
                 f"calibrate zero-tilt` write it"
             )
+        if self.shear is not None:
+            notes += self._aspect_note()
         if self.shear is not None and self.shear.suspected():
             # first order, from frames the shear may have refused: a rough figure
             k, s = self.shear.readout_ms()
@@ -279,6 +350,27 @@ class TrianglePipeline(AttitudePipeline):
                 f"readout` on a recording of the platform turning"
             )
         return notes
+
+    def _aspect_note(self) -> list[str]:
+        """The camera's aspect fy / fx, when the frames say the rig file's is off
+        (ASPECT_NOTE_SIGMAS, ASPECT_NOTE_MIN) and the model errors explain their
+        residuals: an aspect 0.5 % off refuses every frame as inconsistent_geometry."""
+        ev = self.shear
+        e, s = ev.aspect()
+        explained = ev.fit_chi2_per_dof() <= MAX_FIT_CHI2_DOF
+        if not (
+            ev.n >= MIN_HEIGHT_FRAMES
+            and explained
+            and abs(e) > max(ASPECT_NOTE_SIGMAS * s, ASPECT_NOTE_MIN)
+        ):
+            return []
+        cam = self.rig.camera
+        return [
+            f"visvec: the triangle's shape over {ev.n} frames says the camera's aspect "
+            f"fy / fx is {cam.fy / cam.fx * (1 + e):.4f} +- {cam.fy / cam.fx * s:.4f}, not "
+            f"the rig file's {cam.fy / cam.fx:.4f} (fy about {cam.fy * (1 + e):.1f} px for fx "
+            f"{cam.fx:.1f}): calibrate the camera (`visvec calibrate camera`)"
+        ]
 
     def _solve(self, det, guess) -> AttitudeSolution:
         """The frame's attitude; "full" with the running height as the prior."""
@@ -414,6 +506,14 @@ class MarkerPipeline(AttitudePipeline):
     3-parameter solver) or a PnP baseline ("pnp-sqpnp", "pnp-ippe", ...)."""
 
     methods = MARKER_METHODS
+    hints = {
+        **Pipeline.hints,
+        "not_identified": "the spots do not match the rig's marker layout: check [target] "
+        "and the exposure (LEDs only)",
+        "too_few_markers": "too few markers identified (LEDs hidden or out of view)",
+        "inconsistent_geometry": "no attitude about the centre of rotation fits the markers: "
+        "`visvec calibrate system`",
+    }
 
     def __init__(self, rig: Rig, method: str = "full"):
         if rig.kind != "markers":
@@ -520,6 +620,13 @@ class RatePipeline(Pipeline):
     """
 
     methods = RATE_METHODS
+    hints = {
+        **Pipeline.hints,
+        "too_few_stars": "too few stars: a longer exposure, or a part of the sky with more",
+        "saturated": "the frames saturate: a shorter exposure",
+        "frame_jump": "frames not 1 / fps apart (dropped frames, or a folder without its times)",
+        "rate_beyond_max": "a rate above [target] max_rate_dps",
+    }
     row_type = RateRow
 
     def __init__(self, rig: Rig, method: str = "poisson"):
@@ -731,6 +838,15 @@ class LampPipeline(Pipeline):
     Delaunay lookup), and a least-squares fit over every identified lamp."""
 
     methods = ("full",)
+    hints = {
+        **Pipeline.hints,
+        "no_lamps": "no bright spots: are the lamps on and in view?",
+        "too_few_lamps": "too few lamps seen or identified",
+        "no_catalogue_match": "the lamps' triangles match none of the lamp map's: check the "
+        "map and the [camera] model",
+        "no_consensus": "no pose agreed by the lamps' triangles: check the map and the "
+        "[camera] model",
+    }
     row_type = PoseRow
 
     def __init__(self, rig: Rig, method: str = "full", catalog: Catalog | None = None):

@@ -77,6 +77,8 @@ MAX_FIT_CHI2_DOF = 3.0
 # the evidence's parameters: the readout, the static pattern (6), the image-fixed
 # errors (principal point x, y in px; aspect)
 N_PARAMS = 10
+# the aspect error's place among them
+ASPECT = 9
 # the x and y rows of the three vertices in a (6,) pattern (x1, y1, x2, ...)
 _X, _Y = np.arange(0, 6, 2), np.arange(1, 6, 2)
 
@@ -201,6 +203,16 @@ class ReadoutEvidence:
         """The residuals' chi-square per degree of freedom once the readout and the
         model errors are taken out (about 1 when they explain the residuals)."""
         return self._solve()[2] if self.n else float("nan")
+
+    def aspect(self) -> tuple[float, float]:
+        """(estimate, 1-sigma) of the camera's aspect error, relative: the frames see
+        y = (v - cy) / fy as (1 + e) times the true one, so the rig's fy is (1 + e) times
+        too small for its fx (the true fy is about fy (1 + e)); the readout and the other
+        model errors marginalised. NaN before any frame."""
+        if not self.n:
+            return float("nan"), float("nan")
+        cov = np.linalg.inv(self.info + self._prior_info)
+        return float((cov @ self.rhs)[ASPECT]), float(np.sqrt(cov[ASPECT, ASPECT]))
 
     def suspected(self) -> bool:
         """True when the frames say the camera rolls: the readout MIN_SIGMAS from zero
