@@ -127,9 +127,9 @@ def test_rolling_shutter_is_taken_out_while_tracking(rig640):
         truth.append(np.degrees(e))
 
     def run(readout_ms, shear=True):
-        pipe = TrianglePipeline(replace(rig640, readout_ms=readout_ms, max_rate_dps=20.0))
-        if not shear:
-            pipe.shear = None  # no readout estimated from the frames: the shear as it is
+        # shear False: no readout estimated from the frames, the shear as it is
+        rig = replace(rig640, readout_ms=readout_ms, max_rate_dps=20.0)
+        pipe = TrianglePipeline(rig, check_shutter=shear)
         rows = [pipe.process(f) for f in frames]
         z = [
             (r.euler_deg - t) / r.sigma_deg if r.ok else np.full(3, np.nan)
@@ -308,9 +308,8 @@ def test_rolling_shutter_read_bottom_up_is_taken_out_too(rig640):
         truth.append(np.degrees(e))
 
     def yaw_z(readout_ms, shear=True, n=12):
-        pipe = TrianglePipeline(replace(rig640, readout_ms=readout_ms))
-        if not shear:
-            pipe.shear = None  # no readout estimated from the frames
+        # shear False: no readout estimated from the frames
+        pipe = TrianglePipeline(replace(rig640, readout_ms=readout_ms), check_shutter=shear)
         rows = [pipe.process(f) for f in frames[:n]]
         assert all(r.ok for r in rows[1:])
         z = [(r.euler_deg[0] - t[0]) / r.sigma_deg[0] for r, t in zip(rows, truth, strict=False)]

@@ -270,7 +270,9 @@ class TrianglePipeline(AttitudePipeline):
         "the limit",
     }
 
-    def __init__(self, rig: Rig, method: str = "full", still: bool = False):
+    def __init__(
+        self, rig: Rig, method: str = "full", still: bool = False, check_shutter: bool = True
+    ):
         if rig.kind != "triangle":
             raise ConfigError(f"TrianglePipeline needs a triangle rig, not {rig.kind!r}")
         super().__init__(rig, method)
@@ -284,9 +286,10 @@ class TrianglePipeline(AttitudePipeline):
         )
         # a rig that says its camera has a global shutter: do the frames agree? Once
         # they say it rolls, its readout is estimated from them and taken out
+        # (``check_shutter`` False: the frames as the rig file says, for comparison)
         self.shear = (
             ReadoutEvidence.for_camera(rig.camera, rig.fps)
-            if method == "full" and rig.readout_ms == 0 and not still
+            if method == "full" and rig.readout_ms == 0 and not still and check_shutter
             else None
         )
         # ok rows taken out with the frames' own readout estimate

@@ -128,9 +128,7 @@ def evaluate(
     """Run the pipeline (estimation rig ``rig``) on ``images`` and compare with the truth
     (``shear`` False: no readout estimated from the frames of a rig that declares none,
     as the sensor was before the thirteenth session, for comparison)."""
-    pipe = TrianglePipeline(rig, method)
-    if not shear:
-        pipe.shear = None
+    pipe = TrianglePipeline(rig, method, check_shutter=shear)
     out = Outcome()
     for i, (img, case) in enumerate(zip(images, cases, strict=True)):
         if not track:
