@@ -350,7 +350,7 @@ class TrianglePipeline(AttitudePipeline):
                 f"[camera] readout_ms is 0: {self.n_estimated_readout} ok rows were taken out "
                 f"with this running estimate (warning rolling_shutter_estimated), the ones "
                 f"before it biased by the turn or refused. Measure it with `visvec calibrate "
-                f"readout` on a recording of the platform turning"
+                f"readout` on a recording of the platform swinging out and back"
             )
         return notes
 

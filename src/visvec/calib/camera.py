@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
@@ -32,6 +32,8 @@ class CameraCalibration:
     per_view_px : (V,) RMS per used view, files : names of used views,
     skipped : names of photos where the pattern was not found,
     outliers : names of views whose error exceeds 2.5x the median, width, height.
+    sigma_px : (4,) 1-sigma of fx, fy, cx, cy (OpenCV's, from the fit's Jacobian and
+    its residuals)
     """
 
     K: np.ndarray
@@ -43,6 +45,7 @@ class CameraCalibration:
     outliers: list[str]
     width: int
     height: int
+    sigma_px: np.ndarray = field(default_factory=lambda: np.full(4, np.nan))
 
 
 def parse_pattern(text: str) -> tuple[int, int]:
@@ -78,7 +81,8 @@ def find_corners(
 def calibrate_camera(
     files: list[Path], pattern: tuple[int, int], square_mm: float, recipe: str = "precise"
 ) -> CameraCalibration:
-    """Calibrate from chessboard photos with cv2.calibrateCamera (flags = 0).
+    """Calibrate from chessboard photos with cv2.calibrateCamera (flags = 0; its
+    Extended form, for the intrinsics' standard deviations).
 
     Raises
     ------
@@ -112,7 +116,9 @@ def calibrate_camera(
             f"the {pattern[0]}x{pattern[1]} pattern was found in "
             f"{len(used)} photo(s); at least 3 are needed"
         )
-    rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(obj_pts, img_pts, size, None, None, flags=0)
+    rms, K, dist, rvecs, tvecs, sd_in, _, _ = cv2.calibrateCameraExtended(
+        obj_pts, img_pts, size, None, None, flags=0
+    )
     per_view = []
     for o, p, rv, tv in zip(obj_pts, img_pts, rvecs, tvecs, strict=True):
         proj, _ = cv2.projectPoints(o, rv, tv, K, dist)
@@ -130,6 +136,7 @@ def calibrate_camera(
         outliers,
         int(size[0]),
         int(size[1]),
+        sd_in.ravel()[:4].astype(float),
     )
 
 

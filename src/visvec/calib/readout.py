@@ -24,6 +24,18 @@ is refused, or not corrected (the first after an acquisition), counts the cap: a
 readout that makes the sensor refuse frames is penalised without the cost jumping as
 frames come and go. Nothing can be measured on a platform at rest: the recording must
 turn (MIN_RATE_DPS).
+
+The grid's minimum takes the camera model as exact. A principal point a few px off
+leaves a keystone fixed in the image which, on a steady one-way turn, turns with the yaw
+as a shear does: with it 4 px off, 2 s recordings of a global shutter read 4-13 ms (up
+to 7.5 sigma) turning one way at 10-20 deg/s, and up to -4 ms (3 sigma) swinging out
+and back. So the grid's readout is then refined by linearised steps in which the
+principal point, the aspect and a pattern fixed in the triangle's frame are estimated
+beside it with their priors (:class:`visvec.estimate.shear.ReadoutEvidence`, the same
+evidence the pipeline gathers on a rig that declares no readout), each frame tracked
+with the last step's readout; the readout's 1-sigma is its marginal over those model
+errors. A turn whose rate changes (a swing) tells them apart; a steady one-way turn
+keeps the sigma wide (about 2x the grid's).
 """
 
 from __future__ import annotations
@@ -34,6 +46,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from visvec.data import Frame
+from visvec.estimate.shear import MAX_FIT_CHI2_DOF, ReadoutEvidence
 from visvec.estimate.triangle_full import CHI2_REJECT
 from visvec.pipeline import TrianglePipeline, body_rate
 from visvec.rig import Rig
@@ -50,13 +63,18 @@ MAX_SIGMA_FRACTION = 0.25
 # the readout of "no rolling shutter" in a trial: tiny, so that every trial treats the
 # first frame alike (uncorrected) and only the correction changes
 ZERO_MS = 1e-3
+# linearised steps with the camera's model errors freed, after the grid search (the
+# second moves the readout by a few hundredths of a ms)
+MODEL_ERROR_STEPS = 2
 
 
 @dataclass(frozen=True)
 class ReadoutCalibration:
     """Result of :func:`calibrate_readout`.
 
-    readout_ms, sigma_ms : the estimate and its 1-sigma (NaN when not determined)
+    readout_ms, sigma_ms : the estimate and its 1-sigma (NaN when not determined), the
+        camera's model errors marginalised
+    grid_ms, grid_sigma_ms : the grid search's, the camera model taken as exact
     rate_dps : median angular rate of the platform over the recording
     n_frames : frames in the recording; n_used : frames ok and corrected at the estimate
     chi2_per_dof : at the estimate, and ``chi2_per_dof_global`` with no correction
@@ -75,6 +93,8 @@ class ReadoutCalibration:
     costs: np.ndarray
     converged: bool
     reason: str = ""
+    grid_ms: float = float("nan")
+    grid_sigma_ms: float = float("nan")
 
 
 @dataclass(frozen=True)
@@ -116,6 +136,32 @@ def _cost(frames: Sequence[Frame], rig: Rig, readout_ms: float) -> _Trial:
     return _Trial(total, used, chi2_used, dof_used, attitudes)
 
 
+def _evidence(
+    frames: Sequence[Frame], rig: Rig, readout_ms: float, principal_point_px: float | None
+) -> ReadoutEvidence:
+    """The recording tracked with ``readout_ms``: every frame ok and corrected (its rate
+    known), with the rate since the ok frame before it, adds its residuals to the
+    readout's evidence beside the camera's model errors (the principal point's prior
+    ``principal_point_px``), as the pipeline's own check does
+    (:meth:`TrianglePipeline._add_shear_evidence`)."""
+    pipe = TrianglePipeline(replace(rig, readout_ms=readout_ms))
+    ev = ReadoutEvidence.for_camera(rig.camera, rig.fps, principal_point_px)
+    last = None
+    for frame in frames:
+        row = pipe.process(frame)
+        sol, det = pipe.last_solution, pipe.last_detection
+        if not row.ok or sol is None:
+            last = None
+            continue
+        omega_b = body_rate(last, (frame.time_s, sol.R_nb)) if last is not None else None
+        if omega_b is not None and "rolling_shutter_uncorrected" not in row.warnings:
+            rows, lever = det.points_px[:, 1], pipe.detector.lever_c
+            omega_c = rig.R_bc.T @ omega_b
+            ev.add(sol.residual, det.points_n, rows, rig.camera, omega_c, lever, readout_ms)
+        last = (frame.time_s, sol.R_nb)
+    return ev
+
+
 def _median_rate_dps(attitudes: list) -> float:
     """Median angular rate (deg/s) between consecutive ok rows of one turn."""
     rates = [body_rate(a, b) for a, b in zip(attitudes, attitudes[1:], strict=False)]
@@ -123,10 +169,14 @@ def _median_rate_dps(attitudes: list) -> float:
     return float(np.median(speeds)) if speeds else 0.0
 
 
-def calibrate_readout(frames: Sequence[Frame], rig: Rig) -> ReadoutCalibration:
+def calibrate_readout(
+    frames: Sequence[Frame], rig: Rig, principal_point_px: float | None = None
+) -> ReadoutCalibration:
     """The rolling-shutter readout time of the rig's camera from ``frames`` of the
     platform turning (a tracked recording with its times, as `visvec track` or a video
-    gives them); triangle rigs.
+    gives them); triangle rigs. ``principal_point_px``: how well the rig's principal
+    point is known (1-sigma, px; default PRINCIPAL_POINT_PRIOR of the image width, a
+    camera calibrated roughly; `calibrate camera` prints its own).
 
     The search runs over readouts from minus to plus one frame interval (1000 / fps ms;
     negative: the last row read first): a coarse grid, 1 ms steps around its best point,
@@ -184,7 +234,7 @@ def calibrate_readout(frames: Sequence[Frame], rig: Rig) -> ReadoutCalibration:
     if abs(readout) > span - FINE_STEP_MS:
         return fail(f"the best readout ({readout:.1f} ms) is at the end of the search", readout)
     final = _cost(frames, rig, readout)
-    used, attitudes = final.used, final.attitudes
+    attitudes = final.attitudes
     rate = _median_rate_dps(attitudes)
     if len(attitudes) < MIN_FRAMES:
         return fail(f"only {len(attitudes)} frames with the triangle found: record more")
@@ -192,17 +242,36 @@ def calibrate_readout(frames: Sequence[Frame], rig: Rig) -> ReadoutCalibration:
         return too_slow()
     chi2_dof = final.per_dof()
     # the curvature of the total chi-square gives the 1-sigma (delta chi2 = 1 at sigma)
-    sigma = float(np.sqrt(1.0 / a2) * np.sqrt(max(1.0, chi2_dof)))
+    grid_readout = readout
+    grid_sigma = float(np.sqrt(1.0 / a2) * np.sqrt(max(1.0, chi2_dof)))
+    for _ in range(MODEL_ERROR_STEPS):
+        ev = _evidence(frames, rig, readout, principal_point_px)
+        readout, sigma = ev.readout_ms()
+        if not np.isfinite(readout):
+            return fail("no frame with its rate known to measure the readout on")
+        fit = ev.fit_chi2_per_dof()
+        if fit > MAX_FIT_CHI2_DOF:
+            return fail(
+                f"the residuals are {fit:.1f}x the vertices' noise with the readout and the "
+                f"camera's model errors taken out: not a rolling shutter's shear (is the "
+                f"[camera] model calibrated?)",
+                readout,
+            )
+        sigma = float(sigma * np.sqrt(max(1.0, fit)))
     if sigma > MAX_SIGMA_FRACTION * span:
         return fail(
-            f"the readout is poorly determined ({readout:.1f} +- {sigma:.1f} ms): record "
-            "longer or turn faster",
+            f"the readout is poorly determined ({readout:.1f} +- {sigma:.1f} ms with the "
+            f"camera's principal point and aspect estimated beside it; {grid_readout:.1f} +- "
+            f"{grid_sigma:.1f} ms taking them as exact): record longer, or swinging out and "
+            "back rather than turning one way, or give --principal-point-sigma from "
+            "`calibrate camera`",
             readout,
         )
+    final = _cost(frames, rig, readout)
     grid = np.array(sorted(trials))
     return ReadoutCalibration(
-        readout, sigma, rate, len(frames), used, chi2_dof, base_dof, grid,
-        np.array([trials[g] for g in grid]), True,
+        readout, sigma, rate, len(frames), final.used, final.per_dof(), base_dof, grid,
+        np.array([trials[g] for g in grid]), True, "", grid_readout, grid_sigma,
     )  # fmt: skip
 
 
@@ -212,6 +281,9 @@ def readout_sections(res: ReadoutCalibration) -> dict[str, dict[str, object]]:
         "camera": {"readout_ms": round(res.readout_ms, 2)},
         "report": {
             "sigma_readout_ms": round(res.sigma_ms, 3),
+            # the grid search's, with the camera model taken as exact
+            "readout_ms_camera_exact": round(res.grid_ms, 2),
+            "sigma_readout_ms_camera_exact": round(res.grid_sigma_ms, 3),
             "rate_dps": round(res.rate_dps, 2),
             "frames": res.n_frames,
             "frames_used": res.n_used,

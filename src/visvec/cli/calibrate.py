@@ -139,14 +139,22 @@ def zero_tilt(frames, rig_path, calibration, out):
     show_default=True,
     help="Frames of FRAMES to use (each trial readout re-runs them all).",
 )
-def readout(frames, rig_path, calibration, out, max_frames):
+@click.option(
+    "--principal-point-sigma",
+    type=click.FloatRange(min=0, min_open=True),
+    default=None,
+    help="How well the rig's principal point is known, 1-sigma px (`calibrate camera` "
+    "prints it). [default: 0.8 % of the image width]",
+)
+def readout(frames, rig_path, calibration, out, max_frames, principal_point_sigma):
     """A rolling shutter's readout time ([camera] readout_ms) from FRAMES (a folder with
     its times.csv, from `track --save-frames`, or a video) of the platform turning at
-    5-20 deg/s: the readout whose correction leaves the triangle rigid (least
-    chi-square)."""
+    5-20 deg/s, best swinging out and back: the readout whose correction leaves the
+    triangle rigid (least chi-square), the camera's principal point and aspect
+    estimated beside it."""
     rig = load(rig_path, calibration, "triangle", "readout calibration")
     src = open_source(frames, fps=rig.fps, retry_s=0.0, max_frames=max_frames)
-    res = calibrate_readout(list(src), rig)
+    res = calibrate_readout(list(src), rig, principal_point_sigma)
     if res.converged:
         sections = readout_sections(res)
         if abs(res.readout_ms) < 2.0 * res.sigma_ms:
@@ -166,6 +174,10 @@ def readout(frames, rig_path, calibration, out, max_frames):
     click.echo(
         f"  readout (first to last row): {res.readout_ms:+.2f} +- {res.sigma_ms:.2f} ms"
         + ("  (negative: the last row is read first)" if res.readout_ms < 0 else "")
+    )
+    click.echo(
+        f"    (the camera's principal point and aspect estimated beside it; taking them as "
+        f"exact: {res.grid_ms:+.2f} +- {res.grid_sigma_ms:.2f} ms)"
     )
     click.echo(
         f"  chi-square per degree of freedom: {res.chi2_per_dof:.3f} corrected, "
@@ -222,10 +234,9 @@ def camera(frames, pattern, square_mm, recipe, out):
         f"camera calibration from {len(cal.files)} views "
         f"({len(cal.skipped)} without the pattern: {', '.join(cal.skipped) or '-'})"
     )
-    click.echo(
-        f"  fx {cal.K[0, 0]:.3f}  fy {cal.K[1, 1]:.3f}  cx {cal.K[0, 2]:.3f}  "
-        f"cy {cal.K[1, 2]:.3f} px"
-    )
+    intrinsics = cal.K[[0, 1, 0, 1], [0, 1, 2, 2]]
+    values = zip(("fx", "fy", "cx", "cy"), intrinsics, cal.sigma_px, strict=True)
+    click.echo("  " + "  ".join(f"{k} {v:.3f} +- {s:.3f}" for k, v, s in values) + " px")
     click.echo("  dist " + " ".join(f"{x:+.6f}" for x in cal.dist))
     click.echo(f"  rms reprojection error {cal.rms_px:.4f} px")
     for name, e in zip(cal.files, cal.per_view_px, strict=True):

@@ -109,13 +109,12 @@ def model_error_design(xy: np.ndarray, camera: CameraModel) -> np.ndarray:
     return D
 
 
-def model_error_prior(camera: CameraModel) -> np.ndarray:
-    """(9,) the model errors' prior 1-sigma, in the units of model_error_design."""
-    return np.r_[
-        np.full(6, STATIC_PRIOR_PX / camera.fx),
-        np.full(2, PRINCIPAL_POINT_PRIOR * camera.width),
-        ASPECT_PRIOR,
-    ]
+def model_error_prior(camera: CameraModel, principal_point_px: float | None = None) -> np.ndarray:
+    """(9,) the model errors' prior 1-sigma, in the units of model_error_design; the
+    principal point's ``principal_point_px`` (default PRINCIPAL_POINT_PRIOR of the
+    width)."""
+    pp = PRINCIPAL_POINT_PRIOR * camera.width if principal_point_px is None else principal_point_px
+    return np.r_[np.full(6, STATIC_PRIOR_PX / camera.fx), np.full(2, pp), ASPECT_PRIOR]
 
 
 @dataclass
@@ -144,9 +143,15 @@ class ReadoutEvidence:
         self._prior_info = np.diag(np.r_[0.0, 1.0 / np.asarray(self.prior_sigma) ** 2])
 
     @classmethod
-    def for_camera(cls, camera: CameraModel, fps: float = float("inf")) -> ReadoutEvidence:
-        """The evidence for a camera at ``fps`` frames per second."""
-        return cls(model_error_prior(camera), 1000.0 / fps)
+    def for_camera(
+        cls,
+        camera: CameraModel,
+        fps: float = float("inf"),
+        principal_point_px: float | None = None,
+    ) -> ReadoutEvidence:
+        """The evidence for a camera at ``fps`` frames per second whose principal point
+        is known to ``principal_point_px`` (1-sigma; default: see model_error_prior)."""
+        return cls(model_error_prior(camera, principal_point_px), 1000.0 / fps)
 
     def add(
         self,
