@@ -80,6 +80,13 @@ def sigma_check(rig, images: list[np.ndarray]) -> dict:
         "sigma_ratio": round(cal.sigma_ratio, 3),
         "sigma_ratio_95": cal.sigma_ratio_95.round(3).tolist(),
         "sigma_scale": round(cal.sigma_scale, 3),
+        # the camera check (aspect and principal point free): a codec must not read as
+        # a wrong camera model (calibrate zero-tilt would then refuse)
+        "camera_off": cal.camera_off,
+        "aspect": round(cal.aspect, 6),
+        "sigma_aspect": round(cal.sigma_aspect, 6),
+        "principal_point_px": cal.principal_point_px.round(2).tolist(),
+        "sigma_principal_point_px": cal.sigma_principal_point_px.round(2).tolist(),
     }
 
 

@@ -57,6 +57,54 @@ def test_zero_tilt_recovers_target_offset_height_and_camera_tilt(rig640, rng, he
     np.testing.assert_allclose(cal.target.vertices_mm, world.target.vertices_mm, atol=0.5)
 
 
+@pytest.mark.parametrize("fy_scale, dcx", [(1.005, 0.0), (1.0, 10.0), (1.0, 0.0)])
+def test_zero_tilt_says_when_the_rig_camera_model_is_wrong(rig640, fy_scale, dcx):
+    """The rig file's fy 0.5 % too large, or its cx 10 px off, in a lab whose target is
+    15 mm off the axis and whose camera is 0.7 deg askew: the level frames at 12 yaws
+    fit only with the camera's aspect and principal point free, and the check gives the
+    values that fit (within 3 sigma of the truth) and says the camera model is off (its
+    residuals would read as a sigma_scale of several). The right camera: consistent."""
+    from dataclasses import replace
+
+    world = true_rig(rig640, (15.0, -6.0), (0.7, -0.4), 0.0)
+    cam = rig640.camera
+    rig = replace(rig640, camera=replace(cam, fy=cam.fy * fy_scale, cx=cam.cx + dcx))
+    yaws = np.radians(np.arange(-180, 180, 30))
+    dets = _level_detections(rig640, world, yaws, rng=np.random.default_rng(7))
+    # pixels of the true camera, normalised with the rig file's
+    true_f, true_c = np.array([cam.fx, cam.fy]), np.array([cam.cx, cam.cy])
+    rig_f, rig_c = np.array([rig.camera.fx, rig.camera.fy]), np.array([rig.camera.cx, cam.cy])
+    dets = [replace(d, points_n=(d.points_n * true_f + true_c - rig_c) / rig_f) for d in dets]
+    res = calibrate_zero_tilt(dets, rig)
+    assert res.camera_off == (fy_scale != 1.0 or dcx != 0.0)
+    # the true fy is (1 + aspect) times the rig file's; the true cx is the rig's + dx
+    assert abs(res.aspect - (1.0 / fy_scale - 1.0)) < 3.0 * res.sigma_aspect
+    err = np.abs(res.principal_point_px - [-dcx, 0.0])
+    assert np.all(err < 3.0 * res.sigma_principal_point_px), res.principal_point_px
+    assert res.sigma_aspect < 2e-4 and np.all(res.sigma_principal_point_px < 1.0)
+
+
+def test_calibrate_zero_tilt_cli_refuses_a_wrong_camera_model(tmp_path):
+    """A rig file whose fy is 1 % too large: the level frames say so, give the fy that
+    fits, and nothing is written (exit 1)."""
+    rig_p = CONFIGS / "triangle-320.toml"
+    text = rig_p.read_text()
+    assert text.count("\nfy = 300.0") == 1
+    wrong = tmp_path / "wrong.toml"
+    wrong.write_text(text.replace("\nfy = 300.0", "\nfy = 303.0"))
+    frames = tmp_path / "level"
+    sim = ["simulate", "--rig", rig_p, "--out", frames, "--frames", 12, "--motion", "level"]
+    assert CliRunner().invoke(cli, [str(a) for a in sim]).exit_code == 0
+    cal = tmp_path / "cal.toml"
+    args = ["calibrate", "zero-tilt", str(frames), "--rig", str(wrong), "--out", str(cal)]
+    r = CliRunner().invoke(cli, args)
+    assert r.exit_code == 1 and not cal.exists(), r.output
+    assert "camera check: aspect fy / fx" in r.output and ": off" in r.output
+    fy = float(r.output.split("it fits with fy = ")[1].split(",")[0])
+    assert abs(fy - 300.0) < 0.5, r.output
+    assert "nothing written" in r.output
+
+
 @pytest.mark.parametrize("scale_in_rig", [1.0, 1.5])
 def test_zero_tilt_measures_how_much_wider_the_vertices_scatter_than_their_sigma(
     rig640, scale_in_rig

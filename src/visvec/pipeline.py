@@ -34,7 +34,7 @@ from visvec.estimate.markers import solve_markers
 from visvec.estimate.planar import MIN_LAMPS, PlanarSolution, solve_planar
 from visvec.estimate.pnp import PNP_FLAGS, solve_pnp
 from visvec.estimate.rate import MIN_STARS, RateSolution, estimate_rate, unit_vectors
-from visvec.estimate.shear import MAX_FIT_CHI2_DOF, ReadoutEvidence
+from visvec.estimate.shear import ASPECT_MIN, ASPECT_SIGMAS, MAX_FIT_CHI2_DOF, ReadoutEvidence
 from visvec.estimate.triangle_full import CHI2_REJECT, HeightTrack
 from visvec.lamps import Catalog
 from visvec.output import AttitudeRow, PoseRow, RateRow, Row, attitude_row
@@ -215,11 +215,6 @@ MIN_HEIGHT_FRAMES = 10
 # a refused frame's residuals count as evidence of a rolling shutter up to this
 # chi-square (four times the refusal threshold; a shear's, not a wrong triangle's)
 SHEAR_EVIDENCE_CHI2 = 4.0 * CHI2_REJECT[3]
-# the closing note on the camera's aspect fy / fx: when the frames' estimate (from the
-# same residuals, see ReadoutEvidence.aspect) is this many of its sigma and this far
-# (relative) from the rig file's, over at least MIN_HEIGHT_FRAMES frames
-ASPECT_NOTE_SIGMAS = 5.0
-ASPECT_NOTE_MIN = 0.001
 HEIGHT_NOTE_SIGMAS = 5.0
 HEIGHT_NOTE_MM = 1.0
 
@@ -355,16 +350,15 @@ class TrianglePipeline(AttitudePipeline):
         return notes
 
     def _aspect_note(self) -> list[str]:
-        """The camera's aspect fy / fx, when the frames say the rig file's is off
-        (ASPECT_NOTE_SIGMAS, ASPECT_NOTE_MIN) and the model errors explain their
-        residuals: an aspect 0.5 % off refuses every frame as inconsistent_geometry."""
+        """The camera's aspect fy / fx, when the frames (at least MIN_HEIGHT_FRAMES) say
+        the rig file's is off (ASPECT_SIGMAS, ASPECT_MIN; see ReadoutEvidence.aspect) and
+        the model errors explain their residuals: an aspect 0.5 % off refuses every frame
+        as inconsistent_geometry."""
         ev = self.shear
         e, s = ev.aspect()
         explained = ev.fit_chi2_per_dof() <= MAX_FIT_CHI2_DOF
         if not (
-            ev.n >= MIN_HEIGHT_FRAMES
-            and explained
-            and abs(e) > max(ASPECT_NOTE_SIGMAS * s, ASPECT_NOTE_MIN)
+            ev.n >= MIN_HEIGHT_FRAMES and explained and abs(e) > max(ASPECT_SIGMAS * s, ASPECT_MIN)
         ):
             return []
         cam = self.rig.camera

@@ -9,6 +9,19 @@ each frame's unknown yaw, by weighted least squares on the vertex positions
 offset without a yaw reference and is not estimated; nor can a sideways camera offset be
 told from a camera tilt (the target is one plane), so the rig's camera position is kept.
 
+Before that check, the frames test the rig's camera model: the fit is repeated with
+the camera's aspect fy / fx and principal point free. A wrong aspect stretches the
+image along its columns, which changes the triangle's shape with twice the yaw (an
+offset moves it with the yaw, a camera tilt not at all, a print drawn wrong keeps its
+shape in the triangle's frame); a principal point off shifts the image as a camera tilt
+does, but leaves a keystone that turns with the yaw. From 24 level frames at 640x480
+they come out to 0.009 % and 0.43 px. When the check is significant
+(CAMERA_CHECK_QUANTILE) and the aspect is ASPECT_MIN or the principal point
+PRINCIPAL_POINT_MIN of the width off, the rig's [camera] is said to be wrong, with the
+values that fit, and nothing is written: the residuals such an error leaves would
+otherwise read as a wider noise (a sigma_scale of 5.5 for an aspect 0.5 % off, 1.33
+for a principal point 4 px off).
+
 The same fit checks the vertices' sigma on this camera: with each frame's yaw free, the
 weighted residuals' chi-square over its degrees of freedom (the a-posteriori variance
 factor of a least-squares adjustment) is the square of how much wider the vertices
@@ -32,6 +45,7 @@ from scipy.stats import chi2 as chi2_dist
 
 from visvec.data import Detection
 from visvec.errors import InputFileError
+from visvec.estimate.shear import ASPECT_MIN
 from visvec.rig import Rig
 from visvec.rotations import rot_x, rot_y, rot_z
 
@@ -40,6 +54,13 @@ MIN_YAW_SPREAD_DEG = 60.0
 # the vertices' scatter counts as wider than their sigma when chi-square exceeds this
 # quantile of its distribution under the covariance (a 1 % false alarm rate)
 SIGMA_CHECK_QUANTILE = 0.99
+# the camera check: significant when the chi-square falls by more than this quantile of
+# a chi-square of 3 degrees of freedom (aspect, principal point x and y) once they are
+# free; the rig's [camera] is then said to be wrong if the aspect is ASPECT_MIN off or
+# the principal point this share of the image width (2 px at 640: a principal point
+# 2 px off leaves the sigma check at 1.09, 4 px at 1.33)
+CAMERA_CHECK_QUANTILE = 0.999
+PRINCIPAL_POINT_MIN = 0.003
 # a frame whose own weighted residual (chi-square, 5 degrees of freedom: 6 vertex
 # coordinates less its yaw) exceeds this quantile is named as an outlier
 OUTLIER_QUANTILE = 0.999
@@ -60,6 +81,13 @@ class ZeroTiltResult:
         (sqrt of chi-square per degree of freedom), and sigma_ratio_95 : (2,) its 95 %
         interval; dof : int, the degrees of freedom
     sigma_scale : float, sigma_ratio if significantly above 1, else 1
+    camera check, the offsets fitted with the rig's camera model free besides:
+    aspect, sigma_aspect : its aspect error e (the true fy is about (1 + e) times the
+        rig's, for its fx), and its 1-sigma
+    principal_point_px, sigma_principal_point_px : (2,) the true principal point less
+        the rig's (cx, cy), and their 1-sigma
+    camera_off : the check significant and the error large enough to matter (see
+        calibrate_zero_tilt)
     outliers : (K,) bool, frames left out of the fit (see calibrate_zero_tilt); their
         yaw_deg and residual_px are against the offsets of the others
     """
@@ -81,6 +109,11 @@ class ZeroTiltResult:
     dof: int = 0
     sigma_scale: float = 1.0
     outliers: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
+    aspect: float = 0.0
+    sigma_aspect: float = float("inf")
+    principal_point_px: np.ndarray = field(default_factory=lambda: np.zeros(2))
+    sigma_principal_point_px: np.ndarray = field(default_factory=lambda: np.full(2, np.inf))
+    camera_off: bool = False
 
     def apply(self, rig: Rig) -> Rig:
         """The rig with the calibration applied."""
@@ -102,16 +135,28 @@ class ZeroTiltResult:
 N_COMMON = 5
 
 
-def _model(params: np.ndarray, rig: Rig, n: int) -> np.ndarray:
-    """(n, 3, 2) normalised projections for params = [dx, dy, a, b, dh, yaw_1..yaw_n]."""
+# the camera check's parameters, after the offsets: aspect e, principal point (px) x, y
+N_CAMERA = 3
+
+
+def _model(params: np.ndarray, rig: Rig, n: int, camera: bool = False) -> np.ndarray:
+    """(n, 3, 2) normalised projections for params = [dx, dy, a, b, dh, yaw_1..yaw_n]
+    (``camera``: [dx, dy, a, b, dh, e, px, py, yaw_1..]: seen through the rig's camera
+    model, y is (1 + e) times the true one, and x, y are shifted by px / fx, py / fy for
+    a true principal point (px, py) from the rig's)."""
     dx, dy, a, b, dh = params[:N_COMMON]
+    e, px, py = params[N_COMMON : N_COMMON + N_CAMERA] if camera else (0.0, 0.0, 0.0)
     v = rig.target.vertices_mm + np.array([dx, dy, dh])
     R_bc = rot_x(a) @ rot_y(b) @ rig.R_bc
     t_c = -R_bc.T @ rig.t_b
     out = np.empty((n, 3, 2))
-    for k, yaw in enumerate(params[N_COMMON:]):
+    for k, yaw in enumerate(params[N_COMMON + N_CAMERA * camera :]):
         p = v @ (R_bc.T @ rot_z(yaw).T).T + t_c
         out[k] = p[:, :2] / p[:, 2:3]
+    if camera:
+        out[:, :, 1] *= 1.0 + e
+        out[:, :, 0] += px / rig.camera.fx
+        out[:, :, 1] += py / rig.camera.fy
     return out
 
 
@@ -145,18 +190,27 @@ def _whitened(dets: list[Detection]) -> tuple[np.ndarray, list[np.ndarray]]:
     return meas, [np.linalg.cholesky(np.linalg.inv(d.cov_n)).T for d in dets]
 
 
-def _fit(dets: list[Detection], rig: Rig, yaw0: np.ndarray, x0: np.ndarray | None = None):
+def _fit(
+    dets: list[Detection],
+    rig: Rig,
+    yaw0: np.ndarray,
+    x0: np.ndarray | None = None,
+    camera: bool = False,
+):
     """Weighted least squares of [dx, dy, a, b, dh, yaw_1..yaw_K] over the frames'
-    vertices (x0: the N_COMMON offsets to start from)."""
+    vertices (x0: the N_COMMON offsets to start from; ``camera``: the camera check's
+    parameters fitted too, after them, from 0)."""
     n = len(dets)
     meas, Ls = _whitened(dets)
 
     def fun(p: np.ndarray) -> np.ndarray:
-        r = (_model(p, rig, n) - meas).reshape(n, 6)
+        r = (_model(p, rig, n, camera) - meas).reshape(n, 6)
         return np.concatenate([L @ ri for L, ri in zip(Ls, r, strict=True)])
 
-    start = np.concatenate([np.zeros(N_COMMON) if x0 is None else x0, yaw0])
-    scale = np.concatenate([[10.0, 10.0, 0.01, 0.01, 10.0], np.full(n, 0.01)])
+    common = np.zeros(N_COMMON) if x0 is None else x0
+    cam0, cam_scale = (np.zeros(N_CAMERA), [1e-3, 1.0, 1.0]) if camera else ([], [])
+    start = np.concatenate([common, cam0, yaw0])
+    scale = np.concatenate([[10.0, 10.0, 0.01, 0.01, 10.0], cam_scale, np.full(n, 0.01)])
     return least_squares(
         fun, start, x_scale=scale, method="trf", xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=200
     )
@@ -234,6 +288,19 @@ def calibrate_zero_tilt(dets: list[Detection], rig: Rig) -> ZeroTiltResult:
     ratio_95 = ratio * np.sqrt(dof / chi2_dist.ppf([0.975, 0.025], dof))
     wider = chi2_own > chi2_dist.ppf(SIGMA_CHECK_QUANTILE, dof)
     sig = np.sqrt(np.diag(cov))
+    # the camera check: the same frames with the camera's aspect and principal point free
+    check = _fit([dets[i] for i in idx], rig, sol.x[N_COMMON:], sol.x[:N_COMMON], camera=True)
+    check_chi2 = float(check.fun @ check.fun)
+    check_s2 = max(1.0, check_chi2 / max(dof - N_CAMERA, 1))
+    cam = slice(N_COMMON, N_COMMON + N_CAMERA)
+    check_x, check_sig = (
+        check.x[cam],
+        np.sqrt(np.diag(np.linalg.pinv(check.jac.T @ check.jac))[cam] * check_s2),
+    )
+    significant = (chi2 - check_chi2) / check_s2 > chi2_dist.ppf(CAMERA_CHECK_QUANTILE, N_CAMERA)
+    large = abs(check_x[0]) >= ASPECT_MIN or np.max(np.abs(check_x[1:])) >= (
+        PRINCIPAL_POINT_MIN * rig.camera.width
+    )
     # every frame's yaw: the fit's, or for a frame left out its own with the offsets fixed
     yaw = np.empty(n)
     yaw[idx] = sol.x[N_COMMON:]
@@ -262,6 +329,11 @@ def calibrate_zero_tilt(dets: list[Detection], rig: Rig) -> ZeroTiltResult:
         dof=dof,
         sigma_scale=ratio if wider else 1.0,
         outliers=~keep,
+        aspect=float(check_x[0]),
+        sigma_aspect=float(check_sig[0]),
+        principal_point_px=check_x[1:].copy(),
+        sigma_principal_point_px=check_sig[1:].copy(),
+        camera_off=bool(significant and large),
     )
 
 

@@ -62,7 +62,7 @@ def zero_tilt(frames, rig_path, calibration, out):
                 f"frame {frame.index}: skipped ({row.status}: {';'.join(row.warnings)})", err=True
             )
     res = calibrate_zero_tilt(dets, rig)
-    if res.converged:
+    if res.converged and not res.camera_off:
         # written before the report is printed: a reader that closes the pipe early
         # (`| head`) loses none of it
         header = (
@@ -74,6 +74,7 @@ def zero_tilt(frames, rig_path, calibration, out):
         f"zero-tilt calibration from {len(dets) - int(res.outliers.sum())} frames "
         f"({bad} skipped, {int(res.outliers.sum())} left out)"
     )
+    _camera_check(res, rig)
     click.echo(
         f"  target offset from the axis: dx {res.target_offset_mm[0]:+.2f} +- "
         f"{res.sigma_target_offset_mm[0]:.2f} mm, dy {res.target_offset_mm[1]:+.2f} +- "
@@ -126,6 +127,30 @@ def zero_tilt(frames, rig_path, calibration, out):
         click.echo("visvec: error: the calibration did not converge; nothing written", err=True)
         raise SystemExit(1)
     click.echo(f"wrote {out}")
+
+
+def _camera_check(res, rig) -> None:
+    """The zero-tilt frames' check of the rig's camera model (aspect fy / fx, principal
+    point); when they say it is wrong: what fits, and exit 1 (nothing was written)."""
+    cam = rig.camera
+    fy = cam.fy * (1.0 + res.aspect)
+    (dcx, dcy), (scx, scy) = res.principal_point_px, res.sigma_principal_point_px
+    verdict = "off" if res.camera_off else "consistent with the rig file"
+    click.echo(
+        f"  camera check: aspect fy / fx {fy / cam.fx:.5f} +- "
+        f"{cam.fy * res.sigma_aspect / cam.fx:.5f} (rig file {cam.fy / cam.fx:.5f}), principal "
+        f"point {dcx:+.2f} +- {scx:.2f}, {dcy:+.2f} +- {scy:.2f} px from the rig file's: {verdict}"
+    )
+    if res.camera_off:
+        click.echo(
+            f"visvec: error: the triangle's shape over these yaws says the rig's [camera] "
+            f"is wrong: it fits with fy = {fy:.2f}, cx = {cam.cx + dcx:.2f}, cy = "
+            f"{cam.cy + dcy:.2f} (fx {cam.fx:.2f}). Calibrate the camera (`visvec "
+            f"calibrate camera`) or put these in the rig's [camera], and run this again; "
+            f"nothing written",
+            err=True,
+        )
+        raise SystemExit(1)
 
 
 @calibrate.command("readout")

@@ -70,6 +70,10 @@ STATIC_PRIOR_PX = 0.05
 # principal point is only roughly central
 PRINCIPAL_POINT_PRIOR = 0.008
 ASPECT_PRIOR = 0.003
+# a camera aspect error is said (the run's closing note, calibrate zero-tilt) when its
+# estimate is this many of its sigma and this far (relative) from 0
+ASPECT_SIGMAS = 5.0
+ASPECT_MIN = 0.001
 # the residuals' chi-square per degree of freedom, the readout and the model errors
 # taken out, above which the evidence is not believed (an honest sigma gives 1; one a
 # third short, as on a compressed recording's edges, 2.25)
