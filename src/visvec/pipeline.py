@@ -245,8 +245,9 @@ class TrianglePipeline(AttitudePipeline):
     hints = {
         **Pipeline.hints,
         "inconsistent_geometry": "no attitude of the rig file's triangle explains the three "
-        "vertices: check the [camera] model (`visvec calibrate camera`: an aspect fy / fx "
-        "0.5 % off or a principal point 10 px off does this), [target] vertices_mm and [mount]; "
+        "vertices: check the [camera] model (an aspect fy / fx 0.5 % off or a principal point "
+        "10 px off does this; `visvec calibrate zero-tilt` on level frames at several yaws "
+        "says which, `visvec calibrate camera` measures it), [target] vertices_mm and [mount]; "
         "on a turning platform, a camera that reads its rows out one after another ([camera] "
         "readout_ms)",
         "no_triangle": "no bright region of the triangle's shape and size: is it in view "
