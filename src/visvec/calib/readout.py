@@ -27,15 +27,17 @@ turn (MIN_RATE_DPS).
 
 The grid's minimum takes the camera model as exact. A principal point a few px off
 leaves a keystone fixed in the image which, on a steady one-way turn, turns with the yaw
-as a shear does: with it 4 px off, 2 s recordings of a global shutter read 4-13 ms (up
-to 7.5 sigma) turning one way at 10-20 deg/s, and up to -4 ms (3 sigma) swinging out
-and back. So the grid's readout is then refined by linearised steps in which the
+as a shear does: with it 4 px off, 2 s recordings of a global shutter read up to 15 ms
+(13 sigma) turning one way at 10 deg/s and -17 to +12 ms (up to 8 sigma) swinging out
+and back (benchmarks/RESULTS.md). So the grid's readout is refined by linearised steps
+in which the
 principal point, the aspect and a pattern fixed in the triangle's frame are estimated
 beside it with their priors (:class:`visvec.estimate.shear.ReadoutEvidence`, the same
 evidence the pipeline gathers on a rig that declares no readout), each frame tracked
 with the last step's readout; the readout's 1-sigma is its marginal over those model
 errors. A turn whose rate changes (a swing) tells them apart; a steady one-way turn
-keeps the sigma wide (about 2x the grid's).
+of 2 s keeps the sigma wide (about 3x the grid's; a longer turn, through more yaw,
+narrows it).
 """
 
 from __future__ import annotations

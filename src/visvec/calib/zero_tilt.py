@@ -9,7 +9,7 @@ each frame's unknown yaw, by weighted least squares on the vertex positions
 offset without a yaw reference and is not estimated; nor can a sideways camera offset be
 told from a camera tilt (the target is one plane), so the rig's camera position is kept.
 
-Before that check, the frames test the rig's camera model: the fit is repeated with
+Before the sigma check below, the frames test the rig's camera model: the fit is repeated with
 the camera's aspect fy / fx and principal point free. A wrong aspect stretches the
 image along its columns, which changes the triangle's shape with twice the yaw (an
 offset moves it with the yaw, a camera tilt not at all, a print drawn wrong keeps its

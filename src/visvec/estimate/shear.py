@@ -70,8 +70,9 @@ STATIC_PRIOR_PX = 0.05
 # principal point is only roughly central
 PRINCIPAL_POINT_PRIOR = 0.008
 ASPECT_PRIOR = 0.003
-# a camera aspect error is said (the run's closing note, calibrate zero-tilt) when its
-# estimate is this many of its sigma and this far (relative) from 0
+# the run's closing note says the camera's aspect is off when its estimate is this many
+# of its sigma and this far (relative) from 0 (calibrate zero-tilt: the same least
+# error, its own significance test)
 ASPECT_SIGMAS = 5.0
 ASPECT_MIN = 0.001
 # the residuals' chi-square per degree of freedom, the readout and the model errors
