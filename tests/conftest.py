@@ -35,3 +35,14 @@ def shared(*parts: str) -> Path:
     if not p.exists():
         pytest.skip(f"shared data not available: {p}")
     return p
+
+
+def rig_variant(rig_path: Path, key: str, old: str, new: str, out: Path) -> Path:
+    """A copy of the rig file ``rig_path`` at ``out`` whose one line ``key = old`` (a
+    comment may follow) says ``key = new``: a lab whose rig file is wrong in one value."""
+    lines = Path(rig_path).read_text().splitlines(keepends=True)
+    hits = [i for i, line in enumerate(lines) if line.split("#")[0].split() == [key, "=", old]]
+    assert len(hits) == 1, f"{rig_path}: no single line {key} = {old}"
+    lines[hits[0]] = lines[hits[0]].replace(f"{key} = {old}", f"{key} = {new}", 1)
+    out.write_text("".join(lines))
+    return out

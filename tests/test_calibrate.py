@@ -13,7 +13,7 @@ from visvec.geometry import lab_to_camera
 from visvec.rotations import euler_to_matrix
 from visvec.sim.simulate import true_rig
 
-from conftest import CONFIGS, shared
+from conftest import CONFIGS, rig_variant, shared
 
 
 def _level_detections(rig, world, yaws, sigma_px=0.03, rng=None):
@@ -88,10 +88,7 @@ def test_calibrate_zero_tilt_cli_refuses_a_wrong_camera_model(tmp_path):
     """A rig file whose fy is 1 % too large: the level frames say so, give the fy that
     fits, and nothing is written (exit 1)."""
     rig_p = CONFIGS / "triangle-320.toml"
-    text = rig_p.read_text()
-    assert text.count("\nfy = 300.0") == 1
-    wrong = tmp_path / "wrong.toml"
-    wrong.write_text(text.replace("\nfy = 300.0", "\nfy = 303.0"))
+    wrong = rig_variant(rig_p, "fy", "300.0", "303.0", tmp_path / "wrong.toml")
     frames = tmp_path / "level"
     sim = ["simulate", "--rig", rig_p, "--out", frames, "--frames", 12, "--motion", "level"]
     assert CliRunner().invoke(cli, [str(a) for a in sim]).exit_code == 0
@@ -309,10 +306,7 @@ def test_calibrate_readout_is_not_fooled_by_a_principal_point_off(tmp_path):
     from 0 on this recording (+4.9 +- 1.9 ms); estimated beside the principal point and
     the aspect, the readout is within 2 sigma of 0 and 0 is written."""
     rig_p = CONFIGS / "triangle.toml"
-    text = rig_p.read_text()
-    assert text.count("\ncx = 319.5 ") == 1
-    true_rig = tmp_path / "true.toml"
-    true_rig.write_text(text.replace("\ncx = 319.5 ", "\ncx = 323.5 "))
+    true_rig = rig_variant(rig_p, "cx", "319.5", "323.5", tmp_path / "true.toml")
     rec = tmp_path / "swing"
     sim = ["simulate", "--rig", true_rig, "--out", rec, "--frames", 40, "--seed", 3]
     assert _invoke(*sim, "--motion", "swing", "--yaw-rate-dps", 20).exit_code == 0

@@ -18,7 +18,7 @@ from visvec.errors import SourceError
 from visvec.rig import load_rig
 from visvec.sources import VideoSource
 
-from conftest import CONFIGS, ROOT
+from conftest import CONFIGS, ROOT, rig_variant
 
 RIG = str(CONFIGS / "triangle.toml")
 SAMPLES = ROOT / "data" / "sample_frames"
@@ -595,10 +595,7 @@ def test_batch_says_when_the_camera_aspect_is_off(tmp_path):
     not the rig file's 1.005. The rig's own camera: every frame ok, nothing to say."""
     sim = ["simulate", "--rig", RIG, "--frames", 60, "--seed", 3, "--motion", "sweep"]
     assert run(*sim, "--yaw-rate-dps", 20, "--out", tmp_path / "frames").exit_code == 0
-    text = Path(RIG).read_text()
-    assert "\nfy = 600.0\n" in text
-    rig = tmp_path / "rig.toml"
-    rig.write_text(text.replace("\nfy = 600.0\n", "\nfy = 603.0\n"))
+    rig = rig_variant(RIG, "fy", "600.0", "603.0", tmp_path / "rig.toml")
     r = run("batch", tmp_path / "frames", "--rig", rig, "--out", tmp_path / "rows.csv")
     assert r.exit_code == 0
     rows = rows_of((tmp_path / "rows.csv").read_text())
