@@ -206,8 +206,9 @@ def test_readout_evidence_counts_what_a_correction_took_out(rig640):
     triangle's frame (0.1 px, the target off where the rig file puts it) is told apart
     from a shear: alone it reads as no shutter. On a one-way turn at a steady rate a
     principal point 4 px off shears the residuals as a 15 ms shutter would: estimated
-    beside the readout, it reads as none. An aspect error is estimated too; vertices
-    scattered wider than their sigma leave the residuals unexplained: not believed."""
+    beside the readout, it reads as none. An aspect error is estimated too, also from
+    frames at rest (which measure no readout); vertices scattered wider than their sigma
+    leave the residuals unexplained: not believed."""
     from visvec.detect.edges import shutter_shift
     from visvec.estimate.shear import MAX_FIT_CHI2_DOF, ReadoutEvidence, _triangle_frame
 
@@ -259,6 +260,14 @@ def test_readout_evidence_counts_what_a_correction_took_out(rig640):
     # the aspect is one of the model errors: estimated, the shear still shows
     ev = evidence(back_and_forth, 0.025, aspect=0.015)
     assert ev.suspected() and ev.fit_chi2_per_dof() < 0.5, ev.readout_ms()
+    e, s = ev.aspect()
+    assert abs(e - 0.015) < max(3.0 * s, 1e-4), (e, s)
+    # frames at rest: no readout to measure (no rate), the camera's aspect still is
+    still = frames(out, [np.zeros(3)] * len(out))
+    ev = evidence(still, 0.0, aspect=0.004)
+    assert np.isnan(ev.readout_ms()[0]) and not ev.suspected()
+    e, s = ev.aspect()
+    assert abs(e - 0.004) < max(3.0 * s, 1e-4) and np.isfinite(ev.fit_chi2_per_dof()), (e, s)
     # vertices scattered 4x wider than their sigma: no model explains that
     rng = np.random.default_rng(3)
     noisy = [

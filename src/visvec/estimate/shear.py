@@ -139,8 +139,8 @@ class ReadoutEvidence:
     chi2: float = 0.0
     dof: float = 0.0
     n: int = 0
-    # _solve() since the last frame added
-    _cached: tuple[float, float, float] | None = field(default=None, repr=False, init=False)
+    # _posterior() since the last frame added
+    _cached: tuple[np.ndarray, np.ndarray] | None = field(default=None, repr=False, init=False)
     # the priors' information, added to ``info`` (none on the readout)
     _prior_info: np.ndarray = field(repr=False, init=False)
 
@@ -191,15 +191,23 @@ class ReadoutEvidence:
         self.n += 1
         self._cached = None
 
+    def _posterior(self) -> tuple[np.ndarray, np.ndarray]:
+        """(covariance, estimate) of all the parameters, the priors included. Frames
+        without a rate (the readout unseen: info[0, 0] = 0) leave the readout at 0."""
+        if self._cached is None:
+            A = self.info + self._prior_info
+            if A[0, 0] <= 0:
+                A[0, 0] = 1.0  # its row and rhs are 0: k = 0, and readout_ms() says NaN
+            cov = np.linalg.inv(A)
+            self._cached = (cov, cov @ self.rhs)
+        return self._cached
+
     def _solve(self) -> tuple[float, float, float]:
         """(k, its 1-sigma, chi-square per degree of freedom left), k in s."""
-        if self._cached is None:
-            cov = np.linalg.inv(self.info + self._prior_info)
-            theta = cov @ self.rhs
-            left = self.dof - float(np.vdot(cov, self.info))
-            fit = (self.chi2 - float(theta @ self.rhs)) / max(left, 1.0)
-            self._cached = (float(theta[0]), float(np.sqrt(cov[0, 0])), fit)
-        return self._cached
+        cov, theta = self._posterior()
+        left = self.dof - float(np.vdot(cov, self.info))
+        fit = (self.chi2 - float(theta @ self.rhs)) / max(left, 1.0)
+        return float(theta[0]), float(np.sqrt(cov[0, 0])), fit
 
     def readout_ms(self) -> tuple[float, float]:
         """(estimate, 1-sigma) in ms, the model errors marginalised; NaN before any frame
@@ -221,8 +229,8 @@ class ReadoutEvidence:
         model errors marginalised. NaN before any frame."""
         if not self.n:
             return float("nan"), float("nan")
-        cov = np.linalg.inv(self.info + self._prior_info)
-        return float((cov @ self.rhs)[ASPECT]), float(np.sqrt(cov[ASPECT, ASPECT]))
+        cov, theta = self._posterior()
+        return float(theta[ASPECT]), float(np.sqrt(cov[ASPECT, ASPECT]))
 
     def suspected(self) -> bool:
         """True when the frames say the camera rolls: the readout MIN_SIGMAS from zero
