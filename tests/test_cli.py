@@ -251,6 +251,8 @@ def test_status_lines_for_an_operator(tmp_path, capsys):
     assert lines[-1].startswith("visvec: 4 frames, 3 ok (75.0 %),")
     last = rows_of(out.read_text())[2]
     assert f"last ok (frame 2): yaw {float(last['yaw_deg']):+.4f}, pitch" in lines[-1]
+    # and why the others were not ok
+    assert lines[-1].endswith("; not ok: read_error 1") and "not ok" not in lines[0]
 
 
 def test_a_long_run_does_not_hold_its_rows_in_memory(tmp_path):

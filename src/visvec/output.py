@@ -88,6 +88,12 @@ class Row:
     def ok(self) -> bool:
         return self.status is Status.OK
 
+    @property
+    def reason(self) -> str:
+        """Why a row is not ok, as counted in a run's notes: its warning codes, or its
+        status when it has none."""
+        return ";".join(self.warnings) or self.status.value
+
     def quantities(self) -> list[tuple[str, float, int]]:
         raise NotImplementedError
 

@@ -152,7 +152,7 @@ class Pipeline:
         row = self._process(frame, t_in)
         self.n_rows += 1
         if not row.ok:
-            self.refused[";".join(row.warnings) or row.status.value] += 1
+            self.refused[row.reason] += 1
         return row
 
     def _process(self, frame: Frame, t_in: float | None) -> Row:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import sys
 import time
+from collections import Counter
 from pathlib import Path
 
 import click
@@ -130,9 +131,14 @@ class FrameRecorder:
         self._times.close()
 
 
+# the reasons a status line names for the rows not ok (the most frequent first)
+PROGRESS_REASONS = 2
+
+
 class Progress:
     """A status line on stderr every ``interval`` seconds, for an operator watching a run
-    whose rows go to a file: frames, the ok share, the frame rate, the last ok values."""
+    whose rows go to a file: frames, the ok share, the frame rate, the last ok values,
+    and why the others were not ok."""
 
     def __init__(self, interval: float):
         self.interval = interval
@@ -140,12 +146,15 @@ class Progress:
         self.next = self.t0 + interval
         self.n = self.n_ok = 0
         self.last: Row | None = None
+        self.refused: Counter[str] = Counter()
 
     def update(self, row: Row) -> None:
         self.n += 1
         if row.ok:
             self.n_ok += 1
             self.last = row
+        else:
+            self.refused[row.reason] += 1
         now = time.monotonic()
         if now >= self.next:
             self.next = now + self.interval
@@ -163,6 +172,9 @@ class Progress:
                 for name, v in zip(type(self.last).value_columns, self.last.values(), strict=True)
             )
             text += f"; last ok (frame {self.last.frame}): {vals}"
+        if self.refused:
+            top = self.refused.most_common(PROGRESS_REASONS)
+            text += "; not ok: " + ", ".join(f"{reason} {n}" for reason, n in top)
         return text
 
 
