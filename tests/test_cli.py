@@ -613,6 +613,23 @@ def test_batch_says_when_the_camera_aspect_is_off(tmp_path):
     assert {x["status"] for x in rows_of((tmp_path / "exact.csv").read_text())} == {"ok"}
 
 
+def test_batch_says_when_the_camera_principal_point_is_off(tmp_path):
+    """A rig file whose cx is 10 px right of the camera's: two frames in three refused,
+    and over a swing out and back (where the principal point's keystone is told from a
+    shear) the run ends naming the principal point that fits, within 3 sigma of the
+    camera's."""
+    sim = ["simulate", "--rig", RIG, "--frames", 60, "--seed", 1, "--motion", "swing"]
+    assert run(*sim, "--yaw-rate-dps", 10, "--out", tmp_path / "frames").exit_code == 0
+    rig = rig_variant(RIG, "cx", "319.5", "329.5", tmp_path / "rig.toml")
+    r = run("batch", tmp_path / "frames", "--rig", rig, "--out", tmp_path / "rows.csv")
+    assert r.exit_code == 0 and "frames not ok (inconsistent_geometry" in r.stderr
+    note = [line for line in r.stderr.splitlines() if "principal point is about" in line]
+    assert len(note) == 1 and "calibrate camera" in note[0], r.stderr
+    cx, sigma = note[0].split("principal point is about cx ")[1].split(",")[0].split(" +- ")
+    assert abs(float(cx) - 319.5) < 3.0 * float(sigma) and float(sigma) < 3.0, note
+    assert "rolling shutter" not in r.stderr
+
+
 def test_batch_says_when_the_frames_show_a_rolling_shutter_the_rig_does_not(tmp_path):
     """A rolling-shutter webcam (25 ms) swinging out and back at up to 20 deg/s under a
     rig file that says global shutter: the first frames are sheared (refused, or ok and

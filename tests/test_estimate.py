@@ -257,16 +257,18 @@ def test_readout_evidence_counts_what_a_correction_took_out(rig640):
     ev = evidence(one_way, 0.0, cx_px=4.0)
     est, sigma = ev.readout_ms()
     assert not ev.suspected() and abs(est) < 3.0 * sigma, (est, sigma)
+    (cx, cy, _), (s_cx, s_cy, _) = ev.camera_errors()
+    assert abs(cx - 4.0) < 3.0 * s_cx and abs(cy) < 3.0 * s_cy, (cx, s_cx, cy, s_cy)
     # the aspect is one of the model errors: estimated, the shear still shows
     ev = evidence(back_and_forth, 0.025, aspect=0.015)
     assert ev.suspected() and ev.fit_chi2_per_dof() < 0.5, ev.readout_ms()
-    e, s = ev.aspect()
+    (_, _, e), (_, _, s) = ev.camera_errors()
     assert abs(e - 0.015) < max(3.0 * s, 1e-4), (e, s)
     # frames at rest: no readout to measure (no rate), the camera's aspect still is
     still = frames(out, [np.zeros(3)] * len(out))
     ev = evidence(still, 0.0, aspect=0.004)
     assert np.isnan(ev.readout_ms()[0]) and not ev.suspected()
-    e, s = ev.aspect()
+    (_, _, e), (_, _, s) = ev.camera_errors()
     assert abs(e - 0.004) < max(3.0 * s, 1e-4) and np.isfinite(ev.fit_chi2_per_dof()), (e, s)
     # vertices scattered 4x wider than their sigma: no model explains that
     rng = np.random.default_rng(3)

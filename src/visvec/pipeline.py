@@ -34,7 +34,13 @@ from visvec.estimate.markers import solve_markers
 from visvec.estimate.planar import MIN_LAMPS, PlanarSolution, solve_planar
 from visvec.estimate.pnp import PNP_FLAGS, solve_pnp
 from visvec.estimate.rate import MIN_STARS, RateSolution, estimate_rate, unit_vectors
-from visvec.estimate.shear import ASPECT_MIN, ASPECT_SIGMAS, MAX_FIT_CHI2_DOF, ReadoutEvidence
+from visvec.estimate.shear import (
+    ASPECT_MIN,
+    CAMERA_NOTE_SIGMAS,
+    MAX_FIT_CHI2_DOF,
+    PRINCIPAL_POINT_MIN,
+    ReadoutEvidence,
+)
 from visvec.estimate.triangle_full import CHI2_REJECT, HeightTrack
 from visvec.lamps import Catalog
 from visvec.output import AttitudeRow, PoseRow, RateRow, Row, attitude_row
@@ -336,7 +342,7 @@ class TrianglePipeline(AttitudePipeline):
                 f"calibrate zero-tilt` write it"
             )
         if self.shear is not None:
-            notes += self._aspect_note()
+            notes += self._camera_note()
         if self.shear is not None and self.shear.suspected():
             # first order, from frames the shear may have refused: a rough figure
             k, s = self.shear.readout_ms()
@@ -350,24 +356,39 @@ class TrianglePipeline(AttitudePipeline):
             )
         return notes
 
-    def _aspect_note(self) -> list[str]:
-        """The camera's aspect fy / fx, when the frames (at least MIN_HEIGHT_FRAMES) say
-        the rig file's is off (ASPECT_SIGMAS, ASPECT_MIN; see ReadoutEvidence.aspect) and
-        the model errors explain their residuals: an aspect 0.5 % off refuses every frame
-        as inconsistent_geometry."""
+    def _camera_note(self) -> list[str]:
+        """The camera's aspect fy / fx and principal point, when the frames (at least
+        MIN_HEIGHT_FRAMES) say the rig file's are off (CAMERA_NOTE_SIGMAS, and ASPECT_MIN
+        or PRINCIPAL_POINT_MIN; see ReadoutEvidence.camera_errors) and the model errors
+        explain their residuals: an aspect 0.5 % off refuses every frame as
+        inconsistent_geometry, a principal point 10 px off two in three."""
         ev = self.shear
-        e, s = ev.aspect()
-        explained = ev.fit_chi2_per_dof() <= MAX_FIT_CHI2_DOF
-        if not (
-            ev.n >= MIN_HEIGHT_FRAMES and explained and abs(e) > max(ASPECT_SIGMAS * s, ASPECT_MIN)
-        ):
+        if ev.n < MIN_HEIGHT_FRAMES or not ev.fit_chi2_per_dof() <= MAX_FIT_CHI2_DOF:
             return []
+        (dcx, dcy, e), sig = ev.camera_errors()
         cam = self.rig.camera
+        least = np.r_[PRINCIPAL_POINT_MIN * cam.width, PRINCIPAL_POINT_MIN * cam.width, ASPECT_MIN]
+        off = np.abs([dcx, dcy, e]) > np.maximum(CAMERA_NOTE_SIGMAS * sig, least)
+        parts = []
+        if off[2]:
+            parts.append(
+                f"aspect fy / fx is {cam.fy / cam.fx * (1 + e):.4f} +- "
+                f"{cam.fy / cam.fx * sig[2]:.4f}, not the rig file's {cam.fy / cam.fx:.4f} "
+                f"(fy about {cam.fy * (1 + e):.1f} px for fx {cam.fx:.1f})"
+            )
+        if off[0] or off[1]:
+            parts.append(
+                f"principal point is about cx {cam.cx + dcx:.1f} +- {sig[0]:.1f}, cy "
+                f"{cam.cy + dcy:.1f} +- {sig[1]:.1f} px, not the rig file's ({cam.cx:.1f}, "
+                f"{cam.cy:.1f})"
+            )
+        if not parts:
+            return []
         return [
-            f"visvec: the triangle's shape over {ev.n} frames says the camera's aspect "
-            f"fy / fx is {cam.fy / cam.fx * (1 + e):.4f} +- {cam.fy / cam.fx * s:.4f}, not "
-            f"the rig file's {cam.fy / cam.fx:.4f} (fy about {cam.fy * (1 + e):.1f} px for fx "
-            f"{cam.fx:.1f}): calibrate the camera (`visvec calibrate camera`)"
+            f"visvec: the triangle's shape over {ev.n} frames says the camera's "
+            + " and ".join(parts)
+            + ": calibrate the camera (`visvec calibrate camera`; `visvec calibrate "
+            "zero-tilt` checks it on level frames)"
         ]
 
     def _solve(self, det, guess) -> AttitudeSolution:

@@ -45,7 +45,7 @@ from scipy.stats import chi2 as chi2_dist
 
 from visvec.data import Detection
 from visvec.errors import InputFileError
-from visvec.estimate.shear import ASPECT_MIN
+from visvec.estimate.shear import ASPECT_MIN, PRINCIPAL_POINT_MIN
 from visvec.rig import Rig
 from visvec.rotations import rot_x, rot_y, rot_z
 
@@ -57,10 +57,9 @@ SIGMA_CHECK_QUANTILE = 0.99
 # the camera check: significant when the chi-square falls by more than this quantile of
 # a chi-square of 3 degrees of freedom (aspect, principal point x and y) once they are
 # free; the rig's [camera] is then said to be wrong if the aspect is ASPECT_MIN off or
-# the principal point this share of the image width (2 px at 640: a principal point
-# 2 px off leaves the sigma check at 1.09, 4 px at 1.33)
+# the principal point PRINCIPAL_POINT_MIN of the image width (2 px at 640: a principal
+# point 2 px off leaves the sigma check at 1.09, 4 px at 1.33)
 CAMERA_CHECK_QUANTILE = 0.999
-PRINCIPAL_POINT_MIN = 0.003
 # a frame whose own weighted residual (chi-square, 5 degrees of freedom: 6 vertex
 # coordinates less its yaw) exceeds this quantile is named as an outlier
 OUTLIER_QUANTILE = 0.999

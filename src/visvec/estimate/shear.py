@@ -38,6 +38,14 @@ rate changes (turning back and forth, slewing and holding) shows a 25 ms shutter
 within about 70-90 frames; a steady one-way turn cannot tell it from a principal point
 2 px off, and the readout stays unsuspected for most of it.
 
+Each frame's residuals are judged with its height free (:meth:`VertexResidual.
+unconstrained`): the height the pipeline carries from frame to frame lags the frame's
+own, and its pull on the fit, which a principal point error makes turn with the yaw,
+read as a -8 ms shutter on an 8 s one-way turn (principal point 4 px off, before
+zero-tilt) and hid the principal point itself (1.0 px read for 4). The price: the part
+of a shear that looks like a change of height (a stretch along the columns) no longer
+counts.
+
 The evidence is believed only when it explains the residuals: after the readout and
 the model errors are taken out, the chi-square per degree of freedom must be under
 MAX_FIT_CHI2_DOF (a model error of another kind, an aspect error beyond its prior,
@@ -70,11 +78,13 @@ STATIC_PRIOR_PX = 0.05
 # principal point is only roughly central
 PRINCIPAL_POINT_PRIOR = 0.008
 ASPECT_PRIOR = 0.003
-# the run's closing note says the camera's aspect is off when its estimate is this many
-# of its sigma and this far (relative) from 0 (calibrate zero-tilt: the same least
-# error, its own significance test)
-ASPECT_SIGMAS = 5.0
+# the run's closing note says the camera's aspect or principal point is off when its
+# estimate is this many of its sigma and at least this far from 0 (the aspect relative,
+# the principal point as a share of the image width: 2 px at 640); calibrate zero-tilt
+# says so at the same least errors, with its own significance test
+CAMERA_NOTE_SIGMAS = 5.0
 ASPECT_MIN = 0.001
+PRINCIPAL_POINT_MIN = 0.003
 # the residuals' chi-square per degree of freedom, the readout and the model errors
 # taken out, above which the evidence is not believed (an honest sigma gives 1; one a
 # third short, as on a compressed recording's edges, 2.25)
@@ -82,8 +92,8 @@ MAX_FIT_CHI2_DOF = 3.0
 # the evidence's parameters: the readout, the static pattern (6), the image-fixed
 # errors (principal point x, y in px; aspect)
 N_PARAMS = 10
-# the aspect error's place among them
-ASPECT = 9
+# the camera's errors among them (principal point x, y; aspect)
+CAMERA = slice(7, 10)
 # the x and y rows of the three vertices in a (6,) pattern (x1, y1, x2, ...)
 _X, _Y = np.arange(0, 6, 2), np.arange(1, 6, 2)
 
@@ -172,6 +182,10 @@ class ReadoutEvidence:
         ``rows`` and the camera rate omega_c (rad/s, camera axes) at the time; its
         vertices already taken out with a readout of ``applied_ms`` (the residuals then
         measure what is left, k - applied, and k0 = applied is added back)."""
+        # each frame judged with its height free: the height carried from the frames
+        # before lags the frame's own, and its pull, which a principal point error makes
+        # turn with the yaw, read as a -8 ms shutter (4 px off, before zero-tilt)
+        residual = residual.unconstrained()
         # seen = centre row - A omega readout: the pattern of a unit (1 s) readout
         design = np.empty((6, N_PARAMS))
         design[:, 0] = -shutter_shift(xy, rows, camera, 1.0, omega_c, lever)
@@ -222,15 +236,16 @@ class ReadoutEvidence:
         model errors are taken out (about 1 when they explain the residuals)."""
         return self._solve()[2] if self.n else float("nan")
 
-    def aspect(self) -> tuple[float, float]:
-        """(estimate, 1-sigma) of the camera's aspect error, relative: the frames see
-        y = (v - cy) / fy as (1 + e) times the true one, so the rig's fy is (1 + e) times
-        too small for its fx (the true fy is about fy (1 + e)); the readout and the other
-        model errors marginalised. NaN before any frame."""
+    def camera_errors(self) -> tuple[np.ndarray, np.ndarray]:
+        """(estimate, 1-sigma), each (3,), of the camera's calibration errors: the true
+        principal point less the rig's (cx, cy in px), and the aspect error e (the frames
+        see y = (v - cy) / fy as (1 + e) times the true one: the true fy is about
+        fy (1 + e)); the readout and the other model errors marginalised. NaN before any
+        frame."""
         if not self.n:
-            return float("nan"), float("nan")
+            return np.full(3, np.nan), np.full(3, np.nan)
         cov, theta = self._posterior()
-        return float(theta[ASPECT]), float(np.sqrt(cov[ASPECT, ASPECT]))
+        return theta[CAMERA].copy(), np.sqrt(np.diag(cov)[CAMERA])
 
     def suspected(self) -> bool:
         """True when the frames say the camera rolls: the readout MIN_SIGMAS from zero

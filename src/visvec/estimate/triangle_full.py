@@ -77,6 +77,15 @@ class VertexResidual:
         a, b = -(Wg.T @ self.r), g.T @ Wg - JWg.T @ self.C @ JWg
         return (float(a), float(b)) if g.ndim == 1 else (a, b)
 
+    def unconstrained(self) -> VertexResidual:
+        """The same fit with its parameters' prior taken away, to first order: C0 =
+        (J^T W J)^-1 and r0 = (I - J C0 J^T W) r. A prior whose mean is not the frame's
+        own (the height carried from the frames before) pulls the fit and leaves its
+        pull in r; r0 holds only what no parameter value explains."""
+        JW = self.J.T @ self.W
+        C0 = np.linalg.inv(JW @ self.J)
+        return VertexResidual(self.r - self.J @ (C0 @ (JW @ self.r)), self.W, self.J, C0)
+
 
 # The height's random walk from one frame to the next (mm, 1-sigma per frame): the running
 # estimate's memory. With a frame's own estimate good to r (0.4 mm at 640x480, about
