@@ -280,6 +280,23 @@ def test_readout_evidence_counts_what_a_correction_took_out(rig640):
     assert ev.fit_chi2_per_dof() > MAX_FIT_CHI2_DOF and not ev.suspected(), ev.readout_ms()
 
 
+def test_a_residual_without_its_prior_keeps_only_what_no_parameter_explains(rig640):
+    """Exact vertices fitted under a tight height prior 1.5 mm off (the height carried
+    from earlier frames, lagging): the prior pulls the fit and its pull is left in the
+    residuals; taken without the prior (first order), they vanish, and the fit's
+    parameters then take up a height-like pattern entirely."""
+    det = _detection(rig640, euler_to_matrix(0.7, 0.04, -0.03))
+    held = solve_full(det, rig640, height_prior=(1.5, 0.05)).residual
+    pull = np.abs(held.r).max() * rig640.camera.fx
+    assert pull > 0.05, pull  # px: the prior's pull is there
+    free = held.unconstrained()
+    assert np.abs(free.r).max() * rig640.camera.fx < 1e-3 * pull
+    # a change of height is a parameter: nothing of it is left to explain
+    height_like = held.J[:, -1]
+    _, b = free.explain(height_like)
+    assert abs(b) < 1e-9 * float(height_like @ held.W @ height_like)
+
+
 @pytest.mark.parametrize("yaw_deg", [-179.0, -90.0, 0.0, 45.0, 180.0])
 def test_closed_form_start_is_exact_on_exact_points(rig640, yaw_deg):
     R = euler_to_matrix(np.radians(yaw_deg), np.radians(4.0), np.radians(-6.0))
