@@ -185,7 +185,10 @@ class ReadoutEvidence:
         # each frame judged with its height free: the height carried from the frames
         # before lags the frame's own, and its pull, which a principal point error makes
         # turn with the yaw, read as a -8 ms shutter (4 px off, before zero-tilt)
-        residual = residual.unconstrained()
+        try:
+            residual = residual.unconstrained()
+        except np.linalg.LinAlgError:
+            return  # vertices that alone do not fix the parameters measure nothing here
         # seen = centre row - A omega readout: the pattern of a unit (1 s) readout
         design = np.empty((6, N_PARAMS))
         design[:, 0] = -shutter_shift(xy, rows, camera, 1.0, omega_c, lever)
