@@ -199,12 +199,11 @@ class ReadoutEvidence:
         self.rhs += a + b[:, 0] * ka
         # the chi-square of theta is chi2 - 2 theta.rhs + theta.info.theta (+ priors): a
         # frame's r W r, with its residuals' share of k taken as k - ka, gains 2 ka a0 +
-        # ka^2 b00; its degrees of freedom are 6 less what the fit's parameters take
+        # ka^2 b00; its degrees of freedom are 6 less the fit's parameters (with no prior
+        # left, trace(C J^T W J) is their number)
         self.chi2 += float(residual.r @ residual.W @ residual.r) + 2.0 * ka * a[0]
         self.chi2 += ka * ka * b[0, 0]
-        # (trace(C A) of symmetric C and A as their elementwise product's sum)
-        JWJ = residual.J.T @ residual.W @ residual.J
-        self.dof += 6.0 - float(np.vdot(residual.C, JWJ))
+        self.dof += 6.0 - residual.J.shape[1]
         self.n += 1
         self._cached = None
 
