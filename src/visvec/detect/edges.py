@@ -101,14 +101,14 @@ class EdgeFit:
         return np.array([max(g[(v + 1) % 3, 1], g[(v + 2) % 3, 0]) for v in range(3)])
 
 
-def _side_lengths(p: np.ndarray) -> np.ndarray:
+def side_lengths(p: np.ndarray) -> np.ndarray:
     """(3,) side lengths, side i opposite vertex i."""
     return np.linalg.norm(p[[1, 2, 0]] - p[[2, 0, 1]], axis=1)
 
 
-def _corner_angles(p: np.ndarray, sides: np.ndarray | None = None) -> np.ndarray:
-    """(3,) interior angles (rad) from the law of cosines (``sides``: _side_lengths(p))."""
-    a, b, c = (_side_lengths(p) if sides is None else sides).tolist()
+def corner_angles(p: np.ndarray, sides: np.ndarray | None = None) -> np.ndarray:
+    """(3,) interior angles (rad) from the law of cosines (``sides``: side_lengths(p))."""
+    a, b, c = (side_lengths(p) if sides is None else sides).tolist()
     cos0 = (b * b + c * c - a * a) / (2 * b * c)
     cos1 = (a * a + c * c - b * b) / (2 * a * c)
     a0, a1 = np.arccos(np.clip([cos0, cos1], -1.0, 1.0))
@@ -422,11 +422,11 @@ def fit_edges(
             half = half0
         # near a vertex of angle alpha the other edge is d sin(alpha) away: keep the
         # profiles (and the blur around them) clear of it
-        sides = _side_lengths(corners)
+        sides = side_lengths(corners)
         trims = np.maximum(
             trim * sides.min(),
             (half + ext + 2.0 * w_mid + 0.5)
-            / np.sin(np.clip(_corner_angles(corners, sides), 0.2, None)),
+            / np.sin(np.clip(corner_angles(corners, sides), 0.2, None)),
         )
         spacing = SPARSE_SPACING_PX if npass == 0 else PROFILE_SPACING_PX
         bases, normals, gid, index, t, along, vals, lengths = _sample(
@@ -462,18 +462,27 @@ def fit_edges(
         ideal = camera.undistort(pts_px) * f
         if shutter is not None:
             ideal = _unroll(ideal / f, pts_px[:, 1], camera, *shutter) * f
-        centre_ideal = camera.undistort(corners.mean(axis=0)[None, :])[0] * f
         # an edge's points with a clear step; all of them if fewer than 5 are clear
         use = clear | (np.bincount(gid, clear, 3) < 5)[gid]
         normals_l, offsets, centres, spreads, sigmas, keep = _robust_lines(
             ideal[:, 0], ideal[:, 1], gid, index, use, sigma_floor, 3 if npass == 1 else 1
         )
+        # normals into the triangle: towards the mean of the three edges' centres (a
+        # point on each side: inside)
+        flip = np.where(normals_l @ centres.mean(axis=0) < offsets, -1.0, 1.0)
+        normals_l, offsets = normals_l * flip[:, None], offsets * flip
+        new = camera.distort(_vertices(normals_l, offsets)[0] / f)
+        size = float(sides.max())
+        failed = not np.all(np.isfinite(new)) or np.abs(new - corners).max() > 0.25 * size + 3.0
+        if npass == 0 and not failed:
+            # a first pass only places the fine profiles: its lines' statistics are not
+            # needed
+            corners = new
+            continue
         # the levels' error, common to the edge's profiles (see _level_gain): added per
         # point, so that over the count it is the variance of the line's shift from the
         # fitted level line
         sigmas = np.hypot(sigmas, level_px / np.maximum(np.abs(h_mid), 1e-6))
-        flip = np.where(normals_l @ centre_ideal < offsets, -1.0, 1.0)
-        normals_l, offsets = normals_l * flip[:, None], offsets * flip
         counts = np.bincount(gid, keep, 3)
         n_profiles = np.bincount(gid, minlength=3)
         outl = 1.0 - counts / n_profiles
@@ -500,9 +509,7 @@ def fit_edges(
             gaps,
             width.copy(),
         )
-        new = camera.distort(intersect(fit, with_cov=False)[0] / f)
-        size = float(sides.max())
-        if not np.all(np.isfinite(new)) or np.abs(new - corners).max() > 0.25 * size + 3.0:
+        if failed:
             # near-parallel lines from a region that is not a clean triangle: stop here
             return replace(fit, ok=False)
         corners = new
@@ -611,11 +618,12 @@ def shutter_cov(
     return A @ cov_omega @ A.T
 
 
-def _vertices(fit: EdgeFit) -> tuple[np.ndarray, list | None]:
-    """Vertices (3, 2) in ideal pixels and, per vertex i, the inverse of the 2x2 matrix
-    [n_j; n_k] of its two lines (Cramer's rule: x = A^-1 [o_j, o_k]); all NaN and None
-    when two lines are parallel."""
-    nrm, off = fit.normals.tolist(), fit.offsets.tolist()
+def _vertices(normals: np.ndarray, offsets: np.ndarray) -> tuple[np.ndarray, list | None]:
+    """Vertices (3, 2) in ideal pixels of the lines n . x = offset (line i opposite
+    vertex i) and, per vertex i, the inverse of the 2x2 matrix [n_j; n_k] of its two
+    lines (Cramer's rule: x = A^-1 [o_j, o_k]); all NaN and None when two lines are
+    parallel."""
+    nrm, off = normals.tolist(), offsets.tolist()
     V = np.empty((3, 2))
     invs = []
     for i in range(3):
@@ -639,7 +647,7 @@ def intersect(fit: EdgeFit, with_cov: bool = True) -> tuple[np.ndarray, np.ndarr
     eps_o + eps_a * s(x), s = along-line distance from the centre. Stacking the six line
     errors, vertex displacements are linear in them: cov = J diag(var) J^T.
     """
-    V, invs = _vertices(fit)
+    V, invs = _vertices(fit.normals, fit.offsets)
     if not with_cov:
         return V, None
     if invs is None:

@@ -16,7 +16,14 @@ import numpy as np
 
 from visvec.data import Detection, Status
 from visvec.detect.candidates import Candidate, iter_candidates, partial_triangle
-from visvec.detect.edges import fit_edges, intersect, shutter_cov, shutter_shift
+from visvec.detect.edges import (
+    corner_angles,
+    fit_edges,
+    intersect,
+    shutter_cov,
+    shutter_shift,
+    side_lengths,
+)
 from visvec.geometry import project_target
 from visvec.rig import Rig
 
@@ -55,14 +62,11 @@ SATURATED_LEVEL = 250.0
 CORNER_SIGMA_PX = 0.35
 
 
-def _angles(p: np.ndarray) -> np.ndarray:
-    """(3,) interior angles (rad) of the triangle with vertices p (3, 2)."""
-    out = np.zeros(3)
-    for i in range(3):
-        a, b = p[(i + 1) % 3] - p[i], p[(i + 2) % 3] - p[i]
-        c = a @ b / (np.linalg.norm(a) * np.linalg.norm(b))
-        out[i] = np.arccos(np.clip(c, -1.0, 1.0))
-    return out
+# the (6,) covariance index of each identification's vertex order (x0, y0, x1, ...)
+_PERM_INDEX = {
+    perm: np.array([c for v in perm for c in (2 * v, 2 * v + 1)])
+    for perm in ((0, 1, 2), (0, 2, 1), (1, 0, 2), (1, 2, 0), (2, 0, 1), (2, 1, 0))
+}
 
 
 def _signed_area(p: np.ndarray) -> float:
@@ -93,7 +97,7 @@ class TriangleDetector:
         self.expected_sign = np.sign(_signed_area(xy))
         sides = np.array([np.linalg.norm(xy[(i + 1) % 3] - xy[(i + 2) % 3]) for i in range(3)])
         self.expected_side_ratio = sides / sides.sum()
-        self.expected_angles_deg = np.degrees(_angles(xy))
+        self.expected_angles_deg = np.degrees(corner_angles(xy))
         self.expected_apex_deg = float(self.expected_angles_deg[0])
         self.expected_sides_px = sides
         # search on a shrunk image where the triangle is about 40 px tall
@@ -305,21 +309,20 @@ class TriangleDetector:
             fit_contrast, outliers = fit.contrast.min(), fit.outlier_fraction.max()
             vertex_gap = float(fit.vertex_gaps().max())
             level_mid = float(np.mean(fit.mid_level))
-        if not np.all(np.isfinite(xy)):
+        sides = side_lengths(xy)
+        if not np.all(np.isfinite(xy)) or not sides.min() > 0.0:
             return self._reject("degenerate_triangle", warnings, mean, cand)
 
         # identification: the most acute vertex first, then the rig's handedness
-        ang = np.degrees(_angles(xy))
-        order = np.argsort(ang)
-        apex = int(order[0])
-        others = [i for i in range(3) if i != apex]
-        perm = [apex, *others]
-        if np.sign(_signed_area(xy[perm])) != self.expected_sign:
-            perm = [apex, others[1], others[0]]
-        p = np.asarray(perm)
-        xy, pts_px = xy[p], pts_px[p]
-        idx = np.ravel(np.column_stack([2 * p, 2 * p + 1]))
-        cov = cov[np.ix_(idx, idx)]
+        ang = np.degrees(corner_angles(xy, sides))
+        apex = int(np.argmin(ang))
+        perm = (apex, (apex + 1) % 3, (apex + 2) % 3)
+        if np.sign(_signed_area(xy[list(perm)])) != self.expected_sign:
+            perm = (apex, perm[2], perm[1])
+        p = list(perm)
+        xy, pts_px, sides = xy[p], pts_px[p], sides[p]
+        idx = _PERM_INDEX[perm]
+        cov = cov[idx][:, idx]
         # sigma_scale: measured by `calibrate zero-tilt` where the frames' noise is wider
         # than the edge model's (a codec's block errors)
         cov_n = cov * (s.sigma_scale / cam.fx) ** 2
@@ -328,7 +331,6 @@ class TriangleDetector:
         area = abs(_signed_area(xy))
         if abs(area / self.expected_area - 1.0) > AREA_TOL:
             return self._reject("area_mismatch", warnings, mean, cand, pts_px)
-        sides = np.array([np.linalg.norm(xy[(i + 1) % 3] - xy[(i + 2) % 3]) for i in range(3)])
         if np.max(np.abs(sides / sides.sum() - self.expected_side_ratio)) > SIDE_RATIO_TOL:
             return self._reject("shape_mismatch", warnings, mean, cand, pts_px)
         if abs(ang[apex] - self.expected_apex_deg) > APEX_ANGLE_TOL_DEG:
