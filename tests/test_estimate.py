@@ -6,7 +6,12 @@ import numpy as np
 import pytest
 
 from visvec.data import Detection, Status
-from visvec.estimate.rotation import initial_rotation, residuals_and_jacobian, shift_jacobian
+from visvec.estimate.rotation import (
+    initial_rotation,
+    residuals_and_jacobian,
+    residuals_and_jacobian_shift,
+    shift_jacobian,
+)
 from visvec.estimate.triangle_full import HeightTrack, solve_full
 from visvec.estimate.triangle_paper import solve_paper
 from visvec.geometry import camera_offset_c, lab_to_camera
@@ -56,6 +61,20 @@ def test_height_jacobian_matches_central_differences(rig640):
     np.testing.assert_allclose(
         shift_jacobian(R_cn, t_c, X, up), (rp - rm) / (2 * h), rtol=1e-6, atol=1e-13
     )
+
+
+def test_joint_jacobian_is_the_rotation_and_height_jacobians(rig640, rng):
+    """The Gauss-Newton's one-pass (2N, 4) Jacobian equals the two tested above."""
+    R_cn = rig640.R_bc.T @ euler_to_matrix(2.1, -0.06, 0.08).T
+    t_c = camera_offset_c(rig640)
+    X, up = rig640.target.vertices_mm + [0.0, 0.0, 12.0], np.array([0.0, 0.0, 1.0])
+    xy = rng.normal(size=(3, 2)) * 0.1
+    r3, J3 = residuals_and_jacobian(R_cn, t_c, X, xy)
+    r, J = residuals_and_jacobian_shift(R_cn, t_c, X, xy, up)
+    assert J.shape == (6, 4)
+    np.testing.assert_allclose(r, r3, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(J[:, :3], J3, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(J[:, 3], shift_jacobian(R_cn, t_c, X, up), rtol=1e-12, atol=1e-15)
 
 
 @pytest.mark.parametrize("height_mm", [-25.0, 6.0, 40.0])

@@ -154,6 +154,33 @@ def shift_jacobian(R: np.ndarray, t_c: np.ndarray, X: np.ndarray, axis: np.ndarr
     return np.column_stack([(e[0] - u * e[2]) * iz, (e[1] - v * e[2]) * iz]).ravel()
 
 
+def residuals_and_jacobian_shift(
+    R: np.ndarray, t_c: np.ndarray, X: np.ndarray, xy: np.ndarray, axis: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`residuals_and_jacobian` and :func:`shift_jacobian` in one (2N, 4) Jacobian
+    (columns d, then s), for the Gauss-Newton of :func:`_fit_with_shift`: the projection
+    is computed once and the Jacobian filled in place (the same values)."""
+    q = X @ R.T
+    p = q + t_c
+    iz = 1.0 / p[:, 2]
+    u, v = p[:, 0] * iz, p[:, 1] * iz
+    r = np.empty(2 * len(X))
+    r[0::2] = u - xy[:, 0]
+    r[1::2] = v - xy[:, 1]
+    qx, qy, qz = q[:, 0], q[:, 1], q[:, 2]
+    e = R @ axis
+    J = np.empty((len(X), 2, 4))
+    J[:, 0, 0] = -qy * u * iz
+    J[:, 0, 1] = (qz + qx * u) * iz
+    J[:, 0, 2] = -qy * iz
+    J[:, 0, 3] = (e[0] - u * e[2]) * iz
+    J[:, 1, 0] = -(qy * v + qz) * iz
+    J[:, 1, 1] = qx * v * iz
+    J[:, 1, 2] = qx * iz
+    J[:, 1, 3] = (e[1] - v * e[2]) * iz
+    return r, J.reshape(-1, 4)
+
+
 def fit_rotation(
     t_c: np.ndarray,
     X: np.ndarray,
@@ -207,9 +234,7 @@ def _fit_with_shift(
     converged = False
     it = 0
     while True:
-        Xs = X + s * prior.axis
-        r, J3 = residuals_and_jacobian(R, t_c, Xs, xy)
-        J = np.column_stack([J3, shift_jacobian(R, t_c, Xs, prior.axis)])
+        r, J = residuals_and_jacobian_shift(R, t_c, X + s * prior.axis, xy, prior.axis)
         JtW = J.T @ W
         N = JtW @ J
         N[3, 3] += w_s
