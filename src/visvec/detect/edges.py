@@ -233,9 +233,13 @@ def _sample(
     D = corners[[2, 0, 1]] - A
     length = np.sqrt(np.einsum("ij,ij->i", D, D))
     D = D / np.maximum(length, 1e-9)[:, None]
-    N = np.column_stack([-D[:, 1], D[:, 0]])
-    # normals point into the triangle
-    N *= np.where(np.einsum("ij,ij->i", N, corners.mean(axis=0) - A) < 0, -1.0, 1.0)[:, None]
+    # normals point into the triangle: the left normal (-Dy, Dx) of edges run v1 -> v2
+    # -> v0 -> v1 does when (v1 - v0) x (v2 - v0) > 0
+    (ax, ay), (bx, by) = (corners[1] - corners[0]).tolist(), (corners[2] - corners[0]).tolist()
+    inward = 1.0 if ax * by - ay * bx > 0 else -1.0
+    N = np.empty((3, 2))
+    N[:, 0] = -inward * D[:, 1]
+    N[:, 1] = inward * D[:, 0]
     s0 = np.minimum(trims[[1, 2, 0]], 0.4 * length)
     s1 = length - np.minimum(trims[[2, 0, 1]], 0.4 * length)
     m = np.clip((s1 - s0) / spacing, 4, MAX_PROFILES_PER_EDGE).astype(int)

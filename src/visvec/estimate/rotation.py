@@ -123,24 +123,28 @@ def initial_rotation(t_c: np.ndarray, p_n: np.ndarray, xy: np.ndarray) -> np.nda
     a geometry that is off) is clamped to zero: the start is then approximate and
     Gauss-Newton finishes the job.
     """
-    b = np.column_stack([xy, np.ones(len(xy))])
-    b /= np.linalg.norm(b, axis=1)[:, None]
+    b = np.empty((len(xy), 3))
+    b[:, :2] = xy
+    b[:, 2] = 1.0
+    b /= np.sqrt(np.einsum("ij,ij->i", b, b))[:, None]
     bt = b @ t_c
     disc = bt**2 - t_c @ t_c + np.einsum("ij,ij->i", p_n, p_n)
     root = np.sqrt(np.maximum(disc, 0.0))
-    best, best_cost = None, np.inf
+    found = []
     for sign in (1.0, -1.0):
         lam = bt + sign * root
-        if np.any(lam <= 0):
+        if lam.min() <= 0:
             continue
         R = _procrustes(p_n, lam[:, None] * b - t_c)
         p = p_n @ R.T + t_c
-        if np.any(p[:, 2] <= 0):
+        if p[:, 2].min() <= 0:
             continue
-        cost = float(np.sum((p[:, :2] / p[:, 2:3] - xy) ** 2))
-        if cost < best_cost:
-            best, best_cost = R, cost
-    return best
+        found.append((R, p))
+    if len(found) < 2:
+        # one branch in front (a ceiling target: the - root is behind the camera)
+        return found[0][0] if found else None
+    costs = [float(np.sum((p[:, :2] / p[:, 2:3] - xy) ** 2)) for _, p in found]
+    return found[int(np.argmin(costs))][0]
 
 
 def shift_jacobian(R: np.ndarray, t_c: np.ndarray, X: np.ndarray, axis: np.ndarray):
