@@ -138,24 +138,30 @@ def _group_linear(
 
 def _group_tls(
     x: np.ndarray, y: np.ndarray, gid: np.ndarray, keep: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Total-least-squares line through each edge's kept points (x, y), all three at once.
 
     Returns the count (3,), centre (3, 2), unit direction (3, 2), unit normal (3, 2) and
-    the centred coordinates (dx, dy) of every point (M, 2) about its edge's centre.
+    the centred coordinates dx, dy (M,) of every point about its edge's centre.
     """
     w = keep.astype(float)
     k = np.bincount(gid, w, 3)
     kk = np.maximum(k, 1.0)
-    c = np.column_stack([np.bincount(gid, w * x, 3) / kk, np.bincount(gid, w * y, 3) / kk])
+    c = np.empty((3, 2))
+    c[:, 0] = np.bincount(gid, w * x, 3) / kk
+    c[:, 1] = np.bincount(gid, w * y, 3) / kk
     dx, dy = x - c[gid, 0], y - c[gid, 1]
-    sxx = np.bincount(gid, w * dx * dx, 3)
+    wdx = w * dx
+    sxx = np.bincount(gid, wdx * dx, 3)
     syy = np.bincount(gid, w * dy * dy, 3)
-    sxy = np.bincount(gid, w * dx * dy, 3)
+    sxy = np.bincount(gid, wdx * dy, 3)
     # direction: principal axis of each 2x2 scatter matrix, angle 0.5 atan2(2 sxy, sxx - syy)
     a = 0.5 * np.arctan2(2.0 * sxy, sxx - syy)
-    d = np.column_stack([np.cos(a), np.sin(a)])
-    return k, c, d, np.column_stack([-d[:, 1], d[:, 0]]), np.column_stack([dx, dy])
+    d = np.empty((3, 2))
+    d[:, 0], d[:, 1] = np.cos(a), np.sin(a)
+    n = np.empty((3, 2))
+    n[:, 0], n[:, 1] = -d[:, 1], d[:, 0]
+    return k, c, d, n, dx, dy
 
 
 def _group_median(a: np.ndarray, gid: np.ndarray, index: np.ndarray, keep: np.ndarray):
@@ -189,10 +195,10 @@ def _robust_lines(
     (3,), and the inlier mask (M,).
     """
     keep = use.copy()
-    k, c, d, n, q = _group_tls(x, y, gid, keep)
+    k, c, d, n, dx, dy = _group_tls(x, y, gid, keep)
     active = np.ones(3, dtype=bool)
     for _ in range(rounds):
-        a = np.abs(q[:, 0] * n[gid, 0] + q[:, 1] * n[gid, 1])
+        a = np.abs(dx * n[gid, 0] + dy * n[gid, 1])
         sigma = np.maximum(1.4826 * _group_median(a, gid, index, keep), floor)
         new = use & (a <= np.maximum(3.5 * sigma, 0.25)[gid])
         changed = np.bincount(gid, new != keep, 3) > 0
@@ -200,10 +206,10 @@ def _robust_lines(
         if not active.any():
             break
         keep = np.where(active[gid], new, keep)
-        k, c, d, n, q = _group_tls(x, y, gid, keep)
+        k, c, d, n, dx, dy = _group_tls(x, y, gid, keep)
     w = keep.astype(float)
-    r = q[:, 0] * n[gid, 0] + q[:, 1] * n[gid, 1]
-    t = q[:, 0] * d[gid, 0] + q[:, 1] * d[gid, 1]
+    r = dx * n[gid, 0] + dy * n[gid, 1]
+    t = dx * d[gid, 0] + dy * d[gid, 1]
     # EDGE_VARIANCE_INFLATION: neighbouring profiles share pixels through the bilinear
     # sampling, so the points are not independent.
     rss = np.bincount(gid, w * r * r, 3)
