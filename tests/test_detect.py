@@ -865,3 +865,17 @@ def test_region_search_finds_a_triangle_inside_a_hole_with_its_pixel_area():
     # corners of the enclosing triangle near the drawn ones (order free)
     d = np.linalg.norm(c.corners_px[:, None, :] - tri[None, :, :], axis=2)
     assert d.min(axis=0).max() < 3.0
+
+
+def test_fast_erf_is_within_abramowitz_stegun_bound():
+    """The edge fit's erf (A&S 7.1.26, sharing exp(-u^2) with its Gauss-Newton) stays
+    within the formula's 1.5e-7 of scipy's, odd, and exact at 0 and far out."""
+    from scipy.special import erf
+
+    from visvec.detect.edges import erf_with_bell
+
+    u = np.concatenate([np.linspace(-6.0, 6.0, 20001), [0.0, -0.0, 30.0, -30.0]])
+    got = erf_with_bell(u, np.exp(-u * u))
+    assert np.max(np.abs(got - erf(u))) < 1.5e-7
+    np.testing.assert_allclose(erf_with_bell(-u, np.exp(-u * u)), -got, atol=0)
+    assert abs(got[-4]) < 1e-9 and got[-2] == 1.0 and got[-1] == -1.0
