@@ -1,4 +1,5 @@
 import numpy as np
+import pytest
 from hypothesis import example, given
 from hypothesis import strategies as st
 
@@ -52,8 +53,9 @@ def test_expmap_small_and_large_angles():
     np.testing.assert_allclose(R, euler_to_matrix(np.pi / 2, 0, 0), atol=1e-15)
 
 
-def test_euler_rate_jacobian_matches_central_differences():
-    e0 = np.array([0.7, 0.08, -0.05])
+@pytest.mark.parametrize("e0", [(0.7, 0.08, -0.05), (-2.9, -0.17, 0.15), (1.2, 0.6, 1.1)], ids=str)
+def test_euler_rate_jacobian_matches_central_differences(e0):
+    e0 = np.array(e0)
     R0 = euler_to_matrix(*e0)
     J = euler_rates_from_body(*e0)
     h = 1e-6

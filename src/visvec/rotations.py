@@ -147,15 +147,15 @@ def euler_rates_from_body(yaw: float, pitch: float, roll: float) -> np.ndarray:
     eps = [droll - sin(pitch) dyaw,
            cos(roll) dpitch + sin(roll) cos(pitch) dyaw,
            -sin(roll) dpitch + cos(roll) cos(pitch) dyaw];
-    this returns the inverse of that map, ordered (yaw, pitch, roll). Singular at
-    pitch = +-90 deg, far outside an air bearing's range.
+    this returns the inverse of that map, ordered (yaw, pitch, roll), in closed form:
+    dyaw = (sin(roll) eps2 + cos(roll) eps3) / cos(pitch), dpitch = cos(roll) eps2 -
+    sin(roll) eps3, droll = eps1 + sin(pitch) dyaw. Singular at pitch = +-90 deg, far
+    outside an air bearing's range.
     """
     del yaw
-    sr, cr = np.sin(roll), np.cos(roll)
-    sp, cp = np.sin(pitch), np.cos(pitch)
-    # columns: d/d(yaw, pitch, roll) of eps
-    E = np.array([[-sp, 0.0, 1.0], [sr * cp, cr, 0.0], [cr * cp, -sr, 0.0]])
-    return np.linalg.inv(E)
+    sr, cr = math.sin(roll), math.cos(roll)
+    tp, ip = math.tan(pitch), 1.0 / math.cos(pitch)
+    return np.array([[0.0, sr * ip, cr * ip], [0.0, cr, -sr], [1.0, sr * tp, cr * tp]])
 
 
 def logmap(R: np.ndarray) -> np.ndarray:
