@@ -102,7 +102,7 @@ class TriangleDetector:
         xy = cam.undistort(self.expected_px) * cam.fx
         self.expected_area = abs(_signed_area(xy))
         self.expected_sign = np.sign(_signed_area(xy))
-        sides = np.array([np.linalg.norm(xy[(i + 1) % 3] - xy[(i + 2) % 3]) for i in range(3)])
+        sides = side_lengths(xy)
         self.expected_side_ratio = sides / sides.sum()
         self.expected_angles_deg = np.degrees(corner_angles(xy))
         self.expected_apex_deg = float(self.expected_angles_deg[0])
