@@ -7,6 +7,7 @@ from visvec.rotations import (
     euler_rates_from_body,
     euler_to_matrix,
     expmap,
+    logmap,
     matrix_to_euler,
     matrix_to_quat,
     quat_to_matrix,
@@ -51,6 +52,20 @@ def test_expmap_small_and_large_angles():
     )
     R = expmap(np.array([0.0, 0.0, np.pi / 2]))
     np.testing.assert_allclose(R, euler_to_matrix(np.pi / 2, 0, 0), atol=1e-15)
+
+
+@pytest.mark.parametrize(
+    "theta", [0.0, 1e-12, 1e-7, 1e-3, 0.5, np.pi / 2 - 1e-9, np.pi / 2 + 1e-9, 2.5, np.pi - 1e-6]
+)
+def test_logmap_inverts_expmap_from_zero_to_pi(theta):
+    # the skew-part path (below 90 deg) and the quaternion path (beyond) both invert
+    # expmap to rounding, relative to the angle at small angles
+    rng = np.random.default_rng(int(theta * 1e6) % 1000)
+    for _ in range(50):
+        axis = rng.normal(size=3)
+        w = axis / np.linalg.norm(axis) * theta
+        err = np.linalg.norm(logmap(expmap(w)) - w)
+        assert err <= 1e-14 * max(theta, 1e-300) if theta < 1 else err < 1e-9
 
 
 @pytest.mark.parametrize("e0", [(0.7, 0.08, -0.05), (-2.9, -0.17, 0.15), (1.2, 0.6, 1.1)], ids=str)

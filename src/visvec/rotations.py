@@ -161,8 +161,18 @@ def euler_rates_from_body(yaw: float, pitch: float, roll: float) -> np.ndarray:
 def logmap(R: np.ndarray) -> np.ndarray:
     """Rotation vector w with exp([w]x) = R (the inverse of :func:`expmap`), |w| <= pi.
 
-    Goes through the quaternion, which stays accurate for small and large angles.
+    Below 90 deg from the skew part, w = theta / (2 sin theta) vee(R - R^T), with theta
+    from atan2(sin, cos) (accurate at small angles, where acos of the trace is not; math
+    on scalars, a few microseconds); beyond, where sin theta shrinks towards pi, through
+    the quaternion, which stays accurate up to pi.
     """
+    (a, b, c), (d, e, f), (g, h, i) = R.tolist()
+    x, y, z = h - f, c - g, d - b  # vee(R - R^T) = 2 sin(theta) axis
+    cos_t = 0.5 * (a + e + i - 1.0)
+    if cos_t > 0.0:
+        sin_t = 0.5 * math.sqrt(x * x + y * y + z * z)
+        k = 0.5 if sin_t < 1e-300 else 0.5 * math.atan2(sin_t, cos_t) / sin_t
+        return np.array([k * x, k * y, k * z])
     q = matrix_to_quat(R)
     v = q[1:]
     s = float(np.linalg.norm(v))
