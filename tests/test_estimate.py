@@ -15,7 +15,13 @@ from visvec.estimate.rotation import (
 from visvec.estimate.triangle_full import HeightTrack, solve_full
 from visvec.estimate.triangle_paper import solve_paper
 from visvec.geometry import camera_offset_c, lab_to_camera
-from visvec.rotations import euler_rates_from_body, euler_to_matrix, expmap, matrix_to_euler
+from visvec.rotations import (
+    euler_rates_from_body,
+    euler_to_matrix,
+    expmap,
+    logmap,
+    matrix_to_euler,
+)
 
 ARCSEC = np.radians(1.0 / 3600.0)
 EXACT_TOL = 0.01 * ARCSEC
@@ -384,16 +390,27 @@ def test_paper_estimator_yaw_and_tilt_signs(rig640):
 
 def test_tracking_starts_from_the_last_attitude_and_finds_the_same_one(rig640):
     """While the detector tracks, Gauss-Newton starts from the last frame's attitude
-    instead of the closed form: same minimum, and the start is really used."""
+    turned on at the last rate instead of the closed form: same minimum, and the start
+    is really used."""
     from visvec.data import Frame
     from visvec.pipeline import TrianglePipeline
     from visvec.sim.render import render_frame
     from visvec.sim.scene import Scene
 
+    def angle_deg(A, B):
+        return np.degrees(np.linalg.norm(logmap(A.T @ B)))
+
     pipe = TrianglePipeline(rig640)
     used = 0
     for k in range(6):
+        # a steady turn: 9 deg/s in yaw, 3 deg/s in pitch
         R = euler_to_matrix(np.radians(10 + 0.3 * k), np.radians(1 - 0.1 * k), np.radians(2))
+        if k >= 2:
+            # the last attitude is a frame's turn (0.32 deg) from this one; turned on at
+            # the rate between the last two, it is within their noise (yaw sigma 0.01 deg
+            # a frame: the extrapolation's sqrt(5) x that)
+            assert angle_deg(pipe.R_last, R) > 0.3
+            assert angle_deg(pipe._predicted(k / 30), R) < 0.1
         prior = pipe.height.prior()  # the running height, the same for both fits
         row = pipe.process(Frame(k, k / 30, render_frame(rig640, R, Scene(), rng=k)))
         assert row.ok
@@ -402,4 +419,8 @@ def test_tracking_starts_from_the_last_attitude_and_finds_the_same_one(rig640):
         closed = solve_full(pipe.last_detection, rig640, None, prior)
         np.testing.assert_allclose(pipe.last_solution.R_nb, closed.R_nb, atol=1e-8)
         used += tracked and pipe.last_solution.iterations != closed.iterations
+        if k >= 2:
+            # from the predicted start, no more iterations than from the closed form
+            # (3 from the last attitude alone)
+            assert pipe.last_solution.iterations <= closed.iterations
     assert used >= 1  # the start differed from the closed form's
