@@ -1,5 +1,6 @@
 import cv2
 import numpy as np
+import pytest
 
 from visvec.camera import CameraModel
 
@@ -23,6 +24,18 @@ def test_undistort_inverts_distort(rng):
     cam = _cam()
     xy = rng.uniform(-0.4, 0.4, (100, 2))
     np.testing.assert_allclose(cam.undistort(cam.distort(xy)), xy, atol=1e-9)
+
+
+@pytest.mark.parametrize(
+    "dist", [(-0.28, 0.07, 0.001, -0.0005, 0.0), (-0.42, 0.3, 0.0, 0.0, -0.2)], ids=str
+)
+def test_undistort_reprojects_to_the_pixel_over_the_whole_image(dist):
+    # a webcam's distortion and a strong one, to the image corners: the Newton steps
+    # after OpenCV's iteration stop only once every point reprojects
+    cam = CameraModel(640, 480, 600.0, 600.0, 319.5, 239.5, np.array(dist))
+    u, v = np.meshgrid(np.linspace(0, 639, 17), np.linspace(0, 479, 13))
+    uv = np.column_stack([u.ravel(), v.ravel()])
+    np.testing.assert_allclose(cam.distort(cam.undistort(uv)), uv, atol=1e-8)
 
 
 def test_points_behind_camera_are_nan():
