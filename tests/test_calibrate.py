@@ -198,14 +198,22 @@ def test_calibrate_zero_tilt_cli_end_to_end(tmp_path):
         ],
     )
     assert r.exit_code == 0, r.output
+    # an earlier calibration (as a readout's would be) applied first
+    pre = tmp_path / "pre.toml"
+    pre.write_text("[platform]\nmax_tilt_deg = 8.0\n")
     cal = tmp_path / "cal.toml"
     r = CliRunner().invoke(
-        cli, ["calibrate", "zero-tilt", str(frames), "--rig", str(rig_p), "--out", str(cal)]
+        cli,
+        ["calibrate", "zero-tilt", str(frames), "--rig", str(rig_p)]
+        + ["--calibration", str(pre), "--out", str(cal)],
     )
     assert r.exit_code == 0, r.output
     assert "target offset from the axis: dx +1" in r.output
     assert "sigma check: the vertices scatter" in r.output
+    # how later runs apply it: after the calibration it was made on
+    assert f"later runs take --calibration {pre} --calibration {cal}" in r.output
     text = cal.read_text()
+    assert f"+ calibration {pre}, frames" in text.splitlines()[1]
     assert "[mount]" in text and "[target]" in text and "[zero_tilt]" in text
     # clean frames: the edge model's sigma holds, and the file says so
     assert "[detect]" in text and "sigma_scale = 1.0" in text
@@ -216,6 +224,8 @@ def test_calibrate_zero_tilt_cli_end_to_end(tmp_path):
             str(frames),
             "--rig",
             str(rig_p),
+            "--calibration",
+            str(pre),
             "--calibration",
             str(cal),
             "--truth",
@@ -229,6 +239,34 @@ def test_calibrate_zero_tilt_cli_end_to_end(tmp_path):
 
     rows = list(csv.DictReader(io.StringIO(r.stdout)))
     assert all(abs(float(x["roll_deg"])) < 0.05 and abs(float(x["pitch_deg"])) < 0.05 for x in rows)
+
+
+def test_calibrate_zero_tilt_takes_one_recording_per_yaw(tmp_path):
+    """Level frames recorded one folder per yaw stop (the platform is handled between
+    them): the same calibration as from one folder of the same frames; a missing folder
+    is refused before any work."""
+    import shutil
+
+    rig_p = CONFIGS / "triangle-320.toml"
+    frames = tmp_path / "level"
+    sim = ["simulate", "--rig", rig_p, "--out", frames, "--frames", 6, "--motion", "level"]
+    assert _invoke(*sim, "--target-offset-mm", 10, 5).exit_code == 0
+    stops = [tmp_path / "yaw-a", tmp_path / "yaw-b", tmp_path / "yaw-c"]
+    for k, png in enumerate(sorted(frames.glob("frame_*.png"))):
+        stops[k // 2].mkdir(exist_ok=True)
+        shutil.copy(png, stops[k // 2])
+    one = _invoke("calibrate", "zero-tilt", frames, "--rig", rig_p, "--out", tmp_path / "1.toml")
+    assert one.exit_code == 0, one.output
+    many = _invoke("calibrate", "zero-tilt", *stops, "--rig", rig_p, "--out", tmp_path / "3.toml")
+    assert many.exit_code == 0, many.output
+    offset = [r for r in one.output.splitlines() if "target offset" in r]
+    assert offset and offset == [r for r in many.output.splitlines() if "target offset" in r]
+    assert f"{stops[2]}: frame_0005.png: yaw" in many.output
+    assert f"frames {stops[0]} {stops[1]} {stops[2]} (6 used)" in (tmp_path / "3.toml").read_text()
+    gone = _invoke(
+        "calibrate", "zero-tilt", *stops, tmp_path / "nope", "--rig", rig_p, "--out", tmp_path / "x"
+    )
+    assert gone.exit_code == 3 and "nope" in gone.output and "yaw-a" not in gone.output
 
 
 def test_camera_calibration_reproduces_opencv_reference():

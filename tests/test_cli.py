@@ -304,6 +304,12 @@ def test_track_can_keep_the_frames_for_a_replay(tmp_path):
     for a, b in zip(live, replay, strict=True):
         a.pop("latency_ms"), b.pop("latency_ms")
         assert a == b
+    # a second recording into the same folder is refused before the camera is opened,
+    # and the first is left whole
+    times = (saved / "times.csv").read_text()
+    r3 = run("track", "--rig", RIG, "--camera", 7, "--save-frames", saved, "--max-frames", 2)
+    assert r3.exit_code == 2 and "already holds a recording" in r3.output, r3.output
+    assert (saved / "times.csv").read_text() == times
 
 
 def test_camera_that_stops_delivering_is_retried_then_raises(monkeypatch):

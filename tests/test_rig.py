@@ -120,6 +120,29 @@ def test_calibration_file_overrides_named_keys(tmp_path):
         load_rig(rig_p, cal)
 
 
+def test_calibration_files_apply_in_order(tmp_path):
+    # camera, then readout, then zero-tilt: each overrides the keys it names, a later
+    # file wins, and a bad key in any of them is refused naming the rig and the files
+    rig_p = write(tmp_path, GOOD)
+    cam, readout, bad = tmp_path / "cam.toml", tmp_path / "readout.toml", tmp_path / "bad.toml"
+    cam.write_text("[camera]\nfx = 612.0\nfy = 611.0\n")
+    readout.write_text("[camera]\nreadout_ms = 21.5\nfy = 613.0\n")
+    rig = load_rig(rig_p, [cam, readout])
+    assert (rig.camera.fx, rig.camera.fy, rig.readout_ms) == (612.0, 613.0, 21.5)
+    rig = load_rig(rig_p, [readout, cam])
+    assert (rig.camera.fy, rig.readout_ms) == (611.0, 21.5)
+    # a bad key is named with the file it came from
+    bad.write_text("[camera]\nfx = -1.0\n")
+    with pytest.raises(ConfigError, match=r"bad.toml: \[camera\] fx = -1.0: expected"):
+        load_rig(rig_p, (cam, bad))
+    bad.write_text("[camera]\nfz = 600.0\n")
+    with pytest.raises(ConfigError, match=r"bad.toml: \[camera\] unknown key\(s\) \['fz'\]"):
+        load_rig(rig_p, (cam, bad))
+    # a key from the rig file is named with the rig file
+    with pytest.raises(ConfigError, match=r"rig.toml: \[camera\] fx = -1.0"):
+        load_rig(write(tmp_path, GOOD.replace("fx = 600.0", "fx = -1.0")), readout)
+
+
 MARKERS = (CONFIGS / "markers.toml").read_text()
 
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import math
 import tomllib
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
@@ -203,12 +203,20 @@ class Rig:
 class _Section:
     """Typed access to one TOML table that remembers which keys were read."""
 
-    def __init__(self, path: str, name: str, table: Mapping[str, Any]):
+    def __init__(
+        self,
+        path: str,
+        name: str,
+        table: Mapping[str, Any],
+        origin: Mapping[str, str] | None = None,
+    ):
+        # origin: the file each key came from, when calibration files override the rig
         self.path, self.name, self.table = path, name, table
+        self.origin = origin or {}
         self.used: set[str] = set()
 
     def _where(self, key: str) -> str:
-        return f"{self.path}: [{self.name}] {key}"
+        return f"{self.origin.get(key, self.path)}: [{self.name}] {key}"
 
     def has(self, key: str) -> bool:
         return key in self.table
@@ -278,8 +286,10 @@ class _Section:
     def check_unknown(self) -> None:
         extra = sorted(set(self.table) - self.used)
         if extra:
+            files = sorted({self.origin.get(k, self.path) for k in extra})
             raise ConfigError(
-                f"{self.path}: [{self.name}] unknown key(s) {extra}; known: {sorted(self.used)}"
+                f"{', '.join(files)}: [{self.name}] unknown key(s) {extra}; "
+                f"known: {sorted(self.used)}"
             )
 
 
@@ -321,8 +331,10 @@ def _rotation(sec: _Section, key: str) -> np.ndarray:
 _SECTIONS = ("camera", "mount", "target", "platform", "detect", "zero_tilt", "source", "report")
 
 
-def load_rig(path: str | Path, calibration: str | Path | None = None) -> Rig:
-    """Read and validate a rig file, optionally overridden by a calibration file.
+def load_rig(path: str | Path, calibration: str | Path | Sequence[str | Path] | None = None) -> Rig:
+    """Read and validate a rig file, optionally overridden by calibration files: one, or
+    several applied in order (each overrides the keys it names, so a later file wins:
+    camera, then readout, then zero-tilt).
 
     Raises
     ------
@@ -331,19 +343,34 @@ def load_rig(path: str | Path, calibration: str | Path | None = None) -> Rig:
     """
     path = Path(path)
     raw = _read_toml(path, "rig")
-    src = str(path)
-    if calibration is not None:
-        cal = _read_toml(Path(calibration), "calibration")
+    if calibration is None:
+        calibration = ()
+    elif isinstance(calibration, str | Path):
+        calibration = (calibration,)
+    # the file each key comes from, named in the errors: the last that sets it
+    origins = {k: dict.fromkeys(t, str(path)) for k, t in raw.items() if isinstance(t, dict)}
+    for cal_path in calibration:
+        cal = _read_toml(Path(cal_path), "calibration")
         bad = sorted(set(cal) - set(_SECTIONS))
         if bad:
-            raise ConfigError(f"{calibration}: unknown section(s) {bad}")
+            raise ConfigError(f"{cal_path}: unknown section(s) {bad}")
         raw = _merge(raw, cal)
-        src = f"{path} (+ {calibration})"
-    return rig_from_dict(raw, src, base_dir=path.parent)
+        for name, table in cal.items():
+            if isinstance(table, dict):
+                origins.setdefault(name, {}).update(dict.fromkeys(table, str(cal_path)))
+    src = f"{path} (+ {', '.join(map(str, calibration))})" if calibration else str(path)
+    return rig_from_dict(raw, src, base_dir=path.parent, origins=origins)
 
 
-def rig_from_dict(raw: Mapping[str, Any], src: str = "<rig>", base_dir: Path | None = None) -> Rig:
-    """Build a :class:`Rig` from parsed TOML (see :func:`load_rig`)."""
+def rig_from_dict(
+    raw: Mapping[str, Any],
+    src: str = "<rig>",
+    base_dir: Path | None = None,
+    origins: Mapping[str, Mapping[str, str]] | None = None,
+) -> Rig:
+    """Build a :class:`Rig` from parsed TOML (see :func:`load_rig`); ``origins``: per
+    section, the file each key came from (for the errors)."""
+    origins = origins or {}
     unknown = sorted(set(raw) - set(_SECTIONS))
     if unknown:
         raise ConfigError(f"{src}: unknown section(s) {unknown}; expected {list(_SECTIONS[:5])}")
@@ -353,7 +380,7 @@ def rig_from_dict(raw: Mapping[str, Any], src: str = "<rig>", base_dir: Path | N
         if not isinstance(raw[name], dict):
             raise ConfigError(f"{src}: {name} must be a [table]")
 
-    cam = _Section(src, "camera", raw["camera"])
+    cam = _Section(src, "camera", raw["camera"], origins.get("camera", {}))
     width = cam.number("width", required=True, positive=True)
     height = cam.number("height", required=True, positive=True)
     for k, v in (("width", width), ("height", height)):
@@ -381,7 +408,7 @@ def rig_from_dict(raw: Mapping[str, Any], src: str = "<rig>", base_dir: Path | N
     readout_ms = cam.number("readout_ms", 0.0, lo=-1000.0 / fps, hi=1000.0 / fps)
     cam.check_unknown()
 
-    mnt = _Section(src, "mount", raw["mount"])
+    mnt = _Section(src, "mount", raw["mount"], origins.get("mount", {}))
     mount = Mount(
         on=mnt.choice("on", ("platform", "lab"), required=True),
         position_mm=mnt.array("position_mm", (3,), required=True),
@@ -389,7 +416,7 @@ def rig_from_dict(raw: Mapping[str, Any], src: str = "<rig>", base_dir: Path | N
     )
     mnt.check_unknown()
 
-    tgt = _Section(src, "target", raw["target"])
+    tgt = _Section(src, "target", raw["target"], origins.get("target", {}))
     kind = tgt.choice("kind", TARGET_KINDS, required=True)
     if kind not in SUPPORTED_KINDS:
         raise ConfigError(
@@ -405,13 +432,13 @@ def rig_from_dict(raw: Mapping[str, Any], src: str = "<rig>", base_dir: Path | N
     else:
         target = _marker_target(tgt, mount, src)
 
-    plat = _Section(src, "platform", raw.get("platform", {}))
+    plat = _Section(src, "platform", raw.get("platform", {}), origins.get("platform", {}))
     max_tilt = plat.number("max_tilt_deg", 10.0, positive=True, hi=60.0)
     max_rate = plat.number("max_rate_dps", 10.0, positive=True, hi=360.0)
     max_tilt_rate = plat.number("max_tilt_rate_dps", 2.0, positive=True, hi=360.0)
     plat.check_unknown()
 
-    det = _Section(src, "detect", raw.get("detect", {}))
+    det = _Section(src, "detect", raw.get("detect", {}), origins.get("detect", {}))
     band = det.array("brightness_band", (2,), default=[35.0, 220.0])
     if not 0 <= band[0] < band[1] <= 255:
         raise ConfigError(
@@ -431,7 +458,7 @@ def rig_from_dict(raw: Mapping[str, Any], src: str = "<rig>", base_dir: Path | N
     )
     det.check_unknown()
 
-    zt = _Section(src, "zero_tilt", raw.get("zero_tilt", {}))
+    zt = _Section(src, "zero_tilt", raw.get("zero_tilt", {}), origins.get("zero_tilt", {}))
     zero = ZeroTilt(centroid_px=zt.array("centroid_px", (2,)))
     zt.get("residual_px")
     zt.check_unknown()

@@ -30,8 +30,20 @@ def calibration_out(what: str = ""):
         "--out",
         required=True,
         type=click.Path(dir_okay=False),
-        help=f"Calibration file to write ({what}use with --calibration).",
+        help=f"Calibration file to write ({what}for later commands' --calibration).",
     )
+
+
+def _runs_with(calibration: tuple[str, ...], out: str) -> str:
+    """The options with which later commands apply a new calibration file ``out``: after
+    those it was made on."""
+    return " ".join(f"--calibration {c}" for c in (*calibration, out))
+
+
+def _rig_named(rig_path: str, calibration: tuple[str, ...]) -> str:
+    """The rig and the calibration files a new calibration was made on, for its header
+    (a run applies them before it, in the same order)."""
+    return f"rig {rig_path}" + (f" + calibration {', '.join(calibration)}" if calibration else "")
 
 
 @click.group()
@@ -41,33 +53,41 @@ def calibrate():
 
 
 @calibrate.command("zero-tilt")
-@click.argument("frames", type=click.Path())
+@click.argument("frames", nargs=-1, required=True, type=click.Path())
 @rig_options
 @calibration_out()
 def zero_tilt(frames, rig_path, calibration, out):
-    """Zero-tilt offsets from FRAMES (folder or video) taken with the platform level at
-    several yaws: target offset from the rotation axis and camera mounting tilt (for
-    --method full), zero-tilt centroid (for --method paper)."""
+    """Zero-tilt offsets from FRAMES (folders or videos: one recording, or one per yaw)
+    taken with the platform level at several yaws: target offset from the rotation axis
+    and camera mounting tilt (for --method full), zero-tilt centroid (for --method
+    paper)."""
     rig = load(rig_path, calibration, "triangle", "zero-tilt calibration")
+    # every source opened first: a missing one is refused before any work
+    sources = [open_source(f, fps=rig.fps, retry_s=0.0) for f in frames]
     pipe = TrianglePipeline(rig, "full", still=True)
     dets, names, bad = [], [], 0
-    for frame in open_source(frames, fps=rig.fps, retry_s=0.0):
-        row = pipe.process(frame)
-        if pipe.last_detection is not None and pipe.last_detection.status is Status.OK:
-            dets.append(pipe.last_detection)
-            names.append(frame.name or f"frame {frame.index}")
-        else:
-            bad += 1
-            click.echo(
-                f"frame {frame.index}: skipped ({row.status}: {';'.join(row.warnings)})", err=True
-            )
+    for path, src in zip(frames, sources, strict=True):
+        pipe.reset()  # another recording: another yaw
+        where = f"{path}: " if len(frames) > 1 else ""
+        for frame in src:
+            row = pipe.process(frame)
+            if pipe.last_detection is not None and pipe.last_detection.status is Status.OK:
+                dets.append(pipe.last_detection)
+                names.append(where + (frame.name or f"frame {frame.index}"))
+            else:
+                bad += 1
+                click.echo(
+                    f"{where}frame {frame.index}: skipped ({row.status}: {';'.join(row.warnings)})",
+                    err=True,
+                )
     res = calibrate_zero_tilt(dets, rig)
     if res.converged and not res.camera_off:
         # written before the report is printed: a reader that closes the pipe early
         # (`| head`) loses none of it
+        n_used = len(dets) - int(res.outliers.sum())
         header = (
             f"visvec zero-tilt calibration, {datetime.now(UTC):%Y-%m-%d %H:%M} UTC\n"
-            f"rig {rig_path}, frames {frames} ({len(dets) - int(res.outliers.sum())} used)"
+            f"{_rig_named(rig_path, calibration)}, frames {' '.join(frames)} ({n_used} used)"
         )
         Path(out).write_text(dumps(calibration_sections(res, rig), header))
     click.echo(
@@ -126,7 +146,7 @@ def zero_tilt(frames, rig_path, calibration, out):
     if not res.converged:
         click.echo("visvec: error: the calibration did not converge; nothing written", err=True)
         raise SystemExit(1)
-    click.echo(f"wrote {out}")
+    click.echo(f"wrote {out}; later runs take {_runs_with(calibration, out)}")
 
 
 def _camera_check(res, rig) -> None:
@@ -186,7 +206,7 @@ def readout(frames, rig_path, calibration, out, max_frames, principal_point_sigm
             sections["camera"]["readout_ms"] = 0.0  # no rolling shutter seen
         header = (
             f"visvec readout calibration, {datetime.now(UTC):%Y-%m-%d %H:%M} UTC\n"
-            f"rig {rig_path}, frames {frames} ({res.n_used} used)"
+            f"{_rig_named(rig_path, calibration)}, frames {frames} ({res.n_used} used)"
         )
         Path(out).write_text(dumps(sections, header))  # before the report
     click.echo(
@@ -210,8 +230,11 @@ def readout(frames, rig_path, calibration, out, max_frames, principal_point_sigm
     )
     if abs(res.readout_ms) < 2.0 * res.sigma_ms:
         click.echo("  no rolling shutter seen (within 2 sigma of 0): readout_ms = 0 written")
-    value = sections["camera"]["readout_ms"]
-    click.echo(f"wrote {out}: put readout_ms = {value:g} in the rig's [camera] section")
+    keys = " and ".join(f"{k} = {v:g}" for k, v in sections["camera"].items())
+    click.echo(
+        f"wrote {out}: put {keys} in the rig's [camera] section, or give every later "
+        f"command (calibrate zero-tilt too) {_runs_with(calibration, out)}"
+    )
 
 
 @calibrate.command("camera")
@@ -268,7 +291,10 @@ def camera(frames, pattern, square_mm, recipe, out):
         flag = "  <- outlier" if name in cal.outliers else ""
         click.echo(f"    {name}: {e:.4f} px{flag}")
     if out:
-        click.echo(f"wrote {out}")
+        click.echo(
+            f"wrote {out}: its [camera] section into the rig file, or --calibration {out} "
+            "first in every later command"
+        )
     else:
         click.echo(text)
 
@@ -319,7 +345,7 @@ def system(frames, rig_path, calibration, out, max_iterations):
     if res.converged:
         header = (
             f"visvec system calibration, {datetime.now(UTC):%Y-%m-%d %H:%M} UTC\n"
-            f"rig {rig_path}, frames {frames} ({n_used} used)\n"
+            f"{_rig_named(rig_path, calibration)}, frames {frames} ({n_used} used)\n"
             f"residual std {res.residual_std_px:.4f} px; B's orientation 1-sigma (a bias "
             f"shared by every attitude) about b1, b2, b3: "
             + ", ".join(f"{v:.1f}" for v in res.b_orientation_sigma_arcsec)
@@ -336,4 +362,4 @@ def system(frames, rig_path, calibration, out, max_iterations):
             err=True,
         )
         raise SystemExit(1)
-    click.echo(f"wrote {out}")
+    click.echo(f"wrote {out}; later runs take {_runs_with(calibration, out)}")

@@ -27,7 +27,9 @@ def rig_options(f=None, *, required: bool = True):
         "--calibration",
         "calibration",
         type=click.Path(dir_okay=False),
-        help="Calibration file (from `visvec calibrate`) overriding the rig.",
+        multiple=True,
+        help="Calibration file (from `visvec calibrate`) overriding the rig; repeat it to "
+        "apply several in order, a later one winning (camera, readout, zero-tilt).",
     )(f)
     f = click.option(
         "--rig",
@@ -78,8 +80,11 @@ def output_options(f):
     return f
 
 
-def load(rig_path: str, calibration: str | None, kind: str | None = None, what: str = "") -> Rig:
-    """The rig (with its calibration); refused unless its target is ``kind`` if given."""
+def load(
+    rig_path: str, calibration: tuple[str, ...] = (), kind: str | None = None, what: str = ""
+) -> Rig:
+    """The rig (with its calibration files, in order); refused unless its target is
+    ``kind`` if given."""
     rig = load_rig(rig_path, calibration)
     if kind is not None and rig.kind != kind:
         raise ConfigError(f"{rig_path}: [target] kind = {rig.kind!r}: {what} is for {kind} rigs")
@@ -109,6 +114,21 @@ def open_out(path: str | None):
             yield fh
 
 
+def check_new_recording(folder: str | Path) -> None:
+    """Refuse (usage error, exit 2) a --save-frames folder that already holds a
+    recording: its frames would be overwritten one by one and its times.csv lost."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        return
+    held = [p for p in folder.iterdir() if p.name == "times.csv" or p.name.startswith("frame_")]
+    if held:
+        raise click.BadParameter(
+            f"{folder} already holds a recording ({len(held)} frame_* or times.csv files): "
+            "give a new folder for each recording",
+            param_hint="--save-frames",
+        )
+
+
 class FrameRecorder:
     """Raw frames saved as DIR/frame_NNNNNN.png with DIR/times.csv (file,time_s), the
     sidecar a folder source reads: `visvec batch DIR` replays the run with its times.
@@ -116,6 +136,7 @@ class FrameRecorder:
 
     def __init__(self, folder: str | Path):
         self.dir = Path(folder)
+        check_new_recording(self.dir)
         self.dir.mkdir(parents=True, exist_ok=True)
         self._times = open(self.dir / "times.csv", "w", newline="")  # noqa: SIM115
         self._times.write("file,time_s\n")

@@ -6,7 +6,13 @@ import sys
 
 import click
 
-from visvec.cli.common import load, output_options, rig_options, run_frames
+from visvec.cli.common import (
+    check_new_recording,
+    load,
+    output_options,
+    rig_options,
+    run_frames,
+)
 from visvec.sources import open_source
 
 STATUS_EVERY_S = 2.0
@@ -41,6 +47,8 @@ def track(
     """Stream one attitude row per frame, flushed row by row, until the source ends,
     --max-frames, or Ctrl-C."""
     rig = load(rig_path, calibration)
+    if save_frames:
+        check_new_recording(save_frames)  # before the camera is opened
     spec = camera if camera is not None else rig.device
     if spec is None:
         raise click.UsageError("no --camera given and the rig's [camera] has no device")
