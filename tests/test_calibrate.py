@@ -334,7 +334,9 @@ def test_calibrate_readout_measures_a_rolling_shutter_from_a_turning_recording(t
     sigma = float(r.output.split("+- ")[1].split(" ms")[0])
     assert 0.2 < sigma < 3.0
     assert abs(rig.readout_ms - 25.0) < 3.0 * sigma, r.output
-    assert "put readout_ms = " in r.output
+    # with its sigma, which the rows' sigma then carries
+    assert abs(rig.readout_sigma_ms - sigma) <= 0.006
+    assert "put readout_ms = " in r.output and " and readout_sigma_ms = " in r.output
 
 
 def test_calibrate_readout_is_not_fooled_by_a_principal_point_off(tmp_path):
@@ -357,6 +359,11 @@ def test_calibrate_readout_is_not_fooled_by_a_principal_point_off(tmp_path):
     k, sigma = (float(x) for x in r.output.split("row): ")[1].split(" ms")[0].split(" +- "))
     assert abs(k) < 2.0 * sigma and sigma < 3.0, r.output
     assert "readout_ms = 0 written" in r.output
+    # a global shutter: no readout, so no readout sigma either
+    from visvec.rig import load_rig
+
+    rig = load_rig(rig_p, cal)
+    assert rig.readout_ms == 0.0 and rig.readout_sigma_ms == 0.0
 
 
 def test_calibrate_readout_refuses_a_platform_at_rest(tmp_path):

@@ -149,6 +149,49 @@ def test_rolling_shutter_is_taken_out_while_tracking(rig640):
     assert np.abs(z_fix[0]).max() < 3.0
 
 
+def test_rolling_shutter_readout_sigma_is_carried_into_the_rows(rig640):
+    """A readout measured 7 ms short (18 for 25, as `calibrate readout` may find it two
+    sigma off) on a platform turning at 10 deg/s while tilting at 4 deg/s: taken as
+    exact, the correction leaves a shear that puts yaw rows beyond 3 sigma; given with
+    its 1-sigma of 4 ms ([camera] readout_sigma_ms), the rows' sigma carries what that
+    uncertainty leaves, and covers the errors."""
+    from visvec.data import Frame
+    from visvec.pipeline import TrianglePipeline
+    from visvec.rotations import expmap, matrix_to_euler
+
+    w_b = np.radians([3.0, -3.0, 10.0])  # body rate, deg/s
+    R0 = euler_to_matrix(0.3, np.radians(2.0), np.radians(-1.0))
+    frames, truth = [], []
+    for k in range(20):
+        R = R0 @ expmap(w_b * k / 30.0)
+        frames.append(Frame(k, k / 30.0, render_frame(rig640, R, Scene(), 900 + k, 0.025, w_b)))
+        truth.append(np.degrees(matrix_to_euler(R)))
+
+    def run(sigma_ms):
+        rig = replace(
+            rig640,
+            readout_ms=18.0,
+            readout_sigma_ms=sigma_ms,
+            max_rate_dps=12.0,
+            max_tilt_rate_dps=5.0,  # the platform's bounds
+        )
+        pipe = TrianglePipeline(rig)
+        rows = [pipe.process(f) for f in frames]
+        # tracking, each frame's rate from the two before it (the acquisition's first
+        # two frames, without a rate or with one from a sheared first frame, are other
+        # tests' subject)
+        ok = [(r, t) for r, t in zip(rows[2:], truth[2:], strict=True) if r.ok]
+        assert len(ok) == 18
+        z = np.array([(r.euler_deg - t) / r.sigma_deg for r, t in ok])
+        return z, np.median([r.sigma_deg[0] for r, _ in ok])
+
+    z_exact, sigma_exact = run(0.0)
+    z_carried, sigma_carried = run(4.0)
+    assert np.abs(z_exact).max() > 3.0  # a confident wrong answer
+    assert sigma_carried > 1.05 * sigma_exact
+    assert np.abs(z_carried).max() < 3.0
+
+
 def test_rolling_shutter_covariance_is_the_linearised_correction(rig640):
     """shutter_cov's A omega is the first-order shift _unroll makes for a rate omega
     (finite differences), and its covariance is A cov_omega A^T; shutter_shift gives

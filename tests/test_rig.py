@@ -72,6 +72,16 @@ def test_example_configs_load():
         ("readout_ms = 0.0", "readout_ms = 40.0", ["[camera] readout_ms", "expected a number in"]),
         ("readout_ms = 0.0", "readout_ms = -34.0", ["[camera] readout_ms", "expected a number in"]),
         (
+            "readout_ms = 0.0",
+            "readout_ms = 0.0\nreadout_sigma_ms = 2.0",
+            ["[camera] readout_sigma_ms = 2.0", "needs a readout_ms"],
+        ),
+        (
+            "readout_ms = 0.0",
+            "readout_ms = 20.0\nreadout_sigma_ms = -1.0",
+            ["[camera] readout_sigma_ms", "expected a number in"],
+        ),
+        (
             "max_rate_dps = 10.0",
             "max_rate_dps = -5.0",
             ["[platform] max_rate_dps", "expected a number"],

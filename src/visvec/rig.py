@@ -170,6 +170,8 @@ class Rig:
     # rolling shutter: time from the first row's exposure to the last's (0: global;
     # negative: the last row is read first)
     readout_ms: float = 0.0
+    # its 1-sigma (ms), as `calibrate readout` measured it: the rows' sigma carries it
+    readout_sigma_ms: float = 0.0
     path: Path | None = None
 
     @property
@@ -406,6 +408,12 @@ def rig_from_dict(
             f"({1000.0 / fps:.1f} ms at fps = {fps})"
         )
     readout_ms = cam.number("readout_ms", 0.0, lo=-1000.0 / fps, hi=1000.0 / fps)
+    readout_sigma_ms = cam.number("readout_sigma_ms", 0.0, lo=0.0, hi=1000.0 / fps)
+    if readout_sigma_ms > 0 and readout_ms == 0:
+        raise ConfigError(
+            f"{cam._where('readout_sigma_ms')} = {readout_sigma_ms}: needs a readout_ms "
+            "(0 declares a global shutter, whose readout has no uncertainty)"
+        )
     cam.check_unknown()
 
     mnt = _Section(src, "mount", raw["mount"], origins.get("mount", {}))
@@ -476,6 +484,7 @@ def rig_from_dict(
         fps=fps,
         exposure_ms=exposure_ms,
         readout_ms=readout_ms,
+        readout_sigma_ms=readout_sigma_ms,
         path=Path(src.split(" (+")[0]) if base_dir is not None else None,
     )
     _check_visible(rig, src)

@@ -121,7 +121,7 @@ def _cost(frames: Sequence[Frame], rig: Rig, readout_ms: float) -> _Trial:
     """The recording tracked with ``readout_ms``: each used frame counts its chi-square
     capped at its refusal threshold (its degrees of freedom: 3 with the height known
     over the frames, 2 on a frame estimating it alone), every other frame the cap of 3."""
-    pipe = TrianglePipeline(replace(rig, readout_ms=readout_ms))
+    pipe = TrianglePipeline(replace(rig, readout_ms=readout_ms, readout_sigma_ms=0.0))
     total, used, chi2_used, dof_used, attitudes = 0.0, 0, 0.0, 0, []
     for frame in frames:
         row = pipe.process(frame)
@@ -147,7 +147,7 @@ def _evidence(
     readout's evidence beside the camera's model errors (the principal point's prior
     ``principal_point_px``), as the pipeline's own check does
     (:meth:`TrianglePipeline._add_shear_evidence`)."""
-    pipe = TrianglePipeline(replace(rig, readout_ms=readout_ms))
+    pipe = TrianglePipeline(replace(rig, readout_ms=readout_ms, readout_sigma_ms=0.0))
     ev = ReadoutEvidence.for_camera(rig.camera, rig.fps, principal_point_px)
     last = None
     for frame in frames:
@@ -279,9 +279,13 @@ def calibrate_readout(
 
 
 def readout_sections(res: ReadoutCalibration) -> dict[str, dict[str, object]]:
-    """Sections of the calibration file (``[camera] readout_ms`` and a report)."""
+    """Sections of the calibration file (``[camera] readout_ms`` with its 1-sigma, which
+    the rows' sigma then carries, and a report)."""
     return {
-        "camera": {"readout_ms": round(res.readout_ms, 2)},
+        "camera": {
+            "readout_ms": round(res.readout_ms, 2),
+            "readout_sigma_ms": round(res.sigma_ms, 2),
+        },
         "report": {
             "sigma_readout_ms": round(res.sigma_ms, 3),
             # the grid search's, with the camera model taken as exact

@@ -203,7 +203,9 @@ def readout(frames, rig_path, calibration, out, max_frames, principal_point_sigm
     if res.converged:
         sections = readout_sections(res)
         if abs(res.readout_ms) < 2.0 * res.sigma_ms:
-            sections["camera"]["readout_ms"] = 0.0  # no rolling shutter seen
+            # no rolling shutter seen: a global shutter (the runs' own check of the
+            # frames would find one at 5 sigma)
+            sections["camera"] = {"readout_ms": 0.0}
         header = (
             f"visvec readout calibration, {datetime.now(UTC):%Y-%m-%d %H:%M} UTC\n"
             f"{_rig_named(rig_path, calibration)}, frames {frames} ({res.n_used} used)"

@@ -130,10 +130,11 @@ class TriangleDetector:
         b_c = rig.R_bc.T @ rig.t_b
         depth = float(np.mean((rig.target.vertices_mm - rig.t_b) @ rig.R_bc[:, 2]))
         self.lever_c = b_c / depth
-        # the readout in use (ms) and its 1-sigma: the rig's, or one the pipeline
-        # estimates from the frames of a camera the rig file says has a global shutter
+        # the readout in use (ms) and its 1-sigma: the rig's (as `calibrate readout`
+        # measured it), or one the pipeline estimates from the frames of a camera the rig
+        # file says has a global shutter
         self.readout_ms = rig.readout_ms
-        self.readout_sigma_ms = 0.0
+        self.readout_sigma_ms = rig.readout_sigma_ms
         self._last_level: float | None = None
         self._last_points: np.ndarray | None = None
         self._prev_points: np.ndarray | None = None
@@ -385,7 +386,8 @@ class TriangleDetector:
                 xy / cam.fx, pts_px[:, 1], cam, readout_s, self._cov_omega, self.lever_c
             ) * (1.0 + (self.readout_sigma_ms / self.readout_ms) ** 2)
         elif shutter is not None and self.readout_sigma_ms > 0:
-            # taken out with an estimated readout: what its sigma leaves, A omega s
+            # taken out with a measured or estimated readout: what its sigma leaves,
+            # A omega s
             omega_c, sigma_s = shutter[0], self.readout_sigma_ms / 1000.0
             g = shutter_shift(xy / cam.fx, pts_px[:, 1], cam, sigma_s, omega_c, self.lever_c)
             consider = np.outer(g, g)
