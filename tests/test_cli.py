@@ -304,6 +304,13 @@ def test_track_can_keep_the_frames_for_a_replay(tmp_path):
     for a, b in zip(live, replay, strict=True):
         a.pop("latency_ms"), b.pop("latency_ms")
         assert a == b
+    # the run said it had no zero-tilt calibration; with one, it does not
+    assert "no zero-tilt calibration given" in r.stderr
+    cal = tmp_path / "zero.toml"
+    cal.write_text("[zero_tilt]\ncentroid_px = [319.5, 239.5]\n")
+    r4 = run("track", "--rig", RIG, "--calibration", cal, "--camera", SAMPLES, "--out", "-")
+    assert r4.exit_code == 0 and "zero-tilt" not in r4.stderr
+    assert r4.stdout.startswith("frame,time_s,status")  # '-': standard output
     # a second recording into the same folder is refused before the camera is opened,
     # and the first is left whole
     times = (saved / "times.csv").read_text()

@@ -75,7 +75,8 @@ def output_options(f):
         "--out",
         type=click.Path(dir_okay=False),
         default=None,
-        help="Output file, or udp://HOST:PORT for one datagram per row (default: standard output).",
+        help="Output file, or udp://HOST:PORT for one datagram per row (default, or '-': "
+        "standard output).",
     )(f)
     return f
 
@@ -95,7 +96,7 @@ def load(
 def open_out(path: str | None):
     """The text stream rows go to: stdout, the file ``path``, or with
     ``udp://HOST:PORT`` one datagram per row (:class:`~visvec.sinks.UdpStream`)."""
-    if path is None:
+    if path is None or path == "-":
         yield sys.stdout
     elif path.startswith("udp://"):
         try:
