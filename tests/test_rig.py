@@ -131,7 +131,7 @@ def test_calibration_file_overrides_named_keys(tmp_path):
 
 
 def test_calibration_files_apply_in_order(tmp_path):
-    # camera, then readout, then zero-tilt: each overrides the keys it names, a later
+    # camera, then zero-tilt, then readout: each overrides the keys it names, a later
     # file wins, and a bad key in any of them is refused naming the rig and the files
     rig_p = write(tmp_path, GOOD)
     cam, readout, bad = tmp_path / "cam.toml", tmp_path / "readout.toml", tmp_path / "bad.toml"

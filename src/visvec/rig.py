@@ -336,7 +336,7 @@ _SECTIONS = ("camera", "mount", "target", "platform", "detect", "zero_tilt", "so
 def load_rig(path: str | Path, calibration: str | Path | Sequence[str | Path] | None = None) -> Rig:
     """Read and validate a rig file, optionally overridden by calibration files: one, or
     several applied in order (each overrides the keys it names, so a later file wins:
-    camera, then readout, then zero-tilt).
+    camera, then zero-tilt, then readout).
 
     Raises
     ------

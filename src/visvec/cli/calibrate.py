@@ -196,7 +196,9 @@ def readout(frames, rig_path, calibration, out, max_frames, principal_point_sigm
     its times.csv, from `track --save-frames`, or a video) of the platform turning at
     5-20 deg/s, best swinging out and back: the readout whose correction leaves the
     triangle rigid (least chi-square), the camera's principal point and aspect
-    estimated beside it."""
+    estimated beside it. Give it the zero-tilt calibration (--calibration): a camera
+    mounted askew together with a target off the axis, left as the rig file has them,
+    can pass for a shear."""
     rig = load(rig_path, calibration, "triangle", "readout calibration")
     src = open_source(frames, fps=rig.fps, retry_s=0.0, max_frames=max_frames)
     res = calibrate_readout(list(src), rig, principal_point_sigma)
@@ -235,7 +237,7 @@ def readout(frames, rig_path, calibration, out, max_frames, principal_point_sigm
     keys = " and ".join(f"{k} = {v:g}" for k, v in sections["camera"].items())
     click.echo(
         f"wrote {out}: put {keys} in the rig's [camera] section, or give every later "
-        f"command (calibrate zero-tilt too) {_runs_with(calibration, out)}"
+        f"command {_runs_with(calibration, out)}"
     )
 
 

@@ -29,7 +29,7 @@ def rig_options(f=None, *, required: bool = True):
         type=click.Path(dir_okay=False),
         multiple=True,
         help="Calibration file (from `visvec calibrate`) overriding the rig; repeat it to "
-        "apply several in order, a later one winning (camera, readout, zero-tilt).",
+        "apply several in order, a later one winning (camera, zero-tilt, readout).",
     )(f)
     f = click.option(
         "--rig",
