@@ -337,6 +337,7 @@ def test_calibrate_readout_measures_a_rolling_shutter_from_a_turning_recording(t
     # with its sigma, which the rows' sigma then carries
     assert abs(rig.readout_sigma_ms - sigma) <= 0.006
     assert "put readout_ms = " in r.output and " and readout_sigma_ms = " in r.output
+    assert "no zero-tilt calibration given" in r.stderr  # the order the README gives
 
 
 def test_calibrate_readout_is_not_fooled_by_a_principal_point_off(tmp_path):
@@ -374,6 +375,8 @@ def test_calibrate_readout_refuses_a_platform_at_rest(tmp_path):
                 "--yaw-rate-dps", 0.5)  # fmt: skip
     assert r.exit_code == 0, r.output
     cal = tmp_path / "readout.toml"
-    r = _invoke("calibrate", "readout", rec, "--rig", rig_p, "--out", cal)
+    zero = tmp_path / "zero.toml"  # given a zero-tilt calibration: no note about it
+    zero.write_text("[zero_tilt]\ncentroid_px = [159.5, 119.5]\n")
+    r = _invoke("calibrate", "readout", rec, "--rig", rig_p, "--calibration", zero, "--out", cal)
     assert r.exit_code == 1 and "record it turning" in r.output and "nothing written" in r.output
-    assert not cal.exists()
+    assert not cal.exists() and "zero-tilt" not in r.stderr

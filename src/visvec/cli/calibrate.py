@@ -201,6 +201,13 @@ def readout(frames, rig_path, calibration, out, max_frames, principal_point_sigm
     can pass for a shear."""
     rig = load(rig_path, calibration, "triangle", "readout calibration")
     src = open_source(frames, fps=rig.fps, retry_s=0.0, max_frames=max_frames)
+    if rig.zero_tilt.centroid_px is None:
+        click.echo(
+            "visvec: note: no zero-tilt calibration given: a camera askew and a target off "
+            "the axis, as the rig file leaves them, can pass for a shear (`visvec calibrate "
+            "zero-tilt` first, then its file as --calibration)",
+            err=True,
+        )
     res = calibrate_readout(list(src), rig, principal_point_sigma)
     if res.converged:
         sections = readout_sections(res)
