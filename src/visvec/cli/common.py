@@ -5,7 +5,6 @@ from __future__ import annotations
 import contextlib
 import sys
 import time
-from collections import Counter
 from pathlib import Path
 
 import click
@@ -13,7 +12,7 @@ import cv2
 
 from visvec.errors import ConfigError
 from visvec.output import Row
-from visvec.pipeline import METHODS, make_pipeline
+from visvec.pipeline import METHODS, Pipeline, make_pipeline
 from visvec.rig import Rig, load_rig
 from visvec.sinks import UdpStream, open_sink
 
@@ -160,23 +159,18 @@ PROGRESS_REASONS = 2
 class Progress:
     """A status line on stderr every ``interval`` seconds, for an operator watching a run
     whose rows go to a file: frames, the ok share, the frame rate, the last ok values,
-    and why the others were not ok."""
+    and why the others were not ok (the counts the pipeline ``pipe`` keeps of its rows)."""
 
-    def __init__(self, interval: float):
+    def __init__(self, interval: float, pipe: Pipeline):
         self.interval = interval
+        self.pipe = pipe
         self.t0 = time.monotonic()
         self.next = self.t0 + interval
-        self.n = self.n_ok = 0
         self.last: Row | None = None
-        self.refused: Counter[str] = Counter()
 
     def update(self, row: Row) -> None:
-        self.n += 1
         if row.ok:
-            self.n_ok += 1
             self.last = row
-        else:
-            self.refused[row.reason] += 1
         now = time.monotonic()
         if now >= self.next:
             self.next = now + self.interval
@@ -184,9 +178,11 @@ class Progress:
 
     def line(self, now: float | None = None) -> str:
         dt = (time.monotonic() if now is None else now) - self.t0
+        n, refused = self.pipe.n_rows, self.pipe.refused
+        n_ok = n - sum(refused.values())
         text = (
-            f"visvec: {self.n} frames, {self.n_ok} ok ({100.0 * self.n_ok / max(self.n, 1):.1f} %)"
-            f", {self.n / max(dt, 1e-9):.1f} frames/s"
+            f"visvec: {n} frames, {n_ok} ok ({100.0 * n_ok / max(n, 1):.1f} %)"
+            f", {n / max(dt, 1e-9):.1f} frames/s"
         )
         if self.last is not None:
             vals = ", ".join(
@@ -194,8 +190,8 @@ class Progress:
                 for name, v in zip(type(self.last).value_columns, self.last.values(), strict=True)
             )
             text += f"; last ok (frame {self.last.frame}): {vals}"
-        if self.refused:
-            top = self.refused.most_common(PROGRESS_REASONS)
+        if refused:
+            top = refused.most_common(PROGRESS_REASONS)
             text += "; not ok: " + ", ".join(f"{reason} {n}" for reason, n in top)
         return text
 
@@ -229,7 +225,7 @@ def run_frames(
     if ov is not None:
         ov.mkdir(parents=True, exist_ok=True)
     rec = FrameRecorder(save_frames) if save_frames else None
-    status = Progress(progress) if progress is not None else None
+    status = Progress(progress, pipe) if progress is not None else None
     with open_out(out) as stream:
         sink = open_sink(fmt, stream, pipe.row_type.columns)
         try:
