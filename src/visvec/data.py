@@ -59,10 +59,12 @@ class Detection:
     cov_n : (6, 6) float ndarray
         Covariance of ``points_n.ravel()``.
     consider_n : (6, 6) float ndarray or None
-        Covariance of ``points_n.ravel()`` from an error shared by the vertices that
-        the estimator cannot weigh frame by frame (a rolling shutter's unknown rate):
-        kept out of the fit's weights, added to the attitude's covariance (a Schmidt
-        "consider" covariance).
+        Covariance of ``points_n.ravel()`` from an error the detector could not take
+        out (a rolling shutter's unknown rate, or its readout's error at a known rate),
+        added to ``cov_n`` in the fit's weights.
+    shutter_gain_n : (6, 3) float ndarray or None
+        For a rolling-shutter rig: how ``points_n.ravel()`` move per rad/s of camera
+        rate (camera axes) when the rows are taken to the centre row's exposure.
     warnings : tuple of str
         Warning codes (for the ``warnings`` column).
     reason : str
@@ -78,6 +80,7 @@ class Detection:
     points_n: np.ndarray = field(default_factory=lambda: np.full((3, 2), np.nan))
     cov_n: np.ndarray = field(default_factory=lambda: np.full((6, 6), np.nan))
     consider_n: np.ndarray | None = None
+    shutter_gain_n: np.ndarray | None = None
     warnings: tuple[str, ...] = ()
     reason: str = ""
     mean_brightness: float = float("nan")

@@ -488,7 +488,7 @@ class TrianglePipeline(AttitudePipeline):
 
     def _use_estimated_readout(self) -> None:
         """The readout the detector takes out: the frames' running estimate (and its
-        sigma, a consider covariance) while they say the camera rolls
+        sigma, in the vertices' covariance) while they say the camera rolls
         (:meth:`ReadoutEvidence.suspected`), else none, as the rig file says. A camera
         the rig file calls global-shutter is then corrected from the frame after the
         evidence passes 5 sigma; the frames before are biased by the turn or refused."""

@@ -80,6 +80,9 @@ class EdgeFit:
         (vertex i+1, vertex i+2) beyond the planned corner clearance
     width : (3,) RMS blur width of each edge (px)
     ok : False when the lines do not make a triangle near the given corners
+    shutter_gain : (6, 3) or None, with ``rolling``: how the vertices (normalised) move
+        per rad/s of camera rate when the edge points are taken to the centre row's
+        exposure (:func:`_shutter_gain`)
     """
 
     normals: np.ndarray
@@ -94,6 +97,7 @@ class EdgeFit:
     end_gaps_px: np.ndarray
     width: np.ndarray
     ok: bool = True
+    shutter_gain: np.ndarray | None = None
 
     def vertex_gaps(self) -> np.ndarray:
         """(3,) for each vertex, the longer unsupported stretch of its two edges (px)."""
@@ -410,6 +414,7 @@ def fit_edges(
     trim: float = 0.06,
     width: np.ndarray | None = None,
     shutter: tuple[np.ndarray, float, np.ndarray | None] | None = None,
+    rolling: tuple[float, np.ndarray | None] | None = None,
 ) -> EdgeFit:
     """Fit the three edges of the triangle whose coarse corners are ``corners_px`` (3, 2).
 
@@ -433,6 +438,11 @@ def fit_edges(
     (d + lever) (see :func:`_unroll`: the rotation, and the camera's translation on its
     lever arm), before the lines are fitted, so the lines and vertices are those of one
     instant. First order in the rotation.
+
+    With ``rolling`` = (readout_s, lever), a rolling shutter's readout whether or not the
+    rate is known: the fit also carries ``shutter_gain`` (:func:`_shutter_gain`), the
+    vertices' sensitivity to the rate, for the covariance of a rate not known yet or of
+    the readout's error.
     """
     reach = MAX_HALF_PX + LEVEL_EXTENT_PX + 3.0
     lo = np.floor(corners_px.min(axis=0) - reach).astype(int)
@@ -498,9 +508,10 @@ def fit_edges(
                 half0 = min(step * np.ceil(need / step), MAX_HALF_PX)
                 passes.insert(k, 0)
         pts_px = bases + e[:, None] * normals
-        ideal = camera.undistort(pts_px) * f
+        raw = camera.undistort(pts_px)
+        ideal = raw * f
         if shutter is not None:
-            ideal = _unroll(ideal / f, pts_px[:, 1], camera, *shutter) * f
+            ideal = _unroll(raw, pts_px[:, 1], camera, *shutter) * f
         # an edge's points with a clear step; all of them if fewer than 5 are clear
         use = clear | (np.bincount(gid, clear, 3) < 5)[gid]
         normals_l, offsets, centres, spreads, sigmas, keep = _robust_lines(
@@ -548,6 +559,14 @@ def fit_edges(
             gaps,
             width.copy(),
         )
+        if rolling is not None and not failed:
+            omega = np.zeros(3) if shutter is None else np.asarray(shutter[0], float)
+            fit = replace(
+                fit,
+                shutter_gain=_shutter_gain(
+                    raw, pts_px[:, 1], camera, gid, keep, normals_l, omega, *rolling
+                ),
+            )
         if failed:
             # near-parallel lines from a region that is not a clean triangle: stop here
             return replace(fit, ok=False)
@@ -584,6 +603,43 @@ def _unroll(
     arm = d if lever is None else d + lever
     d0 = d + t[:, None] * np.cross(np.asarray(omega_c, float), arm)
     return d0[:, :2] / d0[:, 2:3]
+
+
+# the rate step (rad/s) of the edge fit's shutter gain: 0.6 deg/s, a few hundredths of a
+# pixel over a 25 ms readout (linear; far above rounding)
+SHUTTER_GAIN_STEP = 0.01
+
+
+def _shutter_gain(
+    xy: np.ndarray,
+    rows: np.ndarray,
+    camera: CameraModel,
+    gid: np.ndarray,
+    keep: np.ndarray,
+    normals: np.ndarray,
+    omega_c: np.ndarray,
+    readout_s: float,
+    lever: np.ndarray | None,
+) -> np.ndarray:
+    """(6, 3) G: the vertices (x1, y1, x2, ...; normalised) of the lines fitted through the
+    edge points ``xy`` (normalised, as seen, at image ``rows``) after :func:`_unroll`
+    with the rate omega_c + dw move by G dw (per rad/s, camera axes), the lines refitted
+    through the same inliers ``keep``. At omega_c = 0 it is :func:`shutter_matrix` of an
+    edge fit: a vertex is the intersection of lines through points on many rows, and a
+    turn about the boresight moves each row by an amount that grows with its row and its
+    column, which curves the edges; the vertex-level matrix then missed the vertices'
+    move by up to half at the apex (10 deg/s, 25 ms), enough to put a first frame's
+    chi-square several times over its degrees of freedom."""
+    V = []
+    for k in range(4):
+        w = np.array(omega_c, float)
+        if k:
+            w[k - 1] += SHUTTER_GAIN_STEP
+        p = _unroll(xy, rows, camera, w, readout_s, lever)
+        _, c, _, n, _, _ = _group_tls(p[:, 0], p[:, 1], gid, keep)
+        n = n * np.where(np.sum(n * normals, axis=1) < 0.0, -1.0, 1.0)[:, None]
+        V.append(_vertices(n, np.sum(n * c, axis=1))[0].ravel())
+    return np.column_stack([(V[k] - V[0]) / SHUTTER_GAIN_STEP for k in (1, 2, 3)])
 
 
 def shutter_matrix(
@@ -636,25 +692,6 @@ def shutter_shift(
     out[0::2] = (cx - x * cz) * t
     out[1::2] = (cy - y * cz) * t
     return out
-
-
-def shutter_cov(
-    xy: np.ndarray,
-    rows: np.ndarray,
-    camera: CameraModel,
-    readout_s: float,
-    cov_omega: np.ndarray,
-    lever: np.ndarray | None = None,
-) -> np.ndarray:
-    """(6, 6) covariance that an unknown camera rate (covariance ``cov_omega``, (3, 3),
-    (rad/s)^2, camera axes) adds to three normalised vertices xy (3, 2) seen at image
-    rows ``rows`` by a rolling shutter left uncorrected: A cov_omega A^T with A of
-    :func:`shutter_matrix`, correlated between the vertices because they share the
-    rate. A tilt rate matters most: it stretches the triangle along the columns, which
-    turns its apex direction (the yaw).
-    """
-    A = shutter_matrix(xy, rows, camera, readout_s, lever)
-    return A @ cov_omega @ A.T
 
 
 def _vertices(normals: np.ndarray, offsets: np.ndarray) -> tuple[np.ndarray, list | None]:

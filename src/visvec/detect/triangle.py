@@ -20,7 +20,7 @@ from visvec.detect.edges import (
     corner_angles,
     fit_edges,
     intersect,
-    shutter_cov,
+    shutter_matrix,
     shutter_shift,
     side_lengths,
 )
@@ -300,6 +300,7 @@ class TriangleDetector:
                 return self._reject("corners_not_found", warnings, mean, cand)
             xy = cam.undistort(pts_px) * cam.fx
             vertex_gap = 0.0
+            gain = None
         else:
             fit = fit_edges(
                 image,
@@ -308,6 +309,7 @@ class TriangleDetector:
                 sigma_floor=s.pixel_sigma_floor,
                 width=self._last_width if cand.tracked else None,
                 shutter=shutter,
+                rolling=(self.readout_ms / 1000.0, self.lever_c) if self.readout_ms else None,
             )
             self._fit_width = fit.width
             if not fit.ok:
@@ -317,6 +319,7 @@ class TriangleDetector:
             fit_contrast, outliers = fit.contrast.min(), fit.outlier_fraction.max()
             vertex_gap = float(fit.vertex_gaps().max())
             level_mid = float(np.mean(fit.mid_level))
+            gain = fit.shutter_gain
         sides = side_lengths(xy)
         if not np.all(np.isfinite(xy)) or not sides.min() > 0.0:
             return self._reject("degenerate_triangle", warnings, mean, cand)
@@ -331,6 +334,8 @@ class TriangleDetector:
         xy, pts_px, sides = xy[p], pts_px[p], sides[p]
         idx = _PERM_INDEX[perm]
         cov = cov[idx][:, idx]
+        if gain is not None:
+            gain = gain[idx]
         # sigma_scale: measured by `calibrate zero-tilt` where the frames' noise is wider
         # than the edge model's (a codec's block errors)
         cov_n = cov * (s.sigma_scale / cam.fx) ** 2
@@ -380,16 +385,24 @@ class TriangleDetector:
         if shutter is None and self.readout_ms != 0:
             # a rolling shutter whose rate is not known yet (first frame): the rows'
             # exposure times stay in the vertices, by up to the platform's fastest turn
-            # (an estimated readout k +- s: E[k^2] = k^2 + s^2)
-            readout_s = self.readout_ms / 1000.0
-            consider = shutter_cov(
-                xy / cam.fx, pts_px[:, 1], cam, readout_s, self._cov_omega, self.lever_c
-            ) * (1.0 + (self.readout_sigma_ms / self.readout_ms) ** 2)
+            # (an estimated readout k +- s: E[k^2] = k^2 + s^2). With edge lines, the
+            # sensitivity of their fit (the edges curve under a turn about the
+            # boresight); with corners, the vertices' own
+            if gain is None:
+                gain = shutter_matrix(
+                    xy / cam.fx, pts_px[:, 1], cam, self.readout_ms / 1000.0, self.lever_c
+                )
+            consider = (gain @ self._cov_omega @ gain.T) * (
+                1.0 + (self.readout_sigma_ms / self.readout_ms) ** 2
+            )
         elif shutter is not None and self.readout_sigma_ms > 0:
-            # taken out with a measured or estimated readout: what its sigma leaves,
-            # A omega s
+            # taken out with a measured or estimated readout: what its sigma s leaves,
+            # the shift of a readout error s at the rate omega (linear in the readout)
             omega_c, sigma_s = shutter[0], self.readout_sigma_ms / 1000.0
-            g = shutter_shift(xy / cam.fx, pts_px[:, 1], cam, sigma_s, omega_c, self.lever_c)
+            if gain is None:
+                g = shutter_shift(xy / cam.fx, pts_px[:, 1], cam, sigma_s, omega_c, self.lever_c)
+            else:
+                g = gain @ omega_c * (self.readout_sigma_ms / self.readout_ms)
             consider = np.outer(g, g)
         return Detection(
             Status.OK,
@@ -397,6 +410,7 @@ class TriangleDetector:
             points_n=xy / cam.fx,
             cov_n=cov_n,
             consider_n=consider,
+            shutter_gain_n=gain,
             warnings=tuple(w),
             mean_brightness=mean,
             contour_px=cand.contour_px,

@@ -11,7 +11,7 @@ rate is known from the frame before it measures the readout from its own residua
 (:meth:`VertexResidual.explain`, least squares on the part of the shear no attitude or
 height explains); summed over the run, a readout many sigma from zero says the camera
 rolls. From then on the pipeline takes the running estimate out of the frames as if
-the rig had declared it (its sigma a consider covariance; rows warn
+the rig had declared it (its sigma in the vertices' covariance; rows warn
 ``rolling_shutter_estimated``), frames so corrected measure what is left, and the run's
 closing note says to set it.
 
