@@ -309,7 +309,11 @@ class TriangleDetector:
                 sigma_floor=s.pixel_sigma_floor,
                 width=self._last_width if cand.tracked else None,
                 shutter=shutter,
-                rolling=(self.readout_ms / 1000.0, self.lever_c) if self.readout_ms else None,
+                # the shutter gain, for the covariance of a rate not known yet or of the
+                # readout's error (not computed when neither is there)
+                rolling=(self.readout_ms / 1000.0, self.lever_c)
+                if self.readout_ms and (shutter is None or self.readout_sigma_ms > 0)
+                else None,
             )
             self._fit_width = fit.width
             if not fit.ok:
