@@ -564,7 +564,7 @@ def fit_edges(
             fit = replace(
                 fit,
                 shutter_gain=_shutter_gain(
-                    raw, pts_px[:, 1], camera, gid, keep, normals_l, omega, *rolling
+                    raw, pts_px[:, 1], camera, gid, keep, normals_l, offsets / f, omega, *rolling
                 ),
             )
         if failed:
@@ -617,6 +617,7 @@ def _shutter_gain(
     gid: np.ndarray,
     keep: np.ndarray,
     normals: np.ndarray,
+    offsets: np.ndarray,
     omega_c: np.ndarray,
     readout_s: float,
     lever: np.ndarray | None,
@@ -624,17 +625,17 @@ def _shutter_gain(
     """(6, 3) G: the vertices (x1, y1, x2, ...; normalised) of the lines fitted through the
     edge points ``xy`` (normalised, as seen, at image ``rows``) after :func:`_unroll`
     with the rate omega_c + dw move by G dw (per rad/s, camera axes), the lines refitted
-    through the same inliers ``keep``. At omega_c = 0 it is :func:`shutter_matrix` of an
+    through the same inliers ``keep`` (``normals``, ``offsets``: the fit's own lines at
+    omega_c, normalised units). At omega_c = 0 it is :func:`shutter_matrix` of an
     edge fit: a vertex is the intersection of lines through points on many rows, and a
     turn about the boresight moves each row by an amount that grows with its row and its
     column, which curves the edges; the vertex-level matrix then missed the vertices'
     move by up to half at the apex (10 deg/s, 25 ms), enough to put a first frame's
     chi-square several times over its degrees of freedom."""
-    V = []
-    for k in range(4):
+    V = [_vertices(normals, offsets)[0].ravel()]
+    for k in range(1, 4):
         w = np.array(omega_c, float)
-        if k:
-            w[k - 1] += SHUTTER_GAIN_STEP
+        w[k - 1] += SHUTTER_GAIN_STEP
         p = _unroll(xy, rows, camera, w, readout_s, lever)
         _, c, _, n, _, _ = _group_tls(p[:, 0], p[:, 1], gid, keep)
         n = n * np.where(np.sum(n * normals, axis=1) < 0.0, -1.0, 1.0)[:, None]
