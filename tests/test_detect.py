@@ -551,6 +551,46 @@ def test_blur_width_from_coarse_corners_far_off_the_edges(rig640):
     assert np.all((reference > 0.6) & (reference < 1.1)), reference
 
 
+def test_full_hd_webcam_cold_frames_need_two_edge_passes(rig640, monkeypatch):
+    """A 1920x1080 webcam (fx 1400 px, barrel distortion): the region search works on the
+    frame halved three times (a 10x shrink had no fast path: 340 against 100 us), its
+    coarse corners are up to half a shrunk pixel (4 px) off the edges, so the first
+    pass's window reaches 8 px: with the usual 4 px, 97 of 150 cold frames needed a
+    third pass, and the width measured on a window cutting the step came out short. The
+    blur width is measured again within 4 widths of the edge, so the
+    wider window adds no noise to it (10-90 % of cold frames' widths 0.54-1.06 px
+    before, 0.77-0.89 after; true about 0.8)."""
+    from visvec.detect import edges
+
+    cam = replace(
+        rig640.camera,
+        width=1920,
+        height=1080,
+        fx=1400.0,
+        fy=1400.0,
+        cx=955.0,
+        cy=545.0,
+        dist=np.array([0.1, -0.2, 0.0, 0.0, 0.08]),
+    )
+    rig = replace(rig640, camera=cam)
+    det = TriangleDetector(rig)
+    assert det.scale == 8
+    passes = []
+    sample = edges._sample
+    monkeypatch.setattr(edges, "_sample", lambda *a: passes.append(a[3]) or sample(*a))
+    for seed in (4, 6):  # with the 4 px window: 3 passes, a width of 0.46 or 0.40 px
+        R = _attitudes(1, seed)[0]
+        img = render_frame(rig, R, Scene(), rng=4)
+        det.reset()
+        passes.clear()
+        d = det.detect(img)
+        assert d.status is Status.OK, d.reason
+        assert len(passes) == 2, passes
+        assert np.all((det._fit_width > 0.65) & (det._fit_width < 1.0)), det._fit_width
+        e = (d.points_n - cam.undistort(project_target(rig, R))).ravel()
+        assert e @ np.linalg.solve(d.cov_n, e) < 22.5
+
+
 def test_edge_levels_measured_beyond_the_step_make_the_vertices_more_precise(rig640, monkeypatch):
     """The board and triangle levels of an edge are fitted along it from every profile's
     ends, so their error moves the whole line and does not average out: measured over
