@@ -7,6 +7,11 @@ yaw with tilts wobbling within +-4 deg.
 "cold" forgets the previous frame every time (lost-in-space on every frame).
 
     python benchmarks/triangle_speed.py
+    python benchmarks/triangle_speed.py --size 1920x1080   # an HD webcam, same field
+
+``--size WxH`` puts the rig's lens on a sensor of that size with the same horizontal
+field of view (fx scaled with the width, the principal point centred); ``--rig`` times
+another rig file (a lab's own camera).
 """
 
 from __future__ import annotations
@@ -18,6 +23,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import argparse  # noqa: E402
 import time  # noqa: E402
+from dataclasses import replace  # noqa: E402
 
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
@@ -36,9 +42,26 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--frames", type=int, default=300)
     ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--rig", default=str(CONFIGS / "triangle.toml"))
+    ap.add_argument("--size", help="WxH: the same lens on a sensor of this size")
     args = ap.parse_args()
     cv2.setNumThreads(1)
-    rig = load_rig(CONFIGS / "triangle.toml")
+    rig = load_rig(args.rig)
+    name = "triangle_speed"
+    if args.size:
+        w, h = (int(v) for v in args.size.lower().split("x"))
+        k = w / rig.camera.width
+        cam = replace(
+            rig.camera,
+            width=w,
+            height=h,
+            fx=rig.camera.fx * k,
+            fy=rig.camera.fy * k,
+            cx=(w - 1) / 2.0,
+            cy=(h - 1) / 2.0,
+        )
+        rig = replace(rig, camera=cam)
+        name += f"_{w}x{h}"
     # the sweep turns 0.8 rev over 3x the frames: 0.32 deg of yaw per frame, ~10 deg/s
     eul = random_attitudes(3 * args.frames, 5.0, np.random.default_rng(3), "sweep")
     eul = eul[: args.frames]
@@ -47,6 +70,7 @@ def main() -> None:
     pngs = [cv2.imencode(".png", im)[1] for im in images]
     res = {
         **run_record(),
+        "image": f"{rig.camera.width}x{rig.camera.height}, fx {rig.camera.fx:g} px",
         "frames": args.frames,
         "repeats": args.repeats,
     }
@@ -83,7 +107,7 @@ def main() -> None:
     for k in ("tracking", "cold"):
         res[k]["ratio_to_png_decode"] = round(res[k]["median_ms"] / dec, 2)
     print(res)
-    print(save_json("triangle_speed", res))
+    print(save_json(name, res))
 
 
 if __name__ == "__main__":
