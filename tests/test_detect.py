@@ -737,6 +737,65 @@ def test_triangle_leaving_the_view_is_rejected_with_reason(rig640):
     assert "partly_out_of_view" in last.warnings
 
 
+def test_dark_surround_of_a_triangle_half_a_pixel_from_the_border(rig640):
+    """The dark-surround check's outer ring reached v = -0.42, in the image (the top
+    pixel row spans -0.5 to 0.5), and its box started at row floor(-0.42) = -1, which
+    sliced the image from its last row: an empty box, and cv2.fillPoly raised (an
+    internal error on a good frame of a rig with its target off the axis). The box is
+    clamped to the image: the check runs, and still tells a dark board from none."""
+    pts = np.array([[141.09, 26.73], [250.45, 172.5], [137.59, 206.79]])
+    c = pts.mean(axis=0)
+    assert -0.5 < (c + (pts - c) * 1.25)[:, 1].min() < 0.0
+    det = TriangleDetector(rig640)
+    board = np.full((480, 640), 40, np.uint8)
+    cv2.fillPoly(board, [np.rint(pts).astype(np.int32)], 70)
+    assert det._dark_surround(board, pts, 8.0)
+    grey = np.full((480, 640), 70, np.uint8)
+    assert not det._dark_surround(grey, pts, 8.0)
+
+
+def test_shape_checks_hold_wherever_the_triangle_falls_in_the_field(rig640):
+    """A target hung 450 mm off the axis, seen by a camera tilted 12 deg towards it: at
+    yaw 134 deg the whole triangle shows 20 deg off the boresight, where its apex angle
+    in the image is 4.1 deg from the zero-attitude one and the check (4 deg) refused it
+    as ``angle_mismatch``. The checks now measure the triangle as a camera turned to face
+    it sees it: the frame is ok and right, and over the attitudes that keep the triangle
+    in view the apex angle, area and side ratios stay within a fifth of their
+    tolerances."""
+    from visvec.detect import triangle
+    from visvec.detect.edges import corner_angles, side_lengths
+
+    a = np.radians(12.0)
+    tilted = np.array([[np.cos(a), 0.0, np.sin(a)], [0.0, 1.0, 0.0], [-np.sin(a), 0.0, np.cos(a)]])
+    rig = replace(
+        rig640,
+        mount=replace(rig640.mount, rotation=tilted),
+        target=replace(rig640.target, vertices_mm=rig640.target.vertices_mm + [450.0, 0.0, 0.0]),
+    )
+    det = TriangleDetector(rig)
+    cam = rig.camera
+    R = euler_to_matrix(*np.radians([133.99, -4.99, -2.69]))
+    d = det.detect(render_frame(rig, R, Scene(), rng=28))
+    assert d.status is Status.OK, d.reason
+    e = (d.points_n - cam.undistort(project_target(rig, R))).ravel()
+    assert e @ np.linalg.solve(d.cov_n, e) < 22.5
+    n_in_view = 0
+    for R in _attitudes(40, 3, tilt_deg=10.0):
+        px = project_target(rig, R)
+        if not np.all(cam.in_image(px)):
+            continue
+        n_in_view += 1
+        seen = triangle.facing(cam.undistort(px)) * cam.fx
+        sides = side_lengths(seen)
+        area = abs(triangle._signed_area(seen))
+        apex = np.degrees(corner_angles(seen, sides)).min()
+        assert abs(apex - det.expected_apex_deg) < 0.2 * triangle.APEX_ANGLE_TOL_DEG
+        assert abs(area / det.expected_area - 1.0) < 0.2 * triangle.AREA_TOL
+        ratio = np.abs(sides / sides.sum() - det.expected_side_ratio).max()
+        assert ratio < 0.2 * triangle.SIDE_RATIO_TOL
+    assert n_in_view >= 15, n_in_view
+
+
 def test_brightness_warning(rig640):
     sc = Scene(board_level=12.0, contrast=20.0, ceiling_level=25.0)
     d = TriangleDetector(rig640).detect(render_frame(rig640, np.eye(3), sc, rng=6))

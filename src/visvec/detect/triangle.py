@@ -76,6 +76,43 @@ def _signed_area(p: np.ndarray) -> float:
     return 0.5 * float(a[0] * b[1] - a[1] * b[0])
 
 
+def facing(xy_n: np.ndarray) -> np.ndarray:
+    """(N, 2) normalised image points as a camera at the same place turned to face them
+    would see them: their bearings rotated so that the unit bearings' mean is the
+    boresight (about the axis perpendicular to both), then projected.
+
+    The triangle's angles, side ratios and area in the image change with where it falls
+    in the field (an image plane cuts a cone of rays off its axis obliquely: the area
+    grows as 1 / cos^3 of the angle off the boresight); seen faced, they change only with
+    the target's own obliqueness to the line of sight. A rig whose target hangs 450 mm
+    off the axis, seen by a camera tilted 12 deg towards it: the apex angle in the image
+    differs from its zero-attitude value by up to 4.1 deg within 5 deg of tilt (a whole
+    triangle refused as ``angle_mismatch``), faced by 0.2 deg.
+    """
+    b = np.empty((len(xy_n), 3))
+    b[:, :2] = xy_n
+    b[:, 2] = 1.0
+    b /= np.sqrt(np.einsum("ij,ij->i", b, b))[:, None]
+    dx, dy, dz = (b.sum(axis=0) / len(b)).tolist()
+    n = math.sqrt(dx * dx + dy * dy + dz * dz)
+    dx, dy, dz = dx / n, dy / n, dz / n
+    s = math.hypot(dx, dy)  # sin of the turn; cos is dz
+    if s < 1e-12:
+        return np.array(xy_n, float)
+    # Rodrigues' formula about k = d x z / s = (dy, -dx, 0) / s, which takes d to z
+    kx, ky = dy / s, -dx / s
+    c1 = 1.0 - dz
+    Q = np.array(
+        [
+            [1.0 - c1 * ky * ky, c1 * kx * ky, s * ky],
+            [c1 * kx * ky, 1.0 - c1 * kx * kx, -s * kx],
+            [-s * ky, s * kx, dz],
+        ]
+    )
+    q = b @ Q.T
+    return q[:, :2] / q[:, 2:3]
+
+
 def _masked_mean(image: np.ndarray, mask255: np.ndarray) -> float:
     """cv2.mean(image, mask) of a uint8 image under a 0/255 mask (0 for an empty mask),
     as a masked sum: 5x faster than cv2.mean's masked path."""
@@ -101,13 +138,19 @@ class TriangleDetector:
         self.rig = rig
         cam = rig.camera
         self.expected_px = project_target(rig, np.eye(3))
-        xy = cam.undistort(self.expected_px) * cam.fx
-        self.expected_area = abs(_signed_area(xy))
+        xy_n = cam.undistort(self.expected_px)
+        xy = xy_n * cam.fx
+        # the shape checks' references: the triangle at zero attitude, faced (see facing)
+        seen = facing(xy_n) * cam.fx
+        self.expected_area = abs(_signed_area(seen))
         self.expected_sign = np.sign(_signed_area(xy))
-        sides = side_lengths(xy)
+        sides = side_lengths(seen)
         self.expected_side_ratio = sides / sides.sum()
+        self.expected_apex_deg = float(np.degrees(corner_angles(seen, sides))[0])
+        # the region search's and the partial corners' references: in the image
+        self.expected_image_area = abs(_signed_area(xy))
+        sides = side_lengths(xy)
         self.expected_angles_deg = np.degrees(corner_angles(xy))
-        self.expected_apex_deg = float(self.expected_angles_deg[0])
         self.expected_sides_px = sides
         # search on a shrunk image where the triangle is 40-80 px tall: the image halved
         # as often as that allows (cv2.resize has a fast path for exactly 2x; a 7x step
@@ -196,7 +239,9 @@ class TriangleDetector:
         levels = None if self._last_level is None else np.array([self._last_level])
         for _attempt in range(2):
             tried = 0
-            for cand in iter_candidates(image, self.expected_area, scale=self.scale, levels=levels):
+            for cand in iter_candidates(
+                image, self.expected_image_area, scale=self.scale, levels=levels
+            ):
                 det = self._verify(image, cand, warnings, mean, shutter)
                 if det.status is Status.OK:
                     self._last_level = cand.level
@@ -333,12 +378,15 @@ class TriangleDetector:
             vertex_gap = float(fit.vertex_gaps().max())
             level_mid = float(np.mean(fit.mid_level))
             gain = fit.shutter_gain
-        sides = side_lengths(xy)
-        if not np.all(np.isfinite(xy)) or not sides.min() > 0.0:
+        if not np.all(np.isfinite(xy)) or not side_lengths(xy).min() > 0.0:
             return self._reject("degenerate_triangle", warnings, mean, cand)
+        # the shape as a camera turned to face the triangle would see it: its image
+        # position then changes neither its angles nor its area (see facing)
+        seen = facing(xy / cam.fx) * cam.fx
+        sides = side_lengths(seen)
 
         # identification: the most acute vertex first, then the rig's handedness
-        ang = np.degrees(corner_angles(xy, sides))
+        ang = np.degrees(corner_angles(seen, sides))
         apex = int(np.argmin(ang))
         perm = (apex, (apex + 1) % 3, (apex + 2) % 3)
         if np.sign(_signed_area(xy[list(perm)])) != self.expected_sign:
@@ -355,7 +403,7 @@ class TriangleDetector:
 
         # shape checks against the known triangle
         area = abs(_signed_area(xy))
-        if abs(area / self.expected_area - 1.0) > AREA_TOL:
+        if abs(abs(_signed_area(seen)) / self.expected_area - 1.0) > AREA_TOL:
             return self._reject("area_mismatch", warnings, mean, cand, pts_px)
         if np.max(np.abs(sides / sides.sum() - self.expected_side_ratio)) > SIDE_RATIO_TOL:
             return self._reject("shape_mismatch", warnings, mean, cand, pts_px)
@@ -453,7 +501,7 @@ class TriangleDetector:
             # board (no step where the threshold crosses its lighting gradient): the
             # triangle stands out too little from the board's lighting
             reason = "low_contrast"
-        elif seen.area_px < (1.0 + AREA_TOL) * self.expected_area and not np.all(
+        elif seen.area_px < (1.0 + AREA_TOL) * self.expected_image_area and not np.all(
             self.rig.camera.in_image(outline, self.scale)
         ):
             # a region no larger than the triangle that reaches the border (its outline
@@ -489,7 +537,9 @@ class TriangleDetector:
         outer = c + (pts_px - c) * 1.25
         if not np.all(self.rig.camera.in_image(outer)):
             return True  # cannot tell near the image edge; other checks apply
-        x0, y0 = np.floor(outer.min(axis=0)).astype(int)
+        # a corner within half a pixel of the border (in the image, u or v > -0.5) floors
+        # to -1, which as a slice start is the last row or column: clamp it
+        x0, y0 = np.maximum(np.floor(outer.min(axis=0)).astype(int), 0)
         x1, y1 = np.ceil(outer.max(axis=0)).astype(int) + 1
         roi = image[y0:y1, x0:x1]
         o = np.array([x0, y0])
