@@ -17,6 +17,10 @@ _log = logging.getLogger(__name__)
 # a live source's timestamps are used while their elapsed time stays within this of
 # ours (s): a clock that is not running at real time (or jumped) is not the frames'
 SOURCE_CLOCK_TOLERANCE_S = 0.5
+# a live source that stops delivering is closed and opened again this often while it is
+# retried (s): a USB camera that dropped off the bus and came back (a loose cable, a
+# brown-out) or a stream whose connection broke delivers again only to a new capture
+REOPEN_EVERY_S = 1.0
 
 
 class VideoSource:
@@ -30,7 +34,8 @@ class VideoSource:
         Frame rate used for times when the source gives none.
     retry_s : float
         A live camera that stops delivering frames is retried for this long before
-        :class:`SourceError` is raised. Files simply end.
+        :class:`SourceError` is raised, and closed and opened again every
+        REOPEN_EVERY_S meanwhile. Files simply end.
     max_frames : int, optional
     size : (width, height), optional
         A camera (index) is asked for this frame size and ``fps`` (the rig's); if its
@@ -53,7 +58,9 @@ class VideoSource:
     ):
         self.spec = spec
         self.live = isinstance(spec, int) or "://" in str(spec)
-        self.cap = cv2.VideoCapture(spec)
+        self.size = size if isinstance(spec, int) else None
+        self._mode = (self.size, fps)  # what a camera is asked for, again on a reopen
+        self.cap = self._open()
         if not self.cap.isOpened():
             if isinstance(spec, int):
                 raise SourceError(
@@ -61,16 +68,6 @@ class VideoSource:
                     f"program, or no permission?); --camera also takes a video file or URL"
                 )
             raise SourceError(f"{spec}: cannot open the video or stream")
-        self.size = size if isinstance(spec, int) else None
-        if self.size is not None:
-            # V4L2, DirectShow and AVFoundation switch to the nearest mode they have
-            self.cap.set(cv2.CAP_PROP_FRAME_WIDTH, float(size[0]))
-            self.cap.set(cv2.CAP_PROP_FRAME_HEIGHT, float(size[1]))
-            self.cap.set(cv2.CAP_PROP_FPS, float(fps))
-            # one buffered frame: read() returns the newest one, not one that waited in
-            # the driver's queue while the last was processed (the latency column counts
-            # from the frame in hand, so a queue would hide its age)
-            self.cap.set(cv2.CAP_PROP_BUFFERSIZE, 1.0)
         src_fps = self.cap.get(cv2.CAP_PROP_FPS)
         self.fps = src_fps if src_fps and src_fps > 0 and not isinstance(spec, int) else fps
         self.retry_s = retry_s
@@ -80,6 +77,22 @@ class VideoSource:
         # a stream's presentation time) as (first, last) in s, while they stay usable
         self._src: tuple[float, float] | None = None
         self.clock = "source" if self.live else "file"
+        self.reopened = 0  # how often a live source was closed and opened again
+
+    def _open(self) -> cv2.VideoCapture:
+        """A capture of the source, a camera asked for the rig's frame size and rate."""
+        cap = cv2.VideoCapture(self.spec)
+        size, fps = self._mode
+        if size is not None and cap.isOpened():
+            # V4L2, DirectShow and AVFoundation switch to the nearest mode they have
+            cap.set(cv2.CAP_PROP_FRAME_WIDTH, float(size[0]))
+            cap.set(cv2.CAP_PROP_FRAME_HEIGHT, float(size[1]))
+            cap.set(cv2.CAP_PROP_FPS, float(fps))
+            # one buffered frame: read() returns the newest one, not one that waited in
+            # the driver's queue while the last was processed (the latency column counts
+            # from the frame in hand, so a queue would hide its age)
+            cap.set(cv2.CAP_PROP_BUFFERSIZE, 1.0)
+        return cap
 
     def __iter__(self) -> Iterator[Frame]:
         i = 0
@@ -151,12 +164,29 @@ class VideoSource:
         self.size = None  # checked once
 
     def _retry(self):
-        deadline = time.monotonic() + self.retry_s
-        while time.monotonic() < deadline:
+        """The next frame of a live source that failed to deliver one: read again, and
+        every REOPEN_EVERY_S close and open it again, until ``retry_s`` has passed."""
+        start = time.monotonic()
+        reopen_at = start + REOPEN_EVERY_S
+        n = 0
+        while time.monotonic() < start + self.retry_s:
             time.sleep(0.05)
-            ok, img = self.cap.read()
-            if ok:
-                return img
+            if time.monotonic() >= reopen_at:
+                reopen_at = time.monotonic() + REOPEN_EVERY_S
+                self.cap.release()
+                self.cap = self._open()
+                self.reopened += 1
+                n += 1
+                _log.warning(
+                    "%s: no frame for %.1f s; opened it again", self.spec, time.monotonic() - start
+                )
+                # a new capture may come in another mode (checked on its first frame)
+                self.size = self._mode[0]
+            if self.cap.isOpened():
+                ok, img = self.cap.read()
+                if ok:
+                    return img
         raise SourceError(
-            f"{self.spec}: the camera stopped delivering frames (retried for {self.retry_s:g} s)"
+            f"{self.spec}: the camera stopped delivering frames (retried for {self.retry_s:g} s, "
+            f"opened again {n} times)"
         )
