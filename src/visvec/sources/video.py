@@ -177,9 +177,12 @@ class VideoSource:
                 self.cap = self._open()
                 self.reopened += 1
                 n += 1
-                _log.warning(
-                    "%s: no frame for %.1f s; opened it again", self.spec, time.monotonic() - start
-                )
+                if n == 1:  # once per outage: the final error, if any, says how often
+                    _log.warning(
+                        "%s: no frame for %.1f s; opening it again",
+                        self.spec,
+                        time.monotonic() - start,
+                    )
                 # a new capture may come in another mode (checked on its first frame)
                 self.size = self._mode[0]
             if self.cap.isOpened():
