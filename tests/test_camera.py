@@ -49,3 +49,26 @@ def test_scaled_keeps_pixel_centre_convention():
     big = cam.scaled(2.0)
     assert (big.width, big.height, big.fx) == (640, 480, 600.0)
     assert big.cx == 319.5 and big.cy == 239.5
+
+
+@pytest.mark.parametrize("dist", [np.zeros(5), np.array([-0.3, 0.09, 0.001, -0.002, -0.01])])
+def test_pixels_per_steradian_is_the_image_area_of_a_small_cone(dist):
+    """A cone of 2e-4 rad square about a ray covers pixels_per_steradian times its solid
+    angle in the image (the projected square's area), on and off the boresight."""
+    cam = CameraModel(640, 480, 250.0, 252.0, 320.0, 240.0, dist)
+    rng = np.random.default_rng(0)
+    ratios = []
+    for _ in range(6):
+        d = rng.normal([0.3, -0.2, 1.0], [0.3, 0.3, 0.0])
+        d /= np.linalg.norm(d)
+        a = np.cross(d, [0.0, 0.0, 1.0])
+        a /= np.linalg.norm(a)
+        b = np.cross(d, a)
+        e = 1e-4
+        corners = [d + e * (sa * a + sb * b) for sa, sb in ((-1, -1), (1, -1), (1, 1), (-1, 1))]
+        uv = cam.project(np.array(corners))
+        area = 0.5 * abs(uv[:, 0] @ np.roll(uv[:, 1], 1) - uv[:, 1] @ np.roll(uv[:, 0], 1))
+        ratios.append(area / (2 * e) ** 2 / cam.pixels_per_steradian(cam.project(d[None]))[0])
+    np.testing.assert_allclose(ratios, 1.0, atol=1e-6)
+    # the boresight: fx fy
+    assert cam.pixels_per_steradian(np.array([[320.0, 240.0]]))[0] == pytest.approx(250.0 * 252.0)

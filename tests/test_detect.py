@@ -815,6 +815,31 @@ def test_region_search_expects_the_area_the_lens_shows(rig640):
     assert det.detect(img).status is Status.OK
 
 
+def test_region_search_expects_the_area_where_the_triangle_falls(rig640):
+    """A 94 deg lens tilted 25 deg towards a target hung 1 m off the axis: at yaw 90 deg
+    the whole triangle shows 35 deg off the boresight, covering 1.9x the pixels it covers
+    at zero attitude (2.7x at yaw 120), beyond the region search's 45 % and refused as
+    ``obstructed``. The search now expects the area the lens gives a triangle of its
+    solid angle where the region is (CameraModel.pixels_per_steradian): found, and
+    right."""
+    a = np.radians(25.0)
+    tilted = np.array([[np.cos(a), 0.0, np.sin(a)], [0.0, 1.0, 0.0], [-np.sin(a), 0.0, np.cos(a)]])
+    rig = replace(
+        rig640,
+        camera=replace(rig640.camera, fx=300.0, fy=300.0),
+        mount=replace(rig640.mount, rotation=tilted),
+        target=replace(rig640.target, vertices_mm=rig640.target.vertices_mm + [1000.0, 0.0, 0.0]),
+    )
+    det = TriangleDetector(rig)
+    for yaw in (0.0, 90.0, 120.0):
+        R = euler_to_matrix(np.radians(yaw), 0.0, 0.0)
+        det.reset()
+        d = det.detect(render_frame(rig, R, Scene(), rng=1))
+        assert d.status is Status.OK, (yaw, d.reason)
+        e = (d.points_n - rig.camera.undistort(project_target(rig, R))).ravel()
+        assert e @ np.linalg.solve(d.cov_n, e) < 22.5
+
+
 def test_brightness_warning(rig640):
     sc = Scene(board_level=12.0, contrast=20.0, ceiling_level=25.0)
     d = TriangleDetector(rig640).detect(render_frame(rig640, np.eye(3), sc, rng=6))

@@ -115,6 +115,20 @@ class CameraModel:
         J[:, 1, 1] = self.fy * (radial + 2 * y * y * drad + 6 * p1 * y + 2 * p2 * x)
         return J
 
+    def pixels_per_steradian(self, uv: np.ndarray) -> np.ndarray:
+        """(N,) image area (px^2) per steradian of the field at pixels ``uv`` (N, 2): a
+        small object subtending a solid angle w there covers w times this. Through a
+        pinhole a ray at (x, y) of normalised coordinates is (1 + x^2 + y^2)^(3/2) times
+        as far out per unit of solid angle as the boresight, and the lens maps a unit of
+        normalised area onto det(d(u, v) / d(x, y)) px^2 (fx fy without distortion)."""
+        xy = self.undistort(uv)
+        if self.has_distortion:
+            J = self._distort_jacobian(xy)
+            det = np.abs(J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0])
+        else:
+            det = np.full(len(xy), self.fx * self.fy)
+        return det * (1.0 + np.einsum("ij,ij->i", xy, xy)) ** 1.5
+
     def in_image(self, uv: np.ndarray, margin: float = 0.0) -> np.ndarray:
         """(N,) bool: pixel positions at least ``margin`` px inside the image."""
         u, v = uv[:, 0], uv[:, 1]

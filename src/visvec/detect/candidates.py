@@ -8,7 +8,7 @@ maximally-stable-region search), then corners are looked for on it only.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 import cv2
@@ -87,6 +87,7 @@ def iter_candidates(
     levels: np.ndarray | None = None,
     n_levels: int = 12,
     area_tol: float = 0.45,
+    area_at: Callable[[np.ndarray], float] | None = None,
 ) -> Iterator[Candidate]:
     """Bright triangular components whose area is near ``expected_area_px``.
 
@@ -104,6 +105,10 @@ def iter_candidates(
         the ceiling around the board is brighter or darker than the triangle.
     area_tol : float
         Relative tolerance on the area.
+    area_at : callable, optional
+        The expected area (full-resolution px) of a region centred at a pixel (2,): the
+        triangle's area where it falls in the field (a wide lens shows it larger or
+        smaller off the boresight); ``expected_area_px`` everywhere without it.
 
     Yields
     ------
@@ -118,13 +123,13 @@ def iter_candidates(
     levels = list(levels)
     k = 0
     while k < len(levels):
-        found = _at_level(small, levels[k], scale, a_lo, a_hi)
+        found = _at_level(small, levels[k], scale, a_lo, a_hi, area_at, area_tol)
         if found and k + 1 < len(levels):
             # the first level that cuts the triangle off may sit just above the board's
             # grey, where the outline is ragged (noise and blur on the board side) and
             # its enclosing triangle several px off: the next level, nearer the middle of
             # the step, competes on how triangular its region is
-            found += _at_level(small, levels[k + 1], scale, a_lo, a_hi)
+            found += _at_level(small, levels[k + 1], scale, a_lo, a_hi, area_at, area_tol)
             k += 1
         k += 1
         found.sort(key=lambda c: (c.touches_border, -c.fill))
@@ -132,9 +137,16 @@ def iter_candidates(
 
 
 def _at_level(
-    small: np.ndarray, level: float, scale: int, a_lo: float, a_hi: float
+    small: np.ndarray,
+    level: float,
+    scale: int,
+    a_lo: float,
+    a_hi: float,
+    area_at: Callable[[np.ndarray], float] | None = None,
+    area_tol: float = 0.45,
 ) -> list[Candidate]:
-    """Bright regions at one threshold whose area is within [a_lo, a_hi] (small px) and
+    """Bright regions at one threshold whose area is within [a_lo, a_hi] (small px), or
+    with ``area_at`` within ``area_tol`` of the area it expects where the region is, and
     that fill at least 0.8 of their minimum enclosing triangle."""
     h, w = small.shape
     _, binary = cv2.threshold(small, float(level), 255, cv2.THRESH_BINARY)
@@ -151,9 +163,16 @@ def _at_level(
         # pixels enclosed by the outline, boundary pixels included (Pick's theorem:
         # the outline's B pixels are the polygon's lattice points on its boundary)
         area_px = area_c + 0.5 * len(cnt) + 1.0
-        if not a_lo <= area_px <= a_hi:
+        if area_at is None and not a_lo <= area_px <= a_hi:
             continue
+        if area_at is not None and not 0.5 * a_lo <= area_px <= 2.0 * a_hi:
+            continue  # (an area no lens position makes the triangle's: skip the lens)
         x, y, bw, bh = cv2.boundingRect(cnt)
+        if area_at is not None:
+            centre = (np.array([x + 0.5 * bw, y + 0.5 * bh]) * scale) - 0.5
+            a_exp = area_at(centre) / scale**2
+            if abs(area_px / a_exp - 1.0) > area_tol:
+                continue
         ok, tri = cv2.minEnclosingTriangle(cnt.astype(np.float32))
         if not ok:
             continue
