@@ -149,6 +149,9 @@ def _at_level(
     with ``area_at`` within ``area_tol`` of the area it expects where the region is, and
     that fill at least 0.8 of their minimum enclosing triangle."""
     h, w = small.shape
+    # with area_at, first an area no position in the field makes the triangle's (the
+    # lens not consulted), then area_at's own
+    lo, hi = (a_lo, a_hi) if area_at is None else (0.5 * a_lo, 2.0 * a_hi)
     _, binary = cv2.threshold(small, float(level), 255, cv2.THRESH_BINARY)
     # outer outlines of the 8-connected bright regions, also those inside another
     # region's hole (the triangle on the board in a bright ceiling): RETR_CCOMP puts
@@ -163,10 +166,8 @@ def _at_level(
         # pixels enclosed by the outline, boundary pixels included (Pick's theorem:
         # the outline's B pixels are the polygon's lattice points on its boundary)
         area_px = area_c + 0.5 * len(cnt) + 1.0
-        if area_at is None and not a_lo <= area_px <= a_hi:
+        if not lo <= area_px <= hi:
             continue
-        if area_at is not None and not 0.5 * a_lo <= area_px <= 2.0 * a_hi:
-            continue  # (an area no lens position makes the triangle's: skip the lens)
         x, y, bw, bh = cv2.boundingRect(cnt)
         if area_at is not None:
             centre = (np.array([x + 0.5 * bw, y + 0.5 * bh]) * scale) - 0.5

@@ -186,7 +186,7 @@ class TriangleDetector:
         # file says has a global shutter
         self.readout_ms = rig.readout_ms
         self.readout_sigma_ms = rig.readout_sigma_ms
-        self._area_grid: list | None = None  # see _image_area_at
+        self._area_grid = self._area_table()  # see _image_area_at
         self._last_level: float | None = None
         self._last_points: np.ndarray | None = None
         self._prev_points: np.ndarray | None = None
@@ -207,26 +207,28 @@ class TriangleDetector:
             tracked=True,
         )
 
+    def _area_table(self) -> list:
+        """The triangle's expected image area (px) at AREA_GRID x AREA_GRID nodes over the
+        image: its solid angle (the faced area at zero attitude, see facing) times the
+        lens's pixels per steradian there (the lens's undistortion takes 15 us a call, so
+        :meth:`_image_area_at` interpolates this table)."""
+        cam = self.rig.camera
+        u = np.linspace(-0.5, cam.width - 0.5, AREA_GRID)
+        v = np.linspace(-0.5, cam.height - 0.5, AREA_GRID)
+        uu, vv = np.meshgrid(u, v)
+        ppsr = cam.pixels_per_steradian(np.column_stack([uu.ravel(), vv.ravel()]))
+        area = self.expected_area / cam.fx**2 * ppsr  # solid angle x px per sr
+        # where the lens model folds over (a strong distortion's polynomial beyond the
+        # calibrated field) its value is meaningless: the area at zero attitude
+        ref = self.expected_image_area
+        area[~(np.abs(np.log(area / ref)) < np.log(3.0))] = ref
+        return area.reshape(AREA_GRID, AREA_GRID).tolist()
+
     def _image_area_at(self, uv: np.ndarray) -> float:
         """The triangle's expected area (px) in the image when it is centred at pixel
-        ``uv``: its solid angle (the faced area at zero attitude, see facing) times the
-        lens's pixels per steradian there. Off the boresight, and through a wide lens's
-        distortion, the same triangle covers more or fewer pixels (1.3x the centre's at
-        20-25 deg off the boresight through a 56 deg lens). Interpolated bilinearly in a
-        table over the image (AREA_GRID x AREA_GRID nodes, built once: the lens's
-        undistortion takes 15 us a call)."""
-        if self._area_grid is None:
-            cam = self.rig.camera
-            u = np.linspace(-0.5, cam.width - 0.5, AREA_GRID)
-            v = np.linspace(-0.5, cam.height - 0.5, AREA_GRID)
-            uu, vv = np.meshgrid(u, v)
-            ppsr = cam.pixels_per_steradian(np.column_stack([uu.ravel(), vv.ravel()]))
-            area = self.expected_area / cam.fx**2 * ppsr  # solid angle x px per sr
-            # where the lens model folds over (a strong distortion's polynomial beyond
-            # the calibrated field) its value is meaningless: the area at zero attitude
-            ref = self.expected_image_area
-            area[~(np.abs(np.log(area / ref)) < np.log(3.0))] = ref
-            self._area_grid = area.reshape(AREA_GRID, AREA_GRID).tolist()
+        ``uv``, bilinear in :meth:`_area_table`. Off the boresight, and through a wide
+        lens's distortion, the same triangle covers more or fewer pixels (1.3x the
+        centre's at 20-25 deg off the boresight through a 56 deg lens)."""
         cam, g, n = self.rig.camera, self._area_grid, AREA_GRID - 1
         fu = min(max((float(uv[0]) + 0.5) / cam.width * n, 0.0), n - 1e-9)
         fv = min(max((float(uv[1]) + 0.5) / cam.height * n, 0.0), n - 1e-9)
