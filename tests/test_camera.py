@@ -1,3 +1,5 @@
+import math
+
 import cv2
 import numpy as np
 import pytest
@@ -72,3 +74,56 @@ def test_pixels_per_steradian_is_the_image_area_of_a_small_cone(dist):
     np.testing.assert_allclose(ratios, 1.0, atol=1e-6)
     # the boresight: fx fy
     assert cam.pixels_per_steradian(np.array([[320.0, 240.0]]))[0] == pytest.approx(250.0 * 252.0)
+
+
+# at fx 340 this polynomial turns back 345 px out, short of the 400 px corners
+FOLDING = np.array([-0.32, 0.12, 0.0, 0.0, -0.02])
+
+
+def _folding():
+    return CameraModel(640, 480, 340.0, 340.0, 319.5, 239.5, FOLDING)
+
+
+def test_the_field_ends_where_the_image_radius_stops_growing():
+    cam = _folding()
+    k1, k2, _, _, k3 = FOLDING
+
+    def radius(s):
+        return math.sqrt(s) * (1.0 + k1 * s + k2 * s**2 + k3 * s**3)
+
+    s = cam.field_r2
+    assert radius(0.99 * s) < radius(s) > radius(1.01 * s)  # the image radius' maximum
+    assert all(radius(t * s) < radius(t * s + 1e-3) for t in np.linspace(0.0, 0.99, 50))
+    assert cam.field_radius_px == pytest.approx(340.0 * radius(s))
+    assert cam.field_radius_px < cam.corner_radius_px == pytest.approx(400.0)
+    # lenses whose image radius keeps growing: a webcam's, OpenCV's sample calibration,
+    # the same barrel lens without k3, none at all
+    for d in (
+        _cam().dist,
+        [-0.2813, 0.0291, 0.0012, -0.0001, 0.1549],
+        [-0.32, 0.12, 0.0, 0.0, 0.0],
+        np.zeros(5),
+    ):
+        cam = CameraModel(640, 480, 340.0, 340.0, 319.5, 239.5, np.array(d))
+        assert math.isinf(cam.field_r2) and np.all(cam.in_field(np.array([[0.0, 0.0]])))
+
+
+def test_no_ray_comes_from_beyond_the_fold():
+    """Pixels past the fold have no ray (nan), rather than one from the polynomial's far
+    branch; inside it, every pixel's ray reprojects; rays past it project to nan rather
+    than to a pixel folded back into the image."""
+    cam = _folding()
+    u, v = np.meshgrid(np.arange(-0.5, 640, 0.5), np.arange(-0.5, 480, 0.5))
+    uv = np.column_stack([u.ravel(), v.ravel()])
+    xy = cam.undistort(uv)
+    has_ray = np.isfinite(xy).all(axis=1)
+    inside = cam.in_field(uv, 1.0)
+    assert inside.mean() > 0.9 and has_ray[inside].all()
+    np.testing.assert_allclose(cam.distort(xy[inside]), uv[inside], atol=1e-6)
+    assert not has_ray[~cam.in_field(uv)].any()
+    assert np.all(np.einsum("ij,ij->i", xy[has_ray], xy[has_ray]) < cam.field_r2)
+    a = np.linspace(0.0, 2.0 * np.pi, 12, endpoint=False)
+    for t, seen in ((0.97, True), (1.03, False)):
+        r = math.sqrt(t * cam.field_r2)
+        p = np.column_stack([r * np.cos(a), r * np.sin(a), np.ones(12)])
+        assert np.isfinite(cam.project(p)).all(axis=1).tolist() == [seen] * 12

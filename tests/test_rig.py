@@ -1,3 +1,4 @@
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -92,6 +93,12 @@ def test_example_configs_load():
             ["[target] height_sigma_mm", "expected a number in"],
         ),
         ("[platform]", "[plaftorm]", ["unknown section", "plaftorm"]),
+        (
+            # k1 mistyped tenfold: the polynomial turns back 138 px out
+            "dist = [0.0, 0.0, 0.0, 0.0, 0.0]",
+            "dist = [-2.8, 0.0, 0.0, 0.0, 0.0]",
+            ["[camera] dist", "folds over 138 px", "not a lens", "k1 k2 p1 p2 k3"],
+        ),
         (
             "rotation = [[1, 0, 0], [0, 1, 0], [0, 0, 1]]",
             "rotation = [[1, 0, 0], [0, -1, 0], [0, 0, -1]]",
@@ -204,3 +211,40 @@ def test_bad_markers_rig(tmp_path, old, new, words):
         load_rig(p)
     for w in words:
         assert w in str(exc.value), str(exc.value)
+
+
+# a strong barrel lens at fx 340 whose k3 turns the polynomial back 345 px out, short of
+# the 400 px corners of a 640x480 image
+FOLDING = (
+    GOOD.replace("fx = 600.0", "fx = 340.0")
+    .replace("fy = 600.0", "fy = 340.0")
+    .replace("dist = [0.0, 0.0, 0.0, 0.0, 0.0]", "dist = [-0.32, 0.12, 0.0, 0.0, -0.02]")
+)
+
+
+def test_a_lens_model_folding_short_of_the_corners_is_loaded_with_a_warning(
+    tmp_path, caplog, monkeypatch
+):
+    # (a CLI test run before may have routed the visvec logger to stderr, unpropagated)
+    monkeypatch.setattr(logging.getLogger("visvec"), "propagate", True)
+    p = write(tmp_path, FOLDING)
+    with caplog.at_level("WARNING", logger="visvec"):
+        rig = load_rig(p)
+    assert rig.camera.field_radius_px == pytest.approx(344.8, abs=0.1)
+    msg = " ".join(r.getMessage() for r in caplog.records)
+    assert "[camera] dist" in msg and "folds over 345 px" in msg and "corners (400 px)" in msg
+    assert str(p) in msg
+
+
+def test_a_target_beyond_the_lens_models_field_is_refused(tmp_path):
+    # the triangle 3.5 m off the axis: its rays 60 deg out, beyond the fold at 59 deg
+    far = (
+        "vertices_mm = [[2972.5, 1900.0, 2150.0], [2413.7, 2090.5, 2150.0], "
+        "[2413.7, 1709.5, 2150.0]]"
+    )
+    p = write(tmp_path, FOLDING.replace(VERTS, far))
+    with pytest.raises(ConfigError) as exc:
+        load_rig(p)
+    msg = str(exc.value)
+    assert str(p) in msg and "[target] vertices_mm" in msg
+    assert "beyond the lens model's field" in msg

@@ -7,6 +7,7 @@ A calibration file has the same sections; the keys it names override the rig's.
 
 from __future__ import annotations
 
+import logging
 import math
 import tomllib
 from collections.abc import Mapping, Sequence
@@ -24,6 +25,8 @@ from visvec.lamps import LampMap, read_lamp_map
 TARGET_KINDS = ("triangle", "markers", "lamps", "starfield")
 SUPPORTED_KINDS = ("triangle", "markers", "starfield", "lamps")
 REFINE_METHODS = ("lines", "corners")
+
+_log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -415,6 +418,7 @@ def rig_from_dict(
             "(0 declares a global shutter, whose readout has no uncertainty)"
         )
     cam.check_unknown()
+    _check_lens(camera, cam._where("dist"))
 
     mnt = _Section(src, "mount", raw["mount"], origins.get("mount", {}))
     mount = Mount(
@@ -622,6 +626,33 @@ def _marker_target(tgt: _Section, mount: Mount, src: str) -> MarkerTarget:
     return target
 
 
+def _check_lens(camera: CameraModel, where: str) -> None:
+    """Refuse distortion whose polynomial folds over (see CameraModel.field_r2) inside
+    the image's inscribed circle: no lens does that, a mistyped coefficient does; warn
+    when it folds short of the corners (a calibration extrapolated past its photos)."""
+    r, corner = camera.field_radius_px, camera.corner_radius_px
+    if r >= corner:
+        return
+    dist = [float(k) for k in camera.dist]
+    inscribed = min(
+        camera.cx + 0.5, camera.width - 0.5 - camera.cx, camera.cy + 0.5,
+        camera.height - 0.5 - camera.cy,
+    )  # fmt: skip
+    if r < inscribed:
+        raise ConfigError(
+            f"{where} = {dist}: the lens model folds over {r:.0f} px from the principal "
+            f"point, well inside the image ({inscribed:.0f} px to its nearest edge): not "
+            "a lens; expected the coefficients `visvec calibrate camera` wrote (k1 k2 p1 p2 "
+            "k3, in that order)"
+        )
+    _log.warning(
+        "%s = %s: the lens model folds over %.0f px from the principal point, short of "
+        "the image's corners (%.0f px): nothing beyond is measured. The calibration "
+        "photos left the corners out; calibrate again with the chessboard in them",
+        where, dist, r, corner,
+    )  # fmt: skip
+
+
 def _check_visible(rig: Rig, src: str) -> None:
     """The target must be in front of the camera at zero attitude."""
     if rig.kind in ("starfield", "lamps"):
@@ -644,4 +675,10 @@ def _check_visible(rig: Rig, src: str) -> None:
         raise ConfigError(
             f"{src}: [mount] rotation: the target is behind the camera at zero "
             "attitude; expected the boresight (third column) to point at it"
+        )
+    if not np.all(np.isfinite(rig.camera.project(p_c))):
+        raise ConfigError(
+            f"{src}: [target] vertices_mm: at zero attitude the triangle lies beyond the "
+            f"lens model's field ({rig.camera.field_radius_px:.0f} px from the principal "
+            "point, see [camera] dist); expected it in view of the camera"
         )

@@ -142,7 +142,8 @@ def render_lamps(
         sig_disc = scene.lamp_diameter_mm / 4.0 * cam.fx / p[:, 2]  # a disc's rms radius
         sig = np.sqrt(sig_disc**2 + scene.psf_sigma_px**2)
         for (u, v), f, s in zip(uv, flux[view], sig, strict=True):
-            add_spot(img, u, v, f / n_sub, s)
+            if np.isfinite(u):  # nan: beyond the lens model's field
+                add_spot(img, u, v, f / n_sub, s)
     n_in = int(np.sum(cam.in_image(cam.project(p_mid[in_view]), 0.0)))
     n_spur = rng.poisson(scene.spurious * n_in) if scene.spurious > 0 else 0
     for _ in range(n_spur):

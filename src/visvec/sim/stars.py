@@ -113,9 +113,9 @@ def star_image(
     r = int(np.ceil(4 * s)) + 1
     for j in range(len(u0)):
         uk = rots @ u0[j]  # (k, 3)
-        if np.any(uk[:, 2] <= 0):
+        uv = cam.project(uk)  # nan behind the camera or beyond the lens model's field
+        if not np.all(np.isfinite(uv)):
             continue
-        uv = cam.distort(uk[:, :2] / uk[:, 2:3])
         x0 = int(np.floor(uv[:, 0].min())) - r
         x1 = int(np.ceil(uv[:, 0].max())) + r
         y0 = int(np.floor(uv[:, 1].min())) - r
