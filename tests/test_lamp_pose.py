@@ -1,6 +1,7 @@
 """Lamp identification and planar pose: lost in space, tracking, refusals, the CLI."""
 
 import csv
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -18,6 +19,7 @@ from visvec.estimate.planar import (
 from visvec.pipeline import LampPipeline
 from visvec.rig import load_rig
 from visvec.sim.lamps import LampScene, PerimeterPath, lamps_in_view, render_lamps
+from visvec.sim.markers import add_spot
 
 from conftest import CONFIGS
 
@@ -107,6 +109,21 @@ def test_spurious_spots_and_missing_lamps_never_give_a_wrong_fix(rng):
             assert np.all(np.abs(truth_err(row, pose)) < [3.0, 3.0, 0.2])
             assert "extra_spots" in row.warnings
     assert n_ok >= 10  # most frames still have enough lamps
+
+
+def test_a_spot_beyond_the_lens_models_field_is_left_out(rng):
+    """A lens model (k1 = -0.41) turning back 361 px out, short of the 400 px corners: a
+    light in a corner, beyond that fold, has no ray and is left out (before, it was
+    given one from the polynomial's far branch: an outlier lamp, an extra spot)."""
+    rig = replace(RIG, camera=replace(RIG.camera, dist=np.array([-0.41, 0.0, 0.0, 0.0, 0.0])))
+    assert rig.camera.field_radius_px < 362.0
+    pose = np.array([200.0, -300.0, 0.4])
+    img = render_lamps(rig, still(*pose[:2], np.degrees(pose[2])), 0.0, LampScene(), rng)
+    img = img.astype(float)
+    add_spot(img, 20.0, 20.0, 3000.0, 1.2)
+    row = LampPipeline(rig).process(Frame(0, 0.0, np.clip(img, 0, 255).astype(np.uint8)))
+    assert row.ok and row.warnings == (), row.warnings
+    assert np.all(np.abs(truth_err(row, pose)) < 3.0 * row.sigmas() + [0.5, 0.5, 0.01])
 
 
 def test_two_lamps_in_three_dark_are_still_identified(rng):

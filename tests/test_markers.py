@@ -145,6 +145,23 @@ def test_pipeline_rendered_frames_with_reflection_and_hidden_led(mrig):
     assert np.all(err < 3 * row.sigma_deg + 1e-4)
 
 
+def test_a_spot_beyond_the_lens_models_field_is_left_out_and_named(mrig):
+    """A lens model (k1 = -1.36) turning back 1148 px out, short of the 1280 px corners:
+    a reflection in a corner, beyond that fold, has no ray; it is left out with
+    ``beyond_lens_model``, the markers inside are solved as before."""
+    rig = replace(mrig, camera=replace(mrig.camera, dist=np.array([-1.36, 0.0, 0.0, 0.0, 0.0])))
+    assert rig.camera.field_radius_px < 1150.0 < rig.camera.corner_radius_px
+    R = euler_to_matrix(-0.7, 0.15, 0.1)
+    sc = SpotScene()
+    img = render_markers(rig, R, sc, rng=5).astype(float)
+    add_spot(img, 40.0, 30.0, sc.flux, sc.psf_sigma_px)
+    row = MarkerPipeline(rig).process(Frame(0, 0.0, np.clip(img, 0, 255).astype(np.uint8)))
+    assert row.ok and row.n_points == len(rig.target.points_b), row.warnings
+    assert "beyond_lens_model" in row.warnings and "extra_spots" not in row.warnings
+    err = np.abs(row.euler_deg - np.degrees(matrix_to_euler(R)))
+    assert np.all(err < 3 * row.sigma_deg + 1e-4)
+
+
 def test_pipeline_refuses_frames_without_enough_markers(mrig):
     pipe = MarkerPipeline(mrig)
     img = render_markers(mrig, np.eye(3), SpotScene(hidden=tuple(range(18))), rng=1)

@@ -10,7 +10,7 @@ from __future__ import annotations
 import time
 from collections import Counter
 from collections.abc import Callable, Iterable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
 
@@ -563,7 +563,8 @@ class MarkerPipeline(AttitudePipeline):
         d = self.rig.detect
         windows = None
         if R_pred is not None:
-            uv = self.rig.camera.distort(self.identifier.project(R_pred))
+            xy = self.identifier.project(R_pred)
+            uv = self.rig.camera.project(np.column_stack([xy, np.ones(len(xy))]))
             h = TRACK_WINDOW_PX
             windows = [(u - h, v - h, u + h + 1, v + h + 1) for u, v in uv if np.isfinite(u)]
         return find_spots(image, d.threshold, d.min_spot_px, d.max_spot_px, windows)
@@ -577,16 +578,21 @@ class MarkerPipeline(AttitudePipeline):
         for attempt in ("track", "search") if tracking else ("search",):
             if attempt == "search" and tracking:
                 spots = self._spots(image, None)
-            good = spots.elongation <= MAX_ELONGATION
             xy = self.rig.camera.undistort(spots.centroids_px) if len(spots) else np.zeros((0, 2))
+            # a spot beyond the lens model's field has no ray (nan): left out, as merged
+            # spots are
+            beyond = ~np.isfinite(xy).all(axis=1)
+            good = (spots.elongation <= MAX_ELONGATION) & ~beyond
             ident = self.identifier.identify(xy[good], self.R_last if attempt == "track" else None)
             ids = np.full(len(spots), -1)
             ids[np.nonzero(good)[0]] = ident.ids
             if ident.R_nb is not None:
                 break
         self.last_detection = MarkerDetection(spots, ids, ident.reason)
-        if np.any(~good):
+        if np.any(~good & ~beyond):
             warnings.append("merged_spot")
+        if np.any(beyond):
+            warnings.append("beyond_lens_model")
         if ident.R_nb is None:
             status = Status.NO_TARGET if len(spots) == 0 else Status.REJECTED
             return status, None, tuple(warnings + [ident.reason or "not_identified"])
@@ -605,7 +611,8 @@ class MarkerPipeline(AttitudePipeline):
         return sol.status, sol, tuple(warnings) + sol.warnings
 
     def _visible_count(self, R_nb: np.ndarray) -> int:
-        uv = self.rig.camera.distort(self.identifier.project(R_nb))
+        xy = self.identifier.project(R_nb)
+        uv = self.rig.camera.project(np.column_stack([xy, np.ones(len(xy))]))
         return int(np.sum(self.rig.camera.in_image(uv, 3.0)))
 
 
@@ -695,7 +702,8 @@ class RatePipeline(Pipeline):
         cam = self.rig.camera
         u = unit_vectors(cam.undistort(uv1))
         p = u @ expmap(-omega * dt).T
-        return cam.distort(p[:, :2] / p[:, 2:3]) - uv1
+        # a star beyond the lens model's field (nan): no prediction, searched where it was
+        return np.nan_to_num(cam.project(p) - uv1)
 
     def _solve(self, m: Matches, dt: float, noise: tuple[float, float]) -> RateSolution:
         """The rate from matched stars; ``noise`` the pixel noise sigma of the first
@@ -813,6 +821,11 @@ class RatePipeline(Pipeline):
                 Status.REJECTED, None, ("frame_jump",))  # fmt: skip
         noise = (prev.stars.noise_sigma, res.sigma)
         m = self._match(prev, sig, dt, noise)
+        cam = self.rig.camera
+        beyond = ~(cam.in_field(m.uv1, 1.0) & cam.in_field(m.uv2, 1.0))
+        if np.any(beyond):
+            # no rays beyond the lens model's field: those stars are left out
+            m = Matches(*(getattr(m, f.name)[~beyond] for f in fields(Matches)))
         sol = self._solve(m, dt, noise)
         if stars is None:
             if sol.ok:
@@ -908,7 +921,9 @@ class LampPipeline(Pipeline):
         d = self.rig.detect
         spots = find_spots(frame.image, d.threshold, d.min_spot_px, d.max_spot_px)
         # a lamp cut by the image border has a biased centroid: left out
-        keep = self.rig.camera.in_image(spots.centroids_px, EDGE_PX)
+        # (and one beyond the lens model's field has no ray)
+        cam = self.rig.camera
+        keep = cam.in_image(spots.centroids_px, EDGE_PX) & cam.in_field(spots.centroids_px, EDGE_PX)
         if not keep.all():
             spots = Spots(*(a[keep] for a in (spots.centroids_px, spots.flux, spots.area_px,
                                                spots.elongation, spots.saturated)),

@@ -19,6 +19,8 @@ import numpy as np
 from visvec.data import Detection, Status
 from visvec.detect.candidates import Candidate, iter_candidates, partial_triangle
 from visvec.detect.edges import (
+    LEVEL_EXTENT_PX,
+    MAX_HALF_PX,
     corner_angles,
     fit_edges,
     intersect,
@@ -59,6 +61,10 @@ SATURATED_MAX = 0.2
 PARTIAL_EDGE_FRACTION = 0.75
 # nodes per side of the table of the triangle's expected image area over the field
 AREA_GRID = 17
+# a candidate's coarse corners must lie this far (px, plus a shrunk pixel of the region
+# search) inside the lens model's field (CameraModel.field_r2): the edge profiles reach
+# MAX_HALF_PX and LEVEL_EXTENT_PX beyond the edges
+FIELD_MARGIN_PX = MAX_HALF_PX + LEVEL_EXTENT_PX + 2.0
 # a corner whose inside averages this grey level or more is saturated
 SATURATED_LEVEL = 250.0
 # per-coordinate noise of cornerSubPix vertices, measured on simulated frames (0.26 px
@@ -151,7 +157,8 @@ class TriangleDetector:
         self.expected_apex_deg = float(np.degrees(corner_angles(seen, sides))[0])
         # the region search's and the partial corners' references: in the image (its
         # regions' areas in pixels as seen, through the lens's distortion: a barrel lens
-        # of 104 deg shows the triangle at 0.74 of its undistorted area)
+        # of 115 deg shows the triangle hung 950 mm off the axis at 0.76 of its
+        # undistorted area)
         self.expected_image_area = abs(_signed_area(self.expected_px))
         sides = side_lengths(xy)
         self.expected_angles_deg = np.degrees(corner_angles(xy))
@@ -187,6 +194,7 @@ class TriangleDetector:
         self.readout_ms = rig.readout_ms
         self.readout_sigma_ms = rig.readout_sigma_ms
         self._area_grid = self._area_table()  # see _image_area_at
+        self._folds = not math.isinf(cam.field_r2)  # the lens model's field ends in view
         self._last_level: float | None = None
         self._last_points: np.ndarray | None = None
         self._prev_points: np.ndarray | None = None
@@ -218,8 +226,8 @@ class TriangleDetector:
         uu, vv = np.meshgrid(u, v)
         ppsr = cam.pixels_per_steradian(np.column_stack([uu.ravel(), vv.ravel()]))
         area = self.expected_area / cam.fx**2 * ppsr  # solid angle x px per sr
-        # where the lens model folds over (a strong distortion's polynomial beyond the
-        # calibrated field) its value is meaningless: the area at zero attitude
+        # beyond the lens model's field (nan, see CameraModel.field_r2), and wherever the
+        # value is implausible: the area at zero attitude
         ref = self.expected_image_area
         area[~(np.abs(np.log(area / ref)) < np.log(3.0))] = ref
         return area.reshape(AREA_GRID, AREA_GRID).tolist()
@@ -381,6 +389,11 @@ class TriangleDetector:
         (``shutter``: a rolling shutter's camera rate, readout and lever arm, see
         fit_edges)."""
         cam, s = self.rig.camera, self.rig.detect
+        # beyond the fold of a strong distortion's polynomial the model has no rays (a
+        # calibration's fit extrapolated past the photos' corners): a triangle there
+        # cannot be measured, whatever it looks like
+        if self._folds and not np.all(cam.in_field(cand.corners_px, FIELD_MARGIN_PX + self.scale)):
+            return self._reject("beyond_lens_model", warnings, mean, cand)
         if s.refine == "corners":
             mask = np.zeros(image.shape, np.uint8)
             cv2.fillPoly(mask, [np.rint(cand.contour_px).astype(np.int32)], 1)
@@ -520,7 +533,8 @@ class TriangleDetector:
     def _partial_reason(self, image: np.ndarray) -> tuple[str, np.ndarray]:
         """Why no region had the triangle's shape, when one shows a corner of it (see
         partial_triangle): the corner's inside saturated, its edges too faint, the image
-        border across the triangle, or something over it; ("", empty) when none does."""
+        border across the triangle, the lens model's field ending on it, or something
+        over it; ("", empty) when none does."""
         s = self.rig.detect
         seen = partial_triangle(
             image,
@@ -541,6 +555,8 @@ class TriangleDetector:
             # board (no step where the threshold crosses its lighting gradient): the
             # triangle stands out too little from the board's lighting
             reason = "low_contrast"
+        elif not np.all(self.rig.camera.in_field(outline, FIELD_MARGIN_PX + self.scale)):
+            reason = "beyond_lens_model"  # see _verify
         elif seen.area_px < (1.0 + AREA_TOL) * self.expected_image_area and not np.all(
             self.rig.camera.in_image(outline, self.scale)
         ):
