@@ -6,10 +6,12 @@ from click.testing import CliRunner
 
 from visvec.calib.camera import calibrate_camera
 from visvec.calib.zero_tilt import calibrate_zero_tilt, circle_centre
+from visvec.camera import CameraModel
 from visvec.cli.main import cli
 from visvec.data import Detection, Status
 from visvec.errors import InputFileError
 from visvec.geometry import lab_to_camera
+from visvec.rig import load_rig
 from visvec.rotations import euler_to_matrix
 from visvec.sim.simulate import true_rig
 
@@ -304,10 +306,28 @@ def test_camera_calibration_cli_names_outlier_view(tmp_path):
     assert "left02.jpg" in r.output and "outlier" in r.output
     assert "  cx 342." in r.output and " +- 0." in r.output.split("  cx 342.")[1][:12]
     assert "[camera]" in out.read_text() and "fx = 536.0" in out.read_text()
+    # how far the photos reached (the left views: 278 px of the 421 px to the corners)
+    reach = float(r.output.split("the photos' corners reach ")[1].split(" px")[0])
+    assert 250.0 < reach < 421.0
+    cam = load_rig(CONFIGS / "triangle.toml", calibration=out).camera
+    corners = f"the image's corners {cam.corner_radius_px:.0f} px"
+    assert f"{corners}; the lens model holds to the image's corners" in r.output
     r = CliRunner().invoke(
         cli, ["calibrate", "camera", str(d), "--pattern", "nine", "--square-mm", "25"]
     )
     assert r.exit_code == 2 and "COLSxROWS" in r.output
+
+
+def test_camera_calibration_warns_when_its_lens_model_folds_short_of_the_corners():
+    from visvec.cli.calibrate import _coverage
+
+    # a barrel lens fitted from photos that stayed 300 px from the centre, whose k3
+    # turns the polynomial back 345 px out, short of the 400 px corners
+    cam = CameraModel(640, 480, 340.0, 340.0, 319.5, 239.5, np.array([-0.32, 0.12, 0, 0, -0.02]))
+    text = _coverage(cam, 300.0)
+    assert "reach 300 px from the principal point, the image's corners 400 px" in text
+    assert "warning: the lens model folds over 345 px out" in text
+    assert "chessboard in the corners" in text
 
 
 def _invoke(*args):

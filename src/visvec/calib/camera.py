@@ -8,6 +8,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from visvec.camera import CameraModel
 from visvec.errors import InputFileError
 
 RECIPES = {
@@ -34,6 +35,8 @@ class CameraCalibration:
     outliers : names of views whose error exceeds 2.5x the median, width, height.
     sigma_px : (4,) 1-sigma of fx, fy, cx, cy (OpenCV's, from the fit's Jacobian and
     its residuals)
+    reach_px : how far from the principal point the photos' corners reached (px): the
+    distortion polynomial is a fit inside that, an extrapolation beyond
     """
 
     K: np.ndarray
@@ -46,6 +49,14 @@ class CameraCalibration:
     width: int
     height: int
     sigma_px: np.ndarray = field(default_factory=lambda: np.full(4, np.nan))
+    reach_px: float = np.nan
+
+    @property
+    def camera(self) -> CameraModel:
+        K = self.K
+        return CameraModel(
+            self.width, self.height, K[0, 0], K[1, 1], K[0, 2], K[1, 2], np.array(self.dist)
+        )
 
 
 def parse_pattern(text: str) -> tuple[int, int]:
@@ -124,6 +135,7 @@ def calibrate_camera(
         proj, _ = cv2.projectPoints(o, rv, tv, K, dist)
         per_view.append(float(np.sqrt(np.mean(np.sum((proj.reshape(-1, 2) - p) ** 2, 1)))))
     per_view = np.array(per_view)
+    reach = max(float(np.hypot(*(p.reshape(-1, 2) - K[:2, 2]).T).max()) for p in img_pts)
     med = float(np.median(per_view))
     outliers = [n for n, e in zip(used, per_view, strict=True) if e > OUTLIER_FACTOR * med]
     return CameraCalibration(
@@ -137,6 +149,7 @@ def calibrate_camera(
         int(size[0]),
         int(size[1]),
         sd_in.ravel()[:4].astype(float),
+        reach,
     )
 
 

@@ -14,6 +14,7 @@ from visvec.calib.system import Observations, calibrate_system, initial_attitude
 from visvec.calib.system import calibration_sections as system_sections
 from visvec.calib.tomlout import dumps
 from visvec.calib.zero_tilt import calibrate_zero_tilt, calibration_sections
+from visvec.camera import CameraModel
 from visvec.cli.common import load, rig_options
 from visvec.data import Status
 from visvec.detect.markers import MarkerIdentifier
@@ -301,6 +302,7 @@ def camera(frames, pattern, square_mm, recipe, out):
     for name, e in zip(cal.files, cal.per_view_px, strict=True):
         flag = "  <- outlier" if name in cal.outliers else ""
         click.echo(f"    {name}: {e:.4f} px{flag}")
+    click.echo(_coverage(cal.camera, cal.reach_px))
     if out:
         click.echo(
             f"wrote {out}: its [camera] section into the rig file, or --calibration {out} "
@@ -308,6 +310,23 @@ def camera(frames, pattern, square_mm, recipe, out):
         )
     else:
         click.echo(text)
+
+
+def _coverage(cam: CameraModel, reach_px: float) -> str:
+    """How far the photos and the lens model reach, against the image's corners; a
+    warning when the model folds over short of them (see CameraModel.field_r2)."""
+    corner, fold = cam.corner_radius_px, cam.field_radius_px
+    line = (
+        f"  the photos' corners reach {reach_px:.0f} px from the principal point, "
+        f"the image's corners {corner:.0f} px"
+    )
+    if fold >= corner:
+        return line + "; the lens model holds to the image's corners"
+    return (
+        f"{line}\n  warning: the lens model folds over {fold:.0f} px out, short of the "
+        "image's corners: nothing beyond is measured. Add photos with the chessboard in "
+        "the corners"
+    )
 
 
 CAL_GATE_PX = 10.0
