@@ -826,6 +826,28 @@ def test_overlay_text_sits_on_a_dark_box_without_black_outlines():
     assert np.array_equal(out[100:, :], grey[100:, :])  # below the box: untouched
 
 
+def test_overlay_draws_where_the_lens_models_field_ends(rig640):
+    """A rig whose lens model folds over 345 px out (short of the 400 px corners): the
+    overlay draws that edge, beyond which nothing is measured; a rig whose model holds
+    to the corners draws none."""
+    from dataclasses import replace
+
+    from visvec.data import Status
+    from visvec.output import AttitudeRow
+    from visvec.overlay import draw_overlay
+
+    frame = np.full((480, 640), 100, np.uint8)
+    row = AttitudeRow(frame=0, time_s=0.0, status=Status.NO_TARGET, rms_px=np.nan,
+                      n_points=0, latency_ms=1.0, warnings=("no_triangle",))  # fmt: skip
+    dist = np.array([-0.32, 0.12, 0.0, 0.0, -0.02])
+    folding = replace(rig640, camera=replace(rig640.camera, fx=340.0, fy=340.0, dist=dist))
+    r = folding.camera.field_radius_px
+    u, v = int(round(319.5 + 0.8 * r)), int(round(239.5 + 0.6 * r))  # towards a corner
+    assert np.any(draw_overlay(frame, None, row, folding)[v - 1 : v + 2, u - 1 : u + 2] != 100)
+    plain = draw_overlay(frame, None, row, rig640)
+    assert np.all(plain[200:, :] == 100)  # below the header: the frame alone
+
+
 @pytest.mark.parametrize("fmt", ["csv", "jsonl"])
 def test_rows_stream_to_udp_one_datagram_each(fmt):
     """--out udp://HOST:PORT: every row is one datagram (a CSV header first), in order,

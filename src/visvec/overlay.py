@@ -30,15 +30,17 @@ def draw_overlay(
     (toward the acute vertex, red) and n2 (blue). Markers: each spot circled, green with
     its marker id when identified, red when not; brightened so the dark frame shows.
     Lamps: the same, and the map's lamps projected at the fitted pose (blue crosses).
+    With a ``rig`` whose lens model folds over inside the image (CameraModel.field_r2):
+    the edge of its field, a grey ellipse, beyond which nothing is measured.
     """
     from visvec.pipeline import LampDetection, MarkerDetection, RateDetection
 
     if isinstance(det, MarkerDetection):
-        return _text(_draw_markers(image, det, rig), row)
+        return _text(_draw_field(_draw_markers(image, det, rig), rig), row)
     if isinstance(det, LampDetection):
-        return _text(_draw_lamps(image, det, row, rig), row)
+        return _text(_draw_field(_draw_lamps(image, det, row, rig), rig), row)
     if isinstance(det, RateDetection):
-        return _text(_draw_flow(image, det), row)
+        return _text(_draw_field(_draw_flow(image, det), rig), row)
     if scale is None:
         scale = max(1, int(round(800 / max(image.shape[1], 1))))
     big = cv2.resize(image, None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST)
@@ -66,7 +68,24 @@ def draw_overlay(
         cv2.drawMarker(
             out, tuple(int(x) >> sh for x in P(c)), _YELLOW, cv2.MARKER_CROSS, 14, 1, cv2.LINE_AA
         )
-    return _text(out, row)
+    return _text(_draw_field(out, rig, scale), row)
+
+
+def _draw_field(out: np.ndarray, rig, scale: int = 1) -> np.ndarray:
+    """The edge of the rig's lens-model field where it lies in view (see draw_overlay)."""
+    cam = getattr(rig, "camera", None)
+    if cam is None or not cam.field_radius_px < cam.corner_radius_px:
+        return out
+    f, sh = 0.5 * (cam.fx + cam.fy), 4
+    centre = ((cam.cx + 0.5) * scale - 0.5, (cam.cy + 0.5) * scale - 0.5)
+    axes = (cam.field_radius_px * cam.fx / f * scale, cam.field_radius_px * cam.fy / f * scale)
+    cv2.ellipse(
+        out,
+        tuple(int(round(x * (1 << sh))) for x in centre),
+        tuple(int(round(x * (1 << sh))) for x in axes),
+        0.0, 0.0, 360.0, _GREY, 1, cv2.LINE_AA, sh,
+    )  # fmt: skip
+    return out
 
 
 def _text(out: np.ndarray, row: Row) -> np.ndarray:
