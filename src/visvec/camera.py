@@ -22,9 +22,11 @@ import numpy as np
 
 # undistort's Newton steps stop once every point reprojects within this (px)
 UNDISTORT_TOL_PX = 1e-9
-# and at most this many; a point that then still reprojects more than UNDISTORT_FAIL_PX
-# off has no ray in the model's field (nan)
+# and at most this many; a point then still UNDISTORT_RETRY_PX off is solved again from
+# its radial solution, and one still UNDISTORT_FAIL_PX off after that has no ray in the
+# model's field (nan)
 UNDISTORT_STEPS = 4
+UNDISTORT_RETRY_PX = 1e-6
 UNDISTORT_FAIL_PX = 1e-3
 
 
@@ -66,7 +68,10 @@ class CameraModel:
         smallest positive root s = r^2 of its derivative 1 + 3 k1 s + 5 k2 s^2 +
         7 k3 s^3; inf where it never does (tangential terms, a few 1e-3, left out)."""
         k1, k2, _, _, k3 = (float(k) for k in self.dist)
-        roots = np.roots([7.0 * k3, 5.0 * k2, 3.0 * k1, 1.0]) if k1 or k2 or k3 else []
+        # terms under 1e-12 change nothing out to s = 100 (84 deg off the boresight) and
+        # would only throw np.roots off
+        c = [c if abs(c) > 1e-12 else 0.0 for c in (7.0 * k3, 5.0 * k2, 3.0 * k1)]
+        roots = np.roots([*c, 1.0]) if any(c) else []
         s = [r.real for r in roots if abs(r.imag) <= 1e-9 * abs(r) and r.real > 0]
         return min(s) if s else math.inf
 
@@ -146,20 +151,81 @@ class CameraModel:
         # points reproject to 1e-9 px (a webcam's k1 = -0.28: two steps; k1 = -0.42 with
         # k2, k3: three)
         target = uv.reshape(-1, 2)
-        for step in range(UNDISTORT_STEPS + 1):
-            r = self.distort(xy) - target
-            if len(r) == 0 or np.abs(r).max() < UNDISTORT_TOL_PX or step == UNDISTORT_STEPS:
-                break
-            J = self._distort_jacobian(xy)
-            det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
-            dx = (J[:, 1, 1] * r[:, 0] - J[:, 0, 1] * r[:, 1]) / det
-            dy = (-J[:, 1, 0] * r[:, 0] + J[:, 0, 0] * r[:, 1]) / det
-            xy = xy - np.column_stack([dx, dy])
-        if len(r) and np.abs(r).max() >= UNDISTORT_TOL_PX:
-            xy[~(np.abs(r).max(axis=1) < UNDISTORT_FAIL_PX)] = np.nan
+        xy, res = self._newton(xy, target)
+        # where the fixed point went astray (strong pincushion near the corners: it
+        # diverges) or to the polynomial's far branch, start again from the radial
+        # solution on the near branch
+        again = ~(res < UNDISTORT_RETRY_PX) | ~(np.einsum("ij,ij->i", xy, xy) < self.field_r2)
+        if np.any(again):
+            idx = np.nonzero(again)[0]
+            xy2, res2 = self._newton(self._radial_start(target[idx]), target[idx])
+            near = np.einsum("ij,ij->i", xy[idx], xy[idx]) < self.field_r2
+            better = ~(res[idx] <= res2) | ~near
+            xy[idx[better]], res[idx[better]] = xy2[better], res2[better]
+        xy[~(res < UNDISTORT_FAIL_PX)] = np.nan
         if not math.isinf(self.field_r2):
             xy[~(np.einsum("ij,ij->i", xy, xy) < self.field_r2)] = np.nan
         return xy
+
+    def _newton(self, xy: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Up to UNDISTORT_STEPS Newton steps on distort(xy) = target from ``xy``; the
+        points and their (N,) remaining reprojection error (px, max of u and v; nan at
+        a fold, where the Jacobian is singular). The residual and the 2x2 Jacobian of
+        :meth:`distort` (as :meth:`_distort_jacobian`) share their terms here: this runs
+        on every edge point of a distorting lens."""
+        k1, k2, p1, p2, k3 = (float(k) for k in self.dist)
+        fx, fy = self.fx, self.fy
+        x, y = xy[:, 0].copy(), xy[:, 1].copy()
+        tu, tv = target[:, 0] - self.cx, target[:, 1] - self.cy
+        with np.errstate(divide="ignore", invalid="ignore"):
+            for step in range(UNDISTORT_STEPS + 1):
+                xx, yy, xy_ = x * x, y * y, x * y
+                r2 = xx + yy
+                radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+                ru = fx * (x * radial + 2.0 * p1 * xy_ + p2 * (r2 + 2.0 * xx)) - tu
+                rv = fy * (y * radial + p1 * (r2 + 2.0 * yy) + 2.0 * p2 * xy_) - tv
+                worst = np.maximum(np.abs(ru), np.abs(rv))
+                if len(x) == 0 or worst.max() < UNDISTORT_TOL_PX or step == UNDISTORT_STEPS:
+                    break
+                drad2 = 2.0 * (k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2))  # 2 d radial / d r2
+                cross = xy_ * drad2 + 2.0 * (p1 * x + p2 * y)
+                a = fx * (radial + xx * drad2 + 2.0 * p1 * y + 6.0 * p2 * x)
+                b, c = fx * cross, fy * cross
+                d = fy * (radial + yy * drad2 + 6.0 * p1 * y + 2.0 * p2 * x)
+                det = a * d - b * c
+                x = x - (d * ru - b * rv) / det
+                y = y - (a * rv - c * ru) / det
+        return np.column_stack([x, y]), worst
+
+    def _radial_start(self, uv: np.ndarray) -> np.ndarray:
+        """Normalised points on the near branch whose radial distortion alone gives the
+        pixels ``uv`` (N, 2) (tangential terms left to Newton): the radius r of r (1 +
+        k1 r^2 + k2 r^4 + k3 r^6) = r_d by bisection on [0, the fold] (within the field
+        the image radius grows with r); nan beyond the fold's image radius."""
+        xd = np.column_stack([(uv[:, 0] - self.cx) / self.fx, (uv[:, 1] - self.cy) / self.fy])
+        rd = np.hypot(xd[:, 0], xd[:, 1])
+        k1, k2, _, _, k3 = (float(k) for k in self.dist)
+
+        def image_radius(r: np.ndarray) -> np.ndarray:
+            s = r * r
+            return r * (1.0 + s * (k1 + s * (k2 + s * k3)))
+
+        if math.isinf(self.field_r2):
+            hi = 1.0  # no fold: the image radius grows without bound; double until past
+            while hi < 1e6 and image_radius(np.array(hi)) < rd.max(initial=0.0):
+                hi *= 2.0
+        else:
+            hi = math.sqrt(self.field_r2)
+        lo, up = np.zeros(len(rd)), np.full(len(rd), hi)
+        for _ in range(52):  # to a few 1e-16 of hi
+            mid = 0.5 * (lo + up)
+            below = image_radius(mid) < rd
+            lo, up = np.where(below, mid, lo), np.where(below, up, mid)
+        r = 0.5 * (lo + up)
+        r[rd > image_radius(np.array(hi))] = np.nan
+        with np.errstate(invalid="ignore", divide="ignore"):
+            scale = np.where(rd > 0, r / rd, 1.0)
+        return xd * scale[:, None]
 
     def _distort_jacobian(self, xy: np.ndarray) -> np.ndarray:
         """(N, 2, 2) d(u, v) / d(x, y) of :meth:`distort`."""

@@ -725,18 +725,28 @@ class RatePipeline(Pipeline):
             # bootstrap: the brightest stars searched over the whole range give a first rate
             bright = np.argsort(-first.flux)[:BOOTSTRAP_STARS]
             rad = np.full(n, self._full_radius(dt))
-            m = match_stars(first, prev.sig, sig, zero, rad, bright)
+            m = self._with_rays(match_stars(first, prev.sig, sig, zero, rad, bright))
             if len(m) >= MIN_STARS:
                 sol = self._solve(m, dt, noise)
                 if sol.ok:
                     omega = sol.omega
             if omega is None:
-                return match_stars(first, prev.sig, sig, zero, rad)
+                return self._with_rays(match_stars(first, prev.sig, sig, zero, rad))
         shifts = self._shifts(first.centroids_px, omega, dt)
         # detections whose peak is clearly above the noise (carried stars have an
         # infinite one: they were matched before)
         which = np.nonzero(first.peak_snr >= MIN_PEAK_SNR)[0]
-        return match_stars(first, prev.sig, sig, shifts, np.full(n, self._radius(omega, dt)), which)
+        radius = np.full(n, self._radius(omega, dt))
+        return self._with_rays(match_stars(first, prev.sig, sig, shifts, radius, which))
+
+    def _with_rays(self, m: Matches) -> Matches:
+        """The matches whose stars both have a ray: one beyond the lens model's field
+        (CameraModel.field_r2) has none, and is left out."""
+        cam = self.rig.camera
+        if not cam.has_distortion or len(m) == 0:
+            return m
+        ok = (np.isfinite(cam.undistort(m.uv1)) & np.isfinite(cam.undistort(m.uv2))).all(axis=1)
+        return m if ok.all() else Matches(*(getattr(m, f.name)[ok] for f in fields(Matches)))
 
     def _bands(self, dt: float) -> tuple[int, int, int, int]:
         """Widths (top, bottom, left, right) of the edge bands where this frame may hold
@@ -821,11 +831,6 @@ class RatePipeline(Pipeline):
                 Status.REJECTED, None, ("frame_jump",))  # fmt: skip
         noise = (prev.stars.noise_sigma, res.sigma)
         m = self._match(prev, sig, dt, noise)
-        cam = self.rig.camera
-        beyond = ~(cam.in_field(m.uv1, 1.0) & cam.in_field(m.uv2, 1.0))
-        if np.any(beyond):
-            # no rays beyond the lens model's field: those stars are left out
-            m = Matches(*(getattr(m, f.name)[~beyond] for f in fields(Matches)))
         sol = self._solve(m, dt, noise)
         if stars is None:
             if sol.ok:
@@ -920,18 +925,18 @@ class LampPipeline(Pipeline):
     def estimate(self, frame):
         d = self.rig.detect
         spots = find_spots(frame.image, d.threshold, d.min_spot_px, d.max_spot_px)
-        # a lamp cut by the image border has a biased centroid: left out
-        # (and one beyond the lens model's field has no ray)
-        cam = self.rig.camera
-        keep = cam.in_image(spots.centroids_px, EDGE_PX) & cam.in_field(spots.centroids_px, EDGE_PX)
+        # a lamp cut by the image border has a biased centroid: left out (and one beyond
+        # the lens model's field, which has no ray: nan)
+        xy = self.rig.camera.undistort(spots.centroids_px) if len(spots) else np.zeros((0, 2))
+        keep = self.rig.camera.in_image(spots.centroids_px, EDGE_PX) & np.isfinite(xy).all(1)
         if not keep.all():
             spots = Spots(*(a[keep] for a in (spots.centroids_px, spots.flux, spots.area_px,
                                                spots.elongation, spots.saturated)),
                           spots.threshold)  # fmt: skip
+            xy = xy[keep]
         self.last_detection = LampDetection(spots, np.full(len(spots), -1))
         if len(spots) == 0:
             return Status.NO_TARGET, None, ("no_lamps",)
-        xy = self.rig.camera.undistort(spots.centroids_px)
         pred = self._predict(frame.time_s)
         sol, ident, mode = None, None, "track"
         if pred is not None:
