@@ -86,8 +86,9 @@ class CameraModel:
         return math.sqrt(s) * (1.0 + s * (k1 + s * (k2 + s * k3))) * 0.5 * (self.fx + self.fy)
 
     def in_field(self, uv: np.ndarray, margin: float = 0.0) -> np.ndarray:
-        """(N,) bool: pixels at least ``margin`` px inside the model's field (within a
-        tenth of a pixel of the fold :meth:`undistort` may not converge: keep a pixel)."""
+        """(N,) bool: pixels at least ``margin`` px inside the model's field, by its
+        radial terms (the tangential ones move the fold by a few px: what has a ray is
+        what :meth:`undistort` gives one, finite)."""
         if math.isinf(self.field_r2):
             return np.ones(len(uv), dtype=bool)
         x = (uv[:, 0] - self.cx) / self.fx
