@@ -868,6 +868,10 @@ def test_a_triangle_beyond_the_lens_models_field_is_refused_with_the_reason(rig6
     assert d.status is Status.REJECTED and d.reason == "beyond_lens_model"
     d = det._verify(img, det._tracked_candidate(pts), [], 100.0)
     assert d.status is Status.REJECTED and d.reason == "beyond_lens_model"
+    # a region there whose corners are not the triangle's (90, 45, 45 deg) is not it
+    other = np.array([[560.0, 400.0], [630.0, 400.0], [630.0, 470.0]])
+    d = det._verify(img, det._tracked_candidate(other), [], 100.0)
+    assert d.status is Status.REJECTED and d.reason == "shape_mismatch"
 
 
 def test_brightness_warning(rig640):
@@ -917,6 +921,35 @@ def test_detector_never_crashes_or_reports_clutter(seed, n_shapes, background):
     if d.status is Status.OK:
         # only a real triangle of the rig's shape may pass: check it is one
         assert np.all(np.isfinite(d.points_px))
+
+
+_FOLDING = load_rig(CONFIGS / "triangle.toml")
+_FOLDING = replace(
+    _FOLDING,
+    camera=replace(
+        _FOLDING.camera, fx=340.0, fy=340.0, dist=np.array([-0.32, 0.12, 0.0, 0.0, -0.02])
+    ),
+)
+_DET_FOLDING = TriangleDetector(_FOLDING)
+
+
+@settings(max_examples=20, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(1, 7))
+def test_detector_never_crashes_on_clutter_reaching_past_the_lens_models_field(seed, n_shapes):
+    """Random triangles, many reaching into the corners past the fold of a lens model
+    (345 px out, corners 400 px): never an exception, never a vertex measured past the
+    fold."""
+    r = np.random.default_rng(seed)
+    img = np.full((480, 640), int(r.integers(0, 256)), np.uint8)
+    for _ in range(n_shapes):
+        pts = r.uniform([-50, -50], [690, 530], (3, 2)).astype(np.int32)
+        cv2.fillPoly(img, [pts], int(r.integers(0, 256)))
+    img = np.clip(img + r.normal(0, 2, img.shape), 0, 255).astype(np.uint8)
+    _DET_FOLDING.reset()
+    d = _DET_FOLDING.detect(img)
+    assert d.status in (Status.OK, Status.NO_TARGET, Status.REJECTED)
+    if d.status is Status.OK:
+        assert np.all(_FOLDING.camera.in_field(d.points_px))
 
 
 def test_regression_edge_fit_diverging_on_occluded_frame(rig640):

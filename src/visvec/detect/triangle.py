@@ -65,6 +65,13 @@ AREA_GRID = 17
 # search) inside the lens model's field (CameraModel.field_r2): the edge profiles reach
 # MAX_HALF_PX and LEVEL_EXTENT_PX beyond the edges
 FIELD_MARGIN_PX = MAX_HALF_PX + LEVEL_EXTENT_PX + 2.0
+# and there, a region is taken for the triangle when its corners' angles in the image
+# are within this of the triangle's (deg; loose: no rays to measure it by)
+FOLD_ANGLE_TOL_DEG = 12.0
+# and a region showing one of its corners there (no last frame to go by) when it is
+# smaller than this many times its expected area (near the fold the model's area is no
+# guide: a triangle hung 2.4 m off the axis shows 2x the area the model expects there)
+FOLD_AREA_FACTOR = 4.0
 # a corner whose inside averages this grey level or more is saturated
 SATURATED_LEVEL = 250.0
 # per-coordinate noise of cornerSubPix vertices, measured on simulated frames (0.26 px
@@ -393,6 +400,10 @@ class TriangleDetector:
         # calibration's fit extrapolated past the photos' corners): a triangle there
         # cannot be measured, whatever it looks like
         if self._folds and not np.all(cam.in_field(cand.corners_px, FIELD_MARGIN_PX + self.scale)):
+            # ... if it is the triangle: its corners' angles as the image shows them
+            seen_deg = np.sort(np.degrees(corner_angles(cand.corners_px)))
+            if np.abs(seen_deg - np.sort(self.expected_angles_deg)).max() > FOLD_ANGLE_TOL_DEG:
+                return self._reject("shape_mismatch", warnings, mean, cand)
             return self._reject("beyond_lens_model", warnings, mean, cand)
         if s.refine == "corners":
             mask = np.zeros(image.shape, np.uint8)
@@ -555,8 +566,13 @@ class TriangleDetector:
             # board (no step where the threshold crosses its lighting gradient): the
             # triangle stands out too little from the board's lighting
             reason = "low_contrast"
-        elif not np.all(self.rig.camera.in_field(outline, FIELD_MARGIN_PX + self.scale)):
-            reason = "beyond_lens_model"  # see _verify
+        elif seen.area_px < FOLD_AREA_FACTOR * self.expected_image_area and not np.all(
+            self.rig.camera.in_field(outline, FIELD_MARGIN_PX + self.scale)
+        ):
+            # a region of about the triangle's size that reaches past the lens model's
+            # field (see _verify); a far larger one is something else, or the triangle
+            # joined to it
+            reason = "beyond_lens_model"
         elif seen.area_px < (1.0 + AREA_TOL) * self.expected_image_area and not np.all(
             self.rig.camera.in_image(outline, self.scale)
         ):
