@@ -224,6 +224,10 @@ def test_calibrate_system_cli(tmp_path, mrig):
     assert r.exit_code == 0, r.output
     assert "residual std" in r.output and "fx" in r.output
     assert "B's orientation" in r.output
+    # how far the LEDs reached, against the corners 1280 px out
+    reach = float(r.output.split("the LEDs seen reach ")[1].split(" px")[0])
+    assert 300.0 < reach < 1280.0
+    assert "the lens model holds to the image's corners" in r.output
     # the file says what it was made from and how well B is pinned down
     assert "B's orientation 1-sigma" in out.read_text().split("[camera]")[0]
     cal = load_rig(CONFIGS / "markers.toml", out)

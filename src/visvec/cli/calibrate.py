@@ -312,20 +312,25 @@ def camera(frames, pattern, square_mm, recipe, out):
         click.echo(text)
 
 
-def _coverage(cam: CameraModel, reach_px: float) -> str:
-    """How far the photos and the lens model reach, against the image's corners; a
-    warning when the model folds over short of them (see CameraModel.field_r2)."""
+def _coverage(
+    cam: CameraModel,
+    reach_px: float,
+    seen: str = "the photos' corners",
+    advice: str = "Add photos with the chessboard in the corners",
+) -> str:
+    """How far the calibration's points (``seen``) and the lens model reach, against
+    the image's corners; a warning with ``advice`` when the model folds over short of
+    them (see CameraModel.field_r2)."""
     corner, fold = cam.corner_radius_px, cam.field_radius_px
     line = (
-        f"  the photos' corners reach {reach_px:.0f} px from the principal point, "
+        f"  {seen} reach {reach_px:.0f} px from the principal point, "
         f"the image's corners {corner:.0f} px"
     )
     if fold >= corner:
         return line + "; the lens model holds to the image's corners"
     return (
         f"{line}\n  warning: the lens model folds over {fold:.0f} px out, short of the "
-        "image's corners: nothing beyond is measured. Add photos with the chessboard in "
-        "the corners"
+        f"image's corners: nothing beyond is measured. {advice}"
     )
 
 
@@ -385,6 +390,11 @@ def system(frames, rig_path, calibration, out, max_iterations):
     click.echo(f"system calibration from {n_used} frames, {len(mk_a)} marker positions")
     for line in res.report():
         click.echo(line)
+    if res.converged:
+        cam = res.rig.camera
+        reach = float(np.hypot(uv_a[:, 0] - cam.cx, uv_a[:, 1] - cam.cy).max())
+        tilt = "recordings tilting the platform further, so that the LEDs reach them"
+        click.echo(_coverage(cam, reach, "the LEDs seen", f"Calibrate again from {tilt}"))
     if not res.converged:
         click.echo(
             f"visvec: error: the calibration did not converge ({res.message}); "
