@@ -176,6 +176,26 @@ def test_circle_centre():
     np.testing.assert_allclose(c, [3.0, -1.0], atol=1e-12)
 
 
+def test_zero_tilt_says_when_the_vertices_scatter_less_than_their_sigma(tmp_path):
+    """Noise-free frames: the vertices scatter well under the edge model's sigma (its
+    floor), significantly; the report says the sigma errs on the safe side, rather than
+    calling it consistent, and keeps sigma_scale 1."""
+    rig_p = CONFIGS / "triangle-320.toml"
+    frames = tmp_path / "level"
+    args = ["--out", frames, "--frames", 8, "--motion", "level", "--noise", 0]
+    r = CliRunner().invoke(cli, ["simulate", "--rig", rig_p, *map(str, args)])
+    assert r.exit_code == 0, r.output
+    cal = tmp_path / "cal.toml"
+    r = CliRunner().invoke(
+        cli, ["calibrate", "zero-tilt", str(frames), "--rig", str(rig_p), "--out", str(cal)]
+    )
+    assert r.exit_code == 0, r.output
+    line = next(x for x in r.output.splitlines() if "sigma check" in x)
+    hi = float(line.split("interval ")[1].split("-")[1].split(",")[0])
+    assert hi < 1.0 and "narrower than it: the sigma is on the safe side" in line
+    assert "sigma_scale = 1.0" in cal.read_text()
+
+
 def test_calibrate_zero_tilt_cli_end_to_end(tmp_path):
     rig_p = CONFIGS / "triangle-320.toml"
     frames = tmp_path / "level"

@@ -124,6 +124,8 @@ def zero_tilt(frames, rig_path, calibration, out):
         f"wider than the edge-noise model (a lossy codec?): every row's sigma will be "
         f"scaled by {res.sigma_scale:.3f} ([detect] sigma_scale)"
         if res.sigma_scale > 1.0
+        else "narrower than it: the sigma is on the safe side (sigma_scale 1)"
+        if hi < 1.0
         else "consistent with it (sigma_scale 1)"
     )
     click.echo(
