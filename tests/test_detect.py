@@ -923,6 +923,22 @@ def test_detector_never_crashes_or_reports_clutter(seed, n_shapes, background):
         assert np.all(np.isfinite(d.points_px))
 
 
+def test_a_detector_for_a_triangle_past_the_fold_is_refused(rig640):
+    """A rig made in code (a rig file is refused when loaded) whose triangle, 3.2 m off
+    the axis, lies past the fold of its lens model at zero attitude: a clear error, not
+    a detector built on nan sizes."""
+    from visvec.errors import ConfigError
+
+    dist = np.array([-0.32, 0.12, 0.0, 0.0, -0.02])
+    rig = replace(
+        rig640,
+        camera=replace(rig640.camera, fx=340.0, fy=340.0, dist=dist),
+        target=replace(rig640.target, vertices_mm=rig640.target.vertices_mm + [2600, 1900, 0]),
+    )
+    with pytest.raises(ConfigError, match="beyond the lens model's field"):
+        TriangleDetector(rig)
+
+
 _FOLDING = load_rig(CONFIGS / "triangle.toml")
 _FOLDING = replace(
     _FOLDING,

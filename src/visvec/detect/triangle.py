@@ -28,6 +28,7 @@ from visvec.detect.edges import (
     shutter_shift,
     side_lengths,
 )
+from visvec.errors import ConfigError
 from visvec.geometry import project_target
 from visvec.rig import Rig
 
@@ -153,6 +154,12 @@ class TriangleDetector:
         self.rig = rig
         cam = rig.camera
         self.expected_px = project_target(rig, np.eye(3))
+        if not np.all(np.isfinite(self.expected_px)):
+            # (a rig file is refused for it when loaded; this is one made in code)
+            raise ConfigError(
+                "[target] vertices_mm: at zero attitude the triangle lies behind the camera "
+                "or beyond the lens model's field; expected it in view"
+            )
         xy_n = cam.undistort(self.expected_px)
         xy = xy_n * cam.fx
         # the shape checks' references: the triangle at zero attitude, faced (see facing)
