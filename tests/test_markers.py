@@ -117,6 +117,19 @@ def test_identification_lost_and_tracking(mrig):
         np.testing.assert_array_equal(res2.ids, ids[perm])
 
 
+@pytest.mark.parametrize("six_dof", [False, True], ids=["constrained", "free translation"])
+def test_a_spot_without_a_ray_is_no_marker(mrig, six_dof):
+    """A spot beyond the lens model's field (nan, see CameraModel.undistort) among the
+    markers, as `calibrate system` hands them over: no marker, the rest identified (it
+    raised in the k-d tree before)."""
+    R = euler_to_matrix(0.3, 0.1, -0.1)
+    xy, ids = _exact(mrig, R)
+    with_nan = np.vstack([xy[:5], [[np.nan, np.nan]], xy[5:]])
+    res = MarkerIdentifier(mrig, 0.12, final_gate_px=10.0, six_dof=six_dof).identify(with_nan)
+    assert res.R_nb is not None and _angle(res.R_nb, R) < np.radians(0.1)
+    np.testing.assert_array_equal(res.ids, np.concatenate([ids[:5], [-1], ids[5:]]))
+
+
 def test_symmetric_layout_is_refused_not_misidentified(mrig):
     # four identical boards turned 90 deg about the axis, no reference LED: every
     # quarter turn explains the spots equally well

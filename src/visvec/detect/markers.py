@@ -12,7 +12,7 @@ never become an ok row.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -195,7 +195,14 @@ class MarkerIdentifier:
         return picked
 
     def identify(self, xy: np.ndarray, R_last: np.ndarray | None = None) -> Identification:
-        """Marker ids of the spots ``xy`` (N, 2), tracking from ``R_last`` if given."""
+        """Marker ids of the spots ``xy`` (N, 2), tracking from ``R_last`` if given; a
+        spot without a ray (nan: beyond the lens model's field) is no marker."""
+        has_ray = np.isfinite(xy).all(axis=1)
+        if not has_ray.all():
+            found = self.identify(xy[has_ray], R_last)
+            ids = np.full(len(xy), -1)
+            ids[has_ray] = found.ids
+            return replace(found, ids=ids)
         none = np.full(len(xy), -1)
         if len(xy) < 4:
             return Identification(none, None, "too_few_spots")
