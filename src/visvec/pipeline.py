@@ -563,8 +563,7 @@ class MarkerPipeline(AttitudePipeline):
         d = self.rig.detect
         windows = None
         if R_pred is not None:
-            xy = self.identifier.project(R_pred)
-            uv = self.rig.camera.project(np.column_stack([xy, np.ones(len(xy))]))
+            uv = self._markers_px(R_pred)
             h = TRACK_WINDOW_PX
             windows = [(u - h, v - h, u + h + 1, v + h + 1) for u, v in uv if np.isfinite(u)]
         return find_spots(image, d.threshold, d.min_spot_px, d.max_spot_px, windows)
@@ -610,10 +609,13 @@ class MarkerPipeline(AttitudePipeline):
             self.R_last = sol.R_nb if self.method == "full" else ident.R_nb
         return sol.status, sol, tuple(warnings) + sol.warnings
 
-    def _visible_count(self, R_nb: np.ndarray) -> int:
+    def _markers_px(self, R_nb: np.ndarray) -> np.ndarray:
+        """(K, 2) the markers' pixels at attitude R_nb (nan past the lens model's field)."""
         xy = self.identifier.project(R_nb)
-        uv = self.rig.camera.project(np.column_stack([xy, np.ones(len(xy))]))
-        return int(np.sum(self.rig.camera.in_image(uv, 3.0)))
+        return self.rig.camera.project(np.column_stack([xy, np.ones(len(xy))]))
+
+    def _visible_count(self, R_nb: np.ndarray) -> int:
+        return int(np.sum(self.rig.camera.in_image(self._markers_px(R_nb), 3.0)))
 
 
 RATE_METHODS = ("poisson", "crassidis")
