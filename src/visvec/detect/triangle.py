@@ -405,9 +405,9 @@ class TriangleDetector:
         cam, s = self.rig.camera, self.rig.detect
         # beyond the fold of a strong distortion's polynomial the model has no rays (a
         # calibration's fit extrapolated past the photos' corners): a triangle there
-        # cannot be measured, whatever it looks like
+        # cannot be measured; whether it is the triangle, only its corners' angles as
+        # the image shows them can say
         if self._folds and not np.all(cam.in_field(cand.corners_px, FIELD_MARGIN_PX + self.scale)):
-            # ... if it is the triangle: its corners' angles as the image shows them
             seen_deg = np.sort(np.degrees(corner_angles(cand.corners_px)))
             if np.abs(seen_deg - np.sort(self.expected_angles_deg)).max() > FOLD_ANGLE_TOL_DEG:
                 return self._reject("shape_mismatch", warnings, mean, cand)
