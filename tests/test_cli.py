@@ -77,6 +77,22 @@ def test_batch_on_sample_frames_with_truth(tmp_path):
     assert "yaw: rms" in r.output and "frames 12, ok 12" in r.output
 
 
+def test_batch_says_once_when_a_triangle_rig_has_no_zero_tilt_calibration(tmp_path):
+    """As `track` does: without a zero-tilt calibration the tilts carry the rig file's
+    mounting error, which no sigma covers; said once on stderr, before the rows; not said
+    with one, nor for a video that cannot be opened (that error comes first)."""
+    r = run("batch", SAMPLES, "--rig", RIG, "--max-frames", 2)
+    assert r.exit_code == 0, r.output
+    assert r.stderr.count("no zero-tilt calibration given") == 1
+    assert r.stdout.startswith("frame,time_s,status")  # the rows stay clean
+    cal = tmp_path / "zero.toml"
+    cal.write_text("[zero_tilt]\ncentroid_px = [319.5, 239.5]\n")
+    r = run("batch", SAMPLES, "--rig", RIG, "--calibration", cal, "--max-frames", 2)
+    assert r.exit_code == 0 and "zero-tilt" not in r.stderr, r.stderr
+    r = run("batch", tmp_path / "missing.avi", "--rig", RIG)
+    assert r.exit_code == 3 and "zero-tilt" not in r.stderr, r.stderr
+
+
 def test_jsonl_format_has_the_csv_keys(tmp_path):
     r = run("batch", SAMPLES, "--rig", RIG, "--format", "jsonl", "--max-frames", "2")
     assert r.exit_code == 0

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import click
 
-from visvec.cli.common import load, output_options, rig_options, run_frames
+from visvec.cli.common import load, note_uncalibrated, output_options, rig_options, run_frames
 from visvec.evaluate import error_stats, read_truth
 from visvec.pipeline import make_pipeline
 from visvec.sources import open_source
@@ -31,6 +31,8 @@ def run_batch(rig, path, truth, out, fmt, method, overlay, max_frames) -> None:
     names = make_pipeline(rig, method).row_type.value_columns
     truth_rows = read_truth(truth, names) if truth else None
     src = open_source(path, fps=rig.fps, max_frames=max_frames, retry_s=0.0)
+    # once the frames are found, before the first row (as `track` does)
+    note_uncalibrated(rig)
     rows = run_frames(
         rig,
         src,

@@ -91,6 +91,19 @@ def load(
     return rig
 
 
+def note_uncalibrated(rig: Rig) -> None:
+    """Say on stderr, once, that a triangle rig has no zero-tilt calibration: its tilts
+    then carry whatever mounting error and target offset the rig file has (a camera
+    0.5 deg askew reads 0.5 deg of tilt), which no row's sigma covers."""
+    if rig.kind == "triangle" and rig.zero_tilt.centroid_px is None:
+        click.echo(
+            "visvec: note: no zero-tilt calibration given (`visvec calibrate zero-tilt`, "
+            "then --calibration): the tilts carry whatever mounting error and target offset "
+            "the rig file has, which the sigma does not cover",
+            err=True,
+        )
+
+
 @contextlib.contextmanager
 def open_out(path: str | None):
     """The text stream rows go to: stdout, the file ``path``, or with

@@ -9,6 +9,7 @@ import click
 from visvec.cli.common import (
     check_new_recording,
     load,
+    note_uncalibrated,
     output_options,
     rig_options,
     run_frames,
@@ -59,14 +60,8 @@ def track(
         retry_s=retry_s,
         size=(rig.camera.width, rig.camera.height),
     )
-    if rig.kind == "triangle" and rig.zero_tilt.centroid_px is None:
-        # said once the camera is open, before the first row: a live run may go on for hours
-        click.echo(
-            "visvec: note: no zero-tilt calibration given (`visvec calibrate zero-tilt`, "
-            "then --calibration): the tilts carry whatever mounting error and target offset "
-            "the rig file has, which the sigma does not cover",
-            err=True,
-        )
+    # said once the camera is open, before the first row: a live run may go on for hours
+    note_uncalibrated(rig)
     run_frames(
         rig,
         src,
