@@ -146,6 +146,31 @@ def test_symmetric_layout_is_refused_not_misidentified(mrig):
     assert res.R_nb is None and res.reason == "ambiguous_layout"
 
 
+@pytest.mark.parametrize(
+    "euler_deg", [(156.72, -16.83, -0.64), (-40.73, -11.95, -10.88), (-97.25, -12.65, -8.76)]
+)
+def test_the_half_turn_of_a_tilted_layout_is_told_apart_by_its_reference_led(mrig, euler_deg):
+    """The example layout is symmetric under a half turn but for its reference LED: at a
+    tilt of 12-17 deg the half turn tilted the other way puts all 20 board LEDs on spots
+    too, leaving the reference LED's spot unexplained and its own reference LED without
+    one. It was refused as ambiguous (20 matches against 21: 5 % of cold frames within
+    22 deg, forever for a platform resting tilted); two faults more than an exact match,
+    it no longer is. Without the reference LED's spot both explanations leave one fault:
+    ambiguous, as it is."""
+    R = euler_to_matrix(*np.radians(euler_deg))
+    xy, ids = _exact(mrig, R)
+    perm = np.random.default_rng(1).permutation(len(ids))
+    ident = MarkerIdentifier(mrig, 0.12)
+    res = ident.identify(xy[perm])
+    assert res.R_nb is not None, res.reason
+    np.testing.assert_array_equal(res.ids, ids[perm])
+    assert _angle(res.R_nb, R) < np.radians(0.01)
+    ref = mrig.target.reference_id
+    keep = perm[ids[perm] != ref]
+    res = ident.identify(xy[keep])
+    assert res.R_nb is None and res.reason == "ambiguous_layout"
+
+
 def test_pipeline_rendered_frames_with_reflection_and_hidden_led(mrig):
     pipe = MarkerPipeline(mrig)
     R = euler_to_matrix(-0.7, 0.15, 0.1)
@@ -173,6 +198,28 @@ def test_a_spot_beyond_the_lens_models_field_is_left_out_and_named(mrig):
     assert "beyond_lens_model" in row.warnings and "extra_spots" not in row.warnings
     err = np.abs(row.euler_deg - np.degrees(matrix_to_euler(R)))
     assert np.all(err < 3 * row.sigma_deg + 1e-4)
+
+
+@pytest.mark.parametrize(
+    ("euler_deg", "scene", "seed"),
+    [
+        ((-63.13, -4.13, -7.82), SpotScene(reflections=2), 199),
+        ((2.51, -0.27, 12.71), SpotScene(hidden=(5, 0)), 45),
+        ((44.56, 4.4, -18.02), SpotScene(reflections=3), 219),
+    ],
+    ids=["2 reflections", "2 LEDs hidden", "3 reflections"],
+)
+def test_stray_spots_or_hidden_leds_never_give_the_half_turn(mrig, euler_deg, scene, seed):
+    """Cold frames where the reference scheme's yaw windows (about the three spots
+    farthest out) held only the half-turned layout: it matched all but the reference LED
+    and, nothing else found, was an ok row 180 deg off in yaw and 8-36 deg in tilt. The
+    whole grid is now searched unless an explanation leaves no fault."""
+    R = euler_to_matrix(*np.radians(euler_deg))
+    row = MarkerPipeline(mrig).process(Frame(0, 0.0, render_markers(mrig, R, scene, seed)))
+    assert row.ok, row.warnings
+    err = row.euler_deg - np.asarray(euler_deg)
+    err[0] = (err[0] + 180.0) % 360.0 - 180.0
+    assert np.all(np.abs(err) < 3 * row.sigma_deg + 1e-4), err
 
 
 def test_pipeline_refuses_frames_without_enough_markers(mrig):

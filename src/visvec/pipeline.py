@@ -18,7 +18,7 @@ from visvec.data import AttitudeSolution, Frame, Status
 from visvec.detect import TriangleDetector
 from visvec.detect.flow import MARGIN_PX, Matches, match_stars, signal
 from visvec.detect.lamps import LampIdentifier
-from visvec.detect.markers import MarkerIdentifier
+from visvec.detect.markers import VISIBLE_MARGIN_PX, MarkerIdentifier
 from visvec.detect.spots import Spots, find_spots
 from visvec.detect.stars import (
     Residual,
@@ -611,11 +611,10 @@ class MarkerPipeline(AttitudePipeline):
 
     def _markers_px(self, R_nb: np.ndarray) -> np.ndarray:
         """(K, 2) the markers' pixels at attitude R_nb (nan past the lens model's field)."""
-        xy = self.identifier.project(R_nb)
-        return self.rig.camera.project(np.column_stack([xy, np.ones(len(xy))]))
+        return self.identifier.pixels(R_nb)
 
     def _visible_count(self, R_nb: np.ndarray) -> int:
-        return int(np.sum(self.rig.camera.in_image(self._markers_px(R_nb), 3.0)))
+        return int(np.sum(self.rig.camera.in_image(self._markers_px(R_nb), VISIBLE_MARGIN_PX)))
 
 
 RATE_METHODS = ("poisson", "crassidis")
