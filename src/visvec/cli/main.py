@@ -81,7 +81,17 @@ def cli(debug: bool) -> None:
 
 
 def _register() -> None:
-    from visvec.cli import batch, calibrate, catalog, fuse, montecarlo, rate, simulate, track
+    from visvec.cli import (
+        batch,
+        calibrate,
+        catalog,
+        check,
+        fuse,
+        montecarlo,
+        rate,
+        simulate,
+        track,
+    )
 
     cli.add_command(track.track)
     cli.add_command(batch.batch)
@@ -91,6 +101,7 @@ def _register() -> None:
     cli.add_command(rate.rate)
     cli.add_command(catalog.catalog)
     cli.add_command(fuse.fuse)
+    cli.add_command(check.check)
 
 
 _register()

@@ -1,0 +1,149 @@
+"""`visvec check`: a rig file's geometry, the attitudes that keep its target in view, and
+the accuracy it gives on simulated frames."""
+
+from __future__ import annotations
+
+import math
+
+import click
+import numpy as np
+
+from visvec.check import (
+    ATTITUDE_KINDS,
+    camera_points,
+    envelope,
+    field_of_view_deg,
+    simulated_accuracy,
+)
+from visvec.cli.common import load, rig_options
+from visvec.detect.edges import side_lengths
+from visvec.sim.markers import SpotScene
+from visvec.sim.scene import Scene
+
+
+@click.command()
+@rig_options
+@click.option(
+    "--frames",
+    "n_frames",
+    type=click.IntRange(min=0),
+    default=40,
+    show_default=True,
+    help="Simulated frames for the expected accuracy (0: none).",
+)
+@click.option("--seed", type=int, default=0, show_default=True, help="Random seed.")
+def check(rig_path, calibration, n_frames, seed):
+    """What the rig's camera sees and how well: its field, the target's image at zero
+    attitude, the tilts that keep the target in view at every yaw, and the accuracy of
+    frames simulated within [platform] max_tilt_deg. Checks the rig file first (exit 2)."""
+    rig = load(rig_path, calibration)
+    cam = rig.camera
+    fov = field_of_view_deg(rig)
+    field = (
+        f"field {fov[0]:.1f} x {fov[1]:.1f} deg ({fov[2]:.1f} diagonal)"
+        if fov is not None
+        else f"the lens model's field ends {cam.field_radius_px:.0f} px from the principal "
+        "point, inside the image"
+    )
+    click.echo(
+        f"rig {rig_path}: {rig.kind} target, camera {cam.width}x{cam.height}, "
+        f"fx {cam.fx:g} px, {field}"
+    )
+    if rig.kind not in ATTITUDE_KINDS:
+        click.echo(
+            f"  rig file valid; the view envelope and the simulated accuracy are for "
+            f"{' and '.join(ATTITUDE_KINDS)} rigs (a {rig.kind} rig: `visvec simulate`, then "
+            "`visvec batch ... --truth`)"
+        )
+        return
+    _zero_attitude(rig)
+    _envelope(rig)
+    if n_frames:
+        _accuracy(rig, n_frames, seed)
+
+
+def _zero_attitude(rig) -> None:
+    p_c = camera_points(rig, np.eye(3)[None])[0]
+    uv = rig.camera.project(p_c)
+    dist = float(np.linalg.norm(p_c.mean(axis=0)))
+    c = np.nanmean(uv, axis=0)
+    if rig.kind == "triangle":
+        sides = " / ".join(f"{s:.0f}" for s in side_lengths(uv))
+        shape = f"sides {sides} px"
+    else:
+        shape = f"{int(np.isfinite(uv).all(axis=1).sum())} of {len(uv)} LEDs in the image"
+    click.echo(
+        f"  at zero attitude: target {dist:.0f} mm from the camera, its image centred at "
+        f"({c[0]:.1f}, {c[1]:.1f}) px, {shape}"
+    )
+
+
+def _envelope(rig) -> None:
+    env = envelope(rig)
+    what = "the whole triangle" if rig.kind == "triangle" else f"all {env.n_points} LEDs"
+    max_tilt = rig.max_tilt_deg
+    if math.isnan(env.full_tilt_deg):
+        click.echo(
+            f"  in view: even level, {what} is in view at only {100 * env.level_share:.0f} % "
+            "of yaws (a target hung far off the axis: tilt the camera towards it on its "
+            "mount, or use a wider lens)"
+        )
+    elif env.limit is None:
+        click.echo(
+            f"  in view: {what} at every yaw and tilt direction up to {env.span_deg:g} deg "
+            "of tilt (the largest sampled)"
+        )
+    else:
+        click.echo(
+            f"  in view: {what} at every yaw and tilt direction up to "
+            f"{env.full_tilt_deg:g} deg of tilt (first lost at yaw {env.limit[0]:+.0f} deg, "
+            f"tilting about the axis {env.limit[1]:.0f} deg from b1)"
+        )
+    line = (
+        f"  at [platform] max_tilt_deg {max_tilt:g}: {what} in view at "
+        f"{100 * env.share_at_max:.0f} % of yaws and directions"
+    )
+    if rig.kind == "markers":
+        line += f"; at least {env.fewest_at_max} LEDs in view within it"
+    click.echo(line)
+    if env.share_at_max < 1.0:
+        click.echo(
+            "  warning: the target leaves the view within the platform's range: frames "
+            "there are rejected (partly_out_of_view); tilt the camera towards the target "
+            "on its mount or use a wider lens, or lower max_tilt_deg if the platform "
+            "cannot tilt that far",
+            err=True,
+        )
+
+
+def _accuracy(rig, n_frames: int, seed: int) -> None:
+    if rig.kind == "triangle":
+        sc = Scene()
+        scene = (
+            f"noise {sc.noise_sigma:g} grey levels, contrast {sc.contrast:g}, "
+            f"blur {sc.blur_sigma_px:g} px"
+        )
+    else:
+        ss = SpotScene()
+        scene = f"spot sigma {ss.psf_sigma_px:g} px, noise {ss.noise_sigma:g} grey levels"
+    click.echo(
+        f"  simulated: {n_frames} frames at random yaws and tilts within "
+        f"{rig.max_tilt_deg:g} deg, each cold (the simulator's default scene: {scene})"
+    )
+    out = simulated_accuracy(rig, n_frames, seed)
+    line = f"    ok {out.n_ok} of {out.n}"
+    if out.n_ok:
+        rms = out.rms()
+        sig = np.sqrt(np.mean(np.square(out.sigma_deg), axis=0))
+        line += (
+            f"; RMS error yaw {rms[0]:.2g}, pitch {rms[1]:.2g}, roll {rms[2]:.2g} deg; "
+            f"RMS sigma {sig[0]:.2g}, {sig[1]:.2g}, {sig[2]:.2g} deg"
+        )
+    click.echo(line)
+    reasons = out.reasons()
+    if reasons:
+        click.echo("    not ok: " + ", ".join(f"{k} {v}" for k, v in sorted(reasons.items())))
+    click.echo(
+        "    (the rig file's geometry exactly, a clean scene: what the geometry allows; "
+        "a real lab adds its calibration's errors)"
+    )
