@@ -1,0 +1,81 @@
+"""LED markers, bad input: stray spots (reflections) and hidden LEDs must never give a
+wrong attitude (issue: markers, Bad input). Lost-in-space frames, each processed cold,
+at random attitudes within the rig's max_tilt_deg (yaw uniform, tilt uniform over the
+disc), rendered with the simulator's spots.
+
+Scenarios: clean; 1-4 reflections; 1-3 LEDs hidden (any, the reference LED included);
+both. Per scenario: rows ok, ok rows beyond 3 sigma and beyond 0.05 deg (wrong), the
+reasons of the rows not ok, and the median time of a cold frame.
+
+    python benchmarks/markers_robustness.py [--frames 300]
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+
+from visvec.check import random_attitudes_within
+from visvec.data import Frame
+from visvec.pipeline import MarkerPipeline
+from visvec.rig import load_rig
+from visvec.rotations import matrix_to_euler
+from visvec.sim.markers import SpotScene, render_markers
+
+from _common import CONFIGS, run_record, save_json
+
+WRONG_DEG = 0.05
+
+
+def scene(kind: str, n_leds: int, rng: np.random.Generator) -> SpotScene:
+    reflections = int(rng.integers(1, 5)) if kind in ("reflections", "both") else 0
+    n_hidden = int(rng.integers(1, 4)) if kind in ("hidden", "both") else 0
+    hidden = tuple(rng.choice(n_leds, n_hidden, replace=False).tolist())
+    return SpotScene(reflections=reflections, hidden=hidden)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--frames", type=int, default=300)
+    args = ap.parse_args()
+    rig = load_rig(CONFIGS / "markers.toml")
+    n_leds = len(rig.target.points_b)
+    results = {**run_record(), "frames": args.frames, "wrong_deg": WRONG_DEG}
+    for s, kind in enumerate(("clean", "reflections", "hidden", "both")):
+        rng = np.random.default_rng(40 + s)
+        Rs = random_attitudes_within(args.frames, rig.max_tilt_deg, rng)
+        pipe = MarkerPipeline(rig)
+        status, reasons, z, err, times = [], {}, [], [], []
+        for k, R in enumerate(Rs):
+            img = render_markers(rig, R, scene(kind, n_leds, rng), 1000 * s + k)
+            pipe.reset()
+            t = time.perf_counter()
+            row = pipe.process(Frame(k, k / rig.fps, img))
+            times.append(time.perf_counter() - t)
+            status.append(str(row.status))
+            if not row.ok:
+                reasons[row.warnings[-1]] = reasons.get(row.warnings[-1], 0) + 1
+                continue
+            e = row.euler_deg - np.degrees(matrix_to_euler(R))
+            e[0] = (e[0] + 180.0) % 360.0 - 180.0
+            err.append(np.abs(e).max())
+            z.append(np.abs(e / row.sigma_deg).max())
+        res = {
+            "frames": len(Rs),
+            "ok": status.count("ok"),
+            "ok_beyond_3sigma": int(np.sum(np.array(z) > 3.0)),
+            "ok_wrong": int(np.sum(np.array(err) > WRONG_DEG)),
+            "max_abs_error_deg": round(float(max(err, default=np.nan)), 4),
+            "max_abs_z": round(float(max(z, default=np.nan)), 2),
+            "reasons_not_ok": dict(sorted(reasons.items())),
+            "median_cold_frame_ms": round(float(np.median(times)) * 1000, 1),
+        }
+        results[kind] = res
+        print(kind, res)
+    print(save_json("markers_robustness", results))
+
+
+if __name__ == "__main__":
+    main()
