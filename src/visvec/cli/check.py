@@ -125,7 +125,10 @@ def _accuracy(rig, n_frames: int, seed: int) -> None:
         )
     else:
         ss = SpotScene()
-        scene = f"spot sigma {ss.psf_sigma_px:g} px, noise {ss.noise_sigma:g} grey levels"
+        scene = (
+            f"spot sigma {ss.psf_sigma_px:g} px, noise {ss.noise_sigma:g} grey levels; the "
+            f"rows' sigma from [detect] centroid_sigma_px {rig.detect.centroid_sigma_px:g}"
+        )
     click.echo(
         f"  simulated: {n_frames} frames at random yaws and tilts within "
         f"{rig.max_tilt_deg:g} deg, each cold (the simulator's default scene: {scene})"
