@@ -85,8 +85,8 @@ def _envelope(rig) -> None:
     if math.isnan(env.full_tilt_deg):
         click.echo(
             f"  in view: even level, {what} is in view at only {100 * env.level_share:.0f} % "
-            "of yaws (a target hung far off the axis: tilt the camera towards it on its "
-            "mount, or use a wider lens)"
+            "of yaws (a target off the axis circles the image as the platform turns: a "
+            "wider lens, or the target nearer the axis)"
         )
     elif env.limit is None:
         click.echo(
@@ -109,9 +109,8 @@ def _envelope(rig) -> None:
     if env.share_at_max < 1.0:
         click.echo(
             "  warning: the target leaves the view within the platform's range: frames "
-            "there are rejected (partly_out_of_view); tilt the camera towards the target "
-            "on its mount or use a wider lens, or lower max_tilt_deg if the platform "
-            "cannot tilt that far",
+            "there are rejected (partly_out_of_view); a wider lens or a smaller target "
+            "keeps it, or lower max_tilt_deg if the platform cannot tilt that far",
             err=True,
         )
 
