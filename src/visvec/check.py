@@ -26,6 +26,7 @@ import numpy as np
 
 from visvec.bench.triangle import Case, Outcome, evaluate, render_cases
 from visvec.data import Frame, Status
+from visvec.detect.markers import VISIBLE_MARGIN_PX
 from visvec.pipeline import MarkerPipeline
 from visvec.rig import Rig
 from visvec.rotations import matrix_to_euler
@@ -35,8 +36,8 @@ from visvec.sim.scene import Scene
 # how far inside the image border a point must be to count as in view, as the pipelines
 # decide it: the triangle detector refuses a vertex within 1 px of the border (rendered
 # frames tilting out of view: ok with the nearest vertex 1.0 px in, partly_out_of_view
-# from 0.7 px), the markers pipeline counts an LED 3 px in as visible
-VIEW_MARGIN_PX = {"triangle": 1.0, "markers": 3.0}
+# from 0.7 px), the markers pipeline expects a spot of an LED VISIBLE_MARGIN_PX in
+VIEW_MARGIN_PX = {"triangle": 1.0, "markers": VISIBLE_MARGIN_PX}
 # the envelope's grid: yaws and tilt directions every this many degrees, tilts every
 # TILT_STEP_DEG up to the larger of TILT_SPAN x max_tilt_deg and MIN_TILT_SPAN_DEG
 YAW_STEP_DEG = 5.0
