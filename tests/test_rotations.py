@@ -5,6 +5,7 @@ from hypothesis import strategies as st
 
 from visvec.rotations import (
     euler_rates_from_body,
+    euler_to_matrices,
     euler_to_matrix,
     expmap,
     logmap,
@@ -33,6 +34,19 @@ def test_quaternion_round_trip_scalar_first_nonnegative(yaw, pitch, roll):
     q = matrix_to_quat(R)
     assert q[0] >= 0 and abs(np.linalg.norm(q) - 1) < 1e-12
     np.testing.assert_allclose(quat_to_matrix(q), R, atol=1e-12)
+
+
+def test_euler_to_matrices_is_euler_to_matrix_for_each():
+    rng = np.random.default_rng(2)
+    a = rng.uniform(-np.pi, np.pi, (200, 3))
+    R = euler_to_matrices(a[:, 0], a[:, 1], a[:, 2])
+    assert R.shape == (200, 3, 3)
+    for k in range(200):
+        np.testing.assert_allclose(R[k], euler_to_matrix(*a[k]), atol=1e-15)
+    # broadcasting: a grid of yaws at one tilt
+    G = euler_to_matrices(np.array([[0.1], [0.2]]), 0.3, np.array([0.0, -0.4]))
+    assert G.shape == (2, 2, 3, 3)
+    np.testing.assert_allclose(G[1, 1], euler_to_matrix(0.2, 0.3, -0.4), atol=1e-15)
 
 
 def test_euler_convention_is_intrinsic_zyx():

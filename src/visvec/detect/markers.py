@@ -22,7 +22,7 @@ from scipy.spatial import cKDTree
 from visvec.estimate.markers import solve_markers
 from visvec.geometry import lab_camera_offset_c
 from visvec.rig import Rig
-from visvec.rotations import euler_to_matrix
+from visvec.rotations import euler_to_matrices
 
 GRID_YAW_STEP_DEG = 2.0
 GRID_TILT_STEP_DEG = 4.0
@@ -190,14 +190,9 @@ class MarkerIdentifier:
         if yaws is None:
             yaws = np.radians(np.arange(-180.0, 180.0, GRID_YAW_STEP_DEG))
         Y, P, Rr = np.meshgrid(yaws, tilts, tilts, indexing="ij")
-        Rs = np.stack(
-            [
-                euler_to_matrix(y, p, r)
-                for y, p, r in zip(Y.ravel(), P.ravel(), Rr.ravel(), strict=True)
-            ]
-        )
-        p = np.einsum("hij,mj->hmi", np.einsum("ij,hjk->hik", self.R_cn, Rs), self.X)
-        p = p + self.t_c
+        Rs = euler_to_matrices(Y.ravel(), P.ravel(), Rr.ravel())
+        # (H, M, 3) every marker in the camera frame at every attitude: X (R_CN R_NB)^T
+        p = self.X @ (self.R_cn @ Rs).transpose(0, 2, 1) + self.t_c
         proj = p[..., :2] / p[..., 2:3]
         d, _ = cKDTree(xy).query(proj.reshape(-1, 2), distance_upper_bound=COARSE_GATE_PX / self.f)
         score = np.isfinite(d).reshape(len(Rs), -1).sum(axis=1)
