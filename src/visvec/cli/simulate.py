@@ -35,7 +35,15 @@ from visvec.sim.stars import PAPER_CASES, StarScene, simulate_stars
     "yaw out and back once over the frames), or level at many yaws; lamps: "
     "perimeter (default: pushed around the table) or rest.",
 )
-@click.option("--max-tilt-deg", type=click.FloatRange(min=0), default=5.0, show_default=True)
+@click.option(
+    "--max-tilt-deg",
+    type=click.FloatRange(min=0),
+    default=5.0,
+    show_default=True,
+    help="Pitch and roll each within +-this (random: uniform, so the tilt reaches 1.41x it; "
+    "sweep and swing: 0.8x it). Tilts beyond the rig's [platform] max_tilt_deg are rows "
+    "rejected as impossible_tilt.",
+)
 @click.option(
     "--noise",
     type=click.FloatRange(min=0),
