@@ -171,6 +171,26 @@ def test_the_half_turn_of_a_tilted_layout_is_told_apart_by_its_reference_led(mri
     assert res.R_nb is None and res.reason == "ambiguous_layout"
 
 
+@pytest.mark.parametrize(
+    "euler_deg",
+    [(38.39, 7.89, 1.5), (-116.76, 12.49, 1.43), (-135.26, 5.87, 5.06), (79.74, 0.87, -6.52)],
+)
+def test_a_reference_led_out_of_view_leaves_a_symmetric_layout_ambiguous(mrig, euler_deg):
+    """The reference LED hung where the camera never sees it: the four boards are
+    symmetric under a half turn, so the spots fit two attitudes equally. The reference
+    scheme's yaw windows, meaningless without it, found one of them alone and gave it
+    (6 of 30 random attitudes, 4 of them a half turn off; 3 of these 4); now only the
+    whole grid is trusted then, and it finds both."""
+    pats = list(mrig.target.patterns)
+    pats[-1] = replace(pats[-1], position_mm=np.array([-80.0, -1200.0, 150.0]))
+    rig = replace(mrig, target=replace(mrig.target, patterns=tuple(pats)))
+    ref = rig.target.reference_id
+    R = euler_to_matrix(*np.radians(euler_deg))
+    xy, _ = _exact(rig, R, ids=np.delete(np.arange(len(rig.target.points_b)), ref))
+    res = MarkerIdentifier(rig, 0.12).identify(xy)
+    assert res.R_nb is None and res.reason == "ambiguous_layout"
+
+
 def test_pipeline_rendered_frames_with_reflection_and_hidden_led(mrig):
     pipe = MarkerPipeline(mrig)
     R = euler_to_matrix(-0.7, 0.15, 0.1)

@@ -222,19 +222,24 @@ class MarkerIdentifier:
             if R is not None and (ids >= 0).sum() >= 4:
                 return Identification(ids, R)
         results = []
+        ref = self.rig.target.reference_id
         ref_yaws = self.reference_yaws(xy)
         for yaws in (ref_yaws, None) if ref_yaws is not None else (None,):
             for R0 in self.hypotheses(xy, yaws):
                 ids, R = self.refine(xy, R0)
                 if R is not None:
                     results.append((self.faults(ids, R), -int((ids >= 0).sum()), ids, R))
-            if results and min(r[0] for r in results) == 0:
-                # the reference scheme explained every spot and every marker in view.
-                # Anything less and the whole grid is searched: with stray spots
-                # farther out than the reference LED, or markers hidden, its yaw
-                # windows can miss the true attitude and hold only the half turn
-                # (below), which then looked unique (benchmarks/markers_robustness.py:
-                # 47 of 1200 cold frames were ok rows 180 deg off in yaw)
+            best = min(results, key=lambda r: r[0]) if results else None
+            if best is not None and best[0] == 0 and ref in best[2]:
+                # the reference scheme explained every spot and every marker in view,
+                # the reference marker among them. Anything less and the whole grid is
+                # searched: with stray spots farther out than the reference LED, or
+                # markers hidden, its yaw windows can miss the true attitude and hold
+                # only the half turn (below), which then looked unique
+                # (benchmarks/markers_robustness.py: 47 of 1200 cold frames were ok
+                # rows 180 deg off in yaw); with the reference marker out of view the
+                # windows mean nothing (a symmetric layout then is ambiguous, and only
+                # the whole grid finds both of its explanations)
                 break
         if not results:
             return Identification(none, None, "not_identified")
