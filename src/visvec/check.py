@@ -145,8 +145,8 @@ def envelope(rig: Rig, margin: float | None = None) -> Envelope:
         whole[:, j] = seen.all(axis=1)
         if t <= max_tilt:
             count_at_max = np.minimum(count_at_max, seen.sum(axis=1))
-    # per (yaw, direction), the first tilt that loses the target: it stays lost beyond in
-    # any sensible geometry, but the grid only says where it was first seen lost
+    # per (yaw, direction), the first tilt that loses the target: the envelope ends there
+    # (a target hung off the axis can come back into view further out, see share_at_max)
     lost = ~whole
     first = np.where(lost.any(axis=1), lost.argmax(axis=1), len(tilts_deg))
     k = int(first.argmin())
