@@ -25,9 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from visvec.bench.triangle import Case, Outcome, evaluate, render_cases
-from visvec.data import Frame, Status
 from visvec.detect.markers import VISIBLE_MARGIN_PX
-from visvec.pipeline import MarkerPipeline
 from visvec.rig import Rig
 from visvec.rotations import matrix_to_euler
 from visvec.sim.markers import SpotScene, render_markers
@@ -183,24 +181,16 @@ def simulated_accuracy(rig: Rig, n: int, seed: int = 0, workers: int | None = No
     rng = np.random.default_rng(seed)
     Rs = random_attitudes_within(n, rig.max_tilt_deg, rng)
     euler = [np.array(matrix_to_euler(R)) for R in Rs]
+    cases = [Case(e, Scene(), seed * 100003 + k) for k, e in enumerate(euler)]
     if rig.kind == "triangle":
-        cases = [Case(e, Scene(), seed * 100003 + k) for k, e in enumerate(euler)]
-        return evaluate(rig, render_cases(rig, cases, workers), cases, "full")
-    if rig.kind != "markers":
+        images = render_cases(rig, cases, workers)
+    elif rig.kind == "markers":
+        images = [
+            render_markers(rig, R, SpotScene(), c.seed) for R, c in zip(Rs, cases, strict=True)
+        ]
+    else:
         raise ValueError(f"target kind {rig.kind!r}: expected one of {ATTITUDE_KINDS}")
-    pipe, out = MarkerPipeline(rig), Outcome()
-    for k, (R, e) in enumerate(zip(Rs, euler, strict=True)):
-        img = render_markers(rig, R, SpotScene(), seed * 100003 + k)
-        pipe.reset()
-        row = pipe.process(Frame(k, k / rig.fps, img))
-        out.status.append(str(row.status))
-        out.warnings.append(row.warnings)
-        if row.status is Status.OK:
-            err = row.euler_deg - np.degrees(e)
-            err[0] = (err[0] + 180.0) % 360.0 - 180.0
-            out.err_deg.append(err)
-            out.sigma_deg.append(row.sigma_deg)
-    return out
+    return evaluate(rig, images, cases, "full")
 
 
 def field_of_view_deg(rig: Rig) -> tuple[float, float, float] | None:

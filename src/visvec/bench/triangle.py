@@ -13,7 +13,7 @@ import numpy as np
 
 from visvec.calib.zero_tilt import ZeroTiltResult, calibrate_zero_tilt
 from visvec.data import Frame, Status
-from visvec.pipeline import TrianglePipeline
+from visvec.pipeline import TrianglePipeline, make_pipeline
 from visvec.rig import Rig
 from visvec.rotations import euler_to_matrix
 from visvec.sim.render import render_frame
@@ -127,8 +127,12 @@ def evaluate(
 ) -> Outcome:
     """Run the pipeline (estimation rig ``rig``) on ``images`` and compare with the truth
     (``shear`` False: no readout estimated from the frames of a rig that declares none,
-    as the sensor was before the thirteenth session, for comparison)."""
-    pipe = TrianglePipeline(rig, method, check_shutter=shear)
+    as the sensor was before the thirteenth session, for comparison; a markers rig's
+    frames go through its own pipeline)."""
+    if rig.kind == "triangle":
+        pipe = TrianglePipeline(rig, method, check_shutter=shear)
+    else:
+        pipe = make_pipeline(rig, method)
     out = Outcome()
     for i, (img, case) in enumerate(zip(images, cases, strict=True)):
         if not track:
