@@ -5,6 +5,12 @@ ceiling lights in view, very low contrast, over-exposure, no triangle at all, an
 triangle partly out of view.
 
     python benchmarks/triangle_robustness.py [--frames 150]
+    python benchmarks/triangle_robustness.py --tracked --frames 300
+
+``--tracked``: each scenario's frames as one recording (a sweep: a yaw turn with the
+tilts wobbling within 4 deg) processed in order, each frame starting from the last
+one's vertices, with the scene (where the head, the lights are) drawn afresh every
+frame; "full" only; results in out/triangle_robustness_tracked.json.
 """
 
 from __future__ import annotations
@@ -17,7 +23,7 @@ import numpy as np
 from visvec.bench.triangle import Case, evaluate, render_cases
 from visvec.rig import load_rig
 from visvec.sim.scene import Light, Occluder, Scene
-from visvec.sim.simulate import true_rig
+from visvec.sim.simulate import random_attitudes, true_rig
 
 from _common import CONFIGS, run_record, save_json
 
@@ -63,6 +69,7 @@ def scenario_cases(kind: str, n: int, rig, seed: int) -> tuple[list[Case], objec
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--frames", type=int, default=150)
+    ap.add_argument("--tracked", action="store_true", help="frames in order (see above)")
     args = ap.parse_args()
     results = run_record()
     for cfg in ("triangle-320.toml", "triangle.toml"):
@@ -79,14 +86,18 @@ def main() -> None:
             )
         ):
             cases, world = scenario_cases(kind, args.frames, rig, 100 + s)
+            if args.tracked:
+                sweep = random_attitudes(args.frames, 5.0, np.random.default_rng(s), "sweep")
+                cases = [Case(e, c.scene, c.seed) for e, c in zip(sweep, cases, strict=True)]
             images = render_cases(world, cases)
             est_rig = world if kind == "partly_out_of_view" else rig
-            for method in ("full", "paper"):
-                out = evaluate(est_rig, images, cases, method)
+            for method in ("full",) if args.tracked else ("full", "paper"):
+                out = evaluate(est_rig, images, cases, method, track=args.tracked)
                 res[f"{kind}/{method}"] = out.summary()
                 print(cfg, kind, method, res[f"{kind}/{method}"])
         results[cfg] = res
-    print(save_json("triangle_robustness", results))
+    name = "triangle_robustness_tracked" if args.tracked else "triangle_robustness"
+    print(save_json(name, results))
 
 
 if __name__ == "__main__":
