@@ -1,5 +1,7 @@
 """Zero-tilt and camera calibration."""
 
+import re
+
 import numpy as np
 import pytest
 from click.testing import CliRunner
@@ -281,8 +283,15 @@ def test_calibrate_zero_tilt_takes_one_recording_per_yaw(tmp_path):
     assert one.exit_code == 0, one.output
     many = _invoke("calibrate", "zero-tilt", *stops, "--rig", rig_p, "--out", tmp_path / "3.toml")
     assert many.exit_code == 0, many.output
-    offset = [r for r in one.output.splitlines() if "target offset" in r]
-    assert offset and offset == [r for r in many.output.splitlines() if "target offset" in r]
+    # the same offsets within a fifth of their sigma and the printed 0.01 mm (each
+    # recording starts its region search afresh, one folder carries its threshold from
+    # frame to frame: vertices from other starting corners differ by a fraction of their
+    # sigma)
+    pat = r"target offset from the axis: dx (\S+) \+- (\S+) mm, dy (\S+) \+- (\S+) mm"
+    a = [float(x) for x in re.search(pat, one.output).groups()]
+    b = [float(x) for x in re.search(pat, many.output).groups()]
+    assert abs(a[0] - b[0]) <= 0.2 * a[1] + 0.01 and abs(a[2] - b[2]) <= 0.2 * a[3] + 0.01
+    assert a[1] == b[1] and a[3] == b[3]
     assert f"{stops[2]}: frame_0005.png: yaw" in many.output
     assert f"frames {stops[0]} {stops[1]} {stops[2]} (6 used)" in (tmp_path / "3.toml").read_text()
     gone = _invoke(

@@ -123,6 +123,40 @@ ROLLING_BAND_ROWS = 4
 MOTION_STEP_PX = 0.25
 MAX_MOTION_SUBFRAMES = 25
 
+# the plastic constant's reciprocals: the R2 sequence's two strides (Roberts 2018), whose
+# multiples fill the unit square evenly
+_R2 = (0.7548776662466927, 0.5698402909980532)
+
+
+def subpixel_offsets(
+    rows: np.ndarray, cols: np.ndarray, width: int, n: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """(M, n^2) offsets (u, v) in [-0.5, 0.5) from pixel centres of the sub-pixel rays that
+    give pixels (``rows``, ``cols``) their partial coverage.
+
+    A regular n x n grid snaps an edge along a pixel row or column to the nearest of its
+    n sub-rows in every pixel of the edge alike: the whole edge drawn up to 1 / (2n) px
+    off (0.06 px at n = 8), a bias of the truth, not noise. A 320x240 triangle whose base
+    ran along a row read 1.8 sigma off in roll on clean frames, 4.3 sigma when
+    over-exposed (the contrast, and with it the sensor's precision, 2.3x higher).
+    Instead each pixel takes the n-rooks lattice u = (i + (j + 1/2) / n) / n,
+    v = (j + (i + 1/2) / n) / n (n^2 distinct sub-rows and sub-columns: Chiu, Shirley and
+    Wang's multi-jittered pattern) shifted modulo the pixel by its own offset (a
+    Cranley-Patterson rotation), the R2 sequence over the pixel's index: each sub-ray is
+    uniform over its pixel, so a pixel's coverage is unbiased, and along an edge the
+    pixels' small errors (under 1 / n^2 of the step for a row or column edge) cancel.
+    Deterministic: the same scene renders to the same image.
+    """
+    i, j = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    lu = ((i + (j + 0.5) / n) / n).ravel()
+    lv = ((j + (i + 0.5) / n) / n).ravel()
+    k = rows.astype(np.float64) * width + cols
+    su = (k * _R2[0]) % 1.0
+    sv = (k * _R2[1]) % 1.0
+    ou = (lu[None, :] + su[:, None]) % 1.0 - 0.5
+    ov = (lv[None, :] + sv[:, None]) % 1.0 - 0.5
+    return ou, ov
+
 
 def render_clean(
     rig: Rig,
@@ -190,13 +224,12 @@ def render_clean(
     rows, cols = np.nonzero(mixed)
     n = max(1, int(scene.supersample))
     if len(rows) and n > 1:
-        off = (np.arange(n) + 0.5) / n - 0.5
-        ou, ov = np.meshgrid(off, off)
+        ou, ov = subpixel_offsets(rows, cols, cam.width, n)
         band_of = rows // band_h
         for b in np.unique(band_of):
             sel = band_of == b
-            su = (cols[sel][:, None] + ou.ravel()[None, :]).ravel()
-            sv = (rows[sel][:, None] + ov.ravel()[None, :]).ravel()
+            su = (cols[sel][:, None] + ou[sel]).ravel()
+            sv = (rows[sel][:, None] + ov[sel]).ravel()
             _, srad = shaders[b](_rays_at(grid, su, sv))
             img[rows[sel], cols[sel]] = srad.reshape(-1, n * n).mean(axis=1)
     return img
