@@ -753,6 +753,36 @@ def test_occluder_inside_the_triangle_leaves_it_exact(rig640):
         assert np.abs(d.points_px - project_target(rig640, np.eye(3))).max() < NOISE_FREE_TOL_PX
 
 
+@pytest.mark.xfail(
+    strict=True,
+    reason="known gap (benchmarks/RESULTS.md, tracked robustness): a dark head against an "
+    "edge biases its line; profiles whose own levels depart from the edge's level lines "
+    "are not left out yet",
+)
+def test_dark_head_against_an_edge_gives_no_biased_row(rig320):
+    """The tracked robustness benchmark's 320x240 occluder frame 155: a head (grey 39,
+    darker than the board) lies against the triangle's long edge on the board side. The
+    profiles beside it see a board level far below the edge's fitted level line and pull
+    the line; the row read pitch and roll 3-4 sigma off on every noise draw. Each draw
+    must be refused or within 3 sigma, and the draws unbiased."""
+    from visvec.data import Frame
+    from visvec.pipeline import TrianglePipeline
+
+    e = np.array([-0.2784127, 0.06476841, -0.06955626])
+    sc = Scene(occluder=Occluder(76.67, -134.70, 1123.48, 85.23, 39.21))
+    z = []
+    for seed in range(1, 7):
+        img = render_frame(rig320, euler_to_matrix(*e), sc, seed)
+        row = TrianglePipeline(rig320).process(Frame(0, 0.0, img))
+        if row.ok:
+            err = row.euler_deg - np.degrees(e)
+            err[0] = (err[0] + 180.0) % 360.0 - 180.0
+            z.append(err / row.sigma_deg)
+    z = np.array(z).reshape(-1, 3)
+    assert np.all(np.abs(z) <= 3.0)
+    assert len(z) < 3 or np.all(np.abs(z.mean(axis=0)) < 1.5)
+
+
 def test_lights_in_view_do_not_disturb(rig640):
     R = euler_to_matrix(-1.0, 0.03, 0.02)
     sc = Scene(lights=(Light(700.0, 500.0), Light(-650.0, -600.0, 150.0)))
