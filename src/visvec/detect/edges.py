@@ -405,14 +405,17 @@ def _positions(
     step: float,
     width: np.ndarray | None,
     ext: float = 0.0,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Sub-pixel step position of each profile (offset along the inward normal), the
-    local step height, and the per-edge mid level.
+    local step height, the per-edge mid level, the per-edge scatter of the profiles'
+    mid levels about it, and the mask of profiles whose levels agree with their edge's
+    (:func:`_level_lines`; the others have something else in their window).
 
     Area (first-moment) estimator: for a step from level lo to hi, blurred by any
     symmetric kernel narrower than the profile, the integral of the normalised profile
     (I - lo) / (hi - lo) from -half to +half equals half - e. Levels lo and hi are fitted
-    as straight lines along each edge to follow the lighting gradient. With ``width``
+    as straight lines along each edge to follow the lighting gradient, robustly
+    (:func:`_level_lines`). With ``width``
     (per edge blur, px), the position is then refined by fitting an erf step of that
     width (GN_STEPS Gauss-Newton steps): this weights the samples by the edge slope
     instead of uniformly and cuts the noise by about 1.5x for a sharp edge.
