@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 
 from visvec.data import Status
 from visvec.detect import TriangleDetector
-from visvec.detect.candidates import partial_triangle
+from visvec.detect.candidates import enclosing_triangle, partial_triangle
 from visvec.geometry import project_target
 from visvec.rig import load_rig
 from visvec.rotations import euler_to_matrix
@@ -810,6 +810,57 @@ def test_level_lines_ignore_profiles_with_something_else_in_their_window():
     assert np.count_nonzero(~ok & ~head) <= 2
     assert np.abs(lo - lo_true).max() < 1.0
     assert np.abs(hi - hi_true).max() < 1.0
+
+
+# The convex hull of a triangle's region on a shrunk 320x240 over-exposed frame (the
+# tracked robustness benchmark's frame 262): cv2.minEnclosingTriangle of OpenCV 5.0.0
+# finds no triangle for it (area DBL_MAX, opencv/opencv#4992), and the detector raised:
+# the row was ``internal_error``.
+_HULL_WITHOUT_TRIANGLE = [
+    [57, 48], [88, 58], [94, 60], [95, 61], [91, 63], [66, 72], [57, 75], [55, 75],
+    [54, 52], [54, 49], [55, 48],
+]  # fmt: skip
+
+
+def _inside(tri: np.ndarray, pts: np.ndarray, tol: float) -> bool:
+    return all(cv2.pointPolygonTest(tri, (float(x), float(y)), True) >= -tol for x, y in pts)
+
+
+def test_an_enclosing_triangle_is_found_where_opencv_finds_none():
+    pts = np.array(_HULL_WITHOUT_TRIANGLE, np.float32).reshape(-1, 1, 2)
+    tri = enclosing_triangle(pts)
+    assert tri is not None and tri.shape == (3, 1, 2)
+    # it encloses the outline (to the simplification's fraction of a pixel) and is
+    # nearly the smallest: the hull's own area is 554 px^2
+    assert _inside(tri, pts.reshape(-1, 2), 0.11)
+    assert abs(cv2.contourArea(tri)) < 1.15 * cv2.contourArea(pts)
+
+
+def test_an_enclosing_triangle_survives_opencv_raising(monkeypatch):
+    calls = []
+    real = cv2.minEnclosingTriangle
+
+    def flaky(p):
+        calls.append(len(p))
+        if len(calls) == 1:
+            raise cv2.error("Internal error: The position of side B could not be determined")
+        return real(p)
+
+    monkeypatch.setattr(cv2, "minEnclosingTriangle", flaky)
+    square_ish = np.array([[0, 0], [40, 0], [40, 1], [0, 30]], np.float32).reshape(-1, 1, 2)
+    tri = enclosing_triangle(square_ish)
+    assert len(calls) == 2 and tri is not None
+    assert _inside(tri, square_ish.reshape(-1, 2), 0.11)
+
+
+def test_a_region_without_an_enclosing_triangle_is_passed_over(rig320, monkeypatch):
+    """OpenCV finding no enclosing triangle for any region (as it did for one in the
+    tracked benchmark, where the empty result raised and the row became
+    ``internal_error``): the frame is a row with a reason, no exception."""
+    monkeypatch.setattr(cv2, "minEnclosingTriangle", lambda p: (1.7976931348623157e308, None))
+    img = render_frame(rig320, euler_to_matrix(0.3, 0.02, -0.01), Scene(), rng=1)
+    d = TriangleDetector(rig320).detect(img)
+    assert d.status is not Status.OK and d.reason
 
 
 def test_lights_in_view_do_not_disturb(rig640):

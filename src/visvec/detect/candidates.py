@@ -37,6 +37,37 @@ class Candidate:
     tracked: bool = False
 
 
+# Outline simplifications (px) tried in turn when OpenCV's minimum enclosing triangle
+# finds none (opencv/opencv#4992: on some hulls, those with nearly collinear points,
+# no candidate side passes its validity test; #11116: it can raise instead)
+ENCLOSING_RETRY_EPS_PX = (0.1, 0.5, 1.0)
+
+
+def enclosing_triangle(points: np.ndarray) -> np.ndarray | None:
+    """(3, 1, 2) float32 minimum-area triangle enclosing ``points`` (an outline, (K, 1, 2)),
+    or None if none is found.
+
+    cv2.minEnclosingTriangle returns no triangle for some point sets (with an area of
+    DBL_MAX; OpenCV 5.0.0 did on a 320x240 frame's triangle region whose hull had three
+    nearly collinear points, and the detector took the empty result for a triangle and
+    raised). Then the convex hull, simplified by a fraction of a pixel, is tried instead:
+    its enclosing triangle is within that fraction of the outline's.
+    """
+    pts = points.astype(np.float32)
+    for eps in (None, *ENCLOSING_RETRY_EPS_PX):
+        if eps is not None:
+            pts = cv2.approxPolyDP(cv2.convexHull(points.astype(np.float32)), eps, True)
+            if len(pts) < 3:
+                return None
+        try:
+            area, tri = cv2.minEnclosingTriangle(pts)
+        except cv2.error:
+            continue
+        if tri is not None and tri.size == 6 and np.isfinite(area) and area < 1e300:
+            return tri.reshape(3, 1, 2).astype(np.float32)
+    return None
+
+
 def _percentiles(image: np.ndarray, qs: tuple[float, ...]) -> np.ndarray:
     """np.percentile (linear interpolation) of a uint8 image, from its histogram (a
     cumulative count instead of a partial sort)."""
@@ -174,8 +205,8 @@ def _at_level(
             a_exp = area_at(centre) / scale**2
             if abs(area_px / a_exp - 1.0) > area_tol:
                 continue
-        ok, tri = cv2.minEnclosingTriangle(cnt.astype(np.float32))
-        if not ok:
+        tri = enclosing_triangle(cnt)
+        if tri is None:
             continue
         tri_area = abs(cv2.contourArea(tri))
         fill = area_c / tri_area if tri_area > 0 else 0.0
