@@ -812,6 +812,36 @@ def test_level_lines_ignore_profiles_with_something_else_in_their_window():
     assert np.abs(hi - hi_true).max() < 1.0
 
 
+def test_level_lines_take_the_fast_path_only_when_nothing_else_is_in_the_windows():
+    """Least-squares level lines are kept as they are when their residuals are the
+    profiles' noise (a lighting gradient along the edge included); a dark head over a
+    stretch of one edge, or one light in one profile, sends the edge to the robust
+    fit."""
+    from visvec.detect.edges import _group_linear, _levels_suspect
+
+    rng = np.random.default_rng(5)
+    m = 60
+    gid, t = np.repeat(np.arange(3), m), np.tile(np.linspace(-1, 1, m), 3)
+    counts = np.bincount(gid, minlength=3)
+
+    def suspect(lo_raw, hi_raw):
+        lo, hi = _group_linear(t, (lo_raw, hi_raw), gid, 3)
+        return _levels_suspect(lo_raw - lo, hi_raw - hi, lo_raw, hi_raw, counts)
+
+    clean = [
+        (70.0 + 4.0 * t + rng.normal(0, 1.5, 3 * m), 98.0 + 5.0 * t + rng.normal(0, 1.5, 3 * m))
+        for _ in range(50)
+    ]
+    assert sum(suspect(lo, hi) for lo, hi in clean) <= 2
+    lo, hi = clean[0]
+    head = lo.copy()
+    head[(gid == 1) & (np.abs(t) < 0.2)] -= 12.0
+    assert suspect(head, hi)
+    light = hi.copy()
+    light[2 * m + 7] += 40.0
+    assert suspect(lo, light)
+
+
 # The convex hull of a triangle's region on a shrunk 320x240 over-exposed frame (the
 # tracked robustness benchmark's frame 262): cv2.minEnclosingTriangle of OpenCV 5.0.0
 # finds no triangle for it (area DBL_MAX, opencv/opencv#4992), and the detector raised:

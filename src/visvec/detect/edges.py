@@ -80,6 +80,14 @@ WIDTH_CHANGE = 1.35
 # line moved 0.55 px (attitude 2-4 sigma off on every noise draw).
 LEVEL_OUTLIER_SIGMAS = 3.5
 LEVEL_OUTLIER_MIN = 1.0
+# The robust search for such profiles (about 0.1 ms a pass) runs only on an edge whose
+# least-squares level lines leave residuals that the profiles' own noise does not
+# explain: an RMS above LEVEL_SUSPECT_RMS times, or one residual above
+# LEVEL_SUSPECT_MAX times, the noise measured from neighbouring profiles' differences
+# (which a lighting gradient and a head's smooth shadow hardly touch). Below both, an
+# outlier moves a line by less than the noise of one profile's level.
+LEVEL_SUSPECT_RMS = 1.5
+LEVEL_SUSPECT_MAX = 4.5
 
 
 @dataclass(frozen=True)
@@ -264,6 +272,35 @@ def _sorted_medians(table: np.ndarray, k: np.ndarray) -> np.ndarray:
     return 0.5 * (table[rows, (k - 1) // 2] + table[rows, k // 2])
 
 
+def _levels_suspect(
+    r_lo: np.ndarray,
+    r_hi: np.ndarray,
+    lo_raw: np.ndarray,
+    hi_raw: np.ndarray,
+    counts: np.ndarray,
+) -> bool:
+    """Whether any edge's level residuals (r_lo, r_hi about least-squares lines; the
+    edges' profiles one after the other, ``counts`` of them) are more than the profiles'
+    noise explains (LEVEL_SUSPECT_RMS, LEVEL_SUSPECT_MAX); the noise variance of each
+    level from the differences of neighbouring profiles, half their mean square."""
+    c0, c1, c2 = counts.tolist()
+    starts = [0, c0, c0 + c1]
+    d = np.diff(np.stack((lo_raw, hi_raw)), axis=1)
+    d[:, c0 - 1] = 0.0  # the steps from one edge to the next
+    d[:, c0 + c1 - 1] = 0.0
+    d *= d
+    noise2 = np.add.reduceat(d, starts, axis=1) / (2.0 * np.maximum(counts - 1, 1))
+    noise2 = np.maximum(noise2, 1e-6)
+    r = np.stack((r_lo, r_hi))
+    r *= r
+    if np.any(
+        np.add.reduceat(r, starts, axis=1)
+        > LEVEL_SUSPECT_RMS**2 * np.maximum(counts - 2, 1) * noise2
+    ):
+        return True
+    return bool(np.any(np.maximum.reduceat(r, starts, axis=1) > LEVEL_SUSPECT_MAX**2 * noise2))
+
+
 def _level_lines(
     t: np.ndarray, lo_raw: np.ndarray, hi_raw: np.ndarray, gid: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -271,7 +308,9 @@ def _level_lines(
     whose window holds something else (see LEVEL_OUTLIER_SIGMAS). The profiles are in
     order along each edge (t ascending), the edges one after the other.
 
-    The first lines are resistant ones: through the medians (of t and of the level) of
+    Least-squares lines through every profile are kept when their residuals are what
+    the profiles' noise explains (:func:`_levels_suspect`). Otherwise the first lines
+    are resistant ones: through the medians (of t and of the level) of
     each half of the edge, which follow a lighting gradient and are not moved by
     outliers in under half of either half. The profiles whose two levels lie within
     LEVEL_OUTLIER_SIGMAS robust sigmas of these lines (1.4826 x the median absolute
@@ -279,8 +318,12 @@ def _level_lines(
     more if the kept set changes against those lines. Returns lo, hi (M,) on the final
     lines and the mask of profiles whose levels passed (M,).
     """
+    lo, hi = _group_linear(t, (lo_raw, hi_raw), gid, 3)
     m = len(gid)
+    everyone = np.ones(m, dtype=bool)
     counts = np.bincount(gid, minlength=3)
+    if not _levels_suspect(lo_raw - lo, hi_raw - hi, lo_raw, hi_raw, counts):
+        return lo, hi, everyone
     nc = counts.tolist()
     starts = [0, nc[0], nc[0] + nc[1]]
     index = np.arange(m) - np.array(starts)[gid]
