@@ -53,10 +53,13 @@ def enclosing_triangle(points: np.ndarray) -> np.ndarray | None:
     raised). Then the convex hull, simplified by a fraction of a pixel, is tried instead:
     its enclosing triangle is within that fraction of the outline's.
     """
-    pts = points.astype(np.float32)
+    outline = points.astype(np.float32)
+    hull = None
     for eps in (None, *ENCLOSING_RETRY_EPS_PX):
+        pts = outline
         if eps is not None:
-            pts = cv2.approxPolyDP(cv2.convexHull(points.astype(np.float32)), eps, True)
+            hull = cv2.convexHull(outline) if hull is None else hull
+            pts = cv2.approxPolyDP(hull, eps, True)
             if len(pts) < 3:
                 return None
         try:

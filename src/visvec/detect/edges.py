@@ -211,6 +211,12 @@ def _group_tls(
     return k, c, d, n, dx, dy
 
 
+def _sorted_medians(table: np.ndarray, k: np.ndarray) -> np.ndarray:
+    """Median of each row's first k values of a row-sorted table (padded with inf)."""
+    rows = np.arange(len(k))
+    return 0.5 * (table[rows, (k - 1) // 2] + table[rows, k // 2])
+
+
 def _group_median(a: np.ndarray, gid: np.ndarray, index: np.ndarray, keep: np.ndarray):
     """(3,) median of ``a`` over each edge's kept points (index: position along the edge),
     the same value as np.median: one sort of a (3, longest edge) table padded with inf."""
@@ -218,10 +224,7 @@ def _group_median(a: np.ndarray, gid: np.ndarray, index: np.ndarray, keep: np.nd
     table[gid[keep], index[keep]] = a[keep]
     table.sort(axis=1)
     k = np.bincount(gid[keep], minlength=3)
-    rows = np.arange(3)
-    lo = table[rows, np.maximum(k - 1, 0) // 2]
-    hi = table[rows, k // 2]
-    return np.where(k > 0, 0.5 * (lo + hi), 0.0)
+    return np.where(k > 0, _sorted_medians(table, np.maximum(k, 1)), 0.0)
 
 
 def _robust_lines(
@@ -264,12 +267,6 @@ def _robust_lines(
     spread = np.bincount(gid, w * t * t, 3)
     offset = np.einsum("ij,ij->i", n, c)
     return n, offset, c, spread, sigma, keep
-
-
-def _sorted_medians(table: np.ndarray, k: np.ndarray) -> np.ndarray:
-    """Median of each row's first k values of a row-sorted table (padded with inf)."""
-    rows = np.arange(len(k))
-    return 0.5 * (table[rows, (k - 1) // 2] + table[rows, k // 2])
 
 
 def _levels_suspect(
