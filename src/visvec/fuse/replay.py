@@ -52,51 +52,68 @@ class Limits:
     max_accel_mps2: float | None = 0.5
 
 
-def fuse(
-    imu: ImuData,
-    fixes: list[Fix] | tuple[Fix, ...],
-    model,
-    *,
-    limits: Limits | None = None,
-    history_s: float = 10.0,
-) -> Iterator[FusedSample]:
-    """Fused states at every inertial sample, causally (see the module docstring)."""
-    limits = limits or Limits()
-    arrivals = sorted(fixes, key=lambda f: (f.available_s, f.time_s))
-    next_arrival = 0
-    gaps = set(imu.gaps)
-    # buffers over the history window, parallel: sample time, reading, state after it
-    ts: list[float] = []
-    gyro: list[np.ndarray] = []
-    acc: list[np.ndarray | None] = []
-    states: list[object | None] = []
-    known: list[tuple[float, int, Fix]] = []  # fixes available so far, by exposure time
-    n_applied = 0
-    rejected_streak = 0
-    last_good = prev = None  # the last good reading; the last reading as used
-    for k in range(len(imu)):
-        t = float(imu.t[k])
+class Fusion:
+    """The fusion engine, fed one event at a time: inertial samples in time order
+    (`step`) and fixes when they become available (`add_fix`). Each `step` returns the
+    fused state after that sample, using the samples so far and the fixes added before
+    it (see the module docstring); a file replay and a live stream drive it alike.
+
+    ``fix.time_s`` must be on the inertial samples' clock.
+    """
+
+    def __init__(self, model, *, limits: Limits | None = None, history_s: float = 10.0):
+        self.model = model
+        self.limits = limits or Limits()
+        self.history_s = history_s
+        # buffers over the history window, parallel: sample time, reading, state after it
+        self._ts: list[float] = []
+        self._gyro: list[np.ndarray] = []
+        self._acc: list[np.ndarray | None] = []
+        self._states: list[object | None] = []
+        self._known: list[tuple[float, int, Fix]] = []  # fixes known, by exposure time
+        self._pending: list[Fix] = []  # fixes added since the last sample
+        self.n_applied = 0
+        self._rejected_streak = 0
+        self._last_good = self._prev = None  # the last good reading; the last one as used
+        self._index = 0
+
+    def add_fix(self, fix: Fix) -> None:
+        """A fix that has just become available; it is applied at the next sample."""
+        self._pending.append(fix)
+
+    def gap(self) -> None:
+        """The samples broke off: forget the history; the filter restarts at the next
+        fix taken after the gap."""
+        for buf in (self._ts, self._gyro, self._acc, self._states, self._known):
+            buf.clear()
+        self._last_good = self._prev = None
+
+    def step(self, t: float, g: np.ndarray, a: np.ndarray | None, *, gap: bool = False,
+             index: int | None = None) -> FusedSample:  # fmt: skip
+        """Take the inertial sample at ``t`` (gyro rad/s (3,), accel m/s^2 (2,) or
+        None) and return the fused state after it."""
+        k = self._index if index is None else index
+        self._index = k + 1
+        model = self.model
+        ts, gyro, acc, states, known = self._ts, self._gyro, self._acc, self._states, self._known
         warnings: list[str] = []
-        if k in gaps:
+        if gap:
             warnings.append("imu_gap")
-            ts.clear(), gyro.clear(), acc.clear(), states.clear(), known.clear()
-            last_good = prev = None
-        g = imu.gyro[k]
-        a = imu.accel[k] if imu.accel is not None else None
-        if is_faulty(g, a, limits):
+            self.gap()
+        if is_faulty(g, a, self.limits):
             warnings.append("imu_fault")
-            if last_good is not None:
-                g, a = last_good
+            if self._last_good is not None:
+                g, a = self._last_good
             else:
                 g, a = np.zeros(3), (np.zeros(2) if a is not None else None)
         else:
-            last_good = (g, a)
+            self._last_good = (g, a)
         # the reading over the interval ending at t: the mean of its two ends (trapezoid)
         g_end, a_end = g, a
-        if prev is not None:
-            g = 0.5 * (g + prev[0])
-            a = 0.5 * (a + prev[1]) if a is not None else None
-        prev = (g_end, a_end)
+        if self._prev is not None:
+            g = 0.5 * (g + self._prev[0])
+            a = 0.5 * (a + self._prev[1]) if a is not None else None
+        self._prev = (g_end, a_end)
         ts.append(t)
         gyro.append(g)
         acc.append(a)
@@ -104,9 +121,8 @@ def fuse(
         # fixes that reached us by now
         new: list[Fix] = []
         nis_new: list[float] = []
-        while next_arrival < len(arrivals) and arrivals[next_arrival].available_s <= t:
-            f = arrivals[next_arrival]
-            next_arrival += 1
+        pending, self._pending = self._pending, []
+        for f in pending:
             if f.time_s < ts[0] or f.time_s > t:
                 warnings.append("fix_too_old" if f.time_s < ts[0] else "fix_from_future")
                 continue
@@ -123,11 +139,10 @@ def fuse(
             # not initialised, or restarting: from the earliest known fix in the buffer
             init = known[0][2] if known else None
             if init is None:
-                yield FusedSample(k, t, None, n_applied, (*warnings, "no_fix_yet"))
-                continue
+                return FusedSample(k, t, None, self.n_applied, (*warnings, "no_fix_yet"))
             s, t_s = model.init(init), init.time_s
             if any(init is f for f in new):
-                n_applied += 1
+                self.n_applied += 1
             start = bisect.bisect_left(ts, t_s)
             for i in range(start):
                 states[i] = None
@@ -142,16 +157,16 @@ def fuse(
                 if any(f is n for n in new):
                     nis_new.append(nis)
                     if ok:
-                        n_applied += 1
-                        rejected_streak = 0
+                        self.n_applied += 1
+                        self._rejected_streak = 0
                     else:
                         warnings.append("fix_rejected")
-                        rejected_streak += 1
+                        self._rejected_streak += 1
             if ts[j] > t_s:
                 s = model.propagate(s, gyro[j], acc[j], ts[j] - t_s)
                 t_s = ts[j]
             states[j] = s
-        if rejected_streak >= MAX_REJECTED_IN_A_ROW:
+        if self._rejected_streak >= MAX_REJECTED_IN_A_ROW:
             # the filter has disagreed with several fixes in a row: trust the fixes again
             latest = max(new, key=lambda f: f.time_s)
             s, t_s = model.init(latest), latest.time_s
@@ -164,14 +179,37 @@ def fuse(
                     t_s = ts[j]
                 states[j] = s
             known[:] = [x for x in known if x[0] >= latest.time_s]
-            rejected_streak = 0
+            self._rejected_streak = 0
             warnings.append("filter_restarted")
         # forget what is older than the history window
-        cut = bisect.bisect_left(ts, t - history_s)
+        cut = bisect.bisect_left(ts, t - self.history_s)
         if cut > 0:
             del ts[:cut], gyro[:cut], acc[:cut], states[:cut]
             known[:] = [x for x in known if x[0] >= ts[0]]
-        yield FusedSample(k, t, states[-1], n_applied, tuple(warnings), tuple(nis_new))
+        return FusedSample(k, t, states[-1], self.n_applied, tuple(warnings), tuple(nis_new))
+
+
+def fuse(
+    imu: ImuData,
+    fixes: list[Fix] | tuple[Fix, ...],
+    model,
+    *,
+    limits: Limits | None = None,
+    history_s: float = 10.0,
+) -> Iterator[FusedSample]:
+    """Fused states at every inertial sample of a recording, causally: each fix is
+    given to the engine at the first sample at or after its ``available_s``."""
+    engine = Fusion(model, limits=limits, history_s=history_s)
+    arrivals = sorted(fixes, key=lambda f: (f.available_s, f.time_s))
+    nxt = 0
+    gaps = set(imu.gaps)
+    for k in range(len(imu)):
+        t = float(imu.t[k])
+        while nxt < len(arrivals) and arrivals[nxt].available_s <= t:
+            engine.add_fix(arrivals[nxt])
+            nxt += 1
+        a = imu.accel[k] if imu.accel is not None else None
+        yield engine.step(t, imu.gyro[k], a, gap=k in gaps, index=k)
 
 
 def is_faulty(g: np.ndarray, a: np.ndarray | None, limits: Limits) -> bool:
