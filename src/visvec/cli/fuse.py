@@ -86,7 +86,8 @@ def fuse(imu_path, fixes_path, out, fmt, method, rest_s, max_rate_dps, max_accel
     else:
         if method != "kalman":
             raise click.UsageError("--method paper applies to planar fixes")
-        model = AttitudeModel(misalignment_sigma=0.0 if no_misalignment else math.radians(5))
+        model = AttitudeModel(misalignment_sigma=0.0 if no_misalignment else math.radians(5),
+                              sample_s=imu.period_s)  # fmt: skip
         if gyro_noise_dps is not None:
             model = replace(model, gyro_noise=math.radians(gyro_noise_dps))
         if fix_sigma_deg is not None:

@@ -14,15 +14,27 @@ rules share this propagation:
   p < 1e-6) are refused.
 
 3-D: a multiplicative extended Kalman filter (Markley & Crassidis, Fundamentals of
-Spacecraft Attitude Determination and Control, 2014, Sec. 6.2) on the attitude error,
-the gyro bias and, beyond the usual filter, the gyro's misalignment to the fixes' body
-frame and its scale factors: omega_B = R_m (1 + k) (omega_g - b), k diagonal. With
-R_true = R exp([dth]x), b = b^ + db, R_m = exp([dphi]x) R_m^ and k = k^ + dk, the
-error obeys (to first order)
-    dth' = -[w]x dth - R_m^ (1 + k^) db - [w]x dphi - R_m^ diag(omega_g - b^) dk,
-    w = R_m^ (1 + k^) (omega_g - b^),
-so misalignment and scale show whenever the body turns; they are estimated from the
-data. A zero prior sigma keeps a parameter fixed.
+Spacecraft Attitude Determination and Control, 2014, Sec. 6.2, Eqs. 6.60-6.63) on the
+attitude error, the gyro bias and, beyond the usual filter, the gyro's misalignment to
+the fixes' body frame, its scale factors and its time offset to the fixes:
+omega_B(t) = R_m (1 + k) (omega_g(t + tau) - b), k diagonal, omega_g(t + tau) taken as
+omega_g + tau d(omega_g)/dt. With R_true = R exp([dth]x), b = b^ + db,
+R_m = exp([dphi]x) R_m^, k = k^ + dk and tau = tau^ + dtau, the error obeys (to first
+order; dth' = -[w]x dth + (w_true - w^))
+    dth' = -[w]x dth - R_m^ (1 + k^) db - [w]x dphi + R_m^ diag(omega_g - b^) dk
+           + R_m^ (1 + k^) d(omega_g)/dt dtau,
+    w = R_m^ (1 + k^) (omega_g + tau^ d(omega_g)/dt - b^),
+so misalignment, scale and time offset show whenever the body turns; they are
+estimated from the data. A zero prior sigma keeps a parameter fixed.
+
+The process noise is learned from the fixes' innovations (covariance matching, Mehra,
+"Approaches to adaptive filtering", IEEE TAC 17(5), 1972, Sec. IV; Myers & Tapley,
+IEEE TAC 21(4), 1976): the attitude's process noise per second is q_a + q_w |w|^2 (a
+white rate noise and a rate-proportional one, for what scale, misalignment and timing
+leave), and after each fix y = |r|^2 - tr(R_fix) - tr(P^-) + tr(Q used since the last
+fix) is an unbiased sample of tr(Q true) over the interval; (q_a, q_w) follow by least
+squares over the recent fixes (forgetting factor, each weighted by 1/var(|r|^2)), with
+the rest segment's gyro noise, or the default, as a prior worth a few fixes.
 """
 
 from __future__ import annotations
@@ -80,7 +92,7 @@ class PlanarModel:
 
     def propagate(self, s: PlanarState, gyro: np.ndarray, accel: np.ndarray, dt: float):
         x = s.x
-        w = gyro[2] - x[5]
+        w = gyro[0][2] - x[5]  # the interval's mean rate (engine.Reading)
         psi_mid = x[4] + 0.5 * w * dt
         c, sn = math.cos(psi_mid), math.sin(psi_mid)
         ab = accel * 1000.0 - x[6:8]  # mm/s^2, body
@@ -126,7 +138,12 @@ class PlanarModel:
         S = s.P[np.ix_(idx, idx)] + R
         nis = float(r @ np.linalg.solve(S, r))
         if nis > NIS_LIMIT:
-            return s, False, nis
+            # refused: the filter or the fix is wrong; widen the pose's covariance by the
+            # disagreement so that the rows stay honest and the next fix that agrees
+            # with this one is taken (no lock-out)
+            P = s.P.copy()
+            P[np.ix_(idx, idx)] += np.outer(r, r)
+            return PlanarState(s.x, P), False, nis
         K = np.linalg.solve(S, s.P[idx, :]).T
         x = s.x + K @ r
         IKH = np.eye(8)
@@ -143,36 +160,101 @@ class PlanarModel:
 
 
 @dataclass(frozen=True)
+class NoiseFit:
+    """Least-squares sums of the learned process noise (q_a rad^2/s, q_w 1/s): the
+    normal matrix ``H`` (2, 2) and vector ``z`` (2,), with the prior ``theta0``."""
+
+    H: np.ndarray
+    z: np.ndarray
+    theta0: np.ndarray
+    n: int = 0
+
+    @classmethod
+    def prior(cls, theta0: np.ndarray) -> NoiseFit:
+        return cls(np.zeros((2, 2)), np.zeros(2), theta0)
+
+    def theta(self) -> np.ndarray:
+        # the prior: each parameter as known as from NOISE_PRIOR_FIXES fixes
+        # (var(|r|^2) = 2 E(|r|^2)^2 each); it is not forgotten, so that a parameter
+        # the motion does not show (q_w at rest) stays at its prior
+        H0 = np.diag(NOISE_PRIOR_FIXES / (2.0 * self.theta0**2))
+        th = np.linalg.solve(H0 + self.H, H0 @ self.theta0 + self.z)
+        # a run of lucky fixes must not make it rigid: the white noise stays above a
+        # tenth of its prior, the rate-proportional one above 0.1 % of the rate
+        return np.maximum(th, [0.1 * self.theta0[0], RATE_NOISE_FLOOR**2])
+
+
+@dataclass(frozen=True)
 class AttitudeState:
     R: np.ndarray  # R_NB
     b: np.ndarray  # gyro bias, rad/s, gyro axes
     Rm: np.ndarray  # gyro axes -> body axes
     k: np.ndarray  # gyro scale factor errors (3,)
-    P: np.ndarray  # (12, 12): dtheta (body), db, dphi (body), dk
+    tau: float  # gyro time offset, s (the gyro's reading at t + tau belongs to t)
+    P: np.ndarray  # (13, 13): dtheta (body), db, dphi (body), dk, dtau
+    noise: NoiseFit
+    # since the last fix: [seconds, integral of |w|^2 dt, trace of the attitude noise
+    # added]; whether a saturated reading was integrated; whether the last fix was refused
+    acc: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    saturated: bool = False
+    disputed: bool = False
+
+
+RATE_NOISE_FLOOR = 0.001
+NOISE_FORGET = 0.93  # per fix: the noise fit remembers about the last 15 fixes
+NOISE_PRIOR_FIXES = 3.0  # the prior counts as this many fixes
 
 
 @dataclass(frozen=True)
 class AttitudeModel:
-    """3-D fusion (MEKF) with gyro bias, misalignment and scale factors."""
+    """3-D fusion (MEKF) with gyro bias, misalignment, scale factors and time offset,
+    and a process noise learned from the innovations."""
 
-    gyro_noise: float = math.radians(0.3)  # rad/s per sample
+    gyro_noise: float = math.radians(0.3)  # rad/s per sample, the prior's white noise
+    rate_noise: float = 0.03  # relative rate error (the prior's q_w = rate_noise^2 s)
+    sample_s: float = 0.01  # the IMU's period (the white noise's correlation time)
+    learn_noise: bool = True
     gyro_bias_walk: float = math.radians(0.01)  # rad/s/sqrt(s)
     gyro_bias0: tuple[float, float, float] = (0.0, 0.0, 0.0)
     gyro_bias_sigma: float = math.radians(1.0)
     misalignment_sigma: float = math.radians(5.0)  # 0: not estimated
-    scale_sigma: float = 0.0  # relative; 0: not estimated (the default)
+    scale_sigma: float = 0.02  # relative; 0: not estimated
+    time_offset_sigma: float = 0.01  # s; 0: not estimated
     fix_sigma: float = math.radians(0.1)
 
     planar = False
 
+    def prior_theta(self) -> np.ndarray:
+        return np.array([self.gyro_noise**2 * self.sample_s, self.rate_noise**2])
+
+    def with_rest(self, mean: np.ndarray, std: np.ndarray, n: int) -> AttitudeModel:
+        """The model with a rest segment's gyro mean as the bias prior and its scatter
+        as the white noise prior."""
+        from dataclasses import replace
+
+        noise = max(float(np.sqrt(np.mean(std**2))), math.radians(0.01))
+        sigma = max(noise / math.sqrt(n), math.radians(0.02))
+        return replace(self, gyro_bias0=tuple(float(x) for x in mean), gyro_noise=noise,
+                       gyro_bias_sigma=sigma)  # fmt: skip
+
     def init(self, fix: Fix) -> AttitudeState:
-        P = np.zeros((12, 12))
+        P = np.zeros((13, 13))
         P[0:3, 0:3] = self._fix_cov(fix)
         P[3:6, 3:6] = np.eye(3) * self.gyro_bias_sigma**2
         P[6:9, 6:9] = np.eye(3) * self.misalignment_sigma**2
         P[9:12, 9:12] = np.eye(3) * self.scale_sigma**2
+        P[12, 12] = self.time_offset_sigma**2
         b0 = np.array(self.gyro_bias0, float)
-        return AttitudeState(fix.value.copy(), b0, np.eye(3), np.zeros(3), P)
+        noise = NoiseFit.prior(self.prior_theta())
+        return AttitudeState(fix.value.copy(), b0, np.eye(3), np.zeros(3), 0.0, P, noise)
+
+    def reinit(self, s: AttitudeState, fix: Fix) -> AttitudeState:
+        """Start again from ``fix``'s attitude, keeping what was learned of the gyro."""
+        P = s.P.copy()
+        P[0:3, :] = 0.0
+        P[:, 0:3] = 0.0
+        P[0:3, 0:3] = self._fix_cov(fix)
+        return AttitudeState(fix.value.copy(), s.b, s.Rm, s.k, s.tau, P, s.noise)
 
     def _fix_cov(self, fix: Fix) -> np.ndarray:
         if fix.cov is not None:
@@ -180,34 +262,78 @@ class AttitudeModel:
         return np.eye(3) * self.fix_sigma**2
 
     def propagate(self, s: AttitudeState, gyro: np.ndarray, accel, dt: float):
-        wg = (1.0 + s.k) * (gyro - s.b)  # scaled, in gyro axes
+        """``gyro`` is an engine.Reading's array: the interval's mean rate, its rate of
+        change and the extra 1-sigma per axis of a saturated (reconstructed) reading."""
+        g, gdot, gsat = gyro
+        scale = 1.0 + s.k
+        wg = scale * (g + s.tau * gdot - s.b)  # scaled, in gyro axes
         w = s.Rm @ wg
         Rn = s.R @ expmap(w * dt)
-        F = np.eye(12)
+        F = np.eye(13)
         F[0:3, 0:3] = expmap(-w * dt)  # exact transition of -[w]x
-        F[0:3, 3:6] = -(s.Rm * (1.0 + s.k)) * dt
+        RmS = s.Rm * scale
+        F[0:3, 3:6] = -RmS * dt
         F[0:3, 6:9] = -skew(w) * dt
-        F[0:3, 9:12] = -(s.Rm * (gyro - s.b)) * dt
-        Q = np.zeros((12, 12))
-        Q[0:3, 0:3] = np.eye(3) * (self.gyro_noise * dt) ** 2
+        F[0:3, 9:12] = s.Rm * (g + s.tau * gdot - s.b) * dt
+        F[0:3, 12] = RmS @ gdot * dt
+        qa, qw = s.noise.theta() if self.learn_noise else self.prior_theta()
+        q = (qa + qw * float(w @ w)) * dt
+        Q = np.zeros((13, 13))
+        Q[0:3, 0:3] = np.eye(3) * q
+        sat = bool(np.any(gsat > 0))
+        if sat:
+            # a saturated reading's error is the same all through the burst: count it
+            # as one (conservatively, the whole interval's worth at once)
+            Qs = RmS @ np.diag((gsat * dt) ** 2) @ RmS.T
+            Q[0:3, 0:3] += Qs
         Q[3:6, 3:6] = np.eye(3) * self.gyro_bias_walk**2 * dt
-        return AttitudeState(Rn, s.b, s.Rm, s.k, F @ s.P @ F.T + Q)
+        P = F @ s.P @ F.T + Q
+        acc = (s.acc[0] + dt, s.acc[1] + float(w @ w) * dt, s.acc[2] + float(np.trace(Q[0:3, 0:3])))
+        return AttitudeState(Rn, s.b, s.Rm, s.k, s.tau, P, s.noise, acc, s.saturated or sat,
+                             s.disputed)  # fmt: skip
 
     def update(self, s: AttitudeState, fix: Fix) -> tuple[AttitudeState, bool, float]:
         R = self._fix_cov(fix)
         r = logmap(s.R.T @ fix.value)
         S = s.P[0:3, 0:3] + R
         nis = float(r @ np.linalg.solve(S, r))
+        noise = self._learn(s, r, R, S)
+        acc0 = (0.0, 0.0, 0.0)
         if nis > NIS_LIMIT:
-            return s, False, nis
+            # refused: the filter or the fix is wrong. Widen the attitude's covariance
+            # by the disagreement, so that the rows stay honest and the next fix that
+            # agrees with this one is taken (no lock-out); the widening counts as noise
+            # added, so that the next fix's noise sample stays unbiased.
+            P = s.P.copy()
+            P[0:3, 0:3] += np.outer(r, r)
+            acc = (s.acc[0], s.acc[1], s.acc[2] + float(r @ r))
+            return AttitudeState(s.R, s.b, s.Rm, s.k, s.tau, P, noise, acc, s.saturated,
+                                 True), False, nis  # fmt: skip
         K = np.linalg.solve(S, s.P[0:3, :]).T
         dx = K @ r
-        IKH = np.eye(12)
+        IKH = np.eye(13)
         IKH[:, 0:3] -= K
         P = IKH @ s.P @ IKH.T + K @ R @ K.T
         Rn = s.R @ expmap(dx[0:3])
         Rm = expmap(dx[6:9]) @ s.Rm
-        return AttitudeState(Rn, s.b + dx[3:6], Rm, s.k + dx[9:12], P), True, nis
+        tau = float(np.clip(s.tau + dx[12], -0.1, 0.1))
+        return AttitudeState(Rn, s.b + dx[3:6], Rm, s.k + dx[9:12], tau, P, noise,
+                             acc0), True, nis  # fmt: skip
+
+    def _learn(self, s: AttitudeState, r, R, S) -> NoiseFit:
+        """The noise fit after a fix's innovation (covariance matching, module doc)."""
+        nf = s.noise
+        if not self.learn_noise or s.saturated or s.acc[0] <= 0.0:
+            return nf
+        x = 3.0 * np.array([s.acc[0], s.acc[1]])
+        y = float(r @ r) - float(np.trace(R)) - float(np.trace(s.P[0:3, 0:3])) + s.acc[2]
+        # a single wild fix (a glitch) counts at most as much as a fix at the gate
+        y = min(y, NIS_LIMIT / 3.0 * float(np.trace(S)))
+        # var(y) = var(|r|^2) = 2 tr(S^2) for a Gaussian r
+        v = 2.0 * float(np.sum(S * S))
+        H = nf.H * NOISE_FORGET + np.outer(x, x) / v
+        z = nf.z * NOISE_FORGET + x * y / v
+        return NoiseFit(H, z, nf.theta0, nf.n + 1)
 
     @staticmethod
     def values(s: AttitudeState) -> tuple[np.ndarray, np.ndarray]:

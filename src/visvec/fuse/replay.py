@@ -52,21 +52,68 @@ class Limits:
     max_accel_mps2: float | None = 0.5
 
 
+SAT_MIN_DPS = 100.0  # a flat top below this is not a gyro's range
+SAT_BAND = 0.005  # readings within this share of the range are at it
+SAT_RUN = 3  # a flat top: this many samples in the band ...
+SAT_BEYOND = 0.1  # ... where the samples before point this far past it
+SAT_SIGMA = 0.25  # 1-sigma of a saturated reading's reconstruction, in ranges (live)
+SAT_SIGMA_BOTH = 0.1  # ... once the samples after the flat top are in
+REST_MIN_S, REST_MAX_S = 0.3, 5.0  # a rest segment at the start: its length
+REST_BAND_DPS = 1.5  # a gyro at rest stays within this of its median
+
+
+def reading(mean: np.ndarray, rate: np.ndarray, sat: np.ndarray) -> np.ndarray:
+    """What a model's propagate takes as ``gyro``: (3, 3) rows: the interval's mean rate
+    (rad/s), its rate of change (rad/s^2) and the extra 1-sigma per axis of a
+    saturated reading (rad/s; 0 where the reading is within range)."""
+    return np.stack([mean, rate, sat])
+
+
+def declip(
+    t: np.ndarray, v: np.ndarray, known: np.ndarray, at: np.ndarray, rng: float, sign: float
+) -> np.ndarray:
+    """Values at times ``at`` of a signal clipped at +-``rng``, from a quadratic through
+    the unclipped samples (t[known], v[known]) on either side of the flat top (the
+    clipped-signal reconstruction of, e.g., Abel & Smith, "Restoring a clipped signal",
+    ICASSP 1991, with the simplest smooth model); never inside the range, never beyond
+    twice it."""
+    tk, vk = t[known], v[known]
+    deg = min(2, len(tk) - 1)
+    if deg < 1:
+        return np.full(len(at), sign * rng)
+    c = np.polyfit(tk - at[0], vk, deg)
+    est = np.polyval(c, at - at[0])
+    return sign * np.clip(sign * est, rng, 2.0 * rng)
+
+
 class Fusion:
     """The fusion engine, fed one event at a time: inertial samples in time order
     (`step`) and fixes when they become available (`add_fix`). Each `step` returns the
     fused state after that sample, using the samples so far and the fixes added before
     it (see the module docstring); a file replay and a live stream drive it alike.
 
+    Beyond the replay it learns from the data as they come:
+    - a rest segment at the start (the gyro within 1.5 deg/s of its median for 0.3 s
+      or more before the first fix) gives the gyro's bias and white noise (a model
+      with ``with_rest``);
+    - a gyro at its range (a flat top: the largest reading seen, repeated) is
+      detected; the clipped samples are reconstructed (`declip`) with a sigma, live
+      from the samples before the flat top and again, with a replay, from both sides
+      once it ends; such rows carry ``gyro_saturated``.
+
     ``fix.time_s`` must be on the inertial samples' clock.
     """
 
-    def __init__(self, model, *, limits: Limits | None = None, history_s: float = 10.0):
+    def __init__(self, model, *, limits: Limits | None = None, history_s: float = 10.0,
+                 gyro_range_dps: float | None = None):  # fmt: skip
         self.model = model
         self.limits = limits or Limits()
         self.history_s = history_s
-        # buffers over the history window, parallel: sample time, reading, state after it
+        # buffers over the history window, parallel: sample time, raw gyro, whether it
+        # was at the range per axis, reading as used, state after it
         self._ts: list[float] = []
+        self._raw: list[np.ndarray] = []
+        self._clip: list[np.ndarray] = []
         self._gyro: list[np.ndarray] = []
         self._acc: list[np.ndarray | None] = []
         self._states: list[object | None] = []
@@ -74,8 +121,14 @@ class Fusion:
         self._pending: list[Fix] = []  # fixes added since the last sample
         self.n_applied = 0
         self._rejected_streak = 0
-        self._last_good = self._prev = None  # the last good reading; the last one as used
+        self._last_good = None  # the last good reading
+        self._prev_a = None
         self._index = 0
+        self._range = math.radians(gyro_range_dps) if gyro_range_dps else None
+        self._burst_end: int | None = None  # samples since a flat top ended
+        self._initialised = False
+        self.rest = None  # (mean rad/s (3,), std rad/s (3,), n) once found
+        self.n_saturated = 0
 
     def add_fix(self, fix: Fix) -> None:
         """A fix that has just become available; it is applied at the next sample."""
@@ -84,9 +137,115 @@ class Fusion:
     def gap(self) -> None:
         """The samples broke off: forget the history; the filter restarts at the next
         fix taken after the gap."""
-        for buf in (self._ts, self._gyro, self._acc, self._states, self._known):
+        for buf in (self._ts, self._raw, self._clip, self._gyro, self._acc, self._states,
+                    self._known):  # fmt: skip
             buf.clear()
-        self._last_good = self._prev = None
+        self._last_good = self._prev_a = None
+        self._burst_end = None
+
+    def _clipped(self, g: np.ndarray) -> np.ndarray:
+        """Which axes of a raw reading (already in the buffer) sit at the gyro's range.
+        Unless given, the range is learned from the first flat top: SAT_RUN samples on
+        one axis within SAT_BAND of each other at SAT_MIN_DPS or more, where the line
+        through the SAT_RUN samples before them points at least SAT_BEYOND past them
+        at the run's middle (a smooth peak levels off before its top; a clipped signal
+        hits its flat top at full slope). A calibrated gyro's
+        clipped readings scatter a little with the other axes, hence the band."""
+        g = np.asarray(g, float)
+        if self._range is None:
+            n = len(self._raw)
+            need = 2 * SAT_RUN
+            if n >= need:
+                for ax in range(3):
+                    run = np.array([r[ax] for r in self._raw[n - SAT_RUN :]])
+                    level = float(np.abs(run).max())
+                    if level < math.radians(SAT_MIN_DPS) or not (
+                        np.all(np.sign(run) == np.sign(run[-1]))
+                        and np.all(np.abs(run) >= level * (1 - SAT_BAND))
+                    ):
+                        continue
+                    before = np.array([r[ax] for r in self._raw[n - need : n - SAT_RUN]])
+                    tb = np.array(self._ts[n - need : n - SAT_RUN])
+                    c = np.polyfit(tb - tb[-1], before, 1)
+                    pred = abs(float(np.polyval(c, self._ts[n - 2] - tb[-1])))
+                    if pred >= level * (1 + SAT_BEYOND):
+                        self._range = level
+                        for j in range(n - SAT_RUN, n - 1):
+                            self._clip[j] = np.abs(self._raw[j]) >= level * (1 - SAT_BAND)
+                        break
+        if self._range is None:
+            return np.zeros(3, bool)
+        return np.abs(g) >= self._range * (1 - SAT_BAND)
+
+    def _make_reading(self, j: int, sat_sigma: np.ndarray) -> np.ndarray:
+        """The reading over the interval ending at sample j: the mean of its two ends
+        (trapezoid) and its rate of change."""
+        g = self._raw[j]
+        if j == 0:
+            return reading(g, np.zeros(3), sat_sigma)
+        dt = self._ts[j] - self._ts[j - 1]
+        g0 = self._raw[j - 1]
+        return reading(0.5 * (g + g0), (g - g0) / dt, sat_sigma)
+
+    def _reconstruct(self, last: int, both: bool) -> int | None:
+        """Reconstruct the clipped samples of the flat top that ends at or before
+        sample ``last`` (rewriting their readings); the first index rewritten."""
+        clip = np.array(self._clip)
+        ts = np.array(self._ts)
+        raw = np.array(self._raw)
+        first = None
+        for ax in range(3):
+            c = clip[:, ax]
+            if not c[last]:
+                continue
+            end = beg = last
+            while beg > 0 and c[beg - 1]:
+                beg -= 1
+            before = np.arange(max(0, beg - 4), beg)
+            before = before[~c[before]]
+            after = np.arange(end + 1, min(len(c), end + 4)) if both else np.array([], int)
+            after = after[~c[after]] if len(after) else after
+            known = np.concatenate([before, after]).astype(int)
+            if len(known) == 0:
+                continue
+            at = np.arange(beg, end + 1)
+            vals = declip(ts, raw[:, ax], known, ts[at], self._range, np.sign(raw[end, ax]))
+            for i, v in zip(at, vals, strict=True):
+                self._raw[i] = self._raw[i].copy()
+                self._raw[i][ax] = v
+            first = beg if first is None else min(first, beg)
+        if first is None:
+            return None
+        # a reconstruction's error is much the same all through its flat top: the m-th
+        # interval of a flat top adds (2m - 1) sigma^2 dt^2, so that m of them add
+        # (m sigma dt)^2, as one error held for the whole flat top would
+        sig = (SAT_SIGMA_BOTH if both else SAT_SIGMA) * self._range
+        run = np.zeros(3)
+        for j in range(first, min(len(self._ts), last + 2)):
+            hit = self._clip[j] | (self._clip[j - 1] if j > 0 else False)
+            run = np.where(hit, run + 1, 0)
+            s_ax = np.where(hit, sig * np.sqrt(np.maximum(2 * run - 1, 0)), 0.0)
+            self._gyro[j] = self._make_reading(j, s_ax)
+        return first
+
+    def _find_rest(self, t_end: float) -> None:
+        """The rest segment at the start of the buffer (the samples up to ``t_end``,
+        when the first fix arrives), if any."""
+        ts = np.array(self._ts)
+        n_max = int(np.searchsorted(ts, min(t_end, ts[0] + REST_MAX_S), side="right"))
+        if n_max < 10:
+            return
+        raw = np.array(self._raw[:n_max])
+        band = math.radians(REST_BAND_DPS)
+        med = np.median(raw[: max(10, n_max // 4)], axis=0)
+        out = np.nonzero(np.any(np.abs(raw - med) > band, axis=1))[0]
+        n = int(out[0]) if len(out) else n_max
+        if n < 10 or ts[n - 1] - ts[0] < REST_MIN_S:
+            return
+        seg = raw[:n]
+        self.rest = (seg.mean(axis=0), seg.std(axis=0, ddof=1), n)
+        if hasattr(self.model, "with_rest"):
+            self.model = self.model.with_rest(*self.rest)
 
     def step(self, t: float, g: np.ndarray, a: np.ndarray | None, *, gap: bool = False,
              index: int | None = None) -> FusedSample:  # fmt: skip
@@ -94,8 +253,10 @@ class Fusion:
         None) and return the fused state after it."""
         k = self._index if index is None else index
         self._index = k + 1
-        model = self.model
         ts, gyro, acc, states, known = self._ts, self._gyro, self._acc, self._states, self._known
+        if ts and not gap and t <= ts[-1]:
+            # a clock that steps back: this sample is refused, the state stands
+            return FusedSample(k, t, states[-1], self.n_applied, ("imu_time_back",))
         warnings: list[str] = []
         if gap:
             warnings.append("imu_gap")
@@ -108,16 +269,33 @@ class Fusion:
                 g, a = np.zeros(3), (np.zeros(2) if a is not None else None)
         else:
             self._last_good = (g, a)
-        # the reading over the interval ending at t: the mean of its two ends (trapezoid)
-        g_end, a_end = g, a
-        if self._prev is not None:
-            g = 0.5 * (g + self._prev[0])
-            a = 0.5 * (a + self._prev[1]) if a is not None else None
-        self._prev = (g_end, a_end)
         ts.append(t)
-        gyro.append(g)
-        acc.append(a)
+        self._raw.append(np.asarray(g, float))
+        self._clip.append(np.zeros(3, bool))
+        clipped = self._clip[-1] = self._clipped(g)
+        # the accelerometer over the interval: the mean of its two ends (trapezoid)
+        acc.append(0.5 * (a + self._prev_a) if a is not None and self._prev_a is not None
+                   else a)  # fmt: skip
+        self._prev_a = a
         states.append(None)
+        j_new = len(ts) - 1
+        gyro.append(self._make_reading(j_new, np.zeros(3)))
+        dirty = j_new
+        if clipped.any():
+            self.n_saturated += 1
+            first = self._reconstruct(j_new, both=False)
+            if first is not None:
+                dirty = min(dirty, first)
+            self._burst_end = None
+        elif len(self._clip) > 1 and self._clip[-2].any():
+            self._burst_end = 0
+        if self._burst_end is not None:
+            self._burst_end += 1
+            if self._burst_end >= 3 or j_new == 0:
+                first = self._reconstruct(max(j_new - 3, 0), both=True)
+                if first is not None:
+                    dirty = min(dirty, first)
+                self._burst_end = None
         # fixes that reached us by now
         new: list[Fix] = []
         nis_new: list[float] = []
@@ -128,8 +306,9 @@ class Fusion:
                 continue
             bisect.insort(known, (f.time_s, id(f), f))
             new.append(f)
-        # replay from the first sample at or after the earliest new fix (else the newest)
-        start = len(ts) - 1
+        # replay from the first sample at or after the earliest new fix (else the newest
+        # sample, or the first one whose reading was rewritten)
+        start = dirty
         if new:
             start = min(start, bisect.bisect_left(ts, min(f.time_s for f in new)))
         s = states[start - 1] if start > 0 else None
@@ -140,12 +319,16 @@ class Fusion:
             init = known[0][2] if known else None
             if init is None:
                 return FusedSample(k, t, None, self.n_applied, (*warnings, "no_fix_yet"))
-            s, t_s = model.init(init), init.time_s
+            if not self._initialised:
+                self._initialised = True
+                self._find_rest(t)
+            s, t_s = self.model.init(init), init.time_s
             if any(init is f for f in new):
                 self.n_applied += 1
             start = bisect.bisect_left(ts, t_s)
             for i in range(start):
                 states[i] = None
+        model = self.model
         for j in range(start, len(ts)):
             # every known fix with its exposure in (t_s, ts[j]], at its own time
             lo = bisect.bisect_right(known, (t_s, math.inf))
@@ -167,10 +350,16 @@ class Fusion:
                 t_s = ts[j]
             states[j] = s
         if self._rejected_streak >= MAX_REJECTED_IN_A_ROW:
-            # the filter has disagreed with several fixes in a row: trust the fixes again
+            # the filter has disagreed with several fixes in a row: trust the fixes again,
+            # keeping what it learned of the sensor where the model can
             latest = max(new, key=lambda f: f.time_s)
-            s, t_s = model.init(latest), latest.time_s
-            j0 = bisect.bisect_left(ts, t_s)
+            j0 = bisect.bisect_left(ts, latest.time_s)
+            prior = states[j0 - 1] if j0 > 0 else None
+            if prior is not None and hasattr(model, "reinit"):
+                s = model.reinit(prior, latest)
+            else:
+                s = model.init(latest)
+            t_s = latest.time_s
             for i in range(j0):
                 states[i] = None
             for j in range(j0, len(ts)):
@@ -184,9 +373,15 @@ class Fusion:
         # forget what is older than the history window
         cut = bisect.bisect_left(ts, t - self.history_s)
         if cut > 0:
-            del ts[:cut], gyro[:cut], acc[:cut], states[:cut]
+            for buf in (ts, self._raw, self._clip, gyro, acc, states):
+                del buf[:cut]
             known[:] = [x for x in known if x[0] >= ts[0]]
-        return FusedSample(k, t, states[-1], self.n_applied, tuple(warnings), tuple(nis_new))
+        st = states[-1]
+        if getattr(st, "saturated", False) or clipped.any():
+            warnings.append("gyro_saturated")
+        if getattr(st, "disputed", False):
+            warnings.append("fix_disputed")
+        return FusedSample(k, t, st, self.n_applied, tuple(warnings), tuple(nis_new))
 
 
 def fuse(
@@ -196,10 +391,11 @@ def fuse(
     *,
     limits: Limits | None = None,
     history_s: float = 10.0,
+    gyro_range_dps: float | None = None,
 ) -> Iterator[FusedSample]:
     """Fused states at every inertial sample of a recording, causally: each fix is
     given to the engine at the first sample at or after its ``available_s``."""
-    engine = Fusion(model, limits=limits, history_s=history_s)
+    engine = Fusion(model, limits=limits, history_s=history_s, gyro_range_dps=gyro_range_dps)
     arrivals = sorted(fixes, key=lambda f: (f.available_s, f.time_s))
     nxt = 0
     gaps = set(imu.gaps)
