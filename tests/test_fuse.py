@@ -238,8 +238,9 @@ def _sim3d(n=6000, dt=0.01, seed=4, amp=1.0, delay=0.0, rest_s=0.0, speed=1.0):
 
 
 def _fixes(t, R, rng, every=50, sigma_deg=0.1, latency=0.6):
-    return [Fix(t[i], t[i] + latency, R[i] @ expmap(np.radians(sigma_deg) * rng.standard_normal(3)),
-                np.eye(3) * np.radians(sigma_deg) ** 2, i) for i in range(0, len(t), every)]  # fmt: skip
+    s = np.radians(sigma_deg)
+    return [Fix(t[i], t[i] + latency, R[i] @ expmap(s * rng.standard_normal(3)),
+                np.eye(3) * s**2, i) for i in range(0, len(t), every)]  # fmt: skip
 
 
 def _err(out, R, start=0):
@@ -250,7 +251,6 @@ def _err(out, R, start=0):
 def test_3d_time_offset_and_rest_bias_are_learned():
     """A gyro 20 ms late and at rest for the first 2 s: the filter finds both."""
     t, R, gyro, rng = _sim3d(delay=0.02, rest_s=2.0, amp=2.0)
-    imu = ImuData(t, gyro, None, np.arange(len(t)) + 2, (), 0.01)
     from visvec.fuse.replay import Fusion
 
     eng = Fusion(AttitudeModel(sample_s=0.01), limits=Limits(2000.0, None))
