@@ -3,15 +3,18 @@
 from __future__ import annotations
 
 import math
+import queue
 from dataclasses import replace
 
 import click
 
 from visvec.cli.common import open_out
+from visvec.errors import ConfigError, InputFileError
 from visvec.evaluate import error_stats, read_truth
 from visvec.fuse.inputs import read_fixes, read_imu
+from visvec.fuse.live import Reader, is_live, run_live
 from visvec.fuse.models import AttitudeModel, PlanarModel
-from visvec.fuse.replay import Limits
+from visvec.fuse.replay import Fusion, Limits
 from visvec.fuse.replay import fuse as run_fusion
 from visvec.fuse.run import fused_rows, rest_biases
 from visvec.output import AttitudeRow, PoseRow
@@ -19,12 +22,24 @@ from visvec.sinks import open_sink
 
 
 @click.command()
-@click.option("--imu", "imu_path", required=True, type=click.Path(dir_okay=False),
-              help="Inertial CSV: time_s and gz_dps,ax_mps2,ay_mps2 (planar) or "
-              "gx_dps,gy_dps,gz_dps (3-D).")  # fmt: skip
-@click.option("--fixes", "fixes_path", required=True, type=click.Path(dir_okay=False),
-              help="visvec output rows (planar pose or attitude); time_s is the exposure, "
-              "latency_ms when it became available.")  # fmt: skip
+@click.option("--imu", "imu_path", required=True, metavar="SOURCE",
+              help="Inertial rows: time_s and gz_dps,ax_mps2,ay_mps2 (planar) or "
+              "gx_dps,gy_dps,gz_dps (3-D). SOURCE: a CSV file, - (stdin), udp://HOST:PORT "
+              "or serial:///dev/DEVICE?baud=N (live).")  # fmt: skip
+@click.option("--fixes", "fixes_path", required=True, metavar="SOURCE",
+              help="visvec output rows (planar pose or attitude), a SOURCE as --imu; time_s "
+              "is the exposure (on the IMU's clock), latency_ms when it became available "
+              "(files; live fixes are available when they arrive).")  # fmt: skip
+@click.option("--follow", is_flag=True,
+              help="Read files as they grow (a recording still being written): live.")  # fmt: skip
+@click.option("--max-samples", type=click.IntRange(min=1), default=None,
+              help="Live: stop after this many fused rows.")  # fmt: skip
+@click.option("--silent-s", type=click.FloatRange(min=0, min_open=True), default=2.0,
+              show_default=True,
+              help="Live: a source silent this long is reported (rows: fixes_silent).")  # fmt: skip
+@click.option("--gyro-range-dps", type=click.FloatRange(min=0, min_open=True), default=None,
+              help="The gyro's range: readings at it are saturated [learned from the "
+              "first flat top].")  # fmt: skip
 @click.option("--out", default=None, type=click.Path(dir_okay=False),
               help="Output file, or udp://HOST:PORT for one datagram per row (default: "
               "stdout).")  # fmt: skip
@@ -60,11 +75,34 @@ from visvec.sinks import open_sink
 @click.option("--truth", default=None, type=click.Path(dir_okay=False),
               help="Truth per inertial sample (frame = sample index): print error "
               "statistics.")  # fmt: skip
-def fuse(imu_path, fixes_path, out, fmt, method, rest_s, max_rate_dps, max_accel_mps2,
-         gyro_noise_dps, accel_noise_mps2, fix_sigma_deg, no_misalignment, history_s,
-         truth):  # fmt: skip
+def fuse(imu_path, fixes_path, follow, max_samples, silent_s, gyro_range_dps, out, fmt, method,
+         rest_s, max_rate_dps, max_accel_mps2, gyro_noise_dps, accel_noise_mps2, fix_sigma_deg,
+         no_misalignment, history_s, truth):  # fmt: skip
     """Fuse an IMU with late camera fixes: one row per inertial sample, causal (the row
-    at time t uses the samples up to t and the fixes available by t)."""
+    at time t uses the samples up to t and the fixes available by t). From files, or
+    live from streams (stdin, UDP, a serial device, a file being written)."""
+    for v, name in (
+        (gyro_noise_dps, "--gyro-noise-dps"),
+        (accel_noise_mps2, "--accel-noise-mps2"),
+        (fix_sigma_deg, "--fix-sigma-deg"),
+        (max_rate_dps, "--max-rate-dps"),
+    ):
+        if v is not None and not math.isfinite(v):
+            raise click.BadParameter(f"{v}: expected a finite number", param_hint=name)
+    if is_live(imu_path, follow) or is_live(fixes_path, follow):
+        if truth or rest_s:
+            raise click.UsageError("--truth and --rest-s apply to files, not live sources")
+
+        def setup(planar: bool):
+            model, limits = _model(planar, None, method, gyro_noise_dps, accel_noise_mps2,
+                                   fix_sigma_deg, no_misalignment, max_rate_dps,
+                                   max_accel_mps2)  # fmt: skip
+            eng = Fusion(model, limits=limits, history_s=history_s,
+                         gyro_range_dps=gyro_range_dps)  # fmt: skip
+            return eng, model
+
+        _run_live(imu_path, fixes_path, follow, max_samples, silent_s, setup, out, fmt)
+        return
     fixes = read_fixes(fixes_path)
     imu = read_imu(imu_path, planar=fixes.planar)
     for k in imu.gaps:
@@ -76,24 +114,11 @@ def fuse(imu_path, fixes_path, out, fmt, method, rest_s, max_rate_dps, max_accel
         )
     if not fixes.fixes:
         click.echo(f"visvec: {fixes_path}: no ok fixes among {fixes.n_rows} rows", err=True)
-    if fixes.planar:
-        if fix_sigma_deg is not None or no_misalignment:
-            raise click.UsageError("--fix-sigma-deg and --no-misalignment apply to 3-D fixes")
-        model = PlanarModel(method=method, accel_noise=accel_noise_mps2 * 1000.0)
-        if gyro_noise_dps is not None:
-            model = replace(model, gyro_noise=math.radians(gyro_noise_dps))
-        limits = Limits(max_rate_dps or 50.0, max_accel_mps2)
-    else:
-        if method != "kalman":
-            raise click.UsageError("--method paper applies to planar fixes")
-        model = AttitudeModel(misalignment_sigma=0.0 if no_misalignment else math.radians(5),
-                              sample_s=imu.period_s)  # fmt: skip
-        if gyro_noise_dps is not None:
-            model = replace(model, gyro_noise=math.radians(gyro_noise_dps))
-        if fix_sigma_deg is not None:
-            model = replace(model, fix_sigma=math.radians(fix_sigma_deg))
-            fixes = replace(fixes, fixes=tuple(replace(f, cov=None) for f in fixes.fixes))
-        limits = Limits(max_rate_dps or 2000.0, None)
+    model, limits = _model(fixes.planar, imu.period_s, method, gyro_noise_dps,
+                           accel_noise_mps2, fix_sigma_deg, no_misalignment, max_rate_dps,
+                           max_accel_mps2)  # fmt: skip
+    if fix_sigma_deg is not None:
+        fixes = replace(fixes, fixes=tuple(replace(f, cov=None) for f in fixes.fixes))
     if rest_s > 0:
         try:
             rb = rest_biases(imu, rest_s, limits)
@@ -117,7 +142,8 @@ def fuse(imu_path, fixes_path, out, fmt, method, rest_s, max_rate_dps, max_accel
                else ""),
             err=True,
         )  # fmt: skip
-    samples = run_fusion(imu, fixes.fixes, model, limits=limits, history_s=history_s)
+    samples = run_fusion(imu, fixes.fixes, model, limits=limits, history_s=history_s,
+                         gyro_range_dps=gyro_range_dps)  # fmt: skip
     nis: list[float] = []
 
     def tap(it):
@@ -158,3 +184,54 @@ def fuse(imu_path, fixes_path, out, fmt, method, rest_s, max_rate_dps, max_accel
         stats = error_stats(rows, read_truth(truth, names), names)
         for line in stats.lines():
             click.echo(line, err=out is None)
+
+
+def _model(planar, period_s, method, gyro_noise_dps, accel_noise_mps2, fix_sigma_deg,
+           no_misalignment, max_rate_dps, max_accel_mps2):  # fmt: skip
+    """The filter and the fault limits the options ask for."""
+    if planar:
+        if fix_sigma_deg is not None or no_misalignment:
+            raise click.UsageError("--fix-sigma-deg and --no-misalignment apply to 3-D fixes")
+        model = PlanarModel(method=method, accel_noise=accel_noise_mps2 * 1000.0)
+        if gyro_noise_dps is not None:
+            model = replace(model, gyro_noise=math.radians(gyro_noise_dps))
+        return model, Limits(max_rate_dps or 50.0, max_accel_mps2)
+    if method != "kalman":
+        raise click.UsageError("--method paper applies to planar fixes")
+    model = AttitudeModel(misalignment_sigma=0.0 if no_misalignment else math.radians(5))
+    if period_s is not None:
+        model = replace(model, sample_s=period_s)
+    if gyro_noise_dps is not None:
+        model = replace(model, gyro_noise=math.radians(gyro_noise_dps))
+    if fix_sigma_deg is not None:
+        model = replace(model, fix_sigma=math.radians(fix_sigma_deg))
+    return model, Limits(max_rate_dps or 2000.0, None)
+
+
+def _run_live(imu_src, fixes_src, follow, max_samples, silent_s, setup, out, fmt):
+    events: queue.Queue = queue.Queue()
+    readers = [Reader("imu", imu_src, events, follow), Reader("fix", fixes_src, events, follow)]
+    if imu_src == "-" and fixes_src == "-":
+        raise click.UsageError("--imu and --fixes cannot both be - (standard input)")
+    for r in readers:
+        try:
+            r.check()
+        except (ConfigError, InputFileError) as exc:
+            raise click.BadParameter(str(exc), param_hint="--imu" if r.name == "imu" else
+                                     "--fixes") from None  # fmt: skip
+    with open_out(out) as stream:
+
+        def open_rows(planar: bool):
+            return open_sink(fmt, stream, PoseRow.columns if planar else AttitudeRow.columns)
+
+        summary = run_live(*readers, setup, open_rows, max_samples=max_samples,
+                           silent_s=silent_s, echo=lambda m: click.echo(m, err=True))  # fmt: skip
+    lat = sorted(summary.latencies_ms)
+    med = f", row latency median {lat[len(lat) // 2]:.2f} ms" if lat else ""
+    bad = "; ".join(f"{n} malformed {k} rows skipped" for k, n in summary.bad.items())
+    click.echo(
+        f"visvec: {summary.samples} inertial samples, {summary.ok} fused; {summary.fixes} ok "
+        f"fixes{med}" + (f"; {bad}" if bad else "")
+        + ("; stopped by Ctrl-C" if summary.interrupted else ""),
+        err=True,
+    )  # fmt: skip

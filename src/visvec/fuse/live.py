@@ -1,0 +1,406 @@
+"""Live inputs of `visvec fuse`: rows from a file (followed as it grows), standard
+input, UDP datagrams or a serial device, fused as they arrive.
+
+A SOURCE is a path, ``-`` (standard input), ``udp://HOST:PORT`` (one row per datagram,
+or several lines in one) or ``serial:///dev/ttyUSB0?baud=115200`` (line-delimited, with
+the optional extra ``pyserial``). Rows are the CSV rows visvec reads from files (the
+header first, as the first line or datagram) or JSON lines (an object per line, keyed
+by the same columns). Each source is read by its own thread into one queue, so that a
+slow or silent input never holds up the other; the fusion thread takes the events in
+arrival order: an inertial sample is fused and its row written at once, a fix is handed
+to the engine when it arrives (its ``time_s`` on the inertial samples' clock).
+
+A malformed line or datagram is counted and skipped; an inertial clock that steps back
+is refused per sample (``imu_time_back``).
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+import os
+import queue
+import socket
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from urllib.parse import parse_qs, urlsplit
+
+import numpy as np
+
+from visvec.errors import ConfigError, InputFileError
+from visvec.fuse.inputs import ATTITUDE_FIX, ATTITUDE_IMU, PLANAR_FIX, PLANAR_IMU, STATUSES, Fix
+from visvec.fuse.inputs import _fix_cov as fix_cov
+from visvec.rotations import quat_to_matrix
+
+SERIAL_RETRY_S = 1.0
+
+
+def is_live(source: str, follow: bool) -> bool:
+    return follow or source == "-" or source.startswith(("udp://", "serial://"))
+
+
+@dataclass
+class Event:
+    kind: str  # "imu" | "fix" | "end" | "bad" | "note"
+    source: str
+    arrival: float  # time.monotonic() when it arrived
+    row: dict | None = None
+    text: str = ""
+
+
+@dataclass
+class LineParser:
+    """Rows from lines: JSON objects, or CSV after its header line."""
+
+    header: list[str] | None = None
+    columns: tuple[str, ...] | None = None  # given by option: no header expected
+
+    def __post_init__(self):
+        if self.columns:
+            self.header = list(self.columns)
+
+    def feed(self, line: str) -> dict | None:
+        line = line.strip()
+        if not line:
+            return None
+        if line.startswith("{"):
+            obj = json.loads(line)  # ValueError: malformed
+            if not isinstance(obj, dict):
+                raise ValueError("not a JSON object")
+            return {str(k): ("" if v is None else str(v)) for k, v in obj.items()}
+        fields = next(csv.reader(io.StringIO(line)))
+        if self.header is None:
+            self.header = [f.strip() for f in fields]
+            return None
+        if len(fields) != len(self.header):
+            raise ValueError(f"{len(fields)} fields, the header has {len(self.header)}")
+        return dict(zip(self.header, fields, strict=True))
+
+
+def _lines_file(path: str, follow: bool, stop: threading.Event) -> Iterator[str]:
+    try:
+        fh = open(path, newline="")  # noqa: SIM115
+    except OSError as exc:
+        raise InputFileError(f"{path}: cannot read ({exc.strerror})") from None
+    with fh:
+        buf = ""
+        while not stop.is_set():
+            chunk = fh.readline()
+            if chunk:
+                buf += chunk
+                if buf.endswith("\n"):
+                    yield buf
+                    buf = ""
+                continue
+            if not follow:
+                if buf:
+                    yield buf
+                return
+            time.sleep(0.005)
+
+
+def _lines_stdin(stop: threading.Event) -> Iterator[str]:
+    for line in sys.stdin:
+        if stop.is_set():
+            return
+        yield line
+
+
+def _lines_udp(url: str, stop: threading.Event, notes) -> Iterator[str]:
+    parts = urlsplit(url)
+    try:
+        port = parts.port
+    except ValueError:
+        port = None
+    if not parts.hostname or port is None:
+        raise ConfigError(f"{url}: expected udp://HOST:PORT")
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        sock.bind((parts.hostname, port))
+    except OSError as exc:
+        sock.close()
+        raise ConfigError(f"{url}: cannot listen there ({exc.strerror})") from None
+    sock.settimeout(0.1)
+    notes.put(f"{url}: listening")
+    with sock:
+        while not stop.is_set():
+            try:
+                data = sock.recv(65536)
+            except TimeoutError:
+                continue
+            text = data.decode("utf-8", errors="replace")
+            yield from text.splitlines()
+
+
+def serial_settings(url: str) -> tuple[str, int]:
+    parts = urlsplit(url)
+    q = parse_qs(parts.query)
+    try:
+        baud = int(q.get("baud", ["115200"])[0])
+    except ValueError:
+        raise ConfigError(f"{url}: baud must be a whole number") from None
+    if not parts.path:
+        raise ConfigError(f"{url}: expected serial:///dev/DEVICE?baud=N")
+    return parts.path, baud
+
+
+def _lines_serial(url: str, stop: threading.Event, notes: queue.Queue) -> Iterator[str]:
+    try:
+        import serial  # pyserial, the optional extra visvec[serial]
+    except ImportError:
+        raise ConfigError(
+            f"{url}: serial devices need pyserial: pip install 'visvec[serial]'"
+        ) from None
+    device, baud = serial_settings(url)
+    while not stop.is_set():
+        try:
+            port = serial.Serial(device, baud, timeout=0.1)
+        except (serial.SerialException, OSError) as exc:
+            notes.put(f"{device}: cannot open ({exc}); retrying every {SERIAL_RETRY_S:g} s")
+            stop.wait(SERIAL_RETRY_S)
+            continue
+        with port:
+            buf = b""
+            try:
+                while not stop.is_set():
+                    buf += port.read(4096)
+                    *lines, buf = buf.split(b"\n")
+                    for raw in lines:
+                        yield raw.decode("utf-8", errors="replace")
+            except (serial.SerialException, OSError) as exc:
+                notes.put(f"{device}: lost ({exc}); retrying every {SERIAL_RETRY_S:g} s")
+        stop.wait(SERIAL_RETRY_S)
+
+
+@dataclass
+class Reader:
+    """One source read by a thread into ``events``."""
+
+    name: str  # "imu" or "fix"
+    source: str
+    events: queue.Queue
+    follow: bool = False
+    columns: tuple[str, ...] | None = None
+    stop: threading.Event = field(default_factory=threading.Event)
+    n_bad: int = 0
+
+    def lines(self) -> Iterator[str]:
+        if self.source == "-":
+            return _lines_stdin(self.stop)
+        if self.source.startswith("udp://"):
+            return _lines_udp(self.source, self.stop, _NoteQueue(self))
+        if self.source.startswith("serial://"):
+            return _lines_serial(self.source, self.stop, _NoteQueue(self))
+        return _lines_file(self.source, self.follow, self.stop)
+
+    def check(self) -> None:
+        """Refuse a source that cannot work before anything starts."""
+        if self.source.startswith("serial://"):
+            serial_settings(self.source)
+        elif self.source != "-" and not self.source.startswith("udp://"):
+            if not os.path.isfile(self.source) and not self.follow:
+                raise InputFileError(f"{self.source}: no such file")
+
+    def run(self) -> None:
+        parser = LineParser(columns=self.columns)
+        try:
+            for line in self.lines():
+                try:
+                    row = parser.feed(line)
+                except (ValueError, csv.Error) as exc:
+                    self.n_bad += 1
+                    self.events.put(Event("bad", self.name, time.monotonic(), text=str(exc)))
+                    continue
+                if row is not None:
+                    self.events.put(Event(self.name, self.name, time.monotonic(), row))
+        except (InputFileError, ConfigError) as exc:
+            self.events.put(Event("note", self.name, time.monotonic(), text=str(exc)))
+        self.events.put(Event("end", self.name, time.monotonic()))
+
+    def start(self) -> threading.Thread:
+        th = threading.Thread(target=self.run, name=f"visvec-{self.name}", daemon=True)
+        th.start()
+        return th
+
+
+class _NoteQueue:
+    def __init__(self, reader: Reader):
+        self.reader = reader
+
+    def put(self, text: str) -> None:
+        self.reader.events.put(Event("note", self.reader.name, time.monotonic(), text=text))
+
+
+def _num(row: dict, key: str) -> float:
+    x = float((row.get(key) or "").strip())  # ValueError: malformed
+    if not math.isfinite(x):
+        raise ValueError(f"{key} is not finite")
+    return x
+
+
+def imu_kind(row: dict) -> bool | None:
+    """planar (True), 3-D (False), or None when the row has neither set of columns."""
+    if all(k in row for k in ATTITUDE_IMU):
+        return False
+    if all(k in row for k in PLANAR_IMU):
+        return True
+    return None
+
+
+def parse_imu(row: dict, planar: bool) -> tuple[float, np.ndarray, np.ndarray | None]:
+    """(time_s, gyro rad/s (3,), accel m/s^2 (2,) or None); ValueError if malformed."""
+    t = _num(row, "time_s")
+    if planar:
+        g = np.array([0.0, 0.0, math.radians(_num(row, "gz_dps"))])
+        return t, g, np.array([_num(row, "ax_mps2"), _num(row, "ay_mps2")])
+    return t, np.radians([_num(row, k) for k in ATTITUDE_IMU]), None
+
+
+def parse_fix(row: dict, planar: bool) -> Fix | None:
+    """An ok row as a fix (available now), None for another status; ValueError if
+    malformed."""
+    status = (row.get("status") or "").strip()
+    if status not in STATUSES:
+        raise ValueError(f"status {status!r}")
+    if status != "ok":
+        return None
+    t = _num(row, "time_s")
+    if planar:
+        x, y, h = (_num(row, k) for k in PLANAR_FIX)
+        value = np.array([x, y, math.radians(h)])
+        sig_cols = ("sigma_x_mm", "sigma_y_mm", "sigma_heading_deg")
+    else:
+        q = np.array([_num(row, k) for k in ATTITUDE_FIX])
+        norm = float(np.linalg.norm(q))
+        if abs(norm - 1.0) > 1e-3:
+            raise ValueError(f"quaternion norm {norm:.6f}")
+        value = quat_to_matrix(q / norm)
+        sig_cols = ("sigma_yaw_deg", "sigma_pitch_deg", "sigma_roll_deg")
+    cov = None
+    if all((row.get(k) or "").strip() for k in sig_cols):
+        s = np.array([_num(row, k) for k in sig_cols])
+        if np.any(s <= 0):
+            raise ValueError("sigma columns must be positive")
+        cov = fix_cov(s, value, planar)
+    return Fix(t, t, value, cov, 0)
+
+
+@dataclass
+class LiveSummary:
+    samples: int = 0
+    ok: int = 0
+    fixes: int = 0
+    bad: dict = field(default_factory=dict)  # source -> malformed lines skipped
+    latencies_ms: list = field(default_factory=list)
+    interrupted: bool = False
+
+
+def run_live(imu: Reader, fixes: Reader, setup, open_rows, *, max_samples: int | None = None,
+             silent_s: float = 2.0, echo=print) -> LiveSummary:  # fmt: skip
+    """Fuse two live sources until the inertial source ends, ``max_samples`` rows, or
+    Ctrl-C. ``setup(planar)`` gives (engine, model) once the first inertial row tells
+    the kind; ``open_rows(planar)`` a sink with ``write(row)``; every row is written
+    (and flushed by the sink) as soon as its sample is fused. A source silent for
+    ``silent_s`` is said once on stderr (and, for the fixes, on every row:
+    ``fixes_silent``), and again when it is back."""
+    from dataclasses import replace
+
+    from visvec.fuse.run import fused_rows
+
+    events: queue.Queue = imu.events
+    summary = LiveSummary()
+    engine = model = sink = planar = None
+    waiting: list[dict] = []  # fixes that came before the first inertial row
+    last = {"imu": time.monotonic(), "fix": time.monotonic()}
+    silent = {"imu": False, "fix": False}
+    for r in (imu, fixes):
+        r.start()
+
+    def bad(source: str, text: str) -> None:
+        summary.bad[source] = summary.bad.get(source, 0) + 1
+        if summary.bad[source] <= 3:
+            echo(f"visvec: {source_of[source]}: malformed row skipped ({text})")
+
+    source_of = {"imu": imu.source, "fix": fixes.source}
+
+    def add_fix(row: dict) -> None:
+        try:
+            f = parse_fix(row, planar)
+        except ValueError as exc:
+            bad("fix", str(exc))
+            return
+        if f is not None:
+            summary.fixes += 1
+            engine.add_fix(f)
+
+    try:
+        while True:
+            try:
+                ev = events.get(timeout=0.1)
+            except queue.Empty:
+                ev = None
+            now = time.monotonic()
+            for src in ("imu", "fix"):
+                if not silent[src] and now - last[src] > silent_s:
+                    silent[src] = True
+                    echo(f"visvec: {source_of[src]}: nothing for {silent_s:g} s")
+            if ev is None:
+                continue
+            if ev.kind == "end":
+                if ev.source == "imu":
+                    break
+                continue
+            if ev.kind == "note":
+                echo(f"visvec: {ev.text}")
+                continue
+            if ev.kind == "bad":
+                bad(ev.source, ev.text)
+                continue
+            last[ev.kind] = ev.arrival
+            if silent[ev.kind]:
+                silent[ev.kind] = False
+                echo(f"visvec: {source_of[ev.kind]}: back")
+            if ev.kind == "fix":
+                if engine is None:
+                    waiting.append(ev.row)
+                else:
+                    add_fix(ev.row)
+                continue
+            if planar is None:
+                planar = imu_kind(ev.row)
+                if planar is None:
+                    bad("imu", "no gyro columns")
+                    continue
+                engine, model = setup(planar)
+                sink = open_rows(planar)
+                for row in waiting:
+                    add_fix(row)
+                waiting.clear()
+            try:
+                t, g, a = parse_imu(ev.row, planar)
+            except ValueError as exc:
+                bad("imu", str(exc))
+                continue
+            fs = engine.step(t, g, a)
+            if silent["fix"]:
+                fs = replace(fs, warnings=(*fs.warnings, "fixes_silent"))
+            row = next(fused_rows(iter([fs]), model))
+            latency = (time.monotonic() - ev.arrival) * 1000.0
+            row = replace(row, latency_ms=latency)
+            sink.write(row.as_dict())
+            summary.samples += 1
+            summary.ok += int(row.ok)
+            summary.latencies_ms.append(latency)
+            if max_samples is not None and summary.samples >= max_samples:
+                break
+    except KeyboardInterrupt:
+        summary.interrupted = True
+    finally:
+        imu.stop.set()
+        fixes.stop.set()
+    return summary
