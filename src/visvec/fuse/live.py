@@ -17,6 +17,7 @@ is refused per sample (``imu_time_back``).
 from __future__ import annotations
 
 import csv
+import heapq
 import io
 import json
 import math
@@ -262,14 +263,17 @@ def parse_imu(row: dict, planar: bool) -> tuple[float, np.ndarray, np.ndarray | 
 
 
 def parse_fix(row: dict, planar: bool) -> Fix | None:
-    """An ok row as a fix (available now), None for another status; ValueError if
-    malformed."""
+    """An ok row as a fix (available at its exposure plus ``latency_ms``, or when it
+    arrives if that is later), None for another status; ValueError if malformed."""
     status = (row.get("status") or "").strip()
     if status not in STATUSES:
         raise ValueError(f"status {status!r}")
     if status != "ok":
         return None
     t = _num(row, "time_s")
+    lat = _num(row, "latency_ms") if (row.get("latency_ms") or "").strip() else 0.0
+    if lat < 0:
+        raise ValueError(f"latency_ms = {lat}: must be >= 0")
     if planar:
         x, y, h = (_num(row, k) for k in PLANAR_FIX)
         value = np.array([x, y, math.radians(h)])
@@ -287,7 +291,7 @@ def parse_fix(row: dict, planar: bool) -> Fix | None:
         if np.any(s <= 0):
             raise ValueError("sigma columns must be positive")
         cov = fix_cov(s, value, planar)
-    return Fix(t, t, value, cov, 0)
+    return Fix(t, t + lat / 1000.0, value, cov, 0)
 
 
 @dataclass
@@ -316,6 +320,7 @@ def run_live(imu: Reader, fixes: Reader, setup, open_rows, *, max_samples: int |
     summary = LiveSummary()
     engine = model = sink = planar = None
     waiting: list[dict] = []  # fixes that came before the first inertial row
+    held: list = []  # fixes that arrived before the IMU's clock reached their latency
     last = {"imu": time.monotonic(), "fix": time.monotonic()}
     silent = {"imu": False, "fix": False}
     for r in (imu, fixes):
@@ -336,7 +341,7 @@ def run_live(imu: Reader, fixes: Reader, setup, open_rows, *, max_samples: int |
             return
         if f is not None:
             summary.fixes += 1
-            engine.add_fix(f)
+            heapq.heappush(held, (f.available_s, id(f), f))
 
     try:
         while True:
@@ -386,6 +391,8 @@ def run_live(imu: Reader, fixes: Reader, setup, open_rows, *, max_samples: int |
             except ValueError as exc:
                 bad("imu", str(exc))
                 continue
+            while held and held[0][0] <= t:
+                engine.add_fix(heapq.heappop(held)[2])
             fs = engine.step(t, g, a)
             if silent["fix"]:
                 fs = replace(fs, warnings=(*fs.warnings, "fixes_silent"))
