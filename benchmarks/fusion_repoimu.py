@@ -234,7 +234,7 @@ def main() -> None:
     names = args.trials.split(",")
     res = {}
     for name in names:
-        rng = np.random.default_rng([args.seed, names.index(name)])
+        rng = np.random.default_rng([args.seed, (*TRIALS, FAULT_TRIAL).index(name)])
         res[name] = trial(name, rng)
         f, r = res[name]["fused"], res[name]["reanchor"]
         print(

@@ -29,12 +29,15 @@ estimated from the data. A zero prior sigma keeps a parameter fixed.
 
 The process noise is learned from the fixes' innovations (covariance matching, Mehra,
 "Approaches to adaptive filtering", IEEE TAC 17(5), 1972, Sec. IV; Myers & Tapley,
-IEEE TAC 21(4), 1976): the attitude's process noise per second is q_a + q_w |w|^2 (a
-white rate noise and a rate-proportional one, for what scale, misalignment and timing
-leave), and after each fix y = |r|^2 - tr(R_fix) - tr(P^-) + tr(Q used since the last
-fix) is an unbiased sample of tr(Q true) over the interval; (q_a, q_w) follow by least
-squares over the recent fixes (forgetting factor, each weighted by 1/var(|r|^2)), with
-the rest segment's gyro noise, or the default, as a prior worth a few fixes.
+IEEE TAC 21(4), 1976). The attitude's process noise has two parts: a white rate noise
+(variance q_a per second) and a rate-proportional error held through each interval
+between fixes (what scale, misalignment and timing leave: an angle error of variance
+q_w (integral of |w| dt)^2 since the last fix, so that it grows with the turn, not its
+square root). After each fix, y = |r|^2 - tr(R_fix) - tr(P^-) + tr(Q used since the
+last fix) is an unbiased sample of tr(Q true) over the interval, whose regressors are
+3 T and 3 A^2 (T the interval, A its turn); (q_a, q_w) follow by least squares over the
+recent fixes (forgetting factor, each weighted by 1/var(|r|^2)), with the rest
+segment's gyro noise, or the default, as a prior worth a few fixes.
 """
 
 from __future__ import annotations
@@ -193,8 +196,8 @@ class AttitudeState:
     tau: float  # gyro time offset, s (the gyro's reading at t + tau belongs to t)
     P: np.ndarray  # (13, 13): dtheta (body), db, dphi (body), dk, dtau
     noise: NoiseFit
-    # since the last fix: [seconds, integral of |w|^2 dt, trace of the attitude noise
-    # added]; whether a saturated reading was integrated; whether the last fix was refused
+    # since the last fix: [seconds, integral of |w| dt (rad), trace of the attitude
+    # noise added]; whether a saturated reading was integrated; whether the last fix was refused
     acc: tuple[float, float, float] = (0.0, 0.0, 0.0)
     saturated: bool = False
     disputed: bool = False
@@ -211,7 +214,7 @@ class AttitudeModel:
     and a process noise learned from the innovations."""
 
     gyro_noise: float = math.radians(0.3)  # rad/s per sample, the prior's white noise
-    rate_noise: float = 0.03  # relative rate error (the prior's q_w = rate_noise^2 s)
+    rate_noise: float = 0.03  # relative rate error, held between fixes (q_w = its square)
     sample_s: float = 0.01  # the IMU's period (the white noise's correlation time)
     learn_noise: bool = True
     gyro_bias_walk: float = math.radians(0.01)  # rad/s/sqrt(s)
@@ -277,7 +280,12 @@ class AttitudeModel:
         F[0:3, 9:12] = s.Rm * (g + s.tau * gdot - s.b) * dt
         F[0:3, 12] = RmS @ gdot * dt
         qa, qw = s.noise.theta() if self.learn_noise else self.prior_theta()
-        q = (qa + qw * float(w @ w)) * dt
+        # white: qa dt; rate-proportional, held since the last fix (an error of the
+        # rate's size kappa |w|, the same through the interval): its variance
+        # qw (integral of |w| dt)^2 grows by qw ((A + |w| dt)^2 - A^2)
+        A = s.acc[1]
+        A1 = A + math.sqrt(float(w @ w)) * dt
+        q = qa * dt + qw * (A1 * A1 - A * A)
         Q = np.zeros((13, 13))
         Q[0:3, 0:3] = np.eye(3) * q
         sat = bool(np.any(gsat > 0))
@@ -288,7 +296,7 @@ class AttitudeModel:
             Q[0:3, 0:3] += Qs
         Q[3:6, 3:6] = np.eye(3) * self.gyro_bias_walk**2 * dt
         P = F @ s.P @ F.T + Q
-        acc = (s.acc[0] + dt, s.acc[1] + float(w @ w) * dt, s.acc[2] + float(np.trace(Q[0:3, 0:3])))
+        acc = (s.acc[0] + dt, A1, s.acc[2] + float(np.trace(Q[0:3, 0:3])))
         return AttitudeState(Rn, s.b, s.Rm, s.k, s.tau, P, s.noise, acc, s.saturated or sat,
                              s.disputed)  # fmt: skip
 
@@ -325,7 +333,7 @@ class AttitudeModel:
         nf = s.noise
         if not self.learn_noise or s.saturated or s.acc[0] <= 0.0:
             return nf
-        x = 3.0 * np.array([s.acc[0], s.acc[1]])
+        x = 3.0 * np.array([s.acc[0], s.acc[1] ** 2])
         y = float(r @ r) - float(np.trace(R)) - float(np.trace(s.P[0:3, 0:3])) + s.acc[2]
         # a single wild fix (a glitch) counts at most as much as a fix at the gate
         y = min(y, NIS_LIMIT / 3.0 * float(np.trace(S)))

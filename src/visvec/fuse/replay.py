@@ -56,6 +56,7 @@ SAT_MIN_DPS = 100.0  # a flat top below this is not a gyro's range
 SAT_BAND = 0.005  # readings within this share of the range are at it
 SAT_RUN = 3  # a flat top: this many samples in the band ...
 SAT_BEYOND = 0.1  # ... where the samples before point this far past it
+SAT_OTHER = 0.03  # an axis or side not yet seen clipped: another's level, less this
 SAT_SIGMA = 0.25  # 1-sigma of a saturated reading's reconstruction, in ranges (live)
 SAT_SIGMA_BOTH = 0.1  # ... once the samples after the flat top are in
 REST_MIN_S, REST_MAX_S = 0.3, 5.0  # a rest segment at the start: its length
@@ -124,7 +125,9 @@ class Fusion:
         self._last_good = None  # the last good reading
         self._prev_a = None
         self._index = 0
-        self._range = math.radians(gyro_range_dps) if gyro_range_dps else None
+        # clip levels (rad/s) per axis, positive and negative side; nan: not known
+        self._ranges = np.full((3, 2), math.radians(gyro_range_dps) if gyro_range_dps
+                               else math.nan)  # fmt: skip
         self._burst_end: int | None = None  # samples since a flat top ended
         self._initialised = False
         self.rest = None  # (mean rad/s (3,), std rad/s (3,), n) once found
@@ -143,39 +146,54 @@ class Fusion:
         self._last_good = self._prev_a = None
         self._burst_end = None
 
+    def _level(self, ax: int, sign: float) -> float | None:
+        """The clip level of an axis on one side: its own once learned; before that, a
+        level learned on another axis or side less SAT_OTHER (a calibrated gyro's
+        levels differ by its offsets and scale factors); None while none is known."""
+        own = self._ranges[ax, 0 if sign >= 0 else 1]
+        if np.isfinite(own):
+            return float(own)
+        if np.any(np.isfinite(self._ranges)):
+            return float(np.nanmin(self._ranges)) * (1 - SAT_OTHER)
+        return None
+
     def _clipped(self, g: np.ndarray) -> np.ndarray:
         """Which axes of a raw reading (already in the buffer) sit at the gyro's range.
-        Unless given, the range is learned from the first flat top: SAT_RUN samples on
-        one axis within SAT_BAND of each other at SAT_MIN_DPS or more, where the line
-        through the SAT_RUN samples before them points at least SAT_BEYOND past them
-        at the run's middle (a smooth peak levels off before its top; a clipped signal
-        hits its flat top at full slope). A calibrated gyro's
+        Unless given, each axis's level on each side is learned from its first flat
+        top: SAT_RUN samples within SAT_BAND of each other at SAT_MIN_DPS or more,
+        where the line through the SAT_RUN samples before them points at least
+        SAT_BEYOND past them at the run's middle (a smooth peak levels off before its
+        top; a clipped signal hits its flat top at full slope). A calibrated gyro's
         clipped readings scatter a little with the other axes, hence the band."""
         g = np.asarray(g, float)
-        if self._range is None:
-            n = len(self._raw)
-            need = 2 * SAT_RUN
-            if n >= need:
-                for ax in range(3):
-                    run = np.array([r[ax] for r in self._raw[n - SAT_RUN :]])
-                    level = float(np.abs(run).max())
-                    if level < math.radians(SAT_MIN_DPS) or not (
-                        np.all(np.sign(run) == np.sign(run[-1]))
-                        and np.all(np.abs(run) >= level * (1 - SAT_BAND))
-                    ):
-                        continue
-                    before = np.array([r[ax] for r in self._raw[n - need : n - SAT_RUN]])
-                    tb = np.array(self._ts[n - need : n - SAT_RUN])
-                    c = np.polyfit(tb - tb[-1], before, 1)
-                    pred = abs(float(np.polyval(c, self._ts[n - 2] - tb[-1])))
-                    if pred >= level * (1 + SAT_BEYOND):
-                        self._range = level
-                        for j in range(n - SAT_RUN, n - 1):
-                            self._clip[j] = np.abs(self._raw[j]) >= level * (1 - SAT_BAND)
-                        break
-        if self._range is None:
-            return np.zeros(3, bool)
-        return np.abs(g) >= self._range * (1 - SAT_BAND)
+        n = len(self._raw)
+        need = 2 * SAT_RUN
+        if n >= need and not np.all(np.isfinite(self._ranges)):
+            for ax in range(3):
+                run = np.array([r[ax] for r in self._raw[n - SAT_RUN :]])
+                level = float(np.abs(run).max())
+                side = 0 if run[-1] >= 0 else 1
+                if (
+                    np.isfinite(self._ranges[ax, side])
+                    or level < math.radians(SAT_MIN_DPS)
+                    or not np.all(np.sign(run) == np.sign(run[-1]))
+                    or not np.all(np.abs(run) >= level * (1 - SAT_BAND))
+                ):
+                    continue
+                before = np.array([r[ax] for r in self._raw[n - need : n - SAT_RUN]])
+                tb = np.array(self._ts[n - need : n - SAT_RUN])
+                c = np.polyfit(tb - tb[-1], before, 1)
+                pred = abs(float(np.polyval(c, self._ts[n - 2] - tb[-1])))
+                if pred >= level * (1 + SAT_BEYOND):
+                    self._ranges[ax, side] = level
+                    for j in range(n - SAT_RUN, n - 1):
+                        self._clip[j] = self._clip[j].copy()
+                        self._clip[j][ax] = abs(self._raw[j][ax]) >= level * (1 - SAT_BAND)
+        out = np.zeros(3, bool)
+        for ax in range(3):
+            lvl = self._level(ax, g[ax])
+            out[ax] = lvl is not None and abs(g[ax]) >= lvl * (1 - SAT_BAND)
+        return out
 
     def _make_reading(self, j: int, sat_sigma: np.ndarray) -> np.ndarray:
         """The reading over the interval ending at sample j: the mean of its two ends
@@ -194,6 +212,8 @@ class Fusion:
         ts = np.array(self._ts)
         raw = np.array(self._raw)
         first = None
+        excess = np.zeros(3)
+        lvl = np.zeros(3)
         for ax in range(3):
             c = clip[:, ax]
             if not c[last]:
@@ -209,7 +229,11 @@ class Fusion:
             if len(known) == 0:
                 continue
             at = np.arange(beg, end + 1)
-            vals = declip(ts, raw[:, ax], known, ts[at], self._range, np.sign(raw[end, ax]))
+            sign = float(np.sign(raw[end, ax]))
+            lvl[ax] = self._level(ax, sign)
+            vals = declip(ts, raw[:, ax], known, ts[at], lvl[ax], sign)
+            # the farther the rebuilt peak reaches past the range, the less it is known
+            excess[ax] = float(np.abs(vals).max()) - lvl[ax]
             for i, v in zip(at, vals, strict=True):
                 self._raw[i] = self._raw[i].copy()
                 self._raw[i][ax] = v
@@ -219,7 +243,8 @@ class Fusion:
         # a reconstruction's error is much the same all through its flat top: the m-th
         # interval of a flat top adds (2m - 1) sigma^2 dt^2, so that m of them add
         # (m sigma dt)^2, as one error held for the whole flat top would
-        sig = (SAT_SIGMA_BOTH if both else SAT_SIGMA) * self._range
+        sig = np.maximum((SAT_SIGMA_BOTH if both else SAT_SIGMA) * lvl,
+                         (0.5 if both else 1.0) * excess)  # fmt: skip
         run = np.zeros(3)
         for j in range(first, min(len(self._ts), last + 2)):
             hit = self._clip[j] | (self._clip[j - 1] if j > 0 else False)
