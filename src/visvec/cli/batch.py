@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import click
 
+from visvec.cli.camera_fusion import check_fusable, run_fused_batch
 from visvec.cli.common import load, note_uncalibrated, output_options, rig_options, run_frames
 from visvec.evaluate import error_stats, read_truth
 from visvec.pipeline import make_pipeline
@@ -19,10 +20,36 @@ from visvec.sources import open_source
     default=None,
     help="Truth CSV (from `visvec simulate`): print error statistics.",
 )
+@click.option(
+    "--imu",
+    "imu_path",
+    type=click.Path(dir_okay=False),
+    default=None,
+    help="An IMU file on the frames' clock: the rows are the fused ones at its rate, the "
+    "frames' ok rows the fixes (available at their exposure plus their latency).",
+)
+@click.option(
+    "--camera-out",
+    default=None,
+    type=click.Path(dir_okay=False),
+    help="With --imu: the camera's own rows to this file.",
+)
 @output_options
-def batch(path, rig_path, calibration, truth, out, fmt, method, overlay, max_frames):
+def batch(path, rig_path, calibration, truth, imu_path, camera_out, out, fmt, method, overlay,
+          max_frames):  # fmt: skip
     """Process a folder of images (natural sort order) or a video file."""
     rig = load(rig_path, calibration)
+    if imu_path is not None:
+        check_fusable(rig, overlay, None)
+        if truth:
+            raise click.UsageError("--truth compares frames; give `visvec fuse --truth` the "
+                                   "fused rows' truth instead")  # fmt: skip
+        src = open_source(path, fps=rig.fps, max_frames=max_frames, retry_s=0.0)
+        note_uncalibrated(rig)
+        run_fused_batch(rig, src, imu_path, method, out, fmt, camera_out)
+        return
+    if camera_out:
+        raise click.UsageError("--camera-out goes with --imu")
     run_batch(rig, path, truth, out, fmt, method, overlay, max_frames)
 
 

@@ -94,7 +94,7 @@ def fuse(imu_path, fixes_path, follow, max_samples, silent_s, gyro_range_dps, ou
             raise click.UsageError("--truth and --rest-s apply to files, not live sources")
 
         def setup(planar: bool):
-            model, limits = _model(planar, None, method, gyro_noise_dps, accel_noise_mps2,
+            model, limits = fusion_model(planar, None, method, gyro_noise_dps, accel_noise_mps2,
                                    fix_sigma_deg, no_misalignment, max_rate_dps,
                                    max_accel_mps2)  # fmt: skip
             eng = Fusion(model, limits=limits, history_s=history_s,
@@ -114,7 +114,7 @@ def fuse(imu_path, fixes_path, follow, max_samples, silent_s, gyro_range_dps, ou
         )
     if not fixes.fixes:
         click.echo(f"visvec: {fixes_path}: no ok fixes among {fixes.n_rows} rows", err=True)
-    model, limits = _model(fixes.planar, imu.period_s, method, gyro_noise_dps,
+    model, limits = fusion_model(fixes.planar, imu.period_s, method, gyro_noise_dps,
                            accel_noise_mps2, fix_sigma_deg, no_misalignment, max_rate_dps,
                            max_accel_mps2)  # fmt: skip
     if fix_sigma_deg is not None:
@@ -186,7 +186,7 @@ def fuse(imu_path, fixes_path, follow, max_samples, silent_s, gyro_range_dps, ou
             click.echo(line, err=out is None)
 
 
-def _model(planar, period_s, method, gyro_noise_dps, accel_noise_mps2, fix_sigma_deg,
+def fusion_model(planar, period_s, method, gyro_noise_dps, accel_noise_mps2, fix_sigma_deg,
            no_misalignment, max_rate_dps, max_accel_mps2):  # fmt: skip
     """The filter and the fault limits the options ask for."""
     if planar:
@@ -208,6 +208,18 @@ def _model(planar, period_s, method, gyro_noise_dps, accel_noise_mps2, fix_sigma
     return model, Limits(max_rate_dps or 2000.0, None)
 
 
+def live_summary(summary) -> str:
+    """The end-of-run line of a live fusion."""
+    lat = sorted(summary.latencies_ms)
+    med = f", row latency median {lat[len(lat) // 2]:.2f} ms" if lat else ""
+    bad = "; ".join(f"{n} malformed {k} rows skipped" for k, n in summary.bad.items())
+    return (
+        f"visvec: {summary.samples} inertial samples, {summary.ok} fused; {summary.fixes} ok "
+        f"fixes{med}" + (f"; {bad}" if bad else "")
+        + ("; stopped by Ctrl-C" if summary.interrupted else "")
+    )  # fmt: skip
+
+
 def _run_live(imu_src, fixes_src, follow, max_samples, silent_s, setup, out, fmt):
     events: queue.Queue = queue.Queue()
     readers = [Reader("imu", imu_src, events, follow), Reader("fix", fixes_src, events, follow)]
@@ -226,12 +238,4 @@ def _run_live(imu_src, fixes_src, follow, max_samples, silent_s, setup, out, fmt
 
         summary = run_live(*readers, setup, open_rows, max_samples=max_samples,
                            silent_s=silent_s, echo=lambda m: click.echo(m, err=True))  # fmt: skip
-    lat = sorted(summary.latencies_ms)
-    med = f", row latency median {lat[len(lat) // 2]:.2f} ms" if lat else ""
-    bad = "; ".join(f"{n} malformed {k} rows skipped" for k, n in summary.bad.items())
-    click.echo(
-        f"visvec: {summary.samples} inertial samples, {summary.ok} fused; {summary.fixes} ok "
-        f"fixes{med}" + (f"; {bad}" if bad else "")
-        + ("; stopped by Ctrl-C" if summary.interrupted else ""),
-        err=True,
-    )  # fmt: skip
+    click.echo(live_summary(summary), err=True)

@@ -6,6 +6,7 @@ import sys
 
 import click
 
+from visvec.cli.camera_fusion import check_fusable, run_fused_camera
 from visvec.cli.common import (
     check_new_recording,
     load,
@@ -14,6 +15,7 @@ from visvec.cli.common import (
     rig_options,
     run_frames,
 )
+from visvec.fuse.camera import paced
 from visvec.sources import open_source
 
 STATUS_EVERY_S = 2.0
@@ -41,13 +43,38 @@ STATUS_EVERY_S = 2.0
     help="Also keep every frame losslessly in this folder (PNG, with times.csv), for "
     "`visvec batch` or `calibrate zero-tilt` later.",
 )
+@click.option(
+    "--imu",
+    "imu_src",
+    default=None,
+    metavar="SOURCE",
+    help="Fuse an IMU stream with the camera's fixes in this process: the rows are the "
+    "fused ones at the IMU's rate. SOURCE as for `visvec fuse --imu` (udp://HOST:PORT, "
+    "-, serial:///dev/DEVICE?baud=N, a file).",
+)
+@click.option(
+    "--camera-out",
+    default=None,
+    type=click.Path(dir_okay=False),
+    help="With --imu: the camera's own rows to this file (or udp://HOST:PORT).",
+)
+@click.option(
+    "--realtime",
+    is_flag=True,
+    help="Deliver a recording's frames at their own pace, as a camera would (a replay).",
+)
 @output_options
 def track(
-    rig_path, calibration, camera, retry_s, save_frames, out, fmt, method, overlay, max_frames
-):
+    rig_path, calibration, camera, retry_s, save_frames, imu_src, camera_out, realtime, out,
+    fmt, method, overlay, max_frames
+):  # fmt: skip
     """Stream one attitude row per frame, flushed row by row, until the source ends,
-    --max-frames, or Ctrl-C."""
+    --max-frames, or Ctrl-C. With --imu, stream fused rows at the IMU's rate."""
     rig = load(rig_path, calibration)
+    if imu_src is not None:
+        check_fusable(rig, overlay, save_frames)
+    elif camera_out:
+        raise click.UsageError("--camera-out goes with --imu")
     if save_frames:
         check_new_recording(save_frames)  # before the camera is opened
     spec = camera if camera is not None else rig.device
@@ -62,6 +89,11 @@ def track(
     )
     # said once the camera is open, before the first row: a live run may go on for hours
     note_uncalibrated(rig)
+    if realtime:
+        src = paced(src)
+    if imu_src is not None:
+        run_fused_camera(rig, src, imu_src, method, out, fmt, camera_out)
+        return
     run_frames(
         rig,
         src,

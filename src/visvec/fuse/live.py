@@ -39,6 +39,7 @@ from visvec.fuse.inputs import _fix_cov as fix_cov
 from visvec.rotations import quat_to_matrix
 
 SERIAL_RETRY_S = 1.0
+QUIET_END_S = 0.5  # the camera has ended and the IMU said nothing for this long: stop
 
 
 def is_live(source: str, follow: bool) -> bool:
@@ -302,16 +303,28 @@ class LiveSummary:
     bad: dict = field(default_factory=dict)  # source -> malformed lines skipped
     latencies_ms: list = field(default_factory=list)
     interrupted: bool = False
+    refused: bool = False
 
 
-def run_live(imu: Reader, fixes: Reader, setup, open_rows, *, max_samples: int | None = None,
-             silent_s: float = 2.0, echo=print) -> LiveSummary:  # fmt: skip
+def _parses(row: dict, planar: bool) -> bool:
+    try:
+        parse_imu(row, planar)
+    except ValueError:
+        return False
+    return True
+
+
+def run_live(imu: Reader, fixes, setup, open_rows, *, max_samples: int | None = None,
+             silent_s: float = 2.0, echo=print, kind: bool | None = None,
+             end_with_fixes: bool = False) -> LiveSummary:  # fmt: skip
     """Fuse two live sources until the inertial source ends, ``max_samples`` rows, or
     Ctrl-C. ``setup(planar)`` gives (engine, model) once the first inertial row tells
     the kind; ``open_rows(planar)`` a sink with ``write(row)``; every row is written
     (and flushed by the sink) as soon as its sample is fused. A source silent for
     ``silent_s`` is said once on stderr (and, for the fixes, on every row:
-    ``fixes_silent``), and again when it is back."""
+    ``fixes_silent``), and again when it is back. ``end_with_fixes`` (a camera in this
+    process): the run also ends once the fixes' source has ended and the IMU has
+    been quiet for QUIET_END_S."""
     from dataclasses import replace
 
     from visvec.fuse.run import fused_rows
@@ -321,6 +334,8 @@ def run_live(imu: Reader, fixes: Reader, setup, open_rows, *, max_samples: int |
     engine = model = sink = planar = None
     waiting: list[dict] = []  # fixes that came before the first inertial row
     held: list = []  # fixes that arrived before the IMU's clock reached their latency
+    clock = [math.inf]  # host time (time.monotonic) minus IMU time
+    fixes_ended = False
     last = {"imu": time.monotonic(), "fix": time.monotonic()}
     silent = {"imu": False, "fix": False}
     for r in (imu, fixes):
@@ -331,14 +346,19 @@ def run_live(imu: Reader, fixes: Reader, setup, open_rows, *, max_samples: int |
         if summary.bad[source] <= 3:
             echo(f"visvec: {source_of[source]}: malformed row skipped ({text})")
 
-    source_of = {"imu": imu.source, "fix": fixes.source}
+    source_of = {"imu": imu.source, "fix": getattr(fixes, "source", "camera")}
 
-    def add_fix(row: dict) -> None:
+    def add_fix(row: dict, arrival: float) -> None:
         try:
             f = parse_fix(row, planar)
         except ValueError as exc:
             bad("fix", str(exc))
             return
+        if f is not None and "_host_exposure" in row:
+            # a fix of this process's camera: its exposure and arrival, on the host's
+            # clock, taken onto the IMU's by the learned offset
+            f = replace(f, time_s=float(row["_host_exposure"]) - clock[0],
+                        available_s=arrival - clock[0])  # fmt: skip
         if f is not None:
             summary.fixes += 1
             heapq.heappush(held, (f.available_s, id(f), f))
@@ -355,10 +375,13 @@ def run_live(imu: Reader, fixes: Reader, setup, open_rows, *, max_samples: int |
                     silent[src] = True
                     echo(f"visvec: {source_of[src]}: nothing for {silent_s:g} s")
             if ev is None:
+                if fixes_ended and now - last["imu"] > QUIET_END_S:
+                    break
                 continue
             if ev.kind == "end":
                 if ev.source == "imu":
                     break
+                fixes_ended = end_with_fixes
                 continue
             if ev.kind == "note":
                 echo(f"visvec: {ev.text}")
@@ -372,25 +395,37 @@ def run_live(imu: Reader, fixes: Reader, setup, open_rows, *, max_samples: int |
                 echo(f"visvec: {source_of[ev.kind]}: back")
             if ev.kind == "fix":
                 if engine is None:
-                    waiting.append(ev.row)
+                    waiting.append((ev.row, ev.arrival))
                 else:
-                    add_fix(ev.row)
+                    add_fix(ev.row, ev.arrival)
                 continue
             if planar is None:
                 planar = imu_kind(ev.row)
                 if planar is None:
                     bad("imu", "no gyro columns")
                     continue
+                if kind is not None and planar != kind:
+                    echo(f"visvec: {imu.source}: a {'planar' if planar else '3-D'} IMU's rows; "
+                         f"this rig's fixes need a {'planar' if kind else '3-D'} IMU "
+                         f"({','.join(PLANAR_IMU if kind else ATTITUDE_IMU)})")  # fmt: skip
+                    summary.refused = True
+                    break
                 engine, model = setup(planar)
                 sink = open_rows(planar)
-                for row in waiting:
-                    add_fix(row)
+                t_first = parse_imu(ev.row, planar)[0] if _parses(ev.row, planar) else None
+                if t_first is not None:
+                    clock[0] = ev.arrival - t_first
+                for row, arrival in waiting:
+                    add_fix(row, arrival)
                 waiting.clear()
             try:
                 t, g, a = parse_imu(ev.row, planar)
             except ValueError as exc:
                 bad("imu", str(exc))
                 continue
+            # the IMU's clock against the host's: the lower envelope of arrival - time
+            # (the sample that took the least time to arrive sets it)
+            clock[0] = min(clock[0], ev.arrival - t)
             while held and held[0][0] <= t:
                 engine.add_fix(heapq.heappop(held)[2])
             fs = engine.step(t, g, a)

@@ -1,0 +1,100 @@
+"""The camera and an IMU in one process (`track --imu`, `batch --imu`)."""
+
+from __future__ import annotations
+
+import queue
+from contextlib import ExitStack
+
+import click
+
+from visvec.cli.common import open_out
+from visvec.cli.fuse import fusion_model, live_summary
+from visvec.errors import ConfigError, InputFileError
+from visvec.fuse.camera import CameraFixes
+from visvec.fuse.inputs import Fix, read_imu
+from visvec.fuse.live import Reader, parse_fix, run_live
+from visvec.fuse.replay import Fusion
+from visvec.fuse.replay import fuse as run_fusion
+from visvec.fuse.run import fused_rows
+from visvec.output import AttitudeRow, PoseRow
+from visvec.pipeline import make_pipeline
+from visvec.sinks import open_sink
+
+
+def check_fusable(rig, overlay, save_frames) -> None:
+    """Refuse, before anything starts, what cannot be fused."""
+    if rig.kind == "starfield":
+        raise click.UsageError("--imu: a starfield rig gives rates, not fixes to fuse")
+    if overlay or save_frames:
+        raise click.UsageError("--overlay and --save-frames do not go with --imu yet")
+
+
+def _planar(rig) -> bool:
+    return rig.kind == "lamps"
+
+
+def run_fused_camera(rig, frames, imu_src, method, out, fmt, camera_out) -> None:
+    """Camera in a thread, IMU read in another, fused rows written by this one."""
+    planar = _planar(rig)
+    events: queue.Queue = queue.Queue()
+    imu = Reader("imu", imu_src, events)
+    try:
+        imu.check()
+    except (ConfigError, InputFileError) as exc:
+        raise click.BadParameter(str(exc), param_hint="--imu") from None
+    pipe = make_pipeline(rig, method)
+
+    def setup(is_planar: bool):
+        model, limits = fusion_model(is_planar, None, "kalman", None, 0.002, None, False, None,
+                                     0.5)  # fmt: skip
+        return Fusion(model, limits=limits), model
+
+    with ExitStack() as stack:
+        cam_sink = None
+        if camera_out:
+            stream = stack.enter_context(open_out(camera_out))
+            cam_sink = open_sink(fmt, stream, pipe.row_type.columns)
+        camera = CameraFixes(frames, pipe, events, cam_sink)
+        out_stream = stack.enter_context(open_out(out))
+
+        def open_rows(is_planar: bool):
+            return open_sink(fmt, out_stream, PoseRow.columns if is_planar else AttitudeRow.columns)
+
+        summary = run_live(imu, camera, setup, open_rows, kind=planar, end_with_fixes=True,
+                           echo=lambda m: click.echo(m, err=True))  # fmt: skip
+        camera.stop.set()
+    click.echo(live_summary(summary) + f"; camera: {camera.n_frames} frames, {camera.n_ok} ok",
+               err=True)  # fmt: skip
+    if summary.refused:
+        raise SystemExit(2)
+
+
+def run_fused_batch(rig, frames, imu_path, method, out, fmt, camera_out) -> None:
+    """A recording and its IMU file: every frame processed, its ok rows fixes available
+    at their exposure plus the processing latency, then the replay (as `visvec fuse`)."""
+    planar = _planar(rig)
+    pipe = make_pipeline(rig, method)
+    fixes: list[Fix] = []
+    with open_out(camera_out) if camera_out else ExitStack() as stream:
+        sink = open_sink(fmt, stream, pipe.row_type.columns) if camera_out else None
+        for frame in frames:
+            row = pipe.process(frame)
+            if sink is not None:
+                sink.write(row.as_dict())
+            if row.ok:
+                d = {k: ("" if v is None else str(v)) for k, v in row.as_dict().items()}
+                f = parse_fix(d, planar)
+                if f is not None:
+                    fixes.append(f)
+    imu = read_imu(imu_path, planar=planar)
+    model, limits = fusion_model(planar, imu.period_s, "kalman", None, 0.002, None, False, None,
+                                 0.5)  # fmt: skip
+    n = n_ok = 0
+    n_frames = len(fixes)
+    with open_out(out) as stream:
+        sink = open_sink(fmt, stream, PoseRow.columns if planar else AttitudeRow.columns)
+        for row in fused_rows(run_fusion(imu, fixes, model, limits=limits), model):
+            sink.write(row.as_dict())
+            n += 1
+            n_ok += int(row.ok)
+    click.echo(f"visvec: {n} inertial samples, {n_ok} fused; {n_frames} ok fixes", err=True)
