@@ -440,28 +440,25 @@ def test_fuse_live_from_stdin_matches_the_file_replay(tmp_path):
             assert abs(float(x["x_mm"]) - float(y["x_mm"])) < 1e-6
 
 
-def test_track_with_imu_lamps_live(tmp_path):
-    """A lamps recording played as a camera at its own pace while a thread sends the
-    matching IMU samples over UDP at 100 Hz in real time: `track --imu` writes fused
-    rows at the IMU's rate within 5 mm of the truth, and the camera's own rows."""
+def _track_live(tmp_path, rig, sim_args, n_frames):
+    """`track --imu` on a simulated recording played at its own pace, the recording's
+    imu.csv sent over UDP at its real rate by this thread: (fused rows, camera rows,
+    IMU samples sent, stderr)."""
     import socket
     import subprocess
     import sys
     import time
 
-    from conftest import ROOT
-
     rec = tmp_path / "rec"
-    r = CliRunner().invoke(cli, ["simulate", "--rig", str(ROOT / "configs" / "lamps.toml"),
-                                 "--out", str(rec), "--frames", "45", "--motion", "perimeter",
-                                 "--imu"])  # fmt: skip
+    r = CliRunner().invoke(cli, ["simulate", "--rig", str(rig), "--out", str(rec), "--frames",
+                                 str(n_frames), "--imu", *sim_args])  # fmt: skip
     assert r.exit_code == 0, r.output
     port = _free_udp_port()
     out, cam = tmp_path / "fused.csv", tmp_path / "camera.csv"
     proc = subprocess.Popen(
-        [sys.executable, "-m", "visvec", "track", "--rig", str(ROOT / "configs" / "lamps.toml"),
-         "--camera", str(rec), "--realtime", "--imu", f"udp://127.0.0.1:{port}", "--out",
-         str(out), "--camera-out", str(cam)], stderr=subprocess.PIPE, text=True,
+        [sys.executable, "-m", "visvec", "track", "--rig", str(rig), "--camera", str(rec),
+         "--realtime", "--imu", f"udp://127.0.0.1:{port}", "--out", str(out), "--camera-out",
+         str(cam)], stderr=subprocess.PIPE, text=True,
     )  # fmt: skip
     try:
         deadline = time.monotonic() + 30
@@ -487,8 +484,21 @@ def test_track_with_imu_lamps_live(tmp_path):
         rows = list(csv.DictReader(fh))
     with open(cam) as fh:
         cam_rows = list(csv.DictReader(fh))
-    assert len(cam_rows) == 45 and sum(r["status"] == "ok" for r in cam_rows) > 40
-    assert len(rows) > 0.9 * (len(lines) - 1)
+    assert len(cam_rows) == n_frames and "row latency median" in err
+    return rows, cam_rows, len(lines) - 1, rec, err
+
+
+def test_track_with_imu_lamps_live(tmp_path):
+    """A lamps recording played as a camera at its own pace while a thread sends the
+    matching IMU samples over UDP at 100 Hz in real time: `track --imu` writes fused
+    rows at the IMU's rate within 5 mm of the truth, and the camera's own rows."""
+    from conftest import ROOT
+
+    rows, cam_rows, n_imu, rec, _ = _track_live(
+        tmp_path, ROOT / "configs" / "lamps.toml", ["--motion", "perimeter"], 45
+    )
+    assert sum(r["status"] == "ok" for r in cam_rows) > 40
+    assert len(rows) > 0.9 * n_imu
     assert list(rows[0]) == list(PLANAR_COLUMNS)
     tt = truth_table(rec / "imu_truth.csv")
     ok = [r for r in rows if r["status"] == "ok"]
@@ -496,4 +506,29 @@ def test_track_with_imu_lamps_live(tmp_path):
     e = [math.hypot(float(r["x_mm"]) - tt[int(r["frame"]), 0],
                     float(r["y_mm"]) - tt[int(r["frame"]), 1]) for r in ok]  # fmt: skip
     assert np.sqrt(np.mean(np.square(e))) < 5.0, np.sqrt(np.mean(np.square(e)))
-    assert "row latency median" in err
+
+
+def test_track_with_imu_triangle_live(tmp_path):
+    """The same for an attitude rig: a triangle sweep at 20 deg/s with a 3-D gyro over
+    UDP; the fused attitude within 0.05 deg of the truth at every IMU sample, and
+    within 3 sigma on nearly every row."""
+    from visvec.rotations import quat_to_matrix
+
+    from conftest import ROOT
+
+    rows, cam_rows, n_imu, rec, _ = _track_live(
+        tmp_path, ROOT / "configs" / "triangle.toml",
+        ["--motion", "sweep", "--yaw-rate-dps", "20"], 60,
+    )  # fmt: skip
+    assert sum(r["status"] == "ok" for r in cam_rows) > 55
+    assert len(rows) > 0.9 * n_imu
+    with open(rec / "imu_truth.csv") as fh:
+        truth = [quat_to_matrix(np.array([float(r[k]) for k in ("qw", "qx", "qy", "qz")]))
+                 for r in csv.DictReader(fh)]  # fmt: skip
+    ok = [r for r in rows if r["status"] == "ok"]
+    assert len(ok) > 0.8 * len(rows)
+    e = []
+    for r in ok:
+        Rf = quat_to_matrix(np.array([float(r[k]) for k in ("qw", "qx", "qy", "qz")]))
+        e.append(np.degrees(np.linalg.norm(logmap(truth[int(r["frame"])].T @ Rf))))
+    assert np.sqrt(np.mean(np.square(e))) < 0.05, np.sqrt(np.mean(np.square(e)))

@@ -138,8 +138,9 @@ from visvec.sim.stars import PAPER_CASES, StarScene, simulate_stars
 @click.option(
     "--imu",
     is_flag=True,
-    help="Lamps: also write imu.csv (100 Hz gyro and accelerometer with bias, noise and "
-    "faults) and imu_truth.csv over the frames' time span.",
+    help="Also write imu.csv and imu_truth.csv over the frames' time span: lamps, a 100 Hz "
+    "planar gyro and accelerometer with bias, noise and faults; triangle and markers "
+    "(--motion sweep or swing), a 100 Hz 3-D gyro with bias and noise.",
 )
 @click.option(
     "--readout-ms",
@@ -199,9 +200,14 @@ def simulate(
     """Render frames of the rig's target at known attitudes (or, for a starfield rig, a
     sky turning at a known rate); write OUT/truth.csv."""
     rig = load(rig_path, calibration)
-    lamp_only = spurious > 0 or imu or motion in ("perimeter", "rest")
+    lamp_only = spurious > 0 or motion in ("perimeter", "rest")
     if lamp_only and rig.kind != "lamps":
-        raise click.UsageError("--spurious, --imu and --motion perimeter|rest apply to lamps rigs")
+        raise click.UsageError("--spurious and --motion perimeter|rest apply to lamps rigs")
+    if imu and rig.kind not in ("lamps", "triangle", "markers"):
+        raise click.UsageError("--imu applies to lamps, triangle and markers rigs")
+    if imu and rig.kind != "lamps" and motion not in ("sweep", "swing"):
+        raise click.UsageError("--imu: a triangle or markers rig's gyro needs --motion sweep "
+                               "or swing (the other motions are still frames)")  # fmt: skip
     if rig.kind == "lamps":
         if motion not in (None, "perimeter", "rest"):
             raise click.UsageError(f"--motion {motion}: a lamps rig moves by perimeter or rest")
@@ -270,8 +276,12 @@ def simulate(
             readout_ms=readout_ms,
             yaw_rate_dps=yaw_rate_dps,
             exposure_ms=exposure_ms,
+            imu=imu,
         )
     click.echo(f"wrote {n_frames} frames and {truth}", err=True)
+    if imu:
+        click.echo(f"wrote {truth.parent / 'imu.csv'} (3-D gyro, 100 Hz) and "
+                   f"{truth.parent / 'imu_truth.csv'}", err=True)  # fmt: skip
 
 
 def _lamps(rig, out_dir, n_frames, seed, noise, motion, spurious, imu, fps) -> None:

@@ -54,18 +54,75 @@ def random_attitudes(
         yaw = np.linspace(-np.pi, np.pi, n, endpoint=False) + rng.uniform(0, 2 * np.pi / n)
         return np.column_stack([(yaw + np.pi) % (2 * np.pi) - np.pi, np.zeros(n), np.zeros(n)])
     if motion in ("sweep", "swing"):
-        t = np.linspace(0.0, 1.0, n)
-        ph = rng.uniform(0, 2 * np.pi, 2)
-        turn = turn_rad * t if motion == "sweep" else turn_rad / (2 * np.pi) * np.sin(2 * np.pi * t)
-        yaw = (rng.uniform(-np.pi, np.pi) + turn + np.pi) % (2 * np.pi) - np.pi
+        return smooth_path(max_tilt_deg, rng, motion, turn_rad, wobble_cycles)(
+            np.linspace(0.0, 1.0, n)
+        )
+    raise ValueError(f"motion = {motion!r}: expected 'random', 'sweep', 'swing' or 'level'")
+
+
+def smooth_path(
+    max_tilt_deg: float,
+    rng: np.random.Generator,
+    motion: str,
+    turn_rad: float = 0.8 * 2.0 * np.pi,
+    wobble_cycles: tuple[float, float] = (1.3, 0.9),
+):
+    """A ``sweep`` or ``swing`` (see `random_attitudes`) as a function of the
+    sequence's fraction u in [0, 1] -> (len(u), 3) yaw, pitch, roll in radians."""
+    m = np.radians(max_tilt_deg)
+    ph = rng.uniform(0, 2 * np.pi, 2)
+    yaw0 = rng.uniform(-np.pi, np.pi)
+
+    def at(u: np.ndarray) -> np.ndarray:
+        u = np.asarray(u, float)
+        turn = turn_rad * u if motion == "sweep" else turn_rad / (2 * np.pi) * np.sin(2 * np.pi * u)
+        yaw = (yaw0 + turn + np.pi) % (2 * np.pi) - np.pi
         return np.column_stack(
             [
                 yaw,
-                0.8 * m * np.sin(2 * np.pi * wobble_cycles[0] * t + ph[0]),
-                0.8 * m * np.sin(2 * np.pi * wobble_cycles[1] * t + ph[1]),
+                0.8 * m * np.sin(2 * np.pi * wobble_cycles[0] * u + ph[0]),
+                0.8 * m * np.sin(2 * np.pi * wobble_cycles[1] * u + ph[1]),
             ]
         )
-    raise ValueError(f"motion = {motion!r}: expected 'random', 'sweep', 'swing' or 'level'")
+
+    return at
+
+
+IMU_RATE_HZ = 100.0
+IMU_BIAS_DPS = (0.2, -0.15, 0.1)
+IMU_NOISE_DPS = 0.05
+IMU_TRUTH_COLUMNS = ("frame", "time_s", "yaw_deg", "pitch_deg", "roll_deg", "qw", "qx", "qy",
+                     "qz")  # fmt: skip
+
+
+def write_gyro(out_dir: str | Path, path, span_s: float, seed: int) -> tuple[Path, Path]:
+    """A 3-D gyro on the platform over a sweep's or swing's ``span_s`` seconds:
+    ``imu.csv`` (time_s, gx_dps, gy_dps, gz_dps at 100 Hz: the body rate, a constant
+    bias and white noise) and ``imu_truth.csv`` (the attitude at every sample; frame =
+    the sample's index, as `visvec fuse` numbers its rows). ``path`` is `smooth_path`'s
+    function of the sequence's fraction."""
+    out = Path(out_dir)
+    rng = np.random.default_rng(seed)
+    t = np.arange(0.0, span_s + 1e-9, 1.0 / IMU_RATE_HZ)
+    h = 1e-4
+    R = lambda u: np.array([euler_to_matrix(*e) for e in path(u)])  # noqa: E731
+    Ra, Rb, Rm = R((t - h) / span_s), R((t + h) / span_s), R(t / span_s)
+    w = np.array([logmap(a.T @ b) / (2 * h) for a, b in zip(Ra, Rb, strict=True)])
+    g = np.degrees(w) + np.array(IMU_BIAS_DPS) + rng.normal(0.0, IMU_NOISE_DPS, w.shape)
+    imu, truth = out / "imu.csv", out / "imu_truth.csv"
+    with open(imu, "w", newline="") as fh:
+        wr = csv.writer(fh, lineterminator="\n")
+        wr.writerow(["time_s", "gx_dps", "gy_dps", "gz_dps"])
+        for ti, gi in zip(t, g, strict=True):
+            wr.writerow([f"{ti:.4f}", *(f"{x:.6f}" for x in gi)])
+    with open(truth, "w", newline="") as fh:
+        wr = csv.writer(fh, lineterminator="\n")
+        wr.writerow(IMU_TRUTH_COLUMNS)
+        for k, (ti, Ri) in enumerate(zip(t, Rm, strict=True)):
+            e = np.degrees(matrix_to_euler(Ri))
+            wr.writerow([k, f"{ti:.4f}", *(f"{x:.9f}" for x in e),
+                         *(f"{x:.12f}" for x in matrix_to_quat(Ri))])  # fmt: skip
+    return imu, truth
 
 
 def body_rates(R: np.ndarray, dt: float) -> np.ndarray:
@@ -159,8 +216,10 @@ def simulate(
     readout_ms: float | None = None,
     yaw_rate_dps: float | None = None,
     exposure_ms: float | None = None,
+    imu: bool = False,
 ) -> Path:
-    """Render ``n_frames`` frames into ``out_dir`` and write ``out_dir/truth.csv``.
+    """Render ``n_frames`` frames into ``out_dir`` and write ``out_dir/truth.csv``
+    (with ``imu``, a sweep's or swing's gyro too: `write_gyro`).
 
     Parameters
     ----------
@@ -197,7 +256,15 @@ def simulate(
         # a turn at a set rate: the tilts nutate with periods of 7.7 s and 11 s
         span_s = (n_frames - 1) / fps
         turn, wobble = np.radians(yaw_rate_dps) * span_s, (0.13 * span_s, 0.09 * span_s)
-    eul = random_attitudes(n_frames, max_tilt_deg, rng, motion, turn, wobble)
+    if motion in ("sweep", "swing"):
+        path = smooth_path(max_tilt_deg, rng, motion, turn, wobble)
+        eul = path(np.linspace(0.0, 1.0, n_frames))
+        if imu:
+            write_gyro(out, path, (n_frames - 1) / fps, seed + 1)
+    else:
+        if imu:
+            raise ValueError("a gyro is simulated for a sweep or a swing only")
+        eul = random_attitudes(n_frames, max_tilt_deg, rng, motion, turn, wobble)
     world = render_rig or rig
     readout_s = (rig.readout_ms if readout_ms is None else readout_ms) / 1000.0
     if exposure_ms is None:
