@@ -244,7 +244,12 @@ def test_simulate_and_batch_cli(tmp_path):
     r = CliRunner().invoke(
         cli, ["simulate", "--rig", str(CONFIGS / "triangle.toml"), "--out", str(out), "--imu"]
     )
-    assert r.exit_code == 2 and "lamps" in r.output
+    # a triangle's gyro needs a moving sequence; a starfield rig has none
+    assert r.exit_code == 2 and "--motion sweep or swing" in r.output
+    r = CliRunner().invoke(
+        cli, ["simulate", "--rig", str(CONFIGS / "starfield.toml"), "--out", str(out), "--imu"]
+    )
+    assert r.exit_code == 2 and "lamps, triangle and markers" in r.output
 
 
 def test_histogram_threshold_equals_the_sorted_median(rng):

@@ -7,6 +7,7 @@ import queue
 from dataclasses import replace
 
 import click
+import numpy as np
 
 from visvec.cli.common import open_out
 from visvec.errors import ConfigError, InputFileError
@@ -18,6 +19,7 @@ from visvec.fuse.replay import Fusion, Limits
 from visvec.fuse.replay import fuse as run_fusion
 from visvec.fuse.run import fused_rows, rest_biases
 from visvec.output import AttitudeRow, PoseRow
+from visvec.rotations import logmap
 from visvec.sinks import open_sink
 
 
@@ -142,13 +144,16 @@ def fuse(imu_path, fixes_path, follow, max_samples, silent_s, gyro_range_dps, ou
                else ""),
             err=True,
         )  # fmt: skip
-    samples = run_fusion(imu, fixes.fixes, model, limits=limits, history_s=history_s,
-                         gyro_range_dps=gyro_range_dps)  # fmt: skip
+    engine = Fusion(model, limits=limits, history_s=history_s, gyro_range_dps=gyro_range_dps)
+    samples = run_fusion(imu, fixes.fixes, model, engine=engine)
     nis: list[float] = []
+    last = [None]
 
     def tap(it):
         for fs in it:
             nis.extend(x for x in fs.nis if math.isfinite(x))
+            if fs.state is not None:
+                last[0] = fs.state
             yield fs
 
     rows = []
@@ -170,8 +175,14 @@ def fuse(imu_path, fixes_path, follow, max_samples, silent_s, gyro_range_dps, ou
     if len(nis) >= 5:
         mean = sum(nis) / len(nis)
         advice = ""
-        if mean > 6.0:
+        if mean > 6.0 and not fixes.planar:
+            advice = ("; the fixes disagree with the gyro beyond its learned noise: glitches in "
+                      "the fixes, or a gyro beyond its range")  # fmt: skip
+        elif mean > 6.0:
             advice = "; the filter is overconfident: raise --gyro-noise-dps (or --accel-noise-mps2)"
+        elif mean < 1.0 and not fixes.planar:
+            advice = ("; the fixes agree better than the noise learned so far says (it starts "
+                      "from a cautious prior: a short run)")  # fmt: skip
         elif mean < 1.0:
             advice = "; the filter is too cautious: the noise settings can be lowered"
         click.echo(
@@ -179,6 +190,8 @@ def fuse(imu_path, fixes_path, follow, max_samples, silent_s, gyro_range_dps, ou
             f"for a consistent filter){advice}",
             err=True,
         )
+    if not fixes.planar and last[0] is not None:
+        click.echo(learned_line(engine, last[0]), err=True)
     if truth and rows:
         names = rows[0].value_columns
         stats = error_stats(rows, read_truth(truth, names), names)
@@ -206,6 +219,24 @@ def fusion_model(planar, period_s, method, gyro_noise_dps, accel_noise_mps2, fix
     if fix_sigma_deg is not None:
         model = replace(model, fix_sigma=math.radians(fix_sigma_deg))
     return model, Limits(max_rate_dps or 2000.0, None)
+
+
+def learned_line(engine, s) -> str:
+    """What the 3-D filter learned of the gyro (model doc: visvec.fuse.models)."""
+    qa, qw = s.noise.theta()
+    per_sample = math.degrees(math.sqrt(qa / engine.model.sample_s))
+    parts = [f"gyro noise {per_sample:.3g} deg/s per sample",
+             f"rate error {100 * math.sqrt(qw):.2g} % (held between fixes)",
+             f"time offset {1000 * s.tau:+.1f} ms",
+             f"misalignment {math.degrees(float(np.linalg.norm(logmap(s.Rm)))):.2f} deg",
+             f"scale factors {', '.join(f'{100 * k:+.2f}' for k in s.k)} %",
+             f"bias {', '.join(f'{math.degrees(b):+.3f}' for b in s.b)} deg/s"]  # fmt: skip
+    if engine.rest is not None:
+        parts.append(f"rest segment {engine.rest[2]} samples")
+    if np.any(np.isfinite(engine._ranges)):
+        rng = math.degrees(float(np.nanmax(engine._ranges)))
+        parts.append(f"range {rng:.1f} deg/s, {engine.n_saturated} samples at it")
+    return "visvec: learned: " + "; ".join(parts)
 
 
 def live_summary(summary) -> str:

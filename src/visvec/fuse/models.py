@@ -183,8 +183,8 @@ class NoiseFit:
         H0 = np.diag(NOISE_PRIOR_FIXES / (2.0 * self.theta0**2))
         th = np.linalg.solve(H0 + self.H, H0 @ self.theta0 + self.z)
         # a run of lucky fixes must not make it rigid: the white noise stays above a
-        # tenth of its prior, the rate-proportional one above 0.1 % of the rate
-        return np.maximum(th, [0.1 * self.theta0[0], RATE_NOISE_FLOOR**2])
+        # hundredth of its prior, the rate-proportional one above 0.1 % of the rate
+        return np.maximum(th, [0.01 * self.theta0[0], RATE_NOISE_FLOOR**2])
 
 
 @dataclass(frozen=True)

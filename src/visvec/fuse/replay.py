@@ -417,10 +417,12 @@ def fuse(
     limits: Limits | None = None,
     history_s: float = 10.0,
     gyro_range_dps: float | None = None,
+    engine: Fusion | None = None,
 ) -> Iterator[FusedSample]:
     """Fused states at every inertial sample of a recording, causally: each fix is
     given to the engine at the first sample at or after its ``available_s``."""
-    engine = Fusion(model, limits=limits, history_s=history_s, gyro_range_dps=gyro_range_dps)
+    if engine is None:
+        engine = Fusion(model, limits=limits, history_s=history_s, gyro_range_dps=gyro_range_dps)
     arrivals = sorted(fixes, key=lambda f: (f.available_s, f.time_s))
     nxt = 0
     gaps = set(imu.gaps)
