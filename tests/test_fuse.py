@@ -532,3 +532,79 @@ def test_track_with_imu_triangle_live(tmp_path):
         Rf = quat_to_matrix(np.array([float(r[k]) for k in ("qw", "qx", "qy", "qz")]))
         e.append(np.degrees(np.linalg.norm(logmap(truth[int(r["frame"])].T @ Rf))))
     assert np.sqrt(np.mean(np.square(e))) < 0.05, np.sqrt(np.mean(np.square(e)))
+
+
+@pytest.mark.parametrize("sig", ["SIGTERM", "SIGHUP", "SIGINT"])
+def test_fuse_live_ends_on_a_signal_with_every_row_and_the_summary(tmp_path, sig):
+    """A live run stopped by SIGTERM, SIGHUP or SIGINT: exit 0, the summary on stderr,
+    every row written whole; a sample whose clock steps back is refused, not fused."""
+    import signal
+    import socket
+    import subprocess
+    import sys
+    import time
+
+    imu, _, fixes = planar_case(tmp_path, duration=3.0)
+    p_imu, p_fix = _free_udp_port(), _free_udp_port()
+    out = tmp_path / "live.csv"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "visvec", "fuse", "--imu", f"udp://127.0.0.1:{p_imu}",
+         "--fixes", f"udp://127.0.0.1:{p_fix}", "--out", str(out)],
+        stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        seen = 0
+        while seen < 2:
+            seen += "listening" in proc.stderr.readline()
+        lines = imu.read_text().splitlines()
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            s.sendto(lines[0].encode(), ("127.0.0.1", p_imu))
+            for line in [*lines[1:101], lines[50]]:  # the last one steps back in time
+                s.sendto(line.encode(), ("127.0.0.1", p_imu))
+                time.sleep(0.002)
+        time.sleep(0.5)
+        proc.send_signal(getattr(signal, sig))
+        _, err = proc.communicate(timeout=20)
+    finally:
+        proc.kill()
+    assert proc.returncode == 0, err
+    assert "stopped early (Ctrl-C or a signal)" in err and "101 inertial samples" in err
+    text = out.read_text()
+    assert text.endswith("\n")
+    rows = list(csv.DictReader(text.splitlines()))
+    assert len(rows) == 101 and all(len(r) == len(PLANAR_COLUMNS) for r in rows)
+    assert rows[-1]["warnings"] == "imu_time_back"
+
+
+def test_fuse_live_from_a_serial_device(tmp_path):
+    """IMU rows on a serial line (a pseudo-terminal standing in for /dev/ttyUSB0),
+    read through pyserial: fused as they come."""
+    import os
+    import subprocess
+    import sys
+    import time
+
+    pytest.importorskip("serial")
+    imu, _, fixes = planar_case(tmp_path, duration=2.0)
+    master, slave = os.openpty()
+    name = os.ttyname(slave)
+    out = tmp_path / "serial.csv"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "visvec", "fuse", "--imu", f"serial://{name}?baud=115200",
+         "--fixes", str(fixes), "--follow", "--out", str(out), "--max-samples", "150"],
+        stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        time.sleep(1.5)  # the device opened
+        for line in imu.read_text().splitlines()[:160]:
+            os.write(master, (line + "\n").encode())
+            time.sleep(0.002)
+        _, err = proc.communicate(timeout=20)
+    finally:
+        proc.kill()
+        os.close(master)
+        os.close(slave)
+    assert proc.returncode == 0, err
+    with open(out) as fh:
+        rows = list(csv.DictReader(fh))
+    assert len(rows) == 150 and sum(r["status"] == "ok" for r in rows) > 50

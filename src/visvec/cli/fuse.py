@@ -247,7 +247,7 @@ def live_summary(summary) -> str:
     return (
         f"visvec: {summary.samples} inertial samples, {summary.ok} fused; {summary.fixes} ok "
         f"fixes{med}" + (f"; {bad}" if bad else "")
-        + ("; stopped by Ctrl-C" if summary.interrupted else "")
+        + ("; stopped early (Ctrl-C or a signal)" if summary.interrupted else "")
     )  # fmt: skip
 
 

@@ -56,6 +56,23 @@ class _EchoHandler(logging.Handler):
         click.echo(f"visvec: {record.getMessage()}", err=True)
 
 
+def _interrupt(signum, frame) -> None:
+    raise KeyboardInterrupt
+
+
+def _signals_as_interrupt() -> None:
+    """SIGTERM (systemd, kill) and SIGHUP (a closed terminal or ssh session) end a run
+    as Ctrl-C does: every row already made is written, then the summary."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return
+    for name in ("SIGTERM", "SIGHUP"):
+        if hasattr(signal, name):
+            signal.signal(getattr(signal, name), _interrupt)
+
+
 def _route_library_warnings() -> None:
     log = logging.getLogger("visvec")
     if not any(isinstance(h, _EchoHandler) for h in log.handlers):
@@ -72,6 +89,7 @@ def cli(debug: bool) -> None:
     Units are mm and degrees; see the README for the frames and the rig file.
     """
     _route_library_warnings()
+    _signals_as_interrupt()
     if not debug:
         # OpenCV's own warnings (for instance every backend it tried on a camera that
         # cannot be opened) would bury visvec's one-line message; --debug keeps them
