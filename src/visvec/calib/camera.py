@@ -10,6 +10,7 @@ import numpy as np
 
 from visvec.camera import CameraModel
 from visvec.errors import InputFileError
+from visvec.imageio import read_image
 
 RECIPES = {
     # OpenCV's own test (modules/python/test/test_calibration.py): default detection
@@ -105,7 +106,7 @@ def calibrate_camera(
     obj_pts, img_pts, used, skipped = [], [], [], []
     size = None
     for f in files:
-        img = cv2.imread(str(f), cv2.IMREAD_GRAYSCALE)
+        img = read_image(f, cv2.IMREAD_GRAYSCALE)
         if img is None:
             skipped.append(f"{f.name} (unreadable)")
             continue

@@ -8,9 +8,9 @@ import time
 from pathlib import Path
 
 import click
-import cv2
 
 from visvec.errors import ConfigError
+from visvec.imageio import write_image
 from visvec.output import Row
 from visvec.pipeline import METHODS, Pipeline, make_pipeline
 from visvec.rig import Rig, load_rig
@@ -156,7 +156,7 @@ class FrameRecorder:
 
     def save(self, frame) -> None:
         name = f"frame_{frame.index:06d}.png"
-        if not cv2.imwrite(str(self.dir / name), frame.image):
+        if not write_image(self.dir / name, frame.image):
             raise click.ClickException(f"{self.dir / name}: cannot write the frame")
         self._times.write(f"{name},{frame.time_s:.6f}\n")
         self._times.flush()
@@ -268,7 +268,10 @@ def run_frames(
                     from visvec.overlay import draw_overlay
 
                     img = draw_overlay(frame.image, pipe.last_detection, row, rig)
-                    cv2.imwrite(str(ov / f"overlay_{frame.index:06d}.png"), img)
+                    if not write_image(ov / f"overlay_{frame.index:06d}.png", img):
+                        raise click.ClickException(
+                            f"{ov}: cannot write the overlay of frame {frame.index}"
+                        )
                 if max_frames is not None and n >= max_frames:
                     break
         except KeyboardInterrupt:

@@ -6,8 +6,9 @@ import csv
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
-import cv2
 import numpy as np
+
+from visvec.imageio import write_image
 
 
 def write_sequence(
@@ -30,7 +31,7 @@ def write_sequence(
         for i, t in enumerate(times):
             img, values = frame_at(float(t))
             name = f"frame_{i:0{width}d}.png"
-            cv2.imwrite(str(out / name), img)
+            write_image(out / name, img)
             wr.writerow([i, name, f"{t:.6f}", *values])
             if progress is not None:
                 progress(i)

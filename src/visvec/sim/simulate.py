@@ -7,9 +7,9 @@ from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
 
-import cv2
 import numpy as np
 
+from visvec.imageio import write_image
 from visvec.output import ATTITUDE_COLUMNS
 from visvec.rig import Rig
 from visvec.rotations import (
@@ -286,7 +286,7 @@ def simulate(
                 sc = scene_for_frame(scene, clutter, world, rng)
                 img = render_frame(world, R, sc, rng, readout_s, rates[i], exposure_ms / 1000.0)
             name = f"frame_{i:0{width}d}.png"
-            cv2.imwrite(str(out / name), img)
+            write_image(out / name, img)
             e = np.degrees(matrix_to_euler(R))
             q = matrix_to_quat(R)
             w.writerow(

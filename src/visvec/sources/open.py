@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from visvec.errors import SourceError
+from visvec.imageio import opencv_path
 from visvec.sources.folder import IMAGE_SUFFIXES, FolderSource
 from visvec.sources.video import VideoSource
 
@@ -31,4 +32,9 @@ def open_source(
         raise SourceError(f"{p}: no such file or folder")
     if p.suffix.lower() in IMAGE_SUFFIXES:
         return FolderSource(p.parent, fps=fps, files=[p])
+    if opencv_path(p) is None:
+        raise SourceError(
+            f"{p}: the file name is not UTF-8, which OpenCV's video reader cannot take; "
+            "rename the file"
+        )
     return VideoSource(str(p), fps=fps, retry_s=retry_s, max_frames=max_frames)

@@ -1,0 +1,55 @@
+"""Images read and written through bytes.
+
+OpenCV's path-taking readers and writers (cv2.imread, cv2.imwrite) take a C string:
+a file name that is not valid UTF-8 (a byte such as 0xff, which Linux allows) crashes
+them in some builds and fails in others. Reading the file's bytes in Python and
+decoding them with cv2.imdecode (and cv2.imencode for writing) works for any name.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+MAX_IMAGE_BYTES = 512 * 1024 * 1024  # a bigger "image" (say /dev/zero) is not read
+
+
+def read_image(path: str | Path, flags: int = cv2.IMREAD_UNCHANGED) -> np.ndarray | None:
+    """The decoded image, or None when the file cannot be read or decoded."""
+    try:
+        with open(path, "rb") as fh:
+            data = fh.read(MAX_IMAGE_BYTES + 1)
+    except OSError:
+        return None
+    if not data or len(data) > MAX_IMAGE_BYTES:
+        return None
+    img = cv2.imdecode(np.frombuffer(data, np.uint8), flags)
+    return None if img is None or img.size == 0 else img
+
+
+def write_image(path: str | Path, img: np.ndarray) -> bool:
+    """Write ``img`` in the format its suffix names (.png by default); False if it
+    cannot be encoded or written."""
+    ext = Path(path).suffix.lower() or ".png"
+    ok, buf = cv2.imencode(ext, img)
+    if not ok:
+        return False
+    try:
+        with open(path, "wb") as fh:
+            fh.write(buf.tobytes())
+    except OSError:
+        return False
+    return True
+
+
+def opencv_path(path: str | Path) -> str | None:
+    """``path`` as OpenCV's C functions can take it, or None if its bytes are not
+    UTF-8 (see the module docstring)."""
+    raw = os.fsencode(path)
+    try:
+        return raw.decode("utf-8")
+    except UnicodeDecodeError:
+        return None
