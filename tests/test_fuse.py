@@ -418,10 +418,12 @@ def test_fuse_live_from_stdin_matches_the_file_replay(tmp_path):
          "--out", str(live)], stdin=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )  # fmt: skip
     try:
+        while "following" not in proc.stderr.readline():
+            pass
+        time.sleep(0.2)  # the fixes file is read meanwhile
         lines = imu.read_text().splitlines(keepends=True)
         proc.stdin.write(lines[0])
         proc.stdin.flush()
-        time.sleep(1.0)  # the fixes file is read meanwhile
         for line in lines[1:]:
             proc.stdin.write(line)
             proc.stdin.flush()
@@ -463,13 +465,17 @@ def _track_live(tmp_path, rig, sim_args, n_frames):
     try:
         deadline = time.monotonic() + 30
         got = set()
+        t0 = None
         while len(got) < 2 and time.monotonic() < deadline:
             line = proc.stderr.readline()
             got |= {w for w in ("listening", "first frame") if w in line}
+            if "first frame" in line:
+                # the camera's first frame on this machine's monotonic clock: the IMU
+                # samples are sent on the same time base, as a live IMU would be
+                t0 = float(line.split("clock ")[1].split(" s)")[0])
         assert got == {"listening", "first frame"}
         lines = (rec / "imu.csv").read_text().splitlines()
         with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-            t0 = time.monotonic()
             s.sendto(lines[0].encode(), ("127.0.0.1", port))
             for line in lines[1:]:
                 wait = t0 + float(line.split(",")[0]) - time.monotonic()

@@ -51,3 +51,65 @@ def test_a_video_whose_name_is_not_utf8_is_refused_clearly(tmp_path):
     r = _run(["batch", bad, "--rig", str(RIG)])
     assert r.returncode == 3
     assert b"not UTF-8" in r.stderr and b"Traceback" not in r.stderr
+
+
+def test_numbers_that_are_not_numbers_are_refused(tmp_path):
+    """NaN and infinity in options, times and truth files: refused naming the option
+    or the line (exit 2), never accepted."""
+    for args, what in [
+        (["simulate", "--rig", str(RIG), "--out", str(tmp_path / "s"), "--exposure", "nan"],
+         b"--exposure"),
+        (["simulate", "--rig", str(RIG), "--out", str(tmp_path / "s"), "--max-tilt-deg",
+          "inf"], b"--max-tilt-deg"),
+        (["simulate", "--rig", str(RIG), "--out", str(tmp_path / "s"), "--target-offset-mm",
+          "nan", "0"], b"--target-offset-mm"),
+        (["montecarlo", "--rig", str(ROOT / "configs" / "markers.toml"), "--out",
+          str(tmp_path / "m"), "--centroid-noise", "nan"], b"--centroid-noise"),
+        (["calibrate", "camera", str(SAMPLE), "--pattern", "9x6", "--square-mm", "inf"],
+         b"--square-mm"),
+        (["calibrate", "camera", str(SAMPLE), "--pattern", "2x2", "--square-mm", "25"],
+         b"3x3"),
+        (["rate", "--budget", "--ifov-deg", "nan"], b"--ifov-deg"),
+        (["fuse", "--imu", "a.csv", "--fixes", "b.csv", "--gyro-noise-dps", "nan"],
+         b"--gyro-noise-dps"),
+    ]:  # fmt: skip
+        r = _run(args)
+        assert r.returncode == 2, (args, r.stderr)
+        assert what in r.stderr and b"Traceback" not in r.stderr, (args, r.stderr)
+
+
+def test_bad_times_and_truth_files_name_the_line(tmp_path):
+    import shutil
+
+    rec = tmp_path / "rec"
+    rec.mkdir()
+    names = sorted(p.name for p in SAMPLE.glob("*.png"))[:3]
+    for n in names:
+        shutil.copy(SAMPLE / n, rec / n)
+    for bad, msg in [("nan", b"finite"), ("inf", b"finite"), ("0.0", b"does not increase")]:
+        (rec / "times.csv").write_text(f"file,time_s\n{names[0]},0.0\n{names[1]},{bad}\n")
+        r = _run(["batch", str(rec), "--rig", str(RIG)])
+        assert r.returncode == 2 and b"line 3" in r.stderr and msg in r.stderr, r.stderr
+    (rec / "times.csv").unlink()
+    truth = tmp_path / "truth.csv"
+    truth.write_text("frame,yaw_deg,pitch_deg,roll_deg\n0,1,nan,0\n")
+    r = _run(["batch", str(rec), "--rig", str(RIG), "--truth", str(truth)])
+    assert r.returncode == 2 and b"line 2" in r.stderr and b"finite" in r.stderr
+    truth.write_text("frame,yaw_deg,pitch_deg,roll_deg\n")
+    r = _run(["batch", str(rec), "--rig", str(RIG), "--truth", str(truth)])
+    assert r.returncode == 2 and b"no rows" in r.stderr
+    truth.write_bytes(b"frame,yaw_deg,pitch_deg,roll_deg\n0,\xff\xfe,0,0\n")
+    r = _run(["batch", str(rec), "--rig", str(RIG), "--truth", str(truth)])
+    assert r.returncode == 2 and b"UTF-8" in r.stderr
+
+
+def test_jsonl_rows_are_json(tmp_path):
+    """A value that is not finite is written as null, never as a bare NaN."""
+    import io
+    import json
+
+    from visvec.sinks.writers import JsonlSink
+
+    buf = io.StringIO()
+    JsonlSink(buf, ["a", "b"]).write({"a": float("nan"), "b": float("inf")})
+    assert json.loads(buf.getvalue()) == {"a": None, "b": None}

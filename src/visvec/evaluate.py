@@ -26,23 +26,36 @@ def read_truth(path: str | Path, names: Sequence[str] = ANGLES) -> dict[int, np.
     path = Path(path)
     out: dict[int, np.ndarray] = {}
     try:
-        fh = open(path, newline="")
+        fh = open(path, newline="", encoding="utf-8")
     except OSError as exc:
         raise InputFileError(f"{path}: cannot read the truth file ({exc.strerror})") from None
     with fh:
-        reader = csv.DictReader(fh)
-        need = {"frame", *names}
-        if not reader.fieldnames or not need <= set(reader.fieldnames):
-            raise InputFileError(
-                f"{path}: truth file needs columns {sorted(need)}; found {reader.fieldnames}"
-            )
-        for line, row in enumerate(reader, start=2):
-            try:
-                out[int(row["frame"])] = np.array([float(row[k]) for k in names])
-            except (TypeError, ValueError):
+        try:
+            reader = csv.DictReader(fh)
+            need = {"frame", *names}
+            if not reader.fieldnames or not need <= set(reader.fieldnames):
                 raise InputFileError(
-                    f"{path}: line {line}: expected numbers in frame,{','.join(names)}"
-                ) from None
+                    f"{path}: truth file needs columns {sorted(need)}; found "
+                    f"{reader.fieldnames}"
+                )
+            for line, row in enumerate(reader, start=2):
+                try:
+                    v = np.array([float(row[k]) for k in names])
+                    k = int(row["frame"])
+                except (TypeError, ValueError):
+                    v = None
+                if v is None or not np.all(np.isfinite(v)):
+                    raise InputFileError(
+                        f"{path}: line {line}: expected finite numbers in "
+                        f"frame,{','.join(names)}"
+                    )
+                out[k] = v
+        except UnicodeDecodeError:
+            raise InputFileError(f"{path}: not a UTF-8 text file") from None
+        except csv.Error as exc:
+            raise InputFileError(f"{path}: not a CSV file ({exc})") from None
+    if not out:
+        raise InputFileError(f"{path}: the truth file has no rows")
     return out
 
 

@@ -68,8 +68,9 @@ def parse_pattern(text: str) -> tuple[int, int]:
         raise InputFileError(
             f"--pattern {text!r}: expected inner corners as COLSxROWS, for example 9x6"
         ) from None
-    if a < 2 or b < 2:
-        raise InputFileError(f"--pattern {text!r}: expected at least 2x2 inner corners")
+    if a < 3 or b < 3:
+        # OpenCV's chessboard finder needs more than 2 inner corners each way
+        raise InputFileError(f"--pattern {text!r}: expected at least 3x3 inner corners")
     return a, b
 
 

@@ -15,7 +15,7 @@ from visvec.calib.system import calibration_sections as system_sections
 from visvec.calib.tomlout import dumps
 from visvec.calib.zero_tilt import calibrate_zero_tilt, calibration_sections
 from visvec.camera import CameraModel
-from visvec.cli.common import load, rig_options
+from visvec.cli.common import FiniteFloat, load, rig_options
 from visvec.data import Status
 from visvec.detect.markers import MarkerIdentifier
 from visvec.detect.spots import find_spots
@@ -189,7 +189,7 @@ def _camera_check(res, rig) -> None:
 )
 @click.option(
     "--principal-point-sigma",
-    type=click.FloatRange(min=0, min_open=True),
+    type=FiniteFloat(min=0, min_open=True),
     default=None,
     help="How well the rig's principal point is known, 1-sigma px (`calibrate camera` "
     "prints it). [default: 0.8 % of the image width]",
@@ -257,7 +257,7 @@ def readout(frames, rig_path, calibration, out, max_frames, principal_point_sigm
 @click.option(
     "--square-mm",
     required=True,
-    type=click.FloatRange(min=0, min_open=True),
+    type=FiniteFloat(min=0, min_open=True),
     help="Chessboard square size, mm.",
 )
 @click.option(

@@ -6,6 +6,7 @@ import warnings
 
 import click
 
+from visvec.cli.common import FiniteFloat
 from visvec.lamps import build_catalog, read_lamp_map
 
 
@@ -21,7 +22,7 @@ def catalog() -> None:
 )
 @click.option(
     "--ceiling-z-mm",
-    type=click.FloatRange(min=0, min_open=True),
+    type=FiniteFloat(min=0, min_open=True),
     default=2500.0,
     show_default=True,
     help="Lamp height where the map has no z_mm.",

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import math
 import sys
 import time
 from pathlib import Path
@@ -15,6 +16,17 @@ from visvec.output import Row
 from visvec.pipeline import METHODS, Pipeline, make_pipeline
 from visvec.rig import Rig, load_rig
 from visvec.sinks import UdpStream, open_sink
+
+
+class FiniteFloat(click.FloatRange):
+    """A number option (optionally within a range) that refuses NaN and infinity, which
+    click's FloatRange lets through (every comparison with NaN is false)."""
+
+    def convert(self, value, param, ctx):
+        v = super().convert(value, param, ctx)
+        if not math.isfinite(v):
+            self.fail(f"{value!r}: expected a finite number", param, ctx)
+        return v
 
 
 def rig_options(f=None, *, required: bool = True):

@@ -9,7 +9,7 @@ from dataclasses import replace
 import click
 import numpy as np
 
-from visvec.cli.common import open_out
+from visvec.cli.common import FiniteFloat, open_out
 from visvec.errors import ConfigError, InputFileError
 from visvec.evaluate import error_stats, read_truth
 from visvec.fuse.inputs import read_fixes, read_imu
@@ -36,10 +36,10 @@ from visvec.sinks import open_sink
               help="Read files as they grow (a recording still being written): live.")  # fmt: skip
 @click.option("--max-samples", type=click.IntRange(min=1), default=None,
               help="Live: stop after this many fused rows.")  # fmt: skip
-@click.option("--silent-s", type=click.FloatRange(min=0, min_open=True), default=2.0,
+@click.option("--silent-s", type=FiniteFloat(min=0, min_open=True), default=2.0,
               show_default=True,
               help="Live: a source silent this long is reported (rows: fixes_silent).")  # fmt: skip
-@click.option("--gyro-range-dps", type=click.FloatRange(min=0, min_open=True), default=None,
+@click.option("--gyro-range-dps", type=FiniteFloat(min=0, min_open=True), default=None,
               help="The gyro's range: readings at it are saturated [learned from the "
               "first flat top].")  # fmt: skip
 @click.option("--out", default=None, type=click.Path(dir_okay=False),
@@ -54,25 +54,25 @@ from visvec.sinks import open_sink
     show_default=True,
     help="Planar: Kalman filter with biases, or the paper's reset at each fix.",
 )
-@click.option("--rest-s", type=click.FloatRange(min=0), default=0.0, show_default=True,
+@click.option("--rest-s", type=FiniteFloat(min=0), default=0.0, show_default=True,
               help="Seconds at rest at the start: average them for the biases.")  # fmt: skip
-@click.option("--max-rate-dps", type=click.FloatRange(min=0, min_open=True), default=None,
+@click.option("--max-rate-dps", type=FiniteFloat(min=0, min_open=True), default=None,
               help="Rates beyond this are faults [planar: 50 (the paper), 3-D: 2000].")  # fmt: skip
-@click.option("--max-accel-mps2", type=click.FloatRange(min=0, min_open=True), default=0.5,
+@click.option("--max-accel-mps2", type=FiniteFloat(min=0, min_open=True), default=0.5,
               show_default=True, help="Planar: accelerations beyond this are faults.")  # fmt: skip
-@click.option("--gyro-noise-dps", type=click.FloatRange(min=0, min_open=True), default=None,
+@click.option("--gyro-noise-dps", type=FiniteFloat(min=0, min_open=True), default=None,
               help="Gyro white noise per sample [planar 0.05, 3-D 0.3].")  # fmt: skip
-@click.option("--accel-noise-mps2", type=click.FloatRange(min=0, min_open=True),
+@click.option("--accel-noise-mps2", type=FiniteFloat(min=0, min_open=True),
               default=0.002, show_default=True,
               help="Planar: accelerometer white noise per sample (the paper's).")  # fmt: skip
-@click.option("--fix-sigma-deg", type=click.FloatRange(min=0, min_open=True), default=None,
+@click.option("--fix-sigma-deg", type=FiniteFloat(min=0, min_open=True), default=None,
               help="3-D: fix attitude noise, overriding the fixes' sigma columns.")  # fmt: skip
 @click.option(
     "--no-misalignment",
     is_flag=True,
     help="3-D: do not estimate the gyro misalignment to the fixes' body axes.",
 )
-@click.option("--history-s", type=click.FloatRange(min=0.1), default=10.0, show_default=True,
+@click.option("--history-s", type=FiniteFloat(min=0.1), default=10.0, show_default=True,
               help="Inertial history kept for replaying late fixes.")  # fmt: skip
 @click.option("--truth", default=None, type=click.Path(dir_okay=False),
               help="Truth per inertial sample (frame = sample index): print error "

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import os
 import sys
 from concurrent.futures import ProcessPoolExecutor
@@ -21,7 +22,7 @@ def _floats(text: str, what: str) -> list[float]:
         raise click.BadParameter(
             f"{text!r}: expected comma-separated numbers", param_hint=what
         ) from None
-    if not vals or any(v < 0 for v in vals):
+    if not vals or any(not math.isfinite(v) or v < 0 for v in vals):
         raise click.BadParameter(f"{text!r}: expected non-negative numbers", param_hint=what)
     return vals
 

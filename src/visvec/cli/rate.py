@@ -7,7 +7,7 @@ import math
 import click
 
 from visvec.cli.batch import run_batch
-from visvec.cli.common import load, output_options, rig_options
+from visvec.cli.common import FiniteFloat, load, output_options, rig_options
 from visvec.estimate.rate import rate_budget
 
 
@@ -27,40 +27,40 @@ from visvec.estimate.rate import rate_budget
 )
 @click.option(
     "--ifov-deg",
-    type=click.FloatRange(min=0, min_open=True),
+    type=FiniteFloat(min=0, min_open=True),
     default=None,
     help="Budget: angle of one pixel (default: the rig's, else 0.017).",
 )
 @click.option(
     "--fps",
-    type=click.FloatRange(min=0, min_open=True),
+    type=FiniteFloat(min=0, min_open=True),
     default=None,
     help="Budget: frame rate (default: the rig's, else 10).",
 )
 @click.option(
     "--stars",
-    type=click.FloatRange(min=1),
+    type=FiniteFloat(min=1),
     default=40.0,
     show_default=True,
     help="Budget: stars detected per frame.",
 )
 @click.option(
     "--pixels-per-star",
-    type=click.FloatRange(min=1),
+    type=FiniteFloat(min=1),
     default=10.0,
     show_default=True,
     help="Budget: pixels above the threshold per star.",
 )
 @click.option(
     "--off-boresight-deg",
-    type=click.FloatRange(min=0, min_open=True),
+    type=FiniteFloat(min=0, min_open=True),
     default=5.0,
     show_default=True,
     help="Budget: mean angle of the stars from the boresight.",
 )
 @click.option(
     "--rate-dps",
-    type=float,
+    type=FiniteFloat(),
     default=0.0,
     show_default=True,
     help="Budget: rate about the boresight (for the full Eq. 26).",

@@ -7,7 +7,7 @@ from dataclasses import replace
 
 import click
 
-from visvec.cli.common import load, rig_options
+from visvec.cli.common import FiniteFloat, load, rig_options
 from visvec.sim.lamps import LampScene, PerimeterPath, simulate_imu, simulate_lamps
 from visvec.sim.markers import SpotScene
 from visvec.sim.scene import Scene
@@ -37,7 +37,7 @@ from visvec.sim.stars import PAPER_CASES, StarScene, simulate_stars
 )
 @click.option(
     "--max-tilt-deg",
-    type=click.FloatRange(min=0),
+    type=FiniteFloat(min=0),
     default=5.0,
     show_default=True,
     help="Pitch and roll each within +-this (random: uniform, so the tilt reaches 1.41x it; "
@@ -46,42 +46,42 @@ from visvec.sim.stars import PAPER_CASES, StarScene, simulate_stars
 )
 @click.option(
     "--noise",
-    type=click.FloatRange(min=0),
+    type=FiniteFloat(min=0),
     default=2.0,
     show_default=True,
     help="Read noise sigma, grey levels.",
 )
 @click.option(
     "--contrast",
-    type=float,
+    type=FiniteFloat(),
     default=28.0,
     show_default=True,
     help="Triangle over board, grey levels.",
 )
 @click.option(
     "--blur",
-    type=click.FloatRange(min=0),
+    type=FiniteFloat(min=0),
     default=0.6,
     show_default=True,
     help="Defocus blur sigma, px.",
 )
 @click.option(
     "--exposure",
-    type=click.FloatRange(min=0),
+    type=FiniteFloat(min=0),
     default=1.0,
     show_default=True,
     help="Exposure factor (> 1 over-exposes).",
 )
 @click.option(
     "--lights",
-    type=click.FloatRange(0, 1),
+    type=FiniteFloat(0, 1),
     default=0.0,
     show_default=True,
     help="Fraction of frames with ceiling lights in view.",
 )
 @click.option(
     "--occluder",
-    type=click.FloatRange(0, 1),
+    type=FiniteFloat(0, 1),
     default=0.0,
     show_default=True,
     help="Fraction of frames with a person leaning over.",
@@ -97,20 +97,20 @@ from visvec.sim.stars import PAPER_CASES, StarScene, simulate_stars
 @click.option(
     "--target-offset-mm",
     nargs=2,
-    type=float,
+    type=FiniteFloat(),
     default=(0.0, 0.0),
     help="Shift the real target on the ceiling (dx dy) against the rig file.",
 )
 @click.option(
     "--target-height-mm",
-    type=float,
+    type=FiniteFloat(),
     default=0.0,
     help="Hang the real target this much higher than the rig file says (a ceiling measured wrong).",
 )
 @click.option(
     "--camera-askew-deg",
     nargs=2,
-    type=float,
+    type=FiniteFloat(),
     default=(0.0, 0.0),
     help="Tilt the real camera on its mount (about b1, b2) against the rig file.",
 )
@@ -124,13 +124,13 @@ from visvec.sim.stars import PAPER_CASES, StarScene, simulate_stars
 @click.option(
     "--rate-dps",
     nargs=3,
-    type=float,
+    type=FiniteFloat(),
     default=None,
     help="Starfield: constant rate wx wy wz (deg/s, camera frame).",
 )
 @click.option(
     "--spurious",
-    type=click.FloatRange(0, 5),
+    type=FiniteFloat(0, 5),
     default=0.0,
     show_default=True,
     help="Lamps: extra bright spots per frame, as a fraction of the lamps in view.",
@@ -144,28 +144,28 @@ from visvec.sim.stars import PAPER_CASES, StarScene, simulate_stars
 )
 @click.option(
     "--readout-ms",
-    type=float,
+    type=FiniteFloat(),
     default=None,
     help="Triangle: a rolling shutter's readout, first to last row (default: the rig's "
     "[camera] readout_ms); a --motion sweep or swing is rendered with its rates.",
 )
 @click.option(
     "--exposure-ms",
-    type=click.FloatRange(min=0),
+    type=FiniteFloat(min=0),
     default=None,
     help="Triangle: each row's exposure time, blurring a --motion sweep or swing (default: the "
     "rig's [camera] exposure_ms, else 0).",
 )
 @click.option(
     "--yaw-rate-dps",
-    type=float,
+    type=FiniteFloat(),
     default=None,
     help="Triangle: the yaw rate of a --motion sweep, the peak rate of a swing (default: "
     "0.8 of a turn over the frames).",
 )
 @click.option(
     "--fps",
-    type=click.FloatRange(min=0.01),
+    type=FiniteFloat(min=0.01),
     default=None,
     help="Frame rate of the rendered sequence (default: the rig's).",
 )

@@ -8,6 +8,7 @@ import click
 
 from visvec.cli.camera_fusion import check_fusable, run_fused_camera
 from visvec.cli.common import (
+    FiniteFloat,
     check_new_recording,
     load,
     note_uncalibrated,
@@ -31,7 +32,7 @@ STATUS_EVERY_S = 2.0
 )
 @click.option(
     "--retry-s",
-    type=click.FloatRange(min=0),
+    type=FiniteFloat(min=0),
     default=5.0,
     show_default=True,
     help="How long to retry a camera that stops delivering frames before exit 3.",

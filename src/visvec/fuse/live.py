@@ -84,12 +84,14 @@ class LineParser:
         return dict(zip(self.header, fields, strict=True))
 
 
-def _lines_file(path: str, follow: bool, stop: threading.Event) -> Iterator[str]:
+def _lines_file(path: str, follow: bool, stop: threading.Event, notes) -> Iterator[str]:
     try:
         fh = open(path, newline="")  # noqa: SIM115
     except OSError as exc:
         raise InputFileError(f"{path}: cannot read ({exc.strerror})") from None
     with fh:
+        if follow:
+            notes.put(f"{path}: following")
         buf = ""
         while not stop.is_set():
             chunk = fh.readline()
@@ -198,7 +200,7 @@ class Reader:
             return _lines_udp(self.source, self.stop, _NoteQueue(self))
         if self.source.startswith("serial://"):
             return _lines_serial(self.source, self.stop, _NoteQueue(self))
-        return _lines_file(self.source, self.follow, self.stop)
+        return _lines_file(self.source, self.follow, self.stop, _NoteQueue(self))
 
     def check(self) -> None:
         """Refuse a source that cannot work before anything starts."""

@@ -5,12 +5,19 @@ from __future__ import annotations
 
 import csv
 import json
+import math
 import socket
 from collections.abc import Sequence
 from typing import IO
 from urllib.parse import urlsplit
 
 from visvec.errors import ConfigError
+
+
+def _json_value(v: object) -> object:
+    if isinstance(v, float) and not math.isfinite(v):
+        return None
+    return v
 
 
 class CsvSink:
@@ -35,7 +42,9 @@ class JsonlSink:
         self.columns = list(columns)
 
     def write(self, row: dict[str, object]) -> None:
-        self.stream.write(json.dumps({k: row.get(k) for k in self.columns}) + "\n")
+        # NaN and infinity are not JSON: such a value is written as null
+        obj = {k: _json_value(row.get(k)) for k in self.columns}
+        self.stream.write(json.dumps(obj, allow_nan=False) + "\n")
         self.stream.flush()
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import math
 import re
 from collections.abc import Iterator
 from pathlib import Path
@@ -38,19 +39,46 @@ def to_gray(image: np.ndarray) -> np.ndarray:
 
 
 def read_sidecar(path: Path) -> dict[str, float]:
-    """file name -> time_s from a CSV with columns ``file`` and ``time_s``."""
+    """file name -> time_s from a CSV with columns ``file`` and ``time_s``.
+
+    Raises
+    ------
+    InputFileError
+        A time that is not a finite number, or one that does not increase from line
+        to line (the rows' times must be the recording's own), naming the line.
+    """
     out: dict[str, float] = {}
-    with open(path, newline="") as fh:
-        reader = csv.DictReader(fh)
-        if not reader.fieldnames or not {"file", "time_s"} <= set(reader.fieldnames):
-            return out
-        for line, row in enumerate(reader, start=2):
-            try:
-                out[row["file"]] = float(row["time_s"])
-            except (TypeError, ValueError):
-                raise InputFileError(
-                    f"{path}: line {line}: time_s = {row.get('time_s')!r}, expected a number"
-                ) from None
+    try:
+        fh = open(path, newline="", encoding="utf-8")  # noqa: SIM115
+    except OSError as exc:
+        raise InputFileError(f"{path}: cannot read ({exc.strerror})") from None
+    with fh:
+        try:
+            reader = csv.DictReader(fh)
+            if not reader.fieldnames or not {"file", "time_s"} <= set(reader.fieldnames):
+                return out
+            last = None
+            for line, row in enumerate(reader, start=2):
+                raw = row.get("time_s")
+                try:
+                    t = float(raw)
+                except (TypeError, ValueError):
+                    t = math.nan
+                if not math.isfinite(t):
+                    raise InputFileError(
+                        f"{path}: line {line}: time_s = {raw!r}, expected a finite number"
+                    )
+                if last is not None and t <= last[1]:
+                    raise InputFileError(
+                        f"{path}: line {line}: time_s = {raw} does not increase (line "
+                        f"{last[0]} has {last[1]}); a recording's times must increase"
+                    )
+                last = (line, t)
+                out[row["file"]] = t
+        except UnicodeDecodeError:
+            raise InputFileError(f"{path}: not a UTF-8 text file") from None
+        except csv.Error as exc:
+            raise InputFileError(f"{path}: not a CSV file ({exc})") from None
     return out
 
 
