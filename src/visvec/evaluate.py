@@ -35,8 +35,7 @@ def read_truth(path: str | Path, names: Sequence[str] = ANGLES) -> dict[int, np.
             need = {"frame", *names}
             if not reader.fieldnames or not need <= set(reader.fieldnames):
                 raise InputFileError(
-                    f"{path}: truth file needs columns {sorted(need)}; found "
-                    f"{reader.fieldnames}"
+                    f"{path}: truth file needs columns {sorted(need)}; found {reader.fieldnames}"
                 )
             for line, row in enumerate(reader, start=2):
                 try:
@@ -46,8 +45,7 @@ def read_truth(path: str | Path, names: Sequence[str] = ANGLES) -> dict[int, np.
                     v = None
                 if v is None or not np.all(np.isfinite(v)):
                     raise InputFileError(
-                        f"{path}: line {line}: expected finite numbers in "
-                        f"frame,{','.join(names)}"
+                        f"{path}: line {line}: expected finite numbers in frame,{','.join(names)}"
                     )
                 out[k] = v
         except UnicodeDecodeError:

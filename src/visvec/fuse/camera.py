@@ -60,8 +60,14 @@ class CameraFixes:
                     break
                 if t0 is None:
                     t0, first = time.monotonic(), frame.time_s
-                    self.events.put(Event("note", "fix", t0, text=(
-                        f"{self.source}: first frame (host monotonic clock {t0:.6f} s)")))
+                    self.events.put(
+                        Event(
+                            "note",
+                            "fix",
+                            t0,
+                            text=(f"{self.source}: first frame (host monotonic clock {t0:.6f} s)"),
+                        )
+                    )
                 row = self.pipe.process(frame)
                 self.n_frames += 1
                 if self.sink is not None:
