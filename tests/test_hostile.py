@@ -113,3 +113,62 @@ def test_jsonl_rows_are_json(tmp_path):
     buf = io.StringIO()
     JsonlSink(buf, ["a", "b"]).write({"a": float("nan"), "b": float("inf")})
     assert json.loads(buf.getvalue()) == {"a": None, "b": None}
+
+
+def test_outputs_never_destroy_inputs_or_each_other(tmp_path):
+    """--out over the rig, into the recording, over a calibration's rig file, a URL
+    scheme visvec does not speak, or a file another run is writing: refused (exit 2)
+    before any work, the input untouched."""
+    import shutil
+    import time
+
+    rig = tmp_path / "rig.toml"
+    shutil.copy(RIG, rig)
+    before = rig.read_bytes()
+    rec = tmp_path / "rec"
+    shutil.copytree(SAMPLE, rec)
+    cases = [
+        (["batch", str(rec), "--rig", str(rig), "--out", str(rig)], b"input of the run"),
+        (["batch", str(rec), "--rig", str(rig), "--out", str(rec / "rows.csv")],
+         b"inside the input folder"),
+        (["batch", str(rec), "--rig", str(rig), "--overlay", str(rec / "ov")],
+         b"inside the input folder"),
+        (["batch", str(rec), "--rig", str(rig), "--out", "tcp://127.0.0.1:9"],
+         b"udp://HOST:PORT"),
+        (["calibrate", "zero-tilt", str(rec), "--rig", str(rig), "--out", str(rig)],
+         b"input of the run"),
+    ]  # fmt: skip
+    for args, msg in cases:
+        r = _run(args)
+        assert r.returncode == 2 and msg in r.stderr, (args, r.stderr)
+    assert rig.read_bytes() == before
+    assert sorted(p.name for p in rec.iterdir()) == sorted(p.name for p in SAMPLE.iterdir())
+    assert not (tmp_path / "tcp:").exists()
+    # a second writer of the same file is refused while the first runs (a recording
+    # played at one frame a second)
+    slow = tmp_path / "slow"
+    shutil.copytree(SAMPLE, slow)
+    names = sorted(p.name for p in slow.glob("*.png"))
+    (slow / "truth.csv").unlink()
+    (slow / "times.csv").write_text(
+        "file,time_s\n" + "".join(f"{n},{i}.0\n" for i, n in enumerate(names))
+    )
+    out = tmp_path / "rows.csv"
+    first = subprocess.Popen(
+        [sys.executable, "-m", "visvec", "track", "--rig", str(rig), "--camera", str(slow),
+         "--realtime", "--out", str(out)], stderr=subprocess.PIPE,
+    )  # fmt: skip
+    try:
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline and (not out.exists() or out.read_text().count("\n") < 2):
+            time.sleep(0.05)
+        r = _run(["batch", str(rec), "--rig", str(rig), "--out", str(out)])
+        assert r.returncode == 2 and b"another run is writing" in r.stderr, r.stderr
+        first.terminate()
+        first.wait(timeout=30)
+    finally:
+        first.kill()
+    assert first.returncode == 0
+    text = out.read_text()
+    rows = list(csv.DictReader(text.splitlines()))
+    assert text.endswith("\n") and len(rows) >= 1 and all(r["status"] == "ok" for r in rows)

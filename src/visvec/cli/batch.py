@@ -5,7 +5,15 @@ from __future__ import annotations
 import click
 
 from visvec.cli.camera_fusion import check_fusable, run_fused_batch
-from visvec.cli.common import load, note_uncalibrated, output_options, rig_options, run_frames
+from visvec.cli.common import (
+    check_output,
+    load,
+    note_inputs,
+    note_uncalibrated,
+    output_options,
+    rig_options,
+    run_frames,
+)
 from visvec.evaluate import error_stats, read_truth
 from visvec.pipeline import make_pipeline
 from visvec.sources import open_source
@@ -39,6 +47,9 @@ def batch(path, rig_path, calibration, truth, imu_path, camera_out, out, fmt, me
           max_frames):  # fmt: skip
     """Process a folder of images (natural sort order) or a video file."""
     rig = load(rig_path, calibration)
+    note_inputs(path, truth, imu_path)
+    check_output(overlay, "--overlay")
+    check_output(camera_out, "--camera-out")
     if imu_path is not None:
         check_fusable(rig, overlay, None)
         if truth:

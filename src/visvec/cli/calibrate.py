@@ -15,7 +15,7 @@ from visvec.calib.system import calibration_sections as system_sections
 from visvec.calib.tomlout import dumps
 from visvec.calib.zero_tilt import calibrate_zero_tilt, calibration_sections
 from visvec.camera import CameraModel
-from visvec.cli.common import FiniteFloat, load, rig_options
+from visvec.cli.common import FiniteFloat, check_output, load, note_inputs, rig_options, write_whole
 from visvec.data import Status
 from visvec.detect.markers import MarkerIdentifier
 from visvec.detect.spots import find_spots
@@ -63,6 +63,8 @@ def zero_tilt(frames, rig_path, calibration, out):
     and camera mounting tilt (for --method full), zero-tilt centroid (for --method
     paper)."""
     rig = load(rig_path, calibration, "triangle", "zero-tilt calibration")
+    note_inputs(*frames)
+    check_output(out)
     # every source opened first: a missing one is refused before any work
     sources = [open_source(f, fps=rig.fps, retry_s=0.0) for f in frames]
     pipe = TrianglePipeline(rig, "full", still=True)
@@ -90,7 +92,7 @@ def zero_tilt(frames, rig_path, calibration, out):
             f"visvec zero-tilt calibration, {datetime.now(UTC):%Y-%m-%d %H:%M} UTC\n"
             f"{_rig_named(rig_path, calibration)}, frames {' '.join(frames)} ({n_used} used)"
         )
-        Path(out).write_text(dumps(calibration_sections(res, rig), header))
+        write_whole(out, dumps(calibration_sections(res, rig), header))
     click.echo(
         f"zero-tilt calibration from {len(dets) - int(res.outliers.sum())} frames "
         f"({bad} skipped, {int(res.outliers.sum())} left out)"
@@ -203,6 +205,8 @@ def readout(frames, rig_path, calibration, out, max_frames, principal_point_sigm
     mounted askew together with a target off the axis, left as the rig file has them,
     can pass for a shear."""
     rig = load(rig_path, calibration, "triangle", "readout calibration")
+    note_inputs(frames)
+    check_output(out)
     src = open_source(frames, fps=rig.fps, retry_s=0.0, max_frames=max_frames)
     if rig.zero_tilt.centroid_px is None:
         click.echo(
@@ -222,7 +226,7 @@ def readout(frames, rig_path, calibration, out, max_frames, principal_point_sigm
             f"visvec readout calibration, {datetime.now(UTC):%Y-%m-%d %H:%M} UTC\n"
             f"{_rig_named(rig_path, calibration)}, frames {frames} ({res.n_used} used)"
         )
-        Path(out).write_text(dumps(sections, header))  # before the report
+        write_whole(out, dumps(sections, header))  # before the report
     click.echo(
         f"readout calibration from {res.n_frames} frames (the platform turning at "
         f"{res.rate_dps:.1f} deg/s, median)"
@@ -276,6 +280,8 @@ def readout(frames, rig_path, calibration, out, max_frames, principal_point_sigm
 def camera(frames, pattern, square_mm, recipe, out):
     """Intrinsics and distortion from chessboard photos (a folder or a glob)."""
     pat = parse_pattern(pattern)
+    note_inputs(frames)
+    check_output(out)
     p = Path(frames)
     if p.is_dir():
         files = [f for f in p.iterdir() if f.suffix.lower() in IMAGE_SUFFIXES]
@@ -291,7 +297,7 @@ def camera(frames, pattern, square_mm, recipe, out):
         f"square {square_mm} mm, rms {cal.rms_px:.4f} px",
     )
     if out:
-        Path(out).write_text(text)  # before the report (see zero-tilt)
+        write_whole(out, text)  # before the report (see zero-tilt)
     click.echo(
         f"camera calibration from {len(cal.files)} views "
         f"({len(cal.skipped)} without the pattern: {', '.join(cal.skipped) or '-'})"
@@ -349,6 +355,8 @@ def system(frames, rig_path, calibration, out, max_iterations):
     through many attitudes): intrinsics, camera position, pattern poses (STASIS
     Sec. 2.5). Prints a report like the paper's Table 2."""
     rig = load(rig_path, calibration, "markers", "system calibration")
+    note_inputs(frames)
+    check_output(out)
     # the rig is only roughly known yet: identify with a free translation (which absorbs
     # errors of the camera distance and focal length) and a wide final gate (markers are
     # about 100 px apart, so 10 px cannot confuse two of them)
@@ -388,7 +396,7 @@ def system(frames, rig_path, calibration, out, max_iterations):
             + ", ".join(f"{v:.1f}" for v in res.b_orientation_sigma_arcsec)
             + " arcsec"
         )
-        Path(out).write_text(dumps(system_sections(res), header))  # before the report
+        write_whole(out, dumps(system_sections(res), header))  # before the report
     click.echo(f"system calibration from {n_used} frames, {len(mk_a)} marker positions")
     for line in res.report():
         click.echo(line)

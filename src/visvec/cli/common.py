@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import math
+import os
 import sys
 import time
 from pathlib import Path
@@ -97,6 +99,7 @@ def load(
 ) -> Rig:
     """The rig (with its calibration files, in order); refused unless its target is
     ``kind`` if given."""
+    note_inputs(rig_path, *calibration)
     rig = load_rig(rig_path, calibration)
     if kind is not None and rig.kind != kind:
         raise ConfigError(f"{rig_path}: [target] kind = {rig.kind!r}: {what} is for {kind} rigs")
@@ -116,12 +119,91 @@ def note_uncalibrated(rig: Rig) -> None:
         )
 
 
+try:
+    import fcntl
+except ImportError:  # not POSIX: outputs are not locked
+    fcntl = None
+
+
+def _lock(fh) -> None:
+    """An exclusive lock on an open file, or OSError if another process holds one."""
+    if fcntl is not None:
+        fcntl.flock(fh.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+
+
+_INPUTS: list[Path] = []  # the files and folders this run reads
+
+
+def forget_inputs() -> None:
+    _INPUTS.clear()
+
+
+def note_inputs(*paths) -> None:
+    """Files or folders this run reads: no output may be one of them or lie inside
+    an input folder (see `check_output`)."""
+    for p in paths:
+        if p is None or isinstance(p, int):
+            continue
+        p = str(p)
+        if "://" in p or p == "-" or p.isdigit():
+            continue
+        _INPUTS.append(Path(p))
+
+
+def check_output(path, option: str = "--out") -> None:
+    """Refuse (exit 2, before any work) an output that is one of this run's inputs, or
+    lies inside an input folder (a replay of that folder would pick it up)."""
+    if path is None:
+        return
+    p = Path(str(path))
+    if "://" in str(path) or str(path) == "-":
+        return
+    target = p.resolve()
+    for inp in _INPUTS:
+        try:
+            src = inp.resolve()
+        except OSError:
+            continue
+        if target == src or (p.exists() and inp.exists() and os.path.samefile(p, inp)):
+            raise click.BadParameter(f"{path}: this is an input of the run", param_hint=option)
+        if inp.is_dir() and src in target.parents:
+            raise click.BadParameter(
+                f"{path}: inside the input folder {inp}; put outputs elsewhere",
+                param_hint=option,
+            )
+
+
+def write_whole(path, text: str) -> None:
+    """Write a small file whole or not at all: a temporary file beside it, then a
+    rename (a full disk or a crash leaves the old file, never half a new one)."""
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    tmp = p.with_name(f".{p.name}.{os.getpid()}.tmp")
+    try:
+        with open(tmp, "w", newline="") as fh:
+            fh.write(text)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, p)
+    except OSError as exc:
+        tmp.unlink(missing_ok=True)
+        raise click.ClickException(f"{p}: cannot write ({exc.strerror})") from None
+
+
 @contextlib.contextmanager
-def open_out(path: str | None):
+def open_out(path: str | None, option: str = "--out"):
     """The text stream rows go to: stdout, the file ``path``, or with
-    ``udp://HOST:PORT`` one datagram per row (:class:`~visvec.sinks.UdpStream`)."""
+    ``udp://HOST:PORT`` one datagram per row (:class:`~visvec.sinks.UdpStream`).
+
+    A file is locked while it is written: a second run given the same file is
+    refused (exit 2) instead of mixing its rows into the first's."""
     if path is None or path == "-":
         yield sys.stdout
+    elif "://" in path and not path.startswith("udp://"):
+        raise click.BadParameter(
+            f"{path}: expected a file, - (standard output) or udp://HOST:PORT",
+            param_hint=option,
+        )
     elif path.startswith("udp://"):
         try:
             stream = UdpStream(path)
@@ -134,8 +216,22 @@ def open_out(path: str | None):
             if stream.dropped:
                 click.echo(f"visvec: {path}: {stream.dropped} rows could not be sent", err=True)
     else:
+        check_output(path, option)
         Path(path).parent.mkdir(parents=True, exist_ok=True)
-        with open(path, "w", newline="") as fh:
+        try:
+            fh = open(path, "a", newline="")  # noqa: SIM115 - truncated once locked
+        except OSError as exc:
+            raise click.BadParameter(
+                f"{path}: cannot write ({exc.strerror})", param_hint=option
+            ) from None
+        with fh:
+            try:
+                _lock(fh)
+            except OSError:
+                raise click.BadParameter(
+                    f"{path}: another run is writing this file", param_hint=option
+                ) from None
+            fh.truncate(0)
             yield fh
 
 

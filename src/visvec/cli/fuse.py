@@ -9,7 +9,7 @@ from dataclasses import replace
 import click
 import numpy as np
 
-from visvec.cli.common import FiniteFloat, open_out
+from visvec.cli.common import FiniteFloat, note_inputs, open_out
 from visvec.errors import ConfigError, InputFileError
 from visvec.evaluate import error_stats, read_truth
 from visvec.fuse.inputs import read_fixes, read_imu
@@ -91,6 +91,7 @@ def fuse(imu_path, fixes_path, follow, max_samples, silent_s, gyro_range_dps, ou
     ):
         if v is not None and not math.isfinite(v):
             raise click.BadParameter(f"{v}: expected a finite number", param_hint=name)
+    note_inputs(imu_path, fixes_path, truth)
     if is_live(imu_path, follow) or is_live(fixes_path, follow):
         if truth or rest_s:
             raise click.UsageError("--truth and --rest-s apply to files, not live sources")

@@ -90,6 +90,9 @@ def cli(debug: bool) -> None:
     """
     _route_library_warnings()
     _signals_as_interrupt()
+    from visvec.cli.common import forget_inputs
+
+    forget_inputs()  # a new command (tests run many in one process)
     if not debug:
         # OpenCV's own warnings (for instance every backend it tried on a camera that
         # cannot be opened) would bury visvec's one-line message; --debug keeps them

@@ -7,7 +7,14 @@ import math
 import click
 
 from visvec.cli.batch import run_batch
-from visvec.cli.common import FiniteFloat, load, output_options, rig_options
+from visvec.cli.common import (
+    FiniteFloat,
+    check_output,
+    load,
+    note_inputs,
+    output_options,
+    rig_options,
+)
 from visvec.estimate.rate import rate_budget
 
 
@@ -73,6 +80,8 @@ def rate(
     """Angular rate (deg/s, camera frame) from consecutive star images in PATH (a folder
     or a video), one row per frame; or, with --budget, the expected 1-sigma accuracy."""
     rig = load(rig_path, calibration, "starfield", "visvec rate") if rig_path else None
+    note_inputs(path, truth)
+    check_output(overlay, "--overlay")
     if budget:
         if ifov_deg is None:
             ifov_deg = math.degrees(math.atan(1.0 / rig.camera.fx)) if rig else 0.017

@@ -10,7 +10,9 @@ from visvec.cli.camera_fusion import check_fusable, run_fused_camera
 from visvec.cli.common import (
     FiniteFloat,
     check_new_recording,
+    check_output,
     load,
+    note_inputs,
     note_uncalibrated,
     output_options,
     rig_options,
@@ -72,6 +74,10 @@ def track(
     """Stream one attitude row per frame, flushed row by row, until the source ends,
     --max-frames, or Ctrl-C. With --imu, stream fused rows at the IMU's rate."""
     rig = load(rig_path, calibration)
+    note_inputs(camera)
+    check_output(overlay, "--overlay")
+    check_output(save_frames, "--save-frames")
+    check_output(camera_out, "--camera-out")
     if imu_src is not None:
         check_fusable(rig, overlay, save_frames)
     elif camera_out:
