@@ -172,3 +172,63 @@ def test_outputs_never_destroy_inputs_or_each_other(tmp_path):
     text = out.read_text()
     rows = list(csv.DictReader(text.splitlines()))
     assert text.endswith("\n") and len(rows) >= 1 and all(r["status"] == "ok" for r in rows)
+
+
+def _rig_with(tmp_path, old: str, new: str, name="rig.toml"):
+    text = RIG.read_text()
+    assert old in text
+    p = tmp_path / name
+    p.write_text(text.replace(old, new))
+    return p
+
+
+def test_a_rig_that_cannot_work_is_refused_naming_the_key(tmp_path):
+    """An equilateral triangle (three attitudes 120 deg apart fit it), absurd camera
+    values, a file that is not text or is nested without end, /dev/zero: refused by
+    `check` before any work, naming the file and the key; no traceback, no unbounded
+    read."""
+    verts = (
+        "vertices_mm = [[372.5, 0.0, 2150.0], [-186.3, 190.5, 2150.0], [-186.3, -190.5, 2150.0]]"
+    )
+    eq = "vertices_mm = [[300.0, 0.0, 2150.0], [-150.0, 259.8, 2150.0], [-150.0, -259.8, 2150.0]]"
+    cases = [
+        (_rig_with(tmp_path, verts, eq, "eq.toml"), b"vertices_mm: the angles are"),
+        (_rig_with(tmp_path, "width = 640", "width = 100000000", "w.toml"), b"width"),
+        (_rig_with(tmp_path, "cx = ", "cx = 1e6 #", "cx.toml"), b"cx"),
+    ]
+    text = RIG.read_text()
+    if "dist = " in text:
+        import re
+
+        bad = re.sub(r"dist = \[[^\]]*\]", "dist = [1e6, 0.0, 0.0, 0.0, 0.0]", text)
+    else:
+        bad = text.replace("[camera]\n", "[camera]\ndist = [1e6, 0.0, 0.0, 0.0, 0.0]\n", 1)
+    (tmp_path / "dist.toml").write_text(bad)
+    cases.append((tmp_path / "dist.toml", b"dist"))
+    (tmp_path / "bytes.toml").write_bytes(RIG.read_bytes() + b"\n# \xff\xfe\n")
+    cases.append((tmp_path / "bytes.toml", b"not a UTF-8 text file"))
+    (tmp_path / "deep.toml").write_text("x = " + "[" * 100000 + "]" * 100000 + "\n")
+    cases.append((tmp_path / "deep.toml", b"nested too deeply"))
+    cases.append(("/dev/zero", b"not a rig file"))
+    for rig, msg in cases:
+        r = _run(["check", "--rig", str(rig), "--frames", "1"], timeout=60)
+        assert r.returncode == 2, (rig, r.stderr)
+        assert msg in r.stderr and b"Traceback" not in r.stderr, (rig, r.stderr)
+        assert str(rig).encode() in r.stderr
+
+
+def test_a_lamp_map_that_is_no_map_is_not_echoed(tmp_path):
+    lamps = ROOT / "configs" / "lamps.toml"
+    secret = tmp_path / "secret.txt"
+    secret.write_text("password=hunter2\nmore\n")
+    text = lamps.read_text()
+    import re
+
+    rig = tmp_path / "lamps.toml"
+    rig.write_text(re.sub(r'map = "[^"]*"', f'map = "{secret}"', text))
+    r = _run(["check", "--rig", str(rig)])
+    assert r.returncode == 2 and b"not a lamp map" in r.stderr
+    assert b"hunter2" not in r.stderr
+    rig.write_text(re.sub(r'map = "[^"]*"', 'map = "/dev/zero"', text))
+    r = _run(["check", "--rig", str(rig)], timeout=60)
+    assert r.returncode == 2 and b"not a file" in r.stderr

@@ -17,6 +17,7 @@ mirrored: image triangles are put in the same order after flipping one image axi
 from __future__ import annotations
 
 import csv
+import io
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -43,6 +44,9 @@ class LampMap:
         return len(self.xyz_mm)
 
 
+MAX_MAP_BYTES = 16 << 20
+
+
 def read_lamp_map(path: str | Path, ceiling_z_mm: float) -> LampMap:
     """A lamp map CSV with columns x_mm, y_mm and optional z_mm (``ceiling_z_mm`` where
     it is missing or empty). Refuses a bad row, naming the line, and duplicate lamps;
@@ -55,35 +59,46 @@ def read_lamp_map(path: str | Path, ceiling_z_mm: float) -> LampMap:
         are at the same place, or fewer than 3 lamps are not on one line.
     """
     path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"{path}: the lamp map is not a file")
+    if path.stat().st_size > MAX_MAP_BYTES:
+        raise ConfigError(f"{path}: over {MAX_MAP_BYTES >> 20} MiB: not a lamp map")
     try:
-        fh = open(path, newline="")
+        text = path.read_bytes().decode("utf-8")
     except OSError as exc:
         raise ConfigError(f"{path}: cannot read the lamp map ({exc.strerror})") from None
+    except UnicodeDecodeError:
+        raise ConfigError(f"{path}: not a UTF-8 text file: not a lamp map") from None
     rows = []
-    with fh:
-        reader = csv.DictReader(fh)
+    try:
+        reader = csv.DictReader(io.StringIO(text, newline=""))
         cols = reader.fieldnames or []
-        if "x_mm" not in cols or "y_mm" not in cols:
+    except csv.Error:
+        cols = []
+    if "x_mm" not in cols or "y_mm" not in cols:
+        # the file may be anything the rig points at: its content is not echoed
+        raise ConfigError(f"{path}: not a lamp map (a CSV with columns x_mm,y_mm[,z_mm])")
+    try:
+        parsed = list(enumerate(reader, start=2))
+    except csv.Error as exc:
+        raise ConfigError(f"{path}: not a lamp map ({exc})") from None
+    for line, row in parsed:
+        try:
+            x, y = float(row["x_mm"]), float(row["y_mm"])
+            z_raw = (row.get("z_mm") or "").strip()
+            z = float(z_raw) if z_raw else ceiling_z_mm
+        except (TypeError, ValueError):
             raise ConfigError(
-                f"{path}: lamp map needs columns x_mm,y_mm[,z_mm]; found {cols or 'nothing'}"
+                f"{path}: line {line}: expected numbers in x_mm,y_mm[,z_mm], got "
+                f"{[row.get(k) for k in ('x_mm', 'y_mm', 'z_mm') if k in row]}"
+            ) from None
+        if not all(np.isfinite([x, y, z])):
+            raise ConfigError(f"{path}: line {line}: coordinates must be finite")
+        if z <= 0:
+            raise ConfigError(
+                f"{path}: line {line}: z_mm = {z}: expected the lamp above the camera"
             )
-        for line, row in enumerate(reader, start=2):
-            try:
-                x, y = float(row["x_mm"]), float(row["y_mm"])
-                z_raw = (row.get("z_mm") or "").strip()
-                z = float(z_raw) if z_raw else ceiling_z_mm
-            except (TypeError, ValueError):
-                raise ConfigError(
-                    f"{path}: line {line}: expected numbers in x_mm,y_mm[,z_mm], got "
-                    f"{[row.get(k) for k in ('x_mm', 'y_mm', 'z_mm') if k in row]}"
-                ) from None
-            if not all(np.isfinite([x, y, z])):
-                raise ConfigError(f"{path}: line {line}: coordinates must be finite")
-            if z <= 0:
-                raise ConfigError(
-                    f"{path}: line {line}: z_mm = {z}: expected the lamp above the camera"
-                )
-            rows.append((x, y, z))
+        rows.append((x, y, z))
     xyz = np.array(rows).reshape(-1, 3)
     if len(xyz) < 3:
         raise ConfigError(f"{path}: {len(xyz)} lamps; at least 3 are needed")

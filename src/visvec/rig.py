@@ -301,13 +301,25 @@ class _Section:
 def _read_toml(path: Path, what: str) -> dict[str, Any]:
     try:
         with open(path, "rb") as fh:
-            return tomllib.load(fh)
+            data = fh.read(MAX_RIG_FILE_BYTES + 1)
     except FileNotFoundError:
         raise ConfigError(f"{path}: {what} file not found") from None
     except IsADirectoryError:
         raise ConfigError(f"{path}: is a folder, expected a {what} file (TOML)") from None
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read the {what} file ({exc.strerror})") from None
+    if len(data) > MAX_RIG_FILE_BYTES:
+        raise ConfigError(f"{path}: over {MAX_RIG_FILE_BYTES >> 20} MiB: not a {what} file")
+    try:
+        return tomllib.loads(data.decode("utf-8"))
+    except UnicodeDecodeError as exc:
+        raise ConfigError(
+            f"{path}: not a UTF-8 text file (byte {exc.start}): expected a {what} file (TOML)"
+        ) from None
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML ({exc})") from None
+    except RecursionError:
+        raise ConfigError(f"{path}: nested too deeply to be a {what} file") from None
 
 
 def _merge(base: dict[str, Any], over: Mapping[str, Any]) -> dict[str, Any]:
@@ -389,8 +401,11 @@ def rig_from_dict(
     width = cam.number("width", required=True, positive=True)
     height = cam.number("height", required=True, positive=True)
     for k, v in (("width", width), ("height", height)):
-        if v != int(v):
-            raise ConfigError(f"{src}: [camera] {k} = {v}: expected a whole number of pixels")
+        if v != int(v) or v > MAX_IMAGE_SIDE_PX:
+            raise ConfigError(
+                f"{src}: [camera] {k} = {v}: expected a whole number of pixels up to "
+                f"{MAX_IMAGE_SIDE_PX}"
+            )
     camera = CameraModel(
         width=int(width),
         height=int(height),
@@ -418,6 +433,22 @@ def rig_from_dict(
             "(0 declares a global shutter, whose readout has no uncertainty)"
         )
     cam.check_unknown()
+    for k, v, lo, hi in (("fx", camera.fx, 0.0, 100.0 * camera.width),
+                         ("fy", camera.fy, 0.0, 100.0 * camera.height),
+                         ("cx", camera.cx, 0.0, camera.width),
+                         ("cy", camera.cy, 0.0, camera.height)):  # fmt: skip
+        if not lo <= v <= hi:
+            raise ConfigError(
+                f"{cam._where(k)} = {v}: expected {lo:g} to {hi:g} px for a "
+                f"{camera.width}x{camera.height} image (the principal point lies in the "
+                "image; a focal length beyond 100 image widths is no lens)"
+            )
+    if np.any(np.abs(camera.dist) > MAX_DISTORTION):
+        raise ConfigError(
+            f"{cam._where('dist')} = {[float(x) for x in camera.dist]}: expected "
+            f"coefficients within +-{MAX_DISTORTION:g} (k1 k2 p1 p2 k3, as `visvec "
+            "calibrate camera` writes them)"
+        )
     _check_lens(camera, cam._where("dist"))
 
     mnt = _Section(src, "mount", raw["mount"], origins.get("mount", {}))
@@ -495,6 +526,12 @@ def rig_from_dict(
     return rig
 
 
+APEX_MARGIN_DEG = 10.0
+MAX_IMAGE_SIDE_PX = 20000
+MAX_DISTORTION = 50.0  # |k1|, |k2|, |p1|, |p2|, |k3| of any lens this model fits
+MAX_RIG_FILE_BYTES = 1 << 20
+
+
 def _check_triangle(v: np.ndarray, src: str) -> None:
     """Refuse a triangle that is degenerate, not level, or whose first vertex is not the
     most acute."""
@@ -520,6 +557,27 @@ def _check_triangle(v: np.ndarray, src: str) -> None:
         raise ConfigError(
             f"{src}: [target] vertices_mm: the first vertex must be the most acute one "
             f"(opposite the shortest side); side lengths are {[round(x, 1) for x in e]} mm"
+        )
+    # ... and clearly so: the detector tells the vertices apart by their angles, which
+    # perspective and noise move by a few degrees (an equilateral target gives any of
+    # three attitudes 120 deg apart)
+    a, b, c = e
+    ang = np.degrees(
+        np.arccos(
+            np.clip(
+                [(b * b + c * c - a * a) / (2 * b * c), (a * a + c * c - b * b) / (2 * a * c)],
+                -1,
+                1,
+            )
+        )
+    )
+    angles = [float(ang[0]), float(ang[1]), 180.0 - float(ang[0] + ang[1])]
+    if min(angles[1:]) - angles[0] < APEX_MARGIN_DEG:
+        raise ConfigError(
+            f"{src}: [target] vertices_mm: the angles are "
+            f"{[round(x, 1) for x in angles]} deg; the first (acute) vertex's angle must be "
+            f"at least {APEX_MARGIN_DEG:g} deg smaller than the other two, so that the "
+            "camera can tell it apart (an acute isosceles triangle, such as 38/71/71)"
         )
 
 
