@@ -232,3 +232,75 @@ def test_a_lamp_map_that_is_no_map_is_not_echoed(tmp_path):
     rig.write_text(re.sub(r'map = "[^"]*"', 'map = "/dev/zero"', text))
     r = _run(["check", "--rig", str(rig)], timeout=60)
     assert r.returncode == 2 and b"not a file" in r.stderr
+
+
+def _sample_video(path, damage=None, cut=None):
+    """The 12 sample frames as an MJPG AVI at 10 fps; ``damage``: a frame whose JPEG
+    data is zeroed; ``cut``: keep this share of the file."""
+    import cv2
+
+    from visvec.imageio import read_image
+
+    names = sorted(p for p in SAMPLE.glob("*.png"))
+    w = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 10.0, (640, 480))
+    for n in names:
+        w.write(cv2.cvtColor(read_image(n, cv2.IMREAD_GRAYSCALE), cv2.COLOR_GRAY2BGR))
+    w.release()
+    data = bytearray(path.read_bytes())
+    if damage is not None:
+        soi = [i for i in range(len(data) - 1) if data[i] == 0xFF and data[i + 1] == 0xD8]
+        data[soi[damage] : soi[damage] + 400] = bytes(400)
+    if cut is not None:
+        data = data[: int(len(data) * cut)]
+    path.write_bytes(bytes(data))
+    return len(names)
+
+
+def test_a_damaged_video_keeps_every_row_in_its_place(tmp_path):
+    """A frame that cannot be decoded is a read_error row under its own index and time;
+    the frames after it keep theirs (their values match their own truth)."""
+    vid = tmp_path / "damaged.avi"
+    n = _sample_video(vid, damage=5)
+    out = tmp_path / "rows.csv"
+    r = _run(["batch", str(vid), "--rig", str(RIG), "--out", str(out)])
+    assert r.returncode == 0, r.stderr
+    rows = list(csv.DictReader(open(out)))
+    truth = {int(t["frame"]): t for t in csv.DictReader(open(SAMPLE / "truth.csv"))}
+    assert [int(x["frame"]) for x in rows] == list(range(n))
+    assert rows[5]["status"] == "read_error" and b"frame 5" in r.stderr
+    for x in rows:
+        k = int(x["frame"])
+        assert abs(float(x["time_s"]) - k / 10.0) < 1e-6
+        if k != 5:
+            assert x["status"] == "ok"
+            d = (float(x["yaw_deg"]) - float(truth[k]["yaw_deg"]) + 180) % 360 - 180
+            assert abs(d) < 0.5, (k, d)
+    assert b"mjpeg @" not in r.stderr  # FFmpeg's message names no frame: ours does
+
+
+def test_a_video_cut_short_says_so_and_an_empty_one_is_refused(tmp_path):
+    vid = tmp_path / "cut.avi"
+    n = _sample_video(vid, cut=0.5)
+    r = _run(["batch", str(vid), "--rig", str(RIG), "--out", str(tmp_path / "rows.csv")])
+    rows = list(csv.DictReader(open(tmp_path / "rows.csv")))
+    # the frames the container lists but the file no longer holds are read_error rows,
+    # each named; none of the frames the cut touched is an ok row
+    assert r.returncode == 0, r.stderr
+    assert [int(x["frame"]) for x in rows] == list(range(n))
+    assert rows[-1]["status"] == "read_error" and f"frame {n - 1}".encode() in r.stderr
+    first_bad = next(i for i, x in enumerate(rows) if x["status"] != "ok")
+    assert 0 < first_bad < n and all(x["status"] != "ok" for x in rows[first_bad:])
+    import cv2
+
+    empty = tmp_path / "empty.avi"
+    w = cv2.VideoWriter(str(empty), cv2.VideoWriter_fourcc(*"MJPG"), 10.0, (640, 480))
+    w.release()
+    r = _run(["batch", str(empty), "--rig", str(RIG)])
+    assert r.returncode == 3 and b"Traceback" not in r.stderr, r.stderr
+
+
+def test_a_fifo_given_as_a_video_is_refused_at_once(tmp_path):
+    fifo = tmp_path / "pipe.avi"
+    os.mkfifo(fifo)
+    r = _run(["batch", str(fifo), "--rig", str(RIG)], timeout=30)
+    assert r.returncode == 3 and b"not a regular file" in r.stderr

@@ -32,6 +32,12 @@ def open_source(
         raise SourceError(f"{p}: no such file or folder")
     if p.suffix.lower() in IMAGE_SUFFIXES:
         return FolderSource(p.parent, fps=fps, files=[p])
+    if not p.is_file():
+        # a FIFO or a device: OpenCV's reader would block on it for ever, deaf to Ctrl-C
+        raise SourceError(
+            f"{p}: not a regular file (a pipe or a device); give a video file, a folder, a "
+            "camera index or a stream URL"
+        )
     if opencv_path(p) is None:
         raise SourceError(
             f"{p}: the file name is not UTF-8, which OpenCV's video reader cannot take; "

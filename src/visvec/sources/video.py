@@ -23,6 +23,9 @@ SOURCE_CLOCK_TOLERANCE_S = 0.5
 REOPEN_EVERY_S = 1.0
 
 
+MAX_UNREADABLE_IN_A_ROW = 25  # then a file is taken to be cut short there
+
+
 class VideoSource:
     """Frames from a camera index, a video file or a stream URL.
 
@@ -96,14 +99,37 @@ class VideoSource:
 
     def __iter__(self) -> Iterator[Frame]:
         i = 0
+        failed = 0  # frames of a file that could not be decoded, in a row
         try:
             while self.max_frames is None or i < self.max_frames:
                 ok, img = self.cap.read()
+                if not ok and not self.live:
+                    count = int(self.cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
+                    if count <= 0 or i >= count:
+                        if i == 0:
+                            raise SourceError(f"{self.spec}: no frame of the video can be read")
+                        return  # the file has ended
+                    # a frame the container has but the decoder cannot read: a row of its
+                    # own, and the next frames keep their own index and time
+                    failed += 1
+                    if failed > MAX_UNREADABLE_IN_A_ROW:
+                        _log.warning(
+                            "%s: frames %d to %d of %d cannot be read (the file is damaged or "
+                            "cut short); the run ends there",
+                            self.spec, i - failed + 1, count - 1, count,
+                        )  # fmt: skip
+                        return
+                    yield Frame(i, i / self.fps, None, f"{self.spec}#{i}",
+                                error=f"frame {i} of the video cannot be decoded")  # fmt: skip
+                    i += 1
+                    self.cap.set(cv2.CAP_PROP_POS_FRAMES, float(i))
+                    continue
                 if not ok:
                     count = self.cap.get(cv2.CAP_PROP_FRAME_COUNT)
-                    if not self.live or (count and count > 0 and i >= count):
-                        return  # a file (or a stream of known length) has ended
+                    if count and count > 0 and i >= count:
+                        return  # a stream of known length has ended
                     img = self._retry()
+                failed = 0
                 now = time.monotonic()
                 if self._t0 is None:
                     self._t0 = now
@@ -112,6 +138,14 @@ class VideoSource:
                 else:
                     ms = self.cap.get(cv2.CAP_PROP_POS_MSEC)
                     t = ms / 1000.0 if ms and ms > 0 else i / self.fps
+                    # the container's own frame number: frames the decoder skipped
+                    # silently are rows of their own, not shifted onto the next one's
+                    k = int(round(t * self.fps)) if ms and ms > 0 else i
+                    while i < k and (self.max_frames is None or i < self.max_frames):
+                        yield Frame(i, i / self.fps, None, f"{self.spec}#{i}",
+                                    error=f"frame {i} of the video was skipped by the "
+                                    "decoder")  # fmt: skip
+                        i += 1
                 if img is None or img.size == 0:
                     yield Frame(i, t, None, f"{self.spec}#{i}", error="empty frame")
                 else:
