@@ -304,3 +304,32 @@ def test_a_fifo_given_as_a_video_is_refused_at_once(tmp_path):
     os.mkfifo(fifo)
     r = _run(["batch", str(fifo), "--rig", str(RIG)], timeout=30)
     assert r.returncode == 3 and b"not a regular file" in r.stderr
+
+
+def test_a_calibration_that_should_be_refused(tmp_path):
+    """Zero-tilt frames that are not level are refused, nothing written; a
+    calibration made with one camera is refused on another (size or intrinsics),
+    naming both."""
+    tilted = tmp_path / "tilted"
+    r = _run(["simulate", "--rig", str(RIG), "--out", str(tilted), "--frames", "12",
+              "--max-tilt-deg", "5"])  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    out = tmp_path / "zero.toml"
+    r = _run(["calibrate", "zero-tilt", str(tilted), "--rig", str(RIG), "--out", str(out)])
+    assert r.returncode == 1 and b"do not fit a level platform" in r.stderr, r.stderr
+    assert not out.exists()
+    level = tmp_path / "level"
+    r = _run(["simulate", "--rig", str(RIG), "--out", str(level), "--frames", "12",
+              "--motion", "level"])  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    r = _run(["calibrate", "zero-tilt", str(level), "--rig", str(RIG), "--out", str(out)])
+    assert r.returncode == 0, r.stderr
+    assert "[made_for]" in out.read_text()
+    r = _run(["check", "--rig", str(RIG), "--calibration", str(out), "--frames", "1"])
+    assert r.returncode == 0, r.stderr
+    other = _rig_with(tmp_path, "fx = 600.0", "fx = 640.0", "other.toml")
+    r = _run(["check", "--rig", str(other), "--calibration", str(out), "--frames", "1"])
+    assert r.returncode == 2 and b"fx = 600" in r.stderr and b"calibrate again" in r.stderr
+    big = _rig_with(tmp_path, "width = 640", "width = 800", "big.toml")
+    r = _run(["check", "--rig", str(big), "--calibration", str(out), "--frames", "1"])
+    assert r.returncode == 2 and b"640x480" in r.stderr, r.stderr

@@ -346,6 +346,37 @@ def _rotation(sec: _Section, key: str) -> np.ndarray:
 
 
 _SECTIONS = ("camera", "mount", "target", "platform", "detect", "zero_tilt", "source", "report")
+MADE_FOR_F_TOL = 0.02  # a calibration's camera: focal lengths within 2 % ...
+MADE_FOR_C_TOL = 0.02  # ... and the principal point within 2 % of the width
+
+
+def _check_made_for(made: Any, raw: Mapping[str, Any], cal_path: Path) -> None:
+    """Refuse a calibration made with another camera than the one it is applied to
+    (the rig's [camera] with the calibrations before it): its offsets are then wrong
+    by more than their sigma."""
+    if not isinstance(made, dict):
+        raise ConfigError(f"{cal_path}: [made_for] must be a table")
+    cam = raw.get("camera", {}) if isinstance(raw.get("camera"), dict) else {}
+    for k in ("width", "height"):
+        if k in made and k in cam and made[k] != cam[k]:
+            raise ConfigError(
+                f"{cal_path}: made for a {made.get('width')}x{made.get('height')} image; the "
+                f"rig's camera is {cam.get('width')}x{cam.get('height')}: calibrate again at "
+                "this size"
+            )
+    width = float(cam.get("width", 1) or 1)
+    for k, tol in (("fx", MADE_FOR_F_TOL), ("fy", MADE_FOR_F_TOL), ("cx", MADE_FOR_C_TOL),
+                   ("cy", MADE_FOR_C_TOL)):  # fmt: skip
+        a, b = made.get(k), cam.get(k)
+        if not isinstance(a, int | float) or not isinstance(b, int | float):
+            continue
+        off = abs(a - b) / (abs(b) if k in ("fx", "fy") else width)
+        if off > tol:
+            raise ConfigError(
+                f"{cal_path}: made with [camera] {k} = {a}; the rig's is {b}: a calibration "
+                "made with another camera model is wrong for this one; calibrate again with "
+                "the camera as it is now"
+            )
 
 
 def load_rig(path: str | Path, calibration: str | Path | Sequence[str | Path] | None = None) -> Rig:
@@ -368,9 +399,12 @@ def load_rig(path: str | Path, calibration: str | Path | Sequence[str | Path] | 
     origins = {k: dict.fromkeys(t, str(path)) for k, t in raw.items() if isinstance(t, dict)}
     for cal_path in calibration:
         cal = _read_toml(Path(cal_path), "calibration")
-        bad = sorted(set(cal) - set(_SECTIONS))
+        bad = sorted(set(cal) - set(_SECTIONS) - {"made_for"})
         if bad:
             raise ConfigError(f"{cal_path}: unknown section(s) {bad}")
+        made = cal.pop("made_for", None)
+        if made is not None:
+            _check_made_for(made, raw, Path(cal_path))
         raw = _merge(raw, cal)
         for name, table in cal.items():
             if isinstance(table, dict):

@@ -79,12 +79,15 @@ def zero_tilt(frames, rig_path, calibration, out):
                 names.append(where + (frame.name or f"frame {frame.index}"))
             else:
                 bad += 1
-                click.echo(
-                    f"{where}frame {frame.index}: skipped ({row.status}: {';'.join(row.warnings)})",
-                    err=True,
+                why = (
+                    frame.error or pipe.check_frame(frame) or "unreadable"
+                    if row.status == "read_error"
+                    else ";".join(row.warnings) or "no detail"
                 )
+                click.echo(f"{where}frame {frame.index}: skipped ({row.status}: {why})", err=True)
     res = calibrate_zero_tilt(dets, rig)
-    if res.converged and not res.camera_off:
+    not_level = res.converged and res.sigma_ratio > NOT_LEVEL_RATIO
+    if res.converged and not res.camera_off and not not_level:
         # written before the report is printed: a reader that closes the pipe early
         # (`| head`) loses none of it
         n_used = len(dets) - int(res.outliers.sum())
@@ -92,11 +95,22 @@ def zero_tilt(frames, rig_path, calibration, out):
             f"visvec zero-tilt calibration, {datetime.now(UTC):%Y-%m-%d %H:%M} UTC\n"
             f"{_rig_named(rig_path, calibration)}, frames {' '.join(frames)} ({n_used} used)"
         )
-        write_whole(out, dumps(calibration_sections(res, rig), header))
+        sections = {**calibration_sections(res, rig), "made_for": made_for(rig)}
+        write_whole(out, dumps(sections, header))
     click.echo(
         f"zero-tilt calibration from {len(dets) - int(res.outliers.sum())} frames "
         f"({bad} skipped, {int(res.outliers.sum())} left out)"
     )
+    if not_level:
+        click.echo(
+            f"visvec: error: these frames do not fit a level platform at rest: the vertices "
+            f"scatter {res.sigma_ratio:.0f}x their sigma over the fit (at most "
+            f"{NOT_LEVEL_RATIO:g} for a level platform, whatever the camera or target "
+            "offset). Level the platform and keep it still in every recording; nothing "
+            "written",
+            err=True,
+        )
+        raise SystemExit(1)
     _camera_check(res, rig)
     click.echo(
         f"  target offset from the axis: dx {res.target_offset_mm[0]:+.2f} +- "
@@ -152,6 +166,20 @@ def zero_tilt(frames, rig_path, calibration, out):
         click.echo("visvec: error: the calibration did not converge; nothing written", err=True)
         raise SystemExit(1)
     click.echo(f"wrote {out}; later runs take {_runs_with(calibration, out)}")
+
+
+def made_for(rig) -> dict[str, object]:
+    """The camera a calibration was made with ([made_for]: checked when it is applied,
+    see rig.load_rig)."""
+    c = rig.camera
+    return {"width": c.width, "height": c.height, "fx": round(c.fx, 6), "fy": round(c.fy, 6),
+            "cx": round(c.cx, 6), "cy": round(c.cy, 6)}  # fmt: skip
+
+
+# a level, still platform leaves the vertices within a few times their sigma of the fit
+# even with a camera model a little off (aspect 0.5 % off: 5.5, module doc of
+# calib.zero_tilt); tilted frames leave hundreds
+NOT_LEVEL_RATIO = 20.0
 
 
 def _camera_check(res, rig) -> None:
@@ -226,6 +254,7 @@ def readout(frames, rig_path, calibration, out, max_frames, principal_point_sigm
             f"visvec readout calibration, {datetime.now(UTC):%Y-%m-%d %H:%M} UTC\n"
             f"{_rig_named(rig_path, calibration)}, frames {frames} ({res.n_used} used)"
         )
+        sections["made_for"] = made_for(rig)
         write_whole(out, dumps(sections, header))  # before the report
     click.echo(
         f"readout calibration from {res.n_frames} frames (the platform turning at "
@@ -396,7 +425,8 @@ def system(frames, rig_path, calibration, out, max_iterations):
             + ", ".join(f"{v:.1f}" for v in res.b_orientation_sigma_arcsec)
             + " arcsec"
         )
-        write_whole(out, dumps(system_sections(res), header))  # before the report
+        sections = {**system_sections(res), "made_for": made_for(rig)}
+        write_whole(out, dumps(sections, header))  # before the report
     click.echo(f"system calibration from {n_used} frames, {len(mk_a)} marker positions")
     for line in res.report():
         click.echo(line)
