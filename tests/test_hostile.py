@@ -333,3 +333,49 @@ def test_a_calibration_that_should_be_refused(tmp_path):
     big = _rig_with(tmp_path, "width = 640", "width = 800", "big.toml")
     r = _run(["check", "--rig", str(big), "--calibration", str(out), "--frames", "1"])
     assert r.returncode == 2 and b"640x480" in r.stderr, r.stderr
+
+
+def test_a_full_disk_leaves_whole_rows_and_names_the_file(tmp_path):
+    """Writes that fail part-way (a file size limit standing in for a full disk): the
+    file is cut back to its last whole row and the error names it (exit 1)."""
+    import resource
+    import signal
+
+    def limit():
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+        resource.setrlimit(resource.RLIMIT_FSIZE, (1500, 1500))
+
+    out = tmp_path / "rows.csv"
+    r = subprocess.run(
+        [sys.executable, "-m", "visvec", "batch", str(SAMPLE), "--rig", str(RIG), "--out",
+         str(out)], capture_output=True, preexec_fn=limit,
+    )  # fmt: skip
+    assert r.returncode == 1, r.stderr
+    assert str(out).encode() in r.stderr and b"complete rows" in r.stderr
+    assert b"unexpected" not in r.stderr
+    text = out.read_text()
+    assert text.endswith("\n") and 0 < len(text) <= 1500
+    lines = text.splitlines()
+    assert len({line.count(",") for line in lines}) == 1  # no cut row
+    r = _run(["batch", str(SAMPLE), "--rig", str(RIG), "--out", "/dev/full"])
+    assert r.returncode == 1 and b"/dev/full" in r.stderr and b"unexpected" not in r.stderr
+
+
+def test_ctrl_c_on_simulate_says_the_folder_is_incomplete(tmp_path):
+    import signal
+    import time
+
+    out = tmp_path / "sim"
+    p = subprocess.Popen(
+        [sys.executable, "-m", "visvec", "simulate", "--rig", str(RIG), "--out", str(out),
+         "--frames", "2000"], stderr=subprocess.PIPE,
+    )  # fmt: skip
+    try:
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and len(list(out.glob("*.png"))) < 2:
+            time.sleep(0.05)
+        p.send_signal(signal.SIGINT)
+        _, err = p.communicate(timeout=60)
+    finally:
+        p.kill()
+    assert p.returncode == 130 and b"incomplete" in err, err

@@ -24,3 +24,8 @@ class SourceError(VisvecError, OSError):
 
 class InputFileError(VisvecError, ValueError):
     """A data file (truth, frames list, sidecar) has a bad row; the message names it."""
+
+
+class OutputError(VisvecError, OSError):
+    """Rows cannot be written (a full disk, a file removed under the run): the message
+    names the output and how many rows it holds, all of them complete."""

@@ -125,6 +125,16 @@ except ImportError:  # not POSIX: outputs are not locked
     fcntl = None
 
 
+def _discard_close(fh) -> None:
+    try:
+        fh.close()
+    except OSError:
+        try:
+            os.close(fh.fileno())
+        except (OSError, ValueError):
+            pass
+
+
 def _lock(fh) -> None:
     """An exclusive lock on an open file, or OSError if another process holds one."""
     if fcntl is not None:
@@ -224,15 +234,23 @@ def open_out(path: str | None, option: str = "--out"):
             raise click.BadParameter(
                 f"{path}: cannot write ({exc.strerror})", param_hint=option
             ) from None
-        with fh:
+        try:
             try:
                 _lock(fh)
             except OSError:
                 raise click.BadParameter(
                     f"{path}: another run is writing this file", param_hint=option
                 ) from None
-            fh.truncate(0)
+            if Path(path).is_file():
+                fh.truncate(0)
             yield fh
+        except BaseException:
+            # a write already failed and was reported (OutputError): what is left in the
+            # buffer is the row that was cut back, and closing must not write it again
+            _discard_close(fh)
+            raise
+        else:
+            fh.close()
 
 
 def check_new_recording(folder: str | Path) -> None:

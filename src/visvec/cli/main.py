@@ -12,7 +12,7 @@ import sys
 import click
 
 from visvec import __version__
-from visvec.errors import ConfigError, InputFileError, SourceError
+from visvec.errors import ConfigError, InputFileError, OutputError, SourceError
 
 
 class VisvecGroup(click.Group):
@@ -26,6 +26,9 @@ class VisvecGroup(click.Group):
         except SourceError as exc:
             click.echo(f"visvec: error: {exc}", err=True)
             sys.exit(3)
+        except OutputError as exc:
+            click.echo(f"visvec: error: {exc}", err=True)
+            sys.exit(1)
         except (click.ClickException, click.exceptions.Exit, click.Abort, SystemExit):
             raise
         except KeyboardInterrupt:

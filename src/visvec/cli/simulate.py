@@ -199,6 +199,24 @@ def simulate(
 ):
     """Render frames of the rig's target at known attitudes (or, for a starfield rig, a
     sky turning at a known rate); write OUT/truth.csv."""
+    try:
+        _simulate(rig_path, calibration, out_dir, n_frames, seed, motion, max_tilt_deg, noise,
+                  contrast, blur, exposure, lights, occluder, no_triangle, reflections,
+                  target_offset_mm, target_height_mm, camera_askew_deg, case, rate_dps,
+                  spurious, imu, readout_ms, exposure_ms, yaw_rate_dps, fps)  # fmt: skip
+    except KeyboardInterrupt:
+        click.echo(
+            f"visvec: interrupted: the simulation in {out_dir} is incomplete (its truth.csv "
+            "lists the frames written); run it again to complete it",
+            err=True,
+        )
+        sys.exit(130)
+
+
+def _simulate(rig_path, calibration, out_dir, n_frames, seed, motion, max_tilt_deg, noise,
+              contrast, blur, exposure, lights, occluder, no_triangle, reflections,
+              target_offset_mm, target_height_mm, camera_askew_deg, case, rate_dps, spurious,
+              imu, readout_ms, exposure_ms, yaw_rate_dps, fps) -> None:  # fmt: skip
     rig = load(rig_path, calibration)
     lamp_only = spurious > 0 or motion in ("perimeter", "rest")
     if lamp_only and rig.kind != "lamps":

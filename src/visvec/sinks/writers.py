@@ -4,14 +4,17 @@ Ctrl-C loses nothing already produced."""
 from __future__ import annotations
 
 import csv
+import io
 import json
 import math
+import os
 import socket
+import stat
 from collections.abc import Sequence
 from typing import IO
 from urllib.parse import urlsplit
 
-from visvec.errors import ConfigError
+from visvec.errors import ConfigError, OutputError
 
 
 def _json_value(v: object) -> object:
@@ -20,18 +23,74 @@ def _json_value(v: object) -> object:
     return v
 
 
+class _Lines:
+    """Writes whole lines: each flushed at once, and on a write error (a full disk) the
+    file is cut back to its last whole line and OutputError names it."""
+
+    def __init__(self, stream: IO[str]):
+        self.stream = stream
+        self.n = 0
+
+    def put(self, text: str) -> None:
+        s = self.stream
+        fd = _regular_fd(s)
+        try:
+            if fd is None:
+                s.write(text)
+                s.flush()
+            else:
+                # a file: straight to it, so that nothing of a row that failed part-way
+                # stays in a buffer to be written again at close
+                pos = os.lseek(fd, 0, os.SEEK_END)
+                data = text.encode("utf-8")
+                try:
+                    while data:
+                        data = data[os.write(fd, data) :]
+                except OSError:
+                    os.ftruncate(fd, pos)
+                    raise
+        except BrokenPipeError:
+            raise  # the reader went away (`| head`): the run ends quietly (cli.main)
+        except OSError as exc:
+            name = getattr(s, "name", "the output")
+            raise OutputError(
+                f"{name}: cannot write ({exc.strerror or exc}); it holds {self.n} complete "
+                "rows and no part of another"
+            ) from None
+        self.n += 1
+
+
+def _regular_fd(stream) -> int | None:
+    """The descriptor of a stream that is a regular file, else None."""
+    try:
+        fd = stream.fileno()
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            return None
+        stream.flush()
+        return fd
+    except (AttributeError, OSError, ValueError, io.UnsupportedOperation):
+        return None
+
+
 class CsvSink:
     """CSV with a header line; empty fields for None."""
 
     def __init__(self, stream: IO[str], columns: Sequence[str]):
         self.stream = stream
-        self.writer = csv.DictWriter(stream, fieldnames=list(columns), lineterminator="\n")
-        self.writer.writeheader()
-        stream.flush()
+        self.columns = list(columns)
+        self.lines = _Lines(stream)
+        self.lines.put(self._line(dict(zip(self.columns, self.columns, strict=True))))
+        self.lines.n = 0
+
+    def _line(self, row: dict[str, object]) -> str:
+        buf = io.StringIO()
+        csv.DictWriter(buf, fieldnames=self.columns, lineterminator="\n").writerow(
+            {k: ("" if v is None else v) for k, v in row.items()}
+        )
+        return buf.getvalue()
 
     def write(self, row: dict[str, object]) -> None:
-        self.writer.writerow({k: ("" if v is None else v) for k, v in row.items()})
-        self.stream.flush()
+        self.lines.put(self._line(row))
 
 
 class JsonlSink:
@@ -40,12 +99,12 @@ class JsonlSink:
     def __init__(self, stream: IO[str], columns: Sequence[str]):
         self.stream = stream
         self.columns = list(columns)
+        self.lines = _Lines(stream)
 
     def write(self, row: dict[str, object]) -> None:
         # NaN and infinity are not JSON: such a value is written as null
         obj = {k: _json_value(row.get(k)) for k in self.columns}
-        self.stream.write(json.dumps(obj, allow_nan=False) + "\n")
-        self.stream.flush()
+        self.lines.put(json.dumps(obj, allow_nan=False) + "\n")
 
 
 class UdpStream:
