@@ -159,7 +159,7 @@ def load_catalog(path: str | Path) -> Catalog:
     """A catalogue written by :meth:`Catalog.save` (`visvec catalog build`)."""
     path = Path(path)
     try:
-        with np.load(path) as z:
+        with np.load(path, allow_pickle=False) as z:
             if int(z["version"]) != CATALOG_VERSION:
                 raise InputFileError(
                     f"{path}: catalogue version {int(z['version'])}, expected {CATALOG_VERSION}"

@@ -25,8 +25,10 @@ from visvec.sim.stars import PAPER_CASES, StarScene, simulate_stars
     type=click.Path(file_okay=False),
     help="Folder for the frames and truth.csv.",
 )
-@click.option("--frames", "n_frames", type=click.IntRange(min=1), default=20, show_default=True)
-@click.option("--seed", type=int, default=0, show_default=True)
+@click.option("--frames", "n_frames", type=click.IntRange(1, 1_000_000), default=20,
+              show_default=True, help="How many frames to render.")  # fmt: skip
+@click.option("--seed", type=int, default=0, show_default=True,
+              help="Seed of the attitudes and the noise (same seed, same frames).")  # fmt: skip
 @click.option(
     "--motion",
     type=click.Choice(["random", "sweep", "swing", "level", "perimeter", "rest"]),
@@ -37,7 +39,7 @@ from visvec.sim.stars import PAPER_CASES, StarScene, simulate_stars
 )
 @click.option(
     "--max-tilt-deg",
-    type=FiniteFloat(min=0),
+    type=FiniteFloat(0, 60),
     default=5.0,
     show_default=True,
     help="Pitch and roll each within +-this (random: uniform, so the tilt reaches 1.41x it; "
@@ -46,28 +48,28 @@ from visvec.sim.stars import PAPER_CASES, StarScene, simulate_stars
 )
 @click.option(
     "--noise",
-    type=FiniteFloat(min=0),
+    type=FiniteFloat(0, 100),
     default=2.0,
     show_default=True,
     help="Read noise sigma, grey levels.",
 )
 @click.option(
     "--contrast",
-    type=FiniteFloat(),
+    type=FiniteFloat(-255, 255),
     default=28.0,
     show_default=True,
     help="Triangle over board, grey levels.",
 )
 @click.option(
     "--blur",
-    type=FiniteFloat(min=0),
+    type=FiniteFloat(0, 20),
     default=0.6,
     show_default=True,
     help="Defocus blur sigma, px.",
 )
 @click.option(
     "--exposure",
-    type=FiniteFloat(min=0),
+    type=FiniteFloat(0, 100),
     default=1.0,
     show_default=True,
     help="Exposure factor (> 1 over-exposes).",
@@ -89,7 +91,7 @@ from visvec.sim.stars import PAPER_CASES, StarScene, simulate_stars
 @click.option("--no-triangle", is_flag=True, help="Render the board without the triangle.")
 @click.option(
     "--reflections",
-    type=click.IntRange(min=0),
+    type=click.IntRange(0, 100),
     default=0,
     show_default=True,
     help="Markers: stray reflection spots per frame.",
@@ -97,20 +99,20 @@ from visvec.sim.stars import PAPER_CASES, StarScene, simulate_stars
 @click.option(
     "--target-offset-mm",
     nargs=2,
-    type=FiniteFloat(),
+    type=FiniteFloat(-10000, 10000),
     default=(0.0, 0.0),
     help="Shift the real target on the ceiling (dx dy) against the rig file.",
 )
 @click.option(
     "--target-height-mm",
-    type=FiniteFloat(),
+    type=FiniteFloat(-10000, 10000),
     default=0.0,
     help="Hang the real target this much higher than the rig file says (a ceiling measured wrong).",
 )
 @click.option(
     "--camera-askew-deg",
     nargs=2,
-    type=FiniteFloat(),
+    type=FiniteFloat(-45, 45),
     default=(0.0, 0.0),
     help="Tilt the real camera on its mount (about b1, b2) against the rig file.",
 )
@@ -124,7 +126,7 @@ from visvec.sim.stars import PAPER_CASES, StarScene, simulate_stars
 @click.option(
     "--rate-dps",
     nargs=3,
-    type=FiniteFloat(),
+    type=FiniteFloat(-10000, 10000),
     default=None,
     help="Starfield: constant rate wx wy wz (deg/s, camera frame).",
 )
@@ -158,7 +160,7 @@ from visvec.sim.stars import PAPER_CASES, StarScene, simulate_stars
 )
 @click.option(
     "--yaw-rate-dps",
-    type=FiniteFloat(),
+    type=FiniteFloat(-3600, 3600),
     default=None,
     help="Triangle: the yaw rate of a --motion sweep, the peak rate of a swing (default: "
     "0.8 of a turn over the frames).",

@@ -57,11 +57,32 @@ def _number(row: dict, key: str, path: Path, line: int) -> float:
 
 def _open_csv(path: Path, what: str):
     try:
-        fh = open(path, newline="")
+        fh = open(path, newline="", encoding="utf-8")  # noqa: SIM115
     except OSError as exc:
         raise InputFileError(f"{path}: cannot read the {what} ({exc.strerror})") from None
-    reader = csv.DictReader(fh)
-    return fh, reader, list(reader.fieldnames or [])
+    try:
+        reader = csv.DictReader(fh)
+        cols = list(reader.fieldnames or [])
+    except (UnicodeDecodeError, csv.Error):
+        fh.close()
+        raise InputFileError(f"{path}: not a UTF-8 CSV file: expected the {what}") from None
+    return fh, reader, cols
+
+
+def _rows(reader, path: Path):
+    """(line, row) of a CSV reader; a byte that is not UTF-8 or a broken CSV line is
+    refused naming the file."""
+    it = enumerate(reader, start=2)
+    while True:
+        try:
+            item = next(it)
+        except StopIteration:
+            return
+        except UnicodeDecodeError:
+            raise InputFileError(f"{path}: not a UTF-8 text file") from None
+        except csv.Error as exc:
+            raise InputFileError(f"{path}: line {reader.line_num}: not CSV ({exc})") from None
+        yield item
 
 
 def read_imu(path: str | Path, planar: bool) -> ImuData:
@@ -86,7 +107,7 @@ def read_imu(path: str | Path, planar: bool) -> ImuData:
                 f"(found {','.join(cols) or 'no header'})"
             )
         t, g, a, lines = [], [], [], []
-        for line, row in enumerate(reader, start=2):
+        for line, row in _rows(reader, path):
             ti = _number(row, "time_s", path, line)
             if t and ti <= t[-1]:
                 raise InputFileError(
@@ -174,7 +195,7 @@ def read_fixes(path: str | Path) -> Fixes:
         )
         has_sigma = all(k in cols for k in sig_cols)
         out, n = [], 0
-        for line, row in enumerate(reader, start=2):
+        for line, row in _rows(reader, path):
             n += 1
             status = (row.get("status") or "").strip()
             if status not in STATUSES:
