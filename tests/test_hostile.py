@@ -379,3 +379,54 @@ def test_ctrl_c_on_simulate_says_the_folder_is_incomplete(tmp_path):
     finally:
         p.kill()
     assert p.returncode == 130 and b"incomplete" in err, err
+
+
+def test_small_ones(tmp_path):
+    """simulate into a folder with an older simulation, a truncated JPEG, fixes on
+    another clock than the IMU's: each refused or named, never silent."""
+    import shutil
+
+    sim = tmp_path / "sim"
+    assert _run(["simulate", "--rig", str(RIG), "--out", str(sim), "--frames", "2"]).returncode == 0
+    r = _run(["simulate", "--rig", str(RIG), "--out", str(sim), "--frames", "1"])
+    assert r.returncode == 2 and b"already holds a recording" in r.stderr
+    rec = tmp_path / "jpg"
+    rec.mkdir()
+    import cv2
+
+    from visvec.imageio import read_image
+
+    img = read_image(SAMPLE / "frame_0000.png")
+    ok, buf = cv2.imencode(".jpg", img)
+    (rec / "a.jpg").write_bytes(buf.tobytes())
+    (rec / "b.jpg").write_bytes(buf.tobytes()[: len(buf) // 2])
+    out = tmp_path / "rows.csv"
+    r = _run(["batch", str(rec), "--rig", str(RIG), "--out", str(out)])
+    rows = list(csv.DictReader(open(out)))
+    assert [x["status"] for x in rows] == ["ok", "read_error"]
+    assert b"b.jpg: a JPEG cut short" in r.stderr and b"Premature" not in r.stderr
+    imu = tmp_path / "imu.csv"
+    imu.write_text("time_s,gx_dps,gy_dps,gz_dps\n" + "".join(
+        f"{1.7e9 + k * 0.01:.2f},0,0,0\n" for k in range(50)))  # fmt: skip
+    fixes = tmp_path / "fixes.csv"
+    shutil.copy(SAMPLE / "truth.csv", tmp_path / "t.csv")
+    fixes.write_text(
+        "frame,time_s,status,yaw_deg,pitch_deg,roll_deg,qw,qx,qy,qz,sigma_yaw_deg,"
+        "sigma_pitch_deg,sigma_roll_deg,rms_px,n_points,latency_ms,warnings\n"
+        "0,0.1,ok,0,0,0,1,0,0,0,0.1,0.1,0.1,,,0,\n"
+    )
+    r = _run(["fuse", "--imu", str(imu), "--fixes", str(fixes)])
+    assert r.returncode == 2 and b"one clock" in r.stderr, r.stderr
+
+
+def test_calibrate_system_counts_a_duplicated_frame_once(tmp_path):
+    import shutil
+
+    rec = tmp_path / "m"
+    markers = ROOT / "configs" / "markers.toml"
+    r = _run(["simulate", "--rig", str(markers), "--out", str(rec), "--frames", "6"])
+    assert r.returncode == 0, r.stderr
+    shutil.copy(rec / "frame_0002.png", rec / "frame_0006.png")
+    r = _run(["calibrate", "system", str(rec), "--rig", str(markers), "--out",
+              str(tmp_path / "cal.toml"), "--max-iterations", "2"], timeout=120)  # fmt: skip
+    assert b"frame 6: skipped (the same image as frame 2)" in r.stderr, r.stderr

@@ -19,15 +19,28 @@ MAX_IMAGE_BYTES = 512 * 1024 * 1024  # a bigger "image" (say /dev/zero) is not r
 
 def read_image(path: str | Path, flags: int = cv2.IMREAD_UNCHANGED) -> np.ndarray | None:
     """The decoded image, or None when the file cannot be read or decoded."""
+    return read_image_why(path, flags)[0]
+
+
+def read_image_why(path: str | Path, flags: int = cv2.IMREAD_UNCHANGED):
+    """(the decoded image, "") or (None, why not). A JPEG cut short (no end-of-image
+    marker) is refused: libjpeg would fill its missing rows with grey, with a warning
+    that names no file."""
     try:
         with open(path, "rb") as fh:
             data = fh.read(MAX_IMAGE_BYTES + 1)
-    except OSError:
-        return None
-    if not data or len(data) > MAX_IMAGE_BYTES:
-        return None
+    except OSError as exc:
+        return None, f"cannot read ({exc.strerror})"
+    if not data:
+        return None, "an empty file"
+    if len(data) > MAX_IMAGE_BYTES:
+        return None, f"over {MAX_IMAGE_BYTES >> 20} MiB: not an image"
+    if data[:2] == b"\xff\xd8" and not data.rstrip(b"\x00").endswith(b"\xff\xd9"):
+        return None, "a JPEG cut short (no end-of-image marker)"
     img = cv2.imdecode(np.frombuffer(data, np.uint8), flags)
-    return None if img is None or img.size == 0 else img
+    if img is None or img.size == 0:
+        return None, "cannot decode the image"
+    return img, ""
 
 
 def write_image(path: str | Path, img: np.ndarray) -> bool:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -395,10 +396,21 @@ def system(frames, rig_path, calibration, out, max_iterations):
     d = rig.detect
     fr, mk, uv = [], [], []
     n_used = 0
+    seen: dict[bytes, int] = {}  # image digest -> the frame it came first in
     for frame in open_source(frames, fps=rig.fps, retry_s=0.0):
         if frame.image is None or frame.image.shape != (rig.camera.height, rig.camera.width):
             click.echo(f"frame {frame.index}: skipped (unreadable or wrong size)", err=True)
             continue
+        # the same image twice is one measurement, not two: counted twice it would
+        # shrink every sigma the calibration reports
+        digest = hashlib.sha1(frame.image.tobytes()).digest()
+        if digest in seen:
+            click.echo(
+                f"frame {frame.index}: skipped (the same image as frame {seen[digest]})",
+                err=True,
+            )
+            continue
+        seen[digest] = frame.index
         spots = find_spots(frame.image, d.threshold, d.min_spot_px, d.max_spot_px)
         res = ident.identify(
             rig.camera.undistort(spots.centroids_px) if len(spots) else np.zeros((0, 2))

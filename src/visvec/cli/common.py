@@ -253,18 +253,20 @@ def open_out(path: str | None, option: str = "--out"):
             fh.close()
 
 
-def check_new_recording(folder: str | Path) -> None:
-    """Refuse (usage error, exit 2) a --save-frames folder that already holds a
-    recording: its frames would be overwritten one by one and its times.csv lost."""
+def check_new_recording(folder: str | Path, option: str = "--save-frames") -> None:
+    """Refuse (usage error, exit 2) a folder for a new recording (--save-frames,
+    simulate --out) that already holds one: its frames would be overwritten one by one,
+    or stale ones left beside the new, and its times.csv or truth.csv lost."""
     folder = Path(folder)
     if not folder.is_dir():
         return
-    held = [p for p in folder.iterdir() if p.name == "times.csv" or p.name.startswith("frame_")]
+    held = [p for p in folder.iterdir()
+            if p.name in ("times.csv", "truth.csv") or p.name.startswith("frame_")]  # fmt: skip
     if held:
         raise click.BadParameter(
-            f"{folder} already holds a recording ({len(held)} frame_* or times.csv files): "
-            "give a new folder for each recording",
-            param_hint="--save-frames",
+            f"{folder} already holds a recording ({len(held)} frame_*, times.csv or "
+            "truth.csv files): give a new folder for each recording",
+            param_hint=option,
         )
 
 

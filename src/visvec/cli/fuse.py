@@ -117,6 +117,21 @@ def fuse(imu_path, fixes_path, follow, max_samples, silent_s, gyro_range_dps, ou
         )
     if not fixes.fixes:
         click.echo(f"visvec: {fixes_path}: no ok fixes among {fixes.n_rows} rows", err=True)
+    else:
+        ft = [f.time_s for f in fixes.fixes]
+        inside = sum(imu.t[0] <= x <= imu.t[-1] for x in ft)
+        if inside == 0:
+            raise InputFileError(
+                f"{fixes_path}: none of the {len(ft)} ok fixes lies within the IMU's time span "
+                f"({imu.t[0]:.3f} to {imu.t[-1]:.3f} s; the fixes' time_s run from "
+                f"{min(ft):.3f} to {max(ft):.3f} s): both must be on one clock"
+            )
+        if inside < len(ft):
+            click.echo(
+                f"visvec: {fixes_path}: {len(ft) - inside} of {len(ft)} ok fixes lie outside "
+                f"the IMU's time span ({imu.t[0]:.3f} to {imu.t[-1]:.3f} s) and are not used",
+                err=True,
+            )
     model, limits = fusion_model(fixes.planar, imu.period_s, method, gyro_noise_dps,
                            accel_noise_mps2, fix_sigma_deg, no_misalignment, max_rate_dps,
                            max_accel_mps2)  # fmt: skip

@@ -7,7 +7,7 @@ from dataclasses import replace
 
 import click
 
-from visvec.cli.common import FiniteFloat, load, rig_options
+from visvec.cli.common import FiniteFloat, check_new_recording, load, rig_options
 from visvec.sim.lamps import LampScene, PerimeterPath, simulate_imu, simulate_lamps
 from visvec.sim.markers import SpotScene
 from visvec.sim.scene import Scene
@@ -228,6 +228,7 @@ def _simulate(rig_path, calibration, out_dir, n_frames, seed, motion, max_tilt_d
     if imu and rig.kind != "lamps" and motion not in ("sweep", "swing"):
         raise click.UsageError("--imu: a triangle or markers rig's gyro needs --motion sweep "
                                "or swing (the other motions are still frames)")  # fmt: skip
+    check_new_recording(out_dir, "--out")
     if rig.kind == "lamps":
         if motion not in (None, "perimeter", "rest"):
             raise click.UsageError(f"--motion {motion}: a lamps rig moves by perimeter or rest")

@@ -87,6 +87,16 @@ def track(
     spec = camera if camera is not None else rig.device
     if spec is None:
         raise click.UsageError("no --camera given and the rig's [camera] has no device")
+    if isinstance(spec, str) and "://" in spec:
+        # said before connecting: a rig file's device can point anywhere
+        from urllib.parse import urlsplit
+
+        u = urlsplit(spec)
+        try:
+            port = f":{u.port}" if u.port else ""
+        except ValueError:
+            port = ""
+        click.echo(f"visvec: connecting to {u.scheme}://{u.hostname}{port}", err=True)
     src = open_source(
         spec if isinstance(spec, int) else str(spec),
         fps=rig.fps,

@@ -13,7 +13,7 @@ import numpy as np
 
 from visvec.data import Frame
 from visvec.errors import InputFileError, SourceError
-from visvec.imageio import read_image
+from visvec.imageio import read_image_why
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm")
 # a sidecar with columns file,time_s gives each frame's time; truth.csv from
@@ -126,8 +126,8 @@ class FolderSource:
     def __iter__(self) -> Iterator[Frame]:
         for i, f in enumerate(self.files):
             t = self.times.get(f.name, i / self.fps)
-            img = read_image(f)
-            if img is None or img.size == 0:
-                yield Frame(i, t, None, f.name, error=f"{f.name}: cannot decode the image")
+            img, why = read_image_why(f)
+            if img is None:
+                yield Frame(i, t, None, f.name, error=f"{f.name}: {why}")
                 continue
             yield Frame(i, t, to_gray(img), f.name)
