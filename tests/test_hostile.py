@@ -430,3 +430,42 @@ def test_calibrate_system_counts_a_duplicated_frame_once(tmp_path):
     r = _run(["calibrate", "system", str(rec), "--rig", str(markers), "--out",
               str(tmp_path / "cal.toml"), "--max-iterations", "2"], timeout=120)  # fmt: skip
     assert b"frame 6: skipped (the same image as frame 2)" in r.stderr, r.stderr
+
+
+def test_track_ends_on_every_signal_with_its_rows_counted(tmp_path):
+    """SIGINT, SIGTERM, SIGHUP mid-run: exit 0, 'interrupted after N frames', and the
+    output holds exactly N whole rows."""
+    import re
+    import shutil
+    import signal
+    import time
+
+    slow = tmp_path / "slow"
+    shutil.copytree(SAMPLE, slow)
+    names = sorted(p.name for p in slow.glob("*.png"))
+    (slow / "truth.csv").unlink()
+    (slow / "times.csv").write_text(
+        "file,time_s\n" + "".join(f"{n},{i * 0.3:.1f}\n" for i, n in enumerate(names))
+    )
+    for sig in ("SIGINT", "SIGTERM", "SIGHUP"):
+        out = tmp_path / f"{sig}.csv"
+        p = subprocess.Popen(
+            [sys.executable, "-m", "visvec", "track", "--rig", str(RIG), "--camera", str(slow),
+             "--realtime", "--out", str(out)], stderr=subprocess.PIPE,
+        )  # fmt: skip
+        try:
+            deadline = time.monotonic() + 30
+            while time.monotonic() < deadline and (
+                not out.exists() or out.read_text().count("\n") < 3
+            ):
+                time.sleep(0.05)
+            p.send_signal(getattr(signal, sig))
+            _, err = p.communicate(timeout=30)
+        finally:
+            p.kill()
+        assert p.returncode == 0, (sig, err)
+        m = re.search(rb"interrupted after (\d+) frames; all rows written", err)
+        assert m, (sig, err)
+        text = out.read_text()
+        rows = list(csv.DictReader(text.splitlines()))
+        assert text.endswith("\n") and len(rows) == int(m.group(1)) and 2 <= len(rows) < 12
