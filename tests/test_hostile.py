@@ -469,3 +469,12 @@ def test_track_ends_on_every_signal_with_its_rows_counted(tmp_path):
         text = out.read_text()
         rows = list(csv.DictReader(text.splitlines()))
         assert text.endswith("\n") and len(rows) == int(m.group(1)) and 2 <= len(rows) < 12
+
+
+def test_an_output_folder_that_cannot_be_made_is_refused(tmp_path):
+    blocker = tmp_path / "taken"
+    blocker.write_text("a file, not a folder")
+    for opt in ("--overlay", "--save-frames"):
+        r = _run(["track", "--rig", str(RIG), "--camera", str(SAMPLE), opt, str(blocker),
+                  "--out", str(tmp_path / "rows.csv")])  # fmt: skip
+        assert r.returncode == 2 and opt.encode() in r.stderr and b"unexpected" not in r.stderr

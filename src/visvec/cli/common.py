@@ -253,6 +253,16 @@ def open_out(path: str | None, option: str = "--out"):
             fh.close()
 
 
+def make_folder(folder: Path, option: str) -> None:
+    """Make an output folder before any work, or refuse the option (exit 2)."""
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise click.BadParameter(
+            f"{folder}: cannot make this folder ({exc.strerror})", param_hint=option
+        ) from None
+
+
 def check_new_recording(folder: str | Path, option: str = "--save-frames") -> None:
     """Refuse (usage error, exit 2) a folder for a new recording (--save-frames,
     simulate --out) that already holds one: its frames would be overwritten one by one,
@@ -278,7 +288,7 @@ class FrameRecorder:
     def __init__(self, folder: str | Path):
         self.dir = Path(folder)
         check_new_recording(self.dir)
-        self.dir.mkdir(parents=True, exist_ok=True)
+        make_folder(self.dir, "--save-frames")
         self._times = open(self.dir / "times.csv", "w", newline="")  # noqa: SIM115
         self._times.write("file,time_s\n")
 
@@ -364,7 +374,7 @@ def run_frames(
     n = 0
     ov = Path(overlay) if overlay else None
     if ov is not None:
-        ov.mkdir(parents=True, exist_ok=True)
+        make_folder(ov, "--overlay")
     rec = FrameRecorder(save_frames) if save_frames else None
     status = Progress(progress, pipe) if progress is not None else None
     with open_out(out) as stream:
