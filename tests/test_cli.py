@@ -14,7 +14,7 @@ from click.testing import CliRunner
 from visvec.cli.common import run_frames
 from visvec.cli.main import cli
 from visvec.data import Frame
-from visvec.errors import SourceError
+from visvec.errors import NoOkRows, SourceError
 from visvec.rig import load_rig
 from visvec.sources import VideoSource
 
@@ -287,15 +287,16 @@ def test_a_long_run_does_not_hold_its_rows_in_memory(tmp_path):
     def peak(n):
         frames = (Frame(i, i / 30, None, f"f{i}", error="empty frame") for i in range(n))
         tracemalloc.start()
-        run_frames(
-            rig,
-            frames,
-            out=str(tmp_path / "r.csv"),
-            fmt="csv",
-            method=None,
-            overlay=None,
-            max_frames=None,
-        )
+        with pytest.raises(NoOkRows):  # every frame here is a read_error: exit 4
+            run_frames(
+                rig,
+                frames,
+                out=str(tmp_path / "r.csv"),
+                fmt="csv",
+                method=None,
+                overlay=None,
+                max_frames=None,
+            )
         size = tracemalloc.get_traced_memory()[1]
         tracemalloc.stop()
         return size
@@ -707,7 +708,8 @@ def test_batch_says_when_the_camera_aspect_is_off(tmp_path):
     assert run(*sim, "--yaw-rate-dps", 20, "--out", tmp_path / "frames").exit_code == 0
     rig = rig_variant(RIG, "fy", "600.0", "603.0", tmp_path / "rig.toml")
     r = run("batch", tmp_path / "frames", "--rig", rig, "--out", tmp_path / "rows.csv")
-    assert r.exit_code == 0
+    # not one ok row: exit 4, so that a script can tell (issue 34)
+    assert r.exit_code == 4 and "none of the 60 frames gave an ok row" in r.stderr
     rows = rows_of((tmp_path / "rows.csv").read_text())
     assert {x["status"] for x in rows} == {"rejected"}
     assert "visvec: 60 of 60 frames not ok (inconsistent_geometry 60); " in r.stderr

@@ -29,3 +29,8 @@ class InputFileError(VisvecError, ValueError):
 class OutputError(VisvecError, OSError):
     """Rows cannot be written (a full disk, a file removed under the run): the message
     names the output and how many rows it holds, all of them complete."""
+
+
+class NoOkRows(VisvecError):
+    """A run that read frames (or samples) and gave not one ok row: exit 4, so that a
+    script can tell it from a run that measured something."""

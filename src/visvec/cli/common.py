@@ -12,7 +12,7 @@ from pathlib import Path
 
 import click
 
-from visvec.errors import ConfigError
+from visvec.errors import ConfigError, NoOkRows
 from visvec.imageio import write_image
 from visvec.output import Row
 from visvec.pipeline import METHODS, Pipeline, make_pipeline
@@ -371,7 +371,8 @@ def run_frames(
     """
     pipe = make_pipeline(rig, method)
     rows: list[Row] = []
-    n = 0
+    n = n_ok = 0
+    interrupted = False
     ov = Path(overlay) if overlay else None
     if ov is not None:
         make_folder(ov, "--overlay")
@@ -384,6 +385,7 @@ def run_frames(
                 row = pipe.process(frame)
                 sink.write(row.as_dict())
                 n += 1
+                n_ok += int(row.ok)
                 if keep_rows:
                     rows.append(row)
                 if status is not None:
@@ -413,6 +415,7 @@ def run_frames(
                 if max_frames is not None and n >= max_frames:
                     break
         except KeyboardInterrupt:
+            interrupted = True
             click.echo(f"visvec: interrupted after {n} frames; all rows written", err=True)
         finally:
             if rec is not None:
@@ -421,4 +424,6 @@ def run_frames(
         click.echo(status.line(), err=True)
     for line in pipe.notes():
         click.echo(line, err=True)
+    if n > 0 and n_ok == 0 and not interrupted:
+        raise NoOkRows(f"none of the {n} frames gave an ok row (the reasons above)")
     return rows

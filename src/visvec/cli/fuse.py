@@ -10,7 +10,7 @@ import click
 import numpy as np
 
 from visvec.cli.common import FiniteFloat, note_inputs, open_out
-from visvec.errors import ConfigError, InputFileError
+from visvec.errors import ConfigError, InputFileError, NoOkRows
 from visvec.evaluate import error_stats, read_truth
 from visvec.fuse.inputs import read_fixes, read_imu
 from visvec.fuse.live import Reader, is_live, run_live
@@ -208,6 +208,9 @@ def fuse(imu_path, fixes_path, follow, max_samples, silent_s, gyro_range_dps, ou
         )
     if not fixes.planar and last[0] is not None:
         click.echo(learned_line(engine, last[0]), err=True)
+    if rows and n_ok == 0:
+        raise NoOkRows(f"none of the {len(rows)} inertial samples gave a fused row (no fix "
+                       "could start the filter)")  # fmt: skip
     if truth and rows:
         names = rows[0].value_columns
         stats = error_stats(rows, read_truth(truth, names), names)

@@ -1,7 +1,9 @@
 """Entry point: the `visvec` command group and its exit codes (SPEC section 3).
 
 0 success; 2 bad usage, rig or calibration file; 3 a source that cannot be opened or
-read at all; 1 anything unexpected (one line, the traceback only with --debug).
+read at all; 4 a run that gave not one ok row; 1 an output that cannot be written, a
+refused calibration, or anything unexpected (one line, the traceback only with
+--debug); 130 simulate stopped by Ctrl-C.
 """
 
 from __future__ import annotations
@@ -12,7 +14,7 @@ import sys
 import click
 
 from visvec import __version__
-from visvec.errors import ConfigError, InputFileError, OutputError, SourceError
+from visvec.errors import ConfigError, InputFileError, NoOkRows, OutputError, SourceError
 
 
 class VisvecGroup(click.Group):
@@ -29,6 +31,9 @@ class VisvecGroup(click.Group):
         except OutputError as exc:
             click.echo(f"visvec: error: {exc}", err=True)
             sys.exit(1)
+        except NoOkRows as exc:
+            click.echo(f"visvec: {exc}", err=True)
+            sys.exit(4)
         except (click.ClickException, click.exceptions.Exit, click.Abort, SystemExit):
             raise
         except KeyboardInterrupt:
@@ -126,7 +131,21 @@ def _register() -> None:
     cli.add_command(catalog.catalog)
     cli.add_command(fuse.fuse)
     cli.add_command(check.check)
+    # every command's help ends with the exit codes
+    todo = list(cli.commands.values())
+    while todo:
+        cmd = todo.pop()
+        cmd.epilog = EXIT_CODES
+        if isinstance(cmd, click.Group):
+            todo += list(cmd.commands.values())
 
+
+EXIT_CODES = (
+    "Exit codes: 0 done (also after Ctrl-C, SIGTERM, SIGHUP); 2 a bad option, rig, "
+    "calibration or data file, refused before any work; 3 a source that cannot be opened "
+    "or read; 4 not one ok row; 1 an output that cannot be written, a refused "
+    "calibration, or an unexpected error; 130 simulate stopped by Ctrl-C."
+)
 
 _register()
 
