@@ -333,6 +333,22 @@ def test_3d_saturated_gyro_is_flagged_and_honest():
     assert np.mean(np.array(z) > 14.2) < 0.01  # chi2(3) beyond 14.2: 0.27 %
 
 
+def _send_paced(sock, lines, port, t0, fix_rows=(), fix_port=None):
+    """Send CSV ``lines`` (time_s first) as datagrams at ``t0`` plus their time, and
+    before each the (available time, line) ``fix_rows`` whose time has come."""
+    import time
+
+    fix_rows = list(fix_rows)
+    for line in lines:
+        ts = float(line.split(",")[0])
+        while fix_rows and fix_rows[0][0] <= ts:
+            sock.sendto(fix_rows.pop(0)[1].encode(), ("127.0.0.1", fix_port))
+        wait = t0 + ts - time.monotonic()
+        if wait > 0:
+            time.sleep(wait)
+        sock.sendto(line.encode(), ("127.0.0.1", port))
+
+
 def _free_udp_port() -> int:
     import socket
 
@@ -373,15 +389,7 @@ def test_fuse_live_over_udp_in_real_time(tmp_path):
             s.sendto(imu_lines[0].encode(), ("127.0.0.1", p_imu))
             s.sendto(fix_lines[0].encode(), ("127.0.0.1", p_fix))
             s.sendto(b"garbage,,", ("127.0.0.1", p_fix))
-            t0 = time.monotonic()
-            for line in imu_lines[1 : n + 1]:
-                ts = float(line.split(",")[0])
-                while fix_rows and fix_rows[0][0] <= ts:
-                    s.sendto(fix_rows.pop(0)[1].encode(), ("127.0.0.1", p_fix))
-                wait = t0 + ts - time.monotonic()
-                if wait > 0:
-                    time.sleep(wait)
-                s.sendto(line.encode(), ("127.0.0.1", p_imu))
+            _send_paced(s, imu_lines[1 : n + 1], p_imu, time.monotonic(), fix_rows, p_fix)
         _, err = proc.communicate(timeout=30)
     finally:
         proc.kill()
@@ -477,11 +485,7 @@ def _track_live(tmp_path, rig, sim_args, n_frames):
         lines = (rec / "imu.csv").read_text().splitlines()
         with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
             s.sendto(lines[0].encode(), ("127.0.0.1", port))
-            for line in lines[1:]:
-                wait = t0 + float(line.split(",")[0]) - time.monotonic()
-                if wait > 0:
-                    time.sleep(wait)
-                s.sendto(line.encode(), ("127.0.0.1", port))
+            _send_paced(s, lines[1:], port, t0)
         _, err = proc.communicate(timeout=30)
     finally:
         proc.kill()

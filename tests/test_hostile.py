@@ -12,6 +12,21 @@ SAMPLE = ROOT / "data" / "sample_frames"
 RIG = ROOT / "configs" / "triangle.toml"
 
 
+def _slow_recording(tmp_path, step_s: float):
+    """The sample frames as a recording taken every ``step_s`` seconds (to be played
+    with --realtime)."""
+    import shutil
+
+    slow = tmp_path / "slow"
+    shutil.copytree(SAMPLE, slow)
+    names = sorted(p.name for p in slow.glob("*.png"))
+    (slow / "truth.csv").unlink()
+    (slow / "times.csv").write_text(
+        "file,time_s\n" + "".join(f"{n},{i * step_s:.3f}\n" for i, n in enumerate(names))
+    )
+    return slow
+
+
 def _run(args, **kw):
     return subprocess.run([sys.executable, "-m", "visvec", *args], capture_output=True, **kw)
 
@@ -146,13 +161,7 @@ def test_outputs_never_destroy_inputs_or_each_other(tmp_path):
     assert not (tmp_path / "tcp:").exists()
     # a second writer of the same file is refused while the first runs (a recording
     # played at one frame a second)
-    slow = tmp_path / "slow"
-    shutil.copytree(SAMPLE, slow)
-    names = sorted(p.name for p in slow.glob("*.png"))
-    (slow / "truth.csv").unlink()
-    (slow / "times.csv").write_text(
-        "file,time_s\n" + "".join(f"{n},{i}.0\n" for i, n in enumerate(names))
-    )
+    slow = _slow_recording(tmp_path, 1.0)
     out = tmp_path / "rows.csv"
     first = subprocess.Popen(
         [sys.executable, "-m", "visvec", "track", "--rig", str(rig), "--camera", str(slow),
@@ -436,17 +445,10 @@ def test_track_ends_on_every_signal_with_its_rows_counted(tmp_path):
     """SIGINT, SIGTERM, SIGHUP mid-run: exit 0, 'interrupted after N frames', and the
     output holds exactly N whole rows."""
     import re
-    import shutil
     import signal
     import time
 
-    slow = tmp_path / "slow"
-    shutil.copytree(SAMPLE, slow)
-    names = sorted(p.name for p in slow.glob("*.png"))
-    (slow / "truth.csv").unlink()
-    (slow / "times.csv").write_text(
-        "file,time_s\n" + "".join(f"{n},{i * 0.3:.1f}\n" for i, n in enumerate(names))
-    )
+    slow = _slow_recording(tmp_path, 0.3)
     for sig in ("SIGINT", "SIGTERM", "SIGHUP"):
         out = tmp_path / f"{sig}.csv"
         p = subprocess.Popen(

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import click
 
-from visvec.cli.camera_fusion import check_fusable, run_fused_batch
+from visvec.cli.camera_fusion import camera_out_option, check_fusable, run_fused_batch
 from visvec.cli.common import (
     check_output,
     load,
@@ -36,12 +36,7 @@ from visvec.sources import open_source
     help="An IMU file on the frames' clock: the rows are the fused ones at its rate, the "
     "frames' ok rows the fixes (available at their exposure plus their latency).",
 )
-@click.option(
-    "--camera-out",
-    default=None,
-    type=click.Path(dir_okay=False),
-    help="With --imu: the camera's own rows to this file.",
-)
+@camera_out_option
 @output_options
 def batch(path, rig_path, calibration, truth, imu_path, camera_out, out, fmt, method, overlay,
           max_frames):  # fmt: skip

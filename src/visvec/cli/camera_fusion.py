@@ -20,6 +20,13 @@ from visvec.output import AttitudeRow, PoseRow
 from visvec.pipeline import make_pipeline
 from visvec.sinks import open_sink
 
+camera_out_option = click.option(
+    "--camera-out",
+    default=None,
+    type=click.Path(dir_okay=False),
+    help="With --imu: the camera's own rows to this file (or udp://HOST:PORT).",
+)
+
 
 def check_fusable(rig, overlay, save_frames) -> None:
     """Refuse, before anything starts, what cannot be fused."""

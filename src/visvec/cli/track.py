@@ -6,7 +6,7 @@ import sys
 
 import click
 
-from visvec.cli.camera_fusion import check_fusable, run_fused_camera
+from visvec.cli.camera_fusion import camera_out_option, check_fusable, run_fused_camera
 from visvec.cli.common import (
     FiniteFloat,
     check_new_recording,
@@ -55,12 +55,7 @@ STATUS_EVERY_S = 2.0
     "fused ones at the IMU's rate. SOURCE as for `visvec fuse --imu` (udp://HOST:PORT, "
     "-, serial:///dev/DEVICE?baud=N, a file).",
 )
-@click.option(
-    "--camera-out",
-    default=None,
-    type=click.Path(dir_okay=False),
-    help="With --imu: the camera's own rows to this file (or udp://HOST:PORT).",
-)
+@camera_out_option
 @click.option(
     "--realtime",
     is_flag=True,
