@@ -618,3 +618,41 @@ def test_fuse_live_from_a_serial_device(tmp_path):
     with open(out) as fh:
         rows = list(csv.DictReader(fh))
     assert len(rows) == 150 and sum(r["status"] == "ok" for r in rows) > 50
+
+
+def test_a_serial_device_that_disappears_is_retried(tmp_path):
+    """The serial line goes away mid-run: said on stderr and retried every second, the
+    run goes on (and ends on a signal with its rows)."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    pytest.importorskip("serial")
+    imu, _, fixes = planar_case(tmp_path, duration=2.0)
+    master, slave = os.openpty()
+    name = os.ttyname(slave)
+    out = tmp_path / "serial.csv"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "visvec", "fuse", "--imu", f"serial://{name}?baud=115200",
+         "--fixes", str(fixes), "--follow", "--out", str(out)],
+        stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        time.sleep(1.5)
+        for line in imu.read_text().splitlines()[:40]:
+            os.write(master, (line + "\n").encode())
+            time.sleep(0.002)
+        time.sleep(0.5)
+        os.close(master)
+        os.close(slave)
+        time.sleep(2.5)
+        assert proc.poll() is None  # still running, retrying
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=20)
+    finally:
+        proc.kill()
+    assert proc.returncode == 0, err
+    assert "retrying every 1 s" in err
+    assert len(list(csv.DictReader(open(out)))) >= 30
