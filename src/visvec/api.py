@@ -3,6 +3,12 @@
 >>> from visvec.api import load_rig, TrianglePipeline, FolderSource
 >>> rig = load_rig("configs/triangle.toml")
 >>> rows = list(TrianglePipeline(rig).run(FolderSource("data/sample_frames")))
+
+Fusion, fed live (each IMU sample as it comes, each fix when it arrives):
+
+>>> engine = Fusion(AttitudeModel(sample_s=0.01))
+>>> engine.add_fix(fix)                       # doctest: +SKIP
+>>> state = engine.step(t, gyro_rad_s, None)  # doctest: +SKIP
 """
 
 from visvec.calib.camera import calibrate_camera
@@ -12,6 +18,9 @@ from visvec.data import AttitudeSolution, Detection, Frame, Status
 from visvec.detect import TriangleDetector
 from visvec.errors import ConfigError, InputFileError, SourceError, VisvecError
 from visvec.estimate import solve_full, solve_paper
+from visvec.fuse.inputs import Fix, read_fixes, read_imu
+from visvec.fuse.models import AttitudeModel, PlanarModel
+from visvec.fuse.replay import Fusion, fuse
 from visvec.output import ATTITUDE_COLUMNS, AttitudeRow
 from visvec.pipeline import MarkerPipeline, TrianglePipeline, make_pipeline
 from visvec.rig import Rig, load_rig
@@ -23,6 +32,13 @@ from visvec.sources import FolderSource, SyntheticSource, VideoSource, open_sour
 __all__ = [
     "ATTITUDE_COLUMNS",
     "AttitudeRow",
+    "AttitudeModel",
+    "Fix",
+    "Fusion",
+    "PlanarModel",
+    "fuse",
+    "read_fixes",
+    "read_imu",
     "AttitudeSolution",
     "CameraModel",
     "ConfigError",
