@@ -586,24 +586,32 @@ def test_fuse_live_ends_on_a_signal_with_every_row_and_the_summary(tmp_path, sig
     assert rows[-1]["warnings"] == "imu_time_back"
 
 
-def test_fuse_live_from_a_serial_device(tmp_path):
-    """IMU rows on a serial line (a pseudo-terminal standing in for /dev/ttyUSB0),
-    read through pyserial: fused as they come."""
+def _serial_fuse(tmp_path, *extra):
+    """`fuse` reading IMU rows from a pseudo-terminal (standing in for /dev/ttyUSB0):
+    (process, IMU file, pty master fd, slave fd, rows file)."""
     import os
     import subprocess
     import sys
-    import time
 
     pytest.importorskip("serial")
     imu, _, fixes = planar_case(tmp_path, duration=2.0)
     master, slave = os.openpty()
-    name = os.ttyname(slave)
     out = tmp_path / "serial.csv"
     proc = subprocess.Popen(
-        [sys.executable, "-m", "visvec", "fuse", "--imu", f"serial://{name}?baud=115200",
-         "--fixes", str(fixes), "--follow", "--out", str(out), "--max-samples", "150"],
-        stderr=subprocess.PIPE, text=True,
+        [sys.executable, "-m", "visvec", "fuse", "--imu",
+         f"serial://{os.ttyname(slave)}?baud=115200", "--fixes", str(fixes), "--follow",
+         "--out", str(out), *extra], stderr=subprocess.PIPE, text=True,
     )  # fmt: skip
+    return proc, imu, master, slave, out
+
+
+def test_fuse_live_from_a_serial_device(tmp_path):
+    """IMU rows on a serial line (a pseudo-terminal standing in for /dev/ttyUSB0),
+    read through pyserial: fused as they come."""
+    import os
+    import time
+
+    proc, imu, master, slave, out = _serial_fuse(tmp_path, "--max-samples", "150")
     try:
         time.sleep(1.5)  # the device opened
         for line in imu.read_text().splitlines()[:160]:
@@ -625,20 +633,9 @@ def test_a_serial_device_that_disappears_is_retried(tmp_path):
     run goes on (and ends on a signal with its rows)."""
     import os
     import signal
-    import subprocess
-    import sys
     import time
 
-    pytest.importorskip("serial")
-    imu, _, fixes = planar_case(tmp_path, duration=2.0)
-    master, slave = os.openpty()
-    name = os.ttyname(slave)
-    out = tmp_path / "serial.csv"
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "visvec", "fuse", "--imu", f"serial://{name}?baud=115200",
-         "--fixes", str(fixes), "--follow", "--out", str(out)],
-        stderr=subprocess.PIPE, text=True,
-    )  # fmt: skip
+    proc, imu, master, slave, out = _serial_fuse(tmp_path)
     try:
         time.sleep(1.5)
         for line in imu.read_text().splitlines()[:40]:

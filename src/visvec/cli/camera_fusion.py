@@ -97,11 +97,10 @@ def run_fused_batch(rig, frames, imu_path, method, out, fmt, camera_out) -> None
     model, limits = fusion_model(planar, imu.period_s, "kalman", None, 0.002, None, False, None,
                                  0.5)  # fmt: skip
     n = n_ok = 0
-    n_frames = len(fixes)
     with open_out(out) as stream:
         sink = open_sink(fmt, stream, PoseRow.columns if planar else AttitudeRow.columns)
         for row in fused_rows(run_fusion(imu, fixes, model, limits=limits), model):
             sink.write(row.as_dict())
             n += 1
             n_ok += int(row.ok)
-    click.echo(f"visvec: {n} inertial samples, {n_ok} fused; {n_frames} ok fixes", err=True)
+    click.echo(f"visvec: {n} inertial samples, {n_ok} fused; {len(fixes)} ok fixes", err=True)

@@ -308,14 +308,6 @@ class LiveSummary:
     refused: bool = False
 
 
-def _parses(row: dict, planar: bool) -> bool:
-    try:
-        parse_imu(row, planar)
-    except ValueError:
-        return False
-    return True
-
-
 def run_live(imu: Reader, fixes, setup, open_rows, *, max_samples: int | None = None,
              silent_s: float = 2.0, echo=print, kind: bool | None = None,
              end_with_fixes: bool = False) -> LiveSummary:  # fmt: skip
@@ -414,12 +406,6 @@ def run_live(imu: Reader, fixes, setup, open_rows, *, max_samples: int | None = 
                     break
                 engine, model = setup(planar)
                 sink = open_rows(planar)
-                t_first = parse_imu(ev.row, planar)[0] if _parses(ev.row, planar) else None
-                if t_first is not None:
-                    clock[0] = ev.arrival - t_first
-                for row, arrival in waiting:
-                    add_fix(row, arrival)
-                waiting.clear()
             try:
                 t, g, a = parse_imu(ev.row, planar)
             except ValueError as exc:
@@ -428,6 +414,10 @@ def run_live(imu: Reader, fixes, setup, open_rows, *, max_samples: int | None = 
             # the IMU's clock against the host's: the lower envelope of arrival - time
             # (the sample that took the least time to arrive sets it)
             clock[0] = min(clock[0], ev.arrival - t)
+            if waiting:  # fixes that came before the IMU's first sample: its clock is known
+                for row, arrival in waiting:
+                    add_fix(row, arrival)
+                waiting.clear()
             while held and held[0][0] <= t:
                 engine.add_fix(heapq.heappop(held)[2])
             fs = engine.step(t, g, a)

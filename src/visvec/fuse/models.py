@@ -43,7 +43,7 @@ segment's gyro noise, or the default, as a prior worth a few fixes.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.stats import chi2
@@ -233,8 +233,6 @@ class AttitudeModel:
     def with_rest(self, mean: np.ndarray, std: np.ndarray, n: int) -> AttitudeModel:
         """The model with a rest segment's gyro mean as the bias prior and its scatter
         as the white noise prior."""
-        from dataclasses import replace
-
         noise = max(float(np.sqrt(np.mean(std**2))), math.radians(0.01))
         sigma = max(noise / math.sqrt(n), math.radians(0.02))
         return replace(self, gyro_bias0=tuple(float(x) for x in mean), gyro_noise=noise,

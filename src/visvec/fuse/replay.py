@@ -208,17 +208,23 @@ class Fusion:
     def _reconstruct(self, last: int, both: bool) -> int | None:
         """Reconstruct the clipped samples of the flat top that ends at or before
         sample ``last`` (rewriting their readings); the first index rewritten."""
-        clip = np.array(self._clip)
-        ts = np.array(self._ts)
-        raw = np.array(self._raw)
+        # only the flat top and the few samples on either side of it are looked at
+        beg_all = last
+        while beg_all > 0 and self._clip[beg_all - 1].any():
+            beg_all -= 1
+        lo, hi = max(0, beg_all - 4), min(len(self._ts), last + 4)
+        clip = np.array(self._clip[lo:hi])
+        ts = np.array(self._ts[lo:hi])
+        raw = np.array(self._raw[lo:hi])
+        loc = last - lo
         first = None
         excess = np.zeros(3)
         lvl = np.zeros(3)
         for ax in range(3):
             c = clip[:, ax]
-            if not c[last]:
+            if not c[loc]:
                 continue
-            end = beg = last
+            end = beg = loc
             while beg > 0 and c[beg - 1]:
                 beg -= 1
             before = np.arange(max(0, beg - 4), beg)
@@ -234,10 +240,10 @@ class Fusion:
             vals = declip(ts, raw[:, ax], known, ts[at], lvl[ax], sign)
             # the farther the rebuilt peak reaches past the range, the less it is known
             excess[ax] = float(np.abs(vals).max()) - lvl[ax]
-            for i, v in zip(at, vals, strict=True):
+            for i, v in zip(at + lo, vals, strict=True):
                 self._raw[i] = self._raw[i].copy()
                 self._raw[i][ax] = v
-            first = beg if first is None else min(first, beg)
+            first = beg + lo if first is None else min(first, beg + lo)
         if first is None:
             return None
         # a reconstruction's error is much the same all through its flat top: the m-th

@@ -29,11 +29,14 @@ class _Lines:
 
     def __init__(self, stream: IO[str]):
         self.stream = stream
-        self.n = 0
+        self.n = 0  # rows written (the header is not one)
+        self._fd: int | None | bool = False  # not looked up yet
 
-    def put(self, text: str) -> None:
+    def put(self, text: str, row: bool = True) -> None:
         s = self.stream
-        fd = _regular_fd(s)
+        if self._fd is False:
+            self._fd = _regular_fd(s)
+        fd = self._fd
         try:
             if fd is None:
                 s.write(text)
@@ -57,7 +60,7 @@ class _Lines:
                 f"{name}: cannot write ({exc.strerror or exc}); it holds {self.n} complete "
                 "rows and no part of another"
             ) from None
-        self.n += 1
+        self.n += int(row)
 
 
 def _regular_fd(stream) -> int | None:
@@ -79,8 +82,7 @@ class CsvSink:
         self.stream = stream
         self.columns = list(columns)
         self.lines = _Lines(stream)
-        self.lines.put(self._line(dict(zip(self.columns, self.columns, strict=True))))
-        self.lines.n = 0
+        self.lines.put(self._line(dict(zip(self.columns, self.columns, strict=True))), row=False)
 
     def _line(self, row: dict[str, object]) -> str:
         buf = io.StringIO()
