@@ -94,7 +94,7 @@ def _route_library_warnings() -> None:
 def cli(debug: bool) -> None:
     """visvec: camera attitude sensor for air-bearing spacecraft simulators.
 
-    Units are mm and degrees; see the README for the frames and the rig file.
+    Units are mm and degrees; see docs/reference.md for the frames and the rig file.
     """
     _route_library_warnings()
     _signals_as_interrupt()
