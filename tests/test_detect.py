@@ -432,7 +432,7 @@ def test_rolling_shutter_rate_only_from_related_frames(rig640):
     """The rate comes from the last two ok frames when they are a turn (below
     MAX_RATE_DPS), not from two unrelated frames of a folder (level frames 30 deg apart)
     nor from stale ones."""
-    from visvec.pipeline import MAX_RATE_DPS, TrianglePipeline
+    from visvec.pipeline.triangle import MAX_RATE_DPS, TrianglePipeline
 
     pipe = TrianglePipeline(replace(rig640, readout_ms=25.0))
     turn = np.radians(10.0) / 30.0  # 10 deg/s at 30 fps

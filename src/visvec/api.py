@@ -22,7 +22,14 @@ from visvec.fuse.inputs import Fix, read_fixes, read_imu
 from visvec.fuse.models import AttitudeModel, PlanarModel
 from visvec.fuse.replay import Fusion, fuse
 from visvec.output import ATTITUDE_COLUMNS, AttitudeRow
-from visvec.pipeline import MarkerPipeline, TrianglePipeline, make_pipeline
+from visvec.pipeline import (
+    LampPipeline,
+    MarkerPipeline,
+    Pipeline,
+    RatePipeline,
+    TrianglePipeline,
+    make_pipeline,
+)
 from visvec.rig import Rig, load_rig
 from visvec.sim.render import render_frame
 from visvec.sim.scene import Light, Occluder, Scene
@@ -56,6 +63,9 @@ __all__ = [
     "TriangleDetector",
     "TrianglePipeline",
     "MarkerPipeline",
+    "RatePipeline",
+    "LampPipeline",
+    "Pipeline",
     "make_pipeline",
     "VideoSource",
     "VisvecError",

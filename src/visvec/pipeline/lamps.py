@@ -1,0 +1,131 @@
+"""The ceiling lamps' pipeline (LuVeX): lamp spots -> identified lamps -> planar pose."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from visvec.data import Status
+from visvec.detect.lamps import LampIdentifier
+from visvec.detect.spots import Spots, find_spots
+from visvec.errors import ConfigError
+from visvec.estimate.planar import MIN_LAMPS, PlanarSolution, solve_planar
+from visvec.lamps import Catalog
+from visvec.output import PoseRow
+from visvec.pipeline.base import Pipeline
+from visvec.rig import Rig
+
+
+@dataclass(frozen=True)
+class LampDetection:
+    """Spots of one lamp frame, their lamp ids (-1: none) and how they were found."""
+
+    spots: Spots
+    ids: np.ndarray
+    mode: str = ""  # "track" or "lost_in_space"
+    reason: str = ""
+    votes: int = 0
+
+
+EDGE_PX = 5.0  # lamp spots closer than this to the image border may be cut
+MIN_TRACKED_FRACTION = 0.5  # of the spots, matched from the predicted pose, to keep tracking
+
+
+class LampPipeline(Pipeline):
+    """Position and heading of a mock-up from ceiling lamps (LuVeX, Keldysh preprint
+    2011-24): spots, identification (tracking from the predicted pose, else the paper's
+    Delaunay lookup), and a least-squares fit over every identified lamp."""
+
+    methods = ("full",)
+    hints = {
+        **Pipeline.hints,
+        "no_lamps": "no bright spots: are the lamps on and in view?",
+        "too_few_lamps": "too few lamps seen or identified",
+        "no_catalogue_match": "the lamps' triangles match none of the lamp map's: check the "
+        "map and the [camera] model",
+        "no_consensus": "no pose agreed by the lamps' triangles: check the map and the "
+        "[camera] model",
+    }
+    row_type = PoseRow
+
+    def __init__(self, rig: Rig, method: str = "full", catalog: Catalog | None = None):
+        if rig.kind != "lamps":
+            raise ConfigError(f"LampPipeline needs a lamps rig, not {rig.kind!r}")
+        super().__init__(rig, method)
+        self.identifier = LampIdentifier(rig, catalog)
+        self.sigma_px = rig.detect.centroid_sigma_px
+        self.track_state: tuple[float, np.ndarray, np.ndarray | None] | None = None
+
+    def reset(self) -> None:
+        self.track_state = None
+
+    def _predict(self, t: float) -> np.ndarray | None:
+        if self.track_state is None:
+            return None
+        t0, pose, vel = self.track_state
+        return pose if vel is None else pose + vel * (t - t0)
+
+    def _fit(self, xy: np.ndarray, ident) -> PlanarSolution:
+        sel = ident.ids >= 0
+        lamps = self.identifier.lamps[ident.ids[sel]]
+        return solve_planar(xy[sel], lamps, self.rig, self.sigma_px, ident.pose)
+
+    def estimate(self, frame):
+        d = self.rig.detect
+        spots = find_spots(frame.image, d.threshold, d.min_spot_px, d.max_spot_px)
+        # a lamp cut by the image border has a biased centroid: left out (and one beyond
+        # the lens model's field, which has no ray: nan)
+        xy = self.rig.camera.undistort(spots.centroids_px) if len(spots) else np.zeros((0, 2))
+        keep = self.rig.camera.in_image(spots.centroids_px, EDGE_PX) & np.isfinite(xy).all(1)
+        if not keep.all():
+            spots = Spots(*(a[keep] for a in (spots.centroids_px, spots.flux, spots.area_px,
+                                               spots.elongation, spots.saturated)),
+                          spots.threshold)  # fmt: skip
+            xy = xy[keep]
+        self.last_detection = LampDetection(spots, np.full(len(spots), -1))
+        if len(spots) == 0:
+            return Status.NO_TARGET, None, ("no_lamps",)
+        pred = self._predict(frame.time_s)
+        sol, ident, mode = None, None, "track"
+        if pred is not None:
+            ident = self.identifier.track(xy, pred)
+            if ident.n_identified >= max(MIN_LAMPS + 1, MIN_TRACKED_FRACTION * len(xy)):
+                sol = self._fit(xy, ident)
+        if sol is None or not sol.ok:
+            mode = "lost_in_space"
+            ident = self.identifier.lost_in_space(xy)
+            if ident.pose is None:
+                self.last_detection = LampDetection(spots, ident.ids, mode, ident.reason)
+                return Status.REJECTED, None, (ident.reason,)
+            sol = self._fit(xy, ident)
+        ids = ident.ids.copy()
+        if sol.inliers is not None:
+            ids[np.nonzero(ids >= 0)[0][~sol.inliers]] = -1
+        self.last_detection = LampDetection(spots, ids, mode, ident.reason, ident.votes)
+        if not sol.ok:
+            return sol.status, sol, sol.warnings
+        warnings = list(sol.warnings)
+        if np.sum(ids < 0) > 0:
+            warnings.append("extra_spots")
+        if self.track_state is not None and frame.time_s > self.track_state[0]:
+            t0, p0, _ = self.track_state
+            dp = sol.pose - p0
+            dp[2] = (dp[2] + np.pi) % (2 * np.pi) - np.pi
+            vel = dp / (frame.time_s - t0)
+        else:
+            vel = None
+        self.track_state = (frame.time_s, sol.pose.copy(), vel)
+        return Status.OK, sol, tuple(warnings)
+
+    def make_row(self, frame, status, sol, warnings, latency_ms):
+        if status is not Status.OK or sol is None:
+            n = sol.n_points if sol is not None else 0
+            return PoseRow(frame.index, frame.time_s, status, np.nan, n, latency_ms, warnings)
+        sig = np.sqrt(np.clip(np.diag(sol.cov), 0.0, None))
+        sig[2] = np.degrees(sig[2])
+        pose = np.array([sol.pose[0], sol.pose[1], np.degrees(sol.pose[2])])
+        return PoseRow(
+            frame.index, frame.time_s, status, sol.rms_px, sol.n_points, latency_ms, warnings,
+            pose=pose, sigma=sig,
+        )  # fmt: skip
