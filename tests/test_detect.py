@@ -229,9 +229,9 @@ def test_rolling_shutter_readout_sigma_is_carried_into_the_rows(rig640):
 
 
 def test_rolling_shutter_covariance_is_the_linearised_correction(rig640):
-    """shutter_matrix's A omega is the first-order shift _unroll makes for a rate omega
+    """shutter_matrix's A omega is the first-order shift unroll makes for a rate omega
     at the vertices (finite differences); shutter_shift gives A omega itself."""
-    from visvec.detect.edges import _unroll, shutter_matrix, shutter_shift
+    from visvec.shutter import shutter_matrix, shutter_shift, unroll
 
     cam = rig640.camera
     xy = np.array([[0.31, -0.12], [-0.22, 0.25], [-0.05, -0.33]])
@@ -242,14 +242,14 @@ def test_rolling_shutter_covariance_is_the_linearised_correction(rig640):
         w = np.zeros(3)
         w[j] = h
         A[:, j] = (
-            (_unroll(xy, rows, cam, w, readout) - _unroll(xy, rows, cam, -w, readout)) / (2 * h)
+            (unroll(xy, rows, cam, w, readout) - unroll(xy, rows, cam, -w, readout)) / (2 * h)
         ).ravel()
     np.testing.assert_allclose(shutter_matrix(xy, rows, cam, readout), A, rtol=1e-6, atol=1e-12)
     lever = np.array([0.12, -0.05, -0.07])  # a camera off the axis: b / Z
     for j in range(3):
         w = np.zeros(3)
         w[j] = h
-        plus, minus = (_unroll(xy, rows, cam, s * w, readout, lever) for s in (1, -1))
+        plus, minus = (unroll(xy, rows, cam, s * w, readout, lever) for s in (1, -1))
         A[:, j] = ((plus - minus) / (2 * h)).ravel()
     got = shutter_matrix(xy, rows, cam, readout, lever)
     np.testing.assert_allclose(got, A, rtol=1e-6, atol=1e-12)
@@ -265,7 +265,7 @@ def test_edge_fit_shutter_gain_is_how_its_vertices_move_with_the_rate(rig640):
     move by the edge fit's shutter gain times the rate, to a few thousandths of a pixel.
     The vertex-level matrix misses that move by a hundredth or more: a turn about the
     boresight curves the edges, and the lines fitted to them meet elsewhere."""
-    from visvec.detect.edges import shutter_matrix
+    from visvec.shutter import shutter_matrix
 
     rig = replace(rig640, readout_ms=25.0)
     w_b = np.radians([0.0, 0.0, 10.0])
@@ -285,12 +285,12 @@ def test_edge_fit_shutter_gain_is_how_its_vertices_move_with_the_rate(rig640):
 
 def test_rolling_shutter_correction_follows_a_camera_off_the_axis(rig640):
     """A lab point seen t after the centre row by a camera 250 mm off the rotation axis,
-    the platform turning at 20 deg/s about a tilted axis: _unroll with the lever arm
+    the platform turning at 20 deg/s about a tilted axis: unroll with the lever arm
     b / Z takes its image back to the centre row's to second order in the rotation
     and the depth's spread (under 0.005 px), where the rotation alone leaves 0.2-0.3 px
     of a 0.5-0.8 px shift."""
-    from visvec.detect.edges import _unroll
     from visvec.rotations import expmap
+    from visvec.shutter import unroll
 
     t_b = np.array([250.0, -40.0, 150.0])
     R_bc = rig640.R_bc
@@ -310,8 +310,8 @@ def test_rolling_shutter_correction_follows_a_camera_off_the_axis(rig640):
         xy_t, _ = seen(t)
         rows = np.full(2, cam.cy + t / 0.025 * cam.height)  # rows read t after the centre
         w_c = R_bc.T @ w_b
-        fixed = _unroll(xy_t, rows, cam, w_c, 0.025, lever)
-        rot_only = _unroll(xy_t, rows, cam, w_c, 0.025)
+        fixed = unroll(xy_t, rows, cam, w_c, 0.025, lever)
+        rot_only = unroll(xy_t, rows, cam, w_c, 0.025)
         assert np.abs(fixed - xy0).max() * cam.fx < 0.005
         assert np.abs(rot_only - xy0).max() * cam.fx > 0.1
 

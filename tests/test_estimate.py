@@ -211,7 +211,7 @@ def test_the_residuals_measure_a_shear_no_attitude_explains(rig640):
     what an attitude and a height can, and VertexResidual.explain recovers k from the
     rest (the readout evidence of an undeclared rolling shutter); a frame with no shear
     gives 0."""
-    from visvec.detect.edges import shutter_matrix
+    from visvec.shutter import shutter_matrix
 
     R = euler_to_matrix(0.6, 0.04, -0.03)
     exact = _detection(rig640, R)
@@ -234,8 +234,8 @@ def test_readout_evidence_counts_what_a_correction_took_out(rig640):
     beside the readout, it reads as none. An aspect error is estimated too, also from
     frames at rest (which measure no readout); vertices scattered wider than their sigma
     leave the residuals unexplained: not believed."""
-    from visvec.detect.edges import shutter_shift
     from visvec.estimate.shear import MAX_FIT_CHI2_DOF, ReadoutEvidence, _triangle_frame
+    from visvec.shutter import shutter_shift
 
     cam = rig640.camera
     rate = np.radians([2.0, -1.0, 20.0])

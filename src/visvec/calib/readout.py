@@ -2,7 +2,7 @@
 
 While the platform turns, each image row sees the triangle at the attitude of its own
 exposure. The sensor takes every edge point back to the centre row's exposure with the
-rig's ``[camera] readout_ms`` (:func:`visvec.detect.edges._unroll`); with the wrong
+rig's ``[camera] readout_ms`` (:func:`visvec.shutter.unroll`); with the wrong
 readout the corrected triangle is sheared, no rigid triangle fits its vertices, and
 their chi-square (the fit's Mahalanobis residual, 3 degrees of freedom per frame once
 the height is known over the frames, 2 before) grows. The readout is the one that

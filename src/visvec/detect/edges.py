@@ -17,6 +17,7 @@ import cv2
 import numpy as np
 
 from visvec.camera import CameraModel
+from visvec.shutter import unroll
 
 # Variance inflation of the edge-point residuals for correlated neighbouring profiles
 # (profiles 1.5 px apart, bilinear sampling); calibrated by simulation (300 frames at
@@ -589,9 +590,9 @@ def fit_edges(
     exposed t = (v - cy) / H * readout_s after the centre row while the camera turns at
     omega_c (rad/s, camera frame) about the platform's centre of rotation. Each edge
     point's ray d is taken back to the centre row's exposure, d0 = d + t omega_c x
-    (d + lever) (see :func:`_unroll`: the rotation, and the camera's translation on its
-    lever arm), before the lines are fitted, so the lines and vertices are those of one
-    instant. First order in the rotation.
+    (d + lever) (see :func:`visvec.shutter.unroll`: the rotation, and the camera's
+    translation on its lever arm), before the lines are fitted, so the lines and
+    vertices are those of one instant. First order in the rotation.
 
     With ``rolling`` = (readout_s, lever), a rolling shutter's readout whether or not the
     rate is known: the fit also carries ``shutter_gain`` (:func:`_shutter_gain`), the
@@ -666,7 +667,7 @@ def fit_edges(
         raw = camera.undistort(pts_px)
         ideal = raw * f
         if shutter is not None:
-            ideal = _unroll(raw, pts_px[:, 1], camera, *shutter) * f
+            ideal = unroll(raw, pts_px[:, 1], camera, *shutter) * f
         # an edge's points with a clear step; all of them if fewer than 5 are clear
         use = clear | (np.bincount(gid, clear, 3) < 5)[gid]
         normals_l, offsets, centres, spreads, sigmas, keep = _robust_lines(
@@ -740,31 +741,6 @@ def fit_edges(
     return fit
 
 
-def _unroll(
-    xy: np.ndarray,
-    rows: np.ndarray,
-    camera: CameraModel,
-    omega_c: np.ndarray,
-    readout_s: float,
-    lever: np.ndarray | None = None,
-) -> np.ndarray:
-    """Normalised points (N, 2) seen at image rows ``rows`` by a rolling shutter, taken to
-    the centre row's exposure.
-
-    The camera rides on the platform, which turns about the lab origin at omega_c
-    (camera axes): a lab point seen at time t after the centre row is, to first order,
-    P(t) = P(0) - t omega_c x (P(0) + b), b = R_BC^T t_B the camera's position in B in
-    camera axes (its lever arm: turning about the origin also moves the camera). With
-    P = Z d, d = (x, y, 1): d0 = d + t omega_c x (d + ``lever``), ``lever`` = b / Z for
-    the target's depth Z (None: a camera on the axis), t = (v - cy) / H * readout_s.
-    """
-    t = (rows - camera.cy) / camera.height * readout_s
-    d = np.column_stack([xy, np.ones(len(xy))])
-    arm = d if lever is None else d + lever
-    d0 = d + t[:, None] * np.cross(np.asarray(omega_c, float), arm)
-    return d0[:, :2] / d0[:, 2:3]
-
-
 # the rate step (rad/s) of the edge fit's shutter gain: 0.6 deg/s, a few hundredths of a
 # pixel over a 25 ms readout (linear; far above rounding)
 SHUTTER_GAIN_STEP = 0.01
@@ -783,10 +759,10 @@ def _shutter_gain(
     lever: np.ndarray | None,
 ) -> np.ndarray:
     """(6, 3) G: the vertices (x1, y1, x2, ...; normalised) of the lines fitted through the
-    edge points ``xy`` (normalised, as seen, at image ``rows``) after :func:`_unroll`
+    edge points ``xy`` (normalised, as seen, at image ``rows``) after :func:`~visvec.shutter.unroll`
     with the rate omega_c + dw move by G dw (per rad/s, camera axes), the lines refitted
     through the same inliers ``keep`` (``normals``, ``offsets``: the fit's own lines at
-    omega_c, normalised units). At omega_c = 0 it is :func:`shutter_matrix` of an
+    omega_c, normalised units). At omega_c = 0 it is :func:`visvec.shutter.shutter_matrix` of an
     edge fit: a vertex is the intersection of lines through points on many rows, and a
     turn about the boresight moves each row by an amount that grows with its row and its
     column, which curves the edges; the vertex-level matrix then missed the vertices'
@@ -796,63 +772,11 @@ def _shutter_gain(
     for k in range(1, 4):
         w = np.array(omega_c, float)
         w[k - 1] += SHUTTER_GAIN_STEP
-        p = _unroll(xy, rows, camera, w, readout_s, lever)
+        p = unroll(xy, rows, camera, w, readout_s, lever)
         _, c, _, n, _, _ = _group_tls(p[:, 0], p[:, 1], gid, keep)
         n = n * np.where(np.sum(n * normals, axis=1) < 0.0, -1.0, 1.0)[:, None]
         V.append(_vertices(n, np.sum(n * c, axis=1))[0].ravel())
     return np.column_stack([(V[k] - V[0]) / SHUTTER_GAIN_STEP for k in (1, 2, 3)])
-
-
-def shutter_matrix(
-    xy: np.ndarray,
-    rows: np.ndarray,
-    camera: CameraModel,
-    readout_s: float,
-    lever: np.ndarray | None = None,
-) -> np.ndarray:
-    """(6, 3) A: three normalised vertices xy (3, 2) seen at image ``rows`` by a rolling
-    shutter of ``readout_s`` move by A omega (x1, y1, x2, ...) when taken to the centre
-    row's exposure (:func:`_unroll` linearised at omega = 0; omega in rad/s, camera
-    axes): the vertices as seen are those of the centre row less A omega.
-
-    With e = d + lever = (ex, ey, ez) and t = (v - cy) / H * readout_s,
-    A = t [[-x ey, ez + x ex, -ey], [-ez - y ey, y ex, ex]] (for a camera on the axis,
-    e = (x, y, 1): t [[-x y, 1 + x^2, -y], [-1 - y^2, x y, x]]). (A vertex is an
-    intersection of fitted lines whose points have their own rows; its own row's shift
-    is the first-order value.)
-    """
-    t = (np.asarray(rows, float) - camera.cy) / camera.height * readout_s
-    x, y = xy[:, 0], xy[:, 1]
-    lx, ly, lz = (0.0, 0.0, 0.0) if lever is None else np.asarray(lever, float)
-    ex, ey, ez = x + lx, y + ly, 1.0 + lz
-    A = np.zeros((6, 3))
-    A[0::2] = np.column_stack([-x * ey, ez + x * ex, -ey]) * t[:, None]
-    A[1::2] = np.column_stack([-ez - y * ey, y * ex, ex]) * t[:, None]
-    return A
-
-
-def shutter_shift(
-    xy: np.ndarray,
-    rows: np.ndarray,
-    camera: CameraModel,
-    readout_s: float,
-    omega_c: np.ndarray,
-    lever: np.ndarray | None = None,
-) -> np.ndarray:
-    """(6,) A omega of :func:`shutter_matrix` for one rate, written for speed: with
-    c = omega x e (e = d + lever), the projection's linearisation gives
-    t (c_x - x c_z, c_y - y c_z) per vertex."""
-    t = (np.asarray(rows, float) - camera.cy) / camera.height * readout_s
-    x, y = xy[:, 0], xy[:, 1]
-    lx, ly, lz = (0.0, 0.0, 0.0) if lever is None else lever
-    ex, ey, ez = x + lx, y + ly, 1.0 + lz
-    wx, wy, wz = omega_c
-    # omega x e written out (np.cross takes 20 us on three rows)
-    cx, cy, cz = wy * ez - wz * ey, wz * ex - wx * ez, wx * ey - wy * ex
-    out = np.empty(2 * len(xy))
-    out[0::2] = (cx - x * cz) * t
-    out[1::2] = (cy - y * cz) * t
-    return out
 
 
 def _vertices(normals: np.ndarray, offsets: np.ndarray) -> tuple[np.ndarray, list | None]:

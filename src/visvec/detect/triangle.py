@@ -24,13 +24,12 @@ from visvec.detect.edges import (
     corner_angles,
     fit_edges,
     intersect,
-    shutter_matrix,
-    shutter_shift,
     side_lengths,
 )
 from visvec.errors import ConfigError
 from visvec.geometry import project_target
 from visvec.rig import Rig
+from visvec.shutter import shutter_matrix, shutter_shift
 
 # Tolerances of the shape checks (relative, or degrees), chosen to pass every tilt
 # within max_tilt_deg of the paper's geometry with a wide margin.
@@ -196,7 +195,7 @@ class TriangleDetector:
         # (sigma = bound / sqrt(3)), in camera axes
         sd = np.radians([rig.max_tilt_rate_dps, rig.max_tilt_rate_dps, rig.max_rate_dps])
         self._cov_omega = rig.R_bc.T @ np.diag(sd**2 / 3.0) @ rig.R_bc
-        # a rolling shutter's lever arm b / Z (see edges._unroll): the camera's position
+        # a rolling shutter's lever arm b / Z (see visvec.shutter.unroll): the camera's position
         # in B in camera axes over the target's depth (at zero attitude: within 2 % at
         # the tilts an air bearing allows)
         b_c = rig.R_bc.T @ rig.t_b

@@ -2,7 +2,7 @@
 
 A webcam that reads its rows one after another while the platform turns sees each row
 at its own instant: the triangle's vertices are those of the centre row's exposure
-less A omega readout (:func:`visvec.detect.edges.shutter_matrix`). A rig that says so
+less A omega readout (:func:`visvec.shutter.shutter_matrix`). A rig that says so
 (``[camera] readout_ms``) has the detector take it out; one that does not (0, a global
 shutter) gets a yaw biased low at speed with a sigma that does not cover it
 (benchmarks/RESULTS.md, rolling shutter: at 20 deg/s and 640x480, 31 of 78 cold rows
@@ -59,8 +59,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from visvec.camera import CameraModel
-from visvec.detect.edges import shutter_shift
 from visvec.estimate.triangle_full import VertexResidual
+from visvec.shutter import shutter_shift
 
 # a rolling shutter is reported when the run's readout estimate is this many of its
 # sigma from zero and at least this long (ms)
