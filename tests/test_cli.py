@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from visvec.cli.common import run_frames
+from visvec.cli.frames import run_frames
 from visvec.cli.main import cli
 from visvec.data import Frame
 from visvec.errors import NoOkRows, SourceError

@@ -12,8 +12,8 @@ from visvec.cli.common import (
     note_uncalibrated,
     output_options,
     rig_options,
-    run_frames,
 )
+from visvec.cli.frames import run_frames
 from visvec.evaluate import error_stats, read_truth
 from visvec.pipeline import make_pipeline
 from visvec.sources import open_source

@@ -7,17 +7,14 @@ import fcntl
 import math
 import os
 import sys
-import time
 from pathlib import Path
 
 import click
 
-from visvec.errors import ConfigError, NoOkRows
-from visvec.imageio import write_image
-from visvec.output import Row
-from visvec.pipeline import METHODS, Pipeline, make_pipeline
+from visvec.errors import ConfigError
+from visvec.pipeline import METHODS
 from visvec.rig import Rig, load_rig
-from visvec.sinks import UdpStream, open_sink
+from visvec.sinks import UdpStream
 
 
 class FiniteFloat(click.FloatRange):
@@ -278,152 +275,3 @@ def check_new_recording(folder: str | Path, option: str = "--save-frames") -> No
             "truth.csv files): give a new folder for each recording",
             param_hint=option,
         )
-
-
-class FrameRecorder:
-    """Raw frames saved as DIR/frame_NNNNNN.png with DIR/times.csv (file,time_s), the
-    sidecar a folder source reads: `visvec batch DIR` replays the run with its times.
-    Each frame's line is flushed when the frame is saved."""
-
-    def __init__(self, folder: str | Path):
-        self.dir = Path(folder)
-        check_new_recording(self.dir)
-        make_folder(self.dir, "--save-frames")
-        self._times = open(self.dir / "times.csv", "w", newline="")  # noqa: SIM115
-        self._times.write("file,time_s\n")
-
-    def save(self, frame) -> None:
-        name = f"frame_{frame.index:06d}.png"
-        if not write_image(self.dir / name, frame.image):
-            raise click.ClickException(f"{self.dir / name}: cannot write the frame")
-        self._times.write(f"{name},{frame.time_s:.6f}\n")
-        self._times.flush()
-
-    def close(self) -> None:
-        self._times.close()
-
-
-# the reasons a status line names for the rows not ok (the most frequent first)
-PROGRESS_REASONS = 2
-
-
-class Progress:
-    """A status line on stderr every ``interval`` seconds, for an operator watching a run
-    whose rows go to a file: frames, the ok share, the frame rate, the last ok values,
-    and why the others were not ok (the counts the pipeline ``pipe`` keeps of its rows)."""
-
-    def __init__(self, interval: float, pipe: Pipeline):
-        self.interval = interval
-        self.pipe = pipe
-        self.t0 = time.monotonic()
-        self.next = self.t0 + interval
-        self.last: Row | None = None
-
-    def update(self, row: Row) -> None:
-        if row.ok:
-            self.last = row
-        now = time.monotonic()
-        if now >= self.next:
-            self.next = now + self.interval
-            click.echo(self.line(now), err=True)
-
-    def line(self, now: float | None = None) -> str:
-        dt = (time.monotonic() if now is None else now) - self.t0
-        n, refused = self.pipe.n_rows, self.pipe.refused
-        n_ok = n - sum(refused.values())
-        text = (
-            f"visvec: {n} frames, {n_ok} ok ({100.0 * n_ok / max(n, 1):.1f} %)"
-            f", {n / max(dt, 1e-9):.1f} frames/s"
-        )
-        if self.last is not None:
-            vals = ", ".join(
-                f"{name.removesuffix('_deg').removesuffix('_mm').removesuffix('_dps')} {v:+.4f}"
-                for name, v in zip(type(self.last).value_columns, self.last.values(), strict=True)
-            )
-            text += f"; last ok (frame {self.last.frame}): {vals}"
-        if refused:
-            top = refused.most_common(PROGRESS_REASONS)
-            text += "; not ok: " + ", ".join(f"{reason} {n}" for reason, n in top)
-        return text
-
-
-def run_frames(
-    rig: Rig,
-    frames,
-    *,
-    out: str | None,
-    fmt: str,
-    method: str | None,
-    overlay: str | None,
-    max_frames: int | None,
-    keep_rows: bool = False,
-    save_frames: str | None = None,
-    progress: float | None = None,
-) -> list[Row]:
-    """Process frames, writing each row as it is made; Ctrl-C ends the loop cleanly.
-
-    Returns the rows only with ``keep_rows`` (a live camera can run for hours: rows are
-    not held in memory unless the caller needs them). ``save_frames``: a folder where
-    every readable frame is kept losslessly (see :class:`FrameRecorder`). ``progress``:
-    seconds between status lines on stderr (see :class:`Progress`), and one at the end.
-    What the run found out about the rig (the pipeline's notes: a target's height off
-    the rig file's, a rolling shutter it does not declare) goes to stderr at the end.
-    """
-    pipe = make_pipeline(rig, method)
-    rows: list[Row] = []
-    n = n_ok = 0
-    interrupted = False
-    ov = Path(overlay) if overlay else None
-    if ov is not None:
-        make_folder(ov, "--overlay")
-    rec = FrameRecorder(save_frames) if save_frames else None
-    status = Progress(progress, pipe) if progress is not None else None
-    with open_out(out) as stream:
-        sink = open_sink(fmt, stream, pipe.row_type.columns)
-        try:
-            for frame in frames:
-                row = pipe.process(frame)
-                sink.write(row.as_dict())
-                n += 1
-                n_ok += int(row.ok)
-                if keep_rows:
-                    rows.append(row)
-                if status is not None:
-                    status.update(row)
-                if row.status == "read_error":
-                    click.echo(
-                        f"visvec: frame {frame.index}: {frame.error or pipe.check_frame(frame)}",
-                        err=True,
-                    )
-                if pipe.last_error:
-                    click.echo(
-                        f"visvec: frame {frame.index}: internal error, frame refused "
-                        f"({pipe.last_error}); please report it",
-                        err=True,
-                    )
-                # after the row is out: saving a frame adds nothing to its latency
-                if rec is not None and frame.image is not None:
-                    rec.save(frame)
-                if ov is not None and frame.image is not None:
-                    from visvec.overlay import draw_overlay
-
-                    img = draw_overlay(frame.image, pipe.last_detection, row, rig)
-                    if not write_image(ov / f"overlay_{frame.index:06d}.png", img):
-                        raise click.ClickException(
-                            f"{ov}: cannot write the overlay of frame {frame.index}"
-                        )
-                if max_frames is not None and n >= max_frames:
-                    break
-        except KeyboardInterrupt:
-            interrupted = True
-            click.echo(f"visvec: interrupted after {n} frames; all rows written", err=True)
-        finally:
-            if rec is not None:
-                rec.close()
-    if status is not None:
-        click.echo(status.line(), err=True)
-    for line in pipe.notes():
-        click.echo(line, err=True)
-    if n > 0 and n_ok == 0 and not interrupted:
-        raise NoOkRows(f"none of the {n} frames gave an ok row (the reasons above)")
-    return rows

@@ -16,8 +16,8 @@ from visvec.cli.common import (
     note_uncalibrated,
     output_options,
     rig_options,
-    run_frames,
 )
+from visvec.cli.frames import run_frames
 from visvec.fuse.camera import paced
 from visvec.sources import open_source
 
