@@ -21,6 +21,11 @@ SOURCE_CLOCK_TOLERANCE_S = 0.5
 # retried (s): a USB camera that dropped off the bus and came back (a loose cable, a
 # brown-out) or a stream whose connection broke delivers again only to a new capture
 REOPEN_EVERY_S = 1.0
+# a network stream (http://, rtsp://) that sends nothing for this long is taken to have
+# stalled and is opened again (s): FFmpeg's own wait is about 30 s
+STREAM_STALL_S = 1.5
+# between attempts to open a stream that refused or failed (s)
+STREAM_RETRY_PAUSE_S = 0.2
 
 
 MAX_UNREADABLE_IN_A_ROW = 25  # then a file is taken to be cut short there
@@ -61,29 +66,64 @@ class VideoSource:
     ):
         self.spec = spec
         self.live = isinstance(spec, int) or "://" in str(spec)
+        # a network stream: opened and read with timeouts, and waited for up to retry_s
+        self.stream = isinstance(spec, str) and "://" in spec
         self.size = size if isinstance(spec, int) else None
         self._mode = (self.size, fps)  # what a camera is asked for, again on a reopen
-        self.cap = self._open()
+        self.retry_s = retry_s
+        self.cap = self._open_stream() if self.stream else self._open()
         if not self.cap.isOpened():
             if isinstance(spec, int):
                 raise SourceError(
                     f"camera {spec}: cannot open it (not connected, in use by another "
                     f"program, or no permission?); --camera also takes a video file or URL"
                 )
+            if self.stream:
+                raise SourceError(
+                    f"{spec}: the stream did not answer within {retry_s:g} s (--retry-s): is "
+                    "the camera on, the address and port right, and the stream's path?"
+                )
             raise SourceError(f"{spec}: cannot open the video or stream")
         src_fps = self.cap.get(cv2.CAP_PROP_FPS)
         self.fps = src_fps if src_fps and src_fps > 0 and not isinstance(spec, int) else fps
-        self.retry_s = retry_s
         self.max_frames = max_frames
         self._t0: float | None = None
         # a live source's own frame timestamps (CAP_PROP_POS_MSEC: V4L2's buffer time,
         # a stream's presentation time) as (first, last) in s, while they stay usable
         self._src: tuple[float, float] | None = None
+        self._src_t0 = 0.0  # our time of the source's first timestamp (since a reopen)
         self.clock = "source" if self.live else "file"
         self.reopened = 0  # how often a live source was closed and opened again
+        self._last_frame_at: float | None = None  # time.monotonic() of the last frame read
 
-    def _open(self) -> cv2.VideoCapture:
-        """A capture of the source, a camera asked for the rig's frame size and rate."""
+    def _open_stream(self) -> cv2.VideoCapture:
+        """A network stream, tried until it opens or ``retry_s`` has passed: each
+        attempt waits for the server at most what is left of it."""
+        end = time.monotonic() + self.retry_s
+        while True:
+            cap = self._open(max(end - time.monotonic(), 0.1))
+            if cap.isOpened() or time.monotonic() >= end:
+                return cap
+            cap.release()
+            time.sleep(min(STREAM_RETRY_PAUSE_S, max(end - time.monotonic(), 0.0)))
+
+    def _open(self, timeout_s: float | None = None) -> cv2.VideoCapture:
+        """A capture of the source, a camera asked for the rig's frame size and rate; a
+        network stream with FFmpeg's timeouts: ``timeout_s`` to open, STREAM_STALL_S
+        to read a frame."""
+        if self.stream:
+            if timeout_s is None:
+                timeout_s = max(self.retry_s, 0.1)
+            return cv2.VideoCapture(
+                self.spec,
+                cv2.CAP_FFMPEG,
+                [
+                    cv2.CAP_PROP_OPEN_TIMEOUT_MSEC,
+                    int(timeout_s * 1000),
+                    cv2.CAP_PROP_READ_TIMEOUT_MSEC,
+                    int(STREAM_STALL_S * 1000),
+                ],
+            )
         cap = cv2.VideoCapture(self.spec)
         size, fps = self._mode
         if size is not None and cap.isOpened():
@@ -131,6 +171,7 @@ class VideoSource:
                     img = self._retry()
                 failed = 0
                 now = time.monotonic()
+                self._last_frame_at = now
                 if self._t0 is None:
                     self._t0 = now
                 if self.live:
@@ -168,10 +209,12 @@ class VideoSource:
         ms = self.cap.get(cv2.CAP_PROP_POS_MSEC)
         ts = ms / 1000.0 if ms and ms > 0 else None
         if ts is not None and self._src is None:
+            # the first frame, or the first after a reopen (a stream's clock restarts)
             self._src = (ts, ts)
-            return 0.0
+            self._src_t0 = t_read
+            return t_read
         if ts is not None and ts > self._src[1]:
-            t = ts - self._src[0]
+            t = self._src_t0 + ts - self._src[0]
             if abs(t - t_read) < SOURCE_CLOCK_TOLERANCE_S:
                 self._src = (self._src[0], ts)
                 return t
@@ -201,21 +244,25 @@ class VideoSource:
         """The next frame of a live source that failed to deliver one: read again, and
         every REOPEN_EVERY_S close and open it again, until ``retry_s`` has passed."""
         start = time.monotonic()
-        reopen_at = start + REOPEN_EVERY_S
+        # a stream's read has already waited STREAM_STALL_S: opened again at once
+        reopen_at = start if self.stream else start + REOPEN_EVERY_S
         n = 0
         while time.monotonic() < start + self.retry_s:
             time.sleep(0.05)
             if time.monotonic() >= reopen_at:
                 reopen_at = time.monotonic() + REOPEN_EVERY_S
                 self.cap.release()
-                self.cap = self._open()
+                left = start + self.retry_s - time.monotonic()
+                self.cap = self._open(max(left, 0.1) if self.stream else None)
                 self.reopened += 1
+                self._src = None  # a new capture's timestamps start again
                 n += 1
                 if n == 1:  # once per outage: the final error, if any, says how often
+                    since = start if self._last_frame_at is None else self._last_frame_at
                     _log.warning(
                         "%s: no frame for %.1f s; opening it again",
                         self.spec,
-                        time.monotonic() - start,
+                        time.monotonic() - since,
                     )
                 # a new capture may come in another mode (checked on its first frame)
                 self.size = self._mode[0]
@@ -223,7 +270,8 @@ class VideoSource:
                 ok, img = self.cap.read()
                 if ok:
                     return img
+        what = "stream" if self.stream else "camera"
         raise SourceError(
-            f"{self.spec}: the camera stopped delivering frames (retried for {self.retry_s:g} s, "
+            f"{self.spec}: the {what} stopped delivering frames (retried for {self.retry_s:g} s, "
             f"opened again {n} times)"
         )
