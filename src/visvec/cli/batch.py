@@ -14,7 +14,9 @@ from visvec.cli.common import (
     rig_options,
 )
 from visvec.cli.frames import run_frames
+from visvec.cli.view import linger, open_view
 from visvec.evaluate import error_stats, read_truth
+from visvec.fuse.camera import paced
 from visvec.pipeline import make_pipeline
 from visvec.sources import open_source
 
@@ -39,7 +41,7 @@ from visvec.sources import open_source
 @camera_out_option
 @output_options
 def batch(path, rig_path, calibration, truth, imu_path, camera_out, out, fmt, method, overlay,
-          max_frames):  # fmt: skip
+          max_frames, serve):  # fmt: skip
     """Process a folder of images (natural sort order) or a video file."""
     rig = load(rig_path, calibration)
     note_inputs(path, truth, imu_path)
@@ -47,6 +49,11 @@ def batch(path, rig_path, calibration, truth, imu_path, camera_out, out, fmt, me
     check_output(camera_out, "--camera-out")
     if imu_path is not None:
         check_fusable(rig, overlay, None)
+        if serve:
+            raise click.UsageError(
+                "--serve does not go with --imu on a recording yet; `visvec track --imu ... "
+                "--serve` shows a live fused run"
+            )
         if truth:
             raise click.UsageError("--truth compares frames; give `visvec fuse --truth` the "
                                    "fused rows' truth instead")  # fmt: skip
@@ -56,26 +63,36 @@ def batch(path, rig_path, calibration, truth, imu_path, camera_out, out, fmt, me
         return
     if camera_out:
         raise click.UsageError("--camera-out goes with --imu")
-    run_batch(rig, path, truth, out, fmt, method, overlay, max_frames)
+    run_batch(rig, path, truth, out, fmt, method, overlay, max_frames, serve, rig_path)
 
 
-def run_batch(rig, path, truth, out, fmt, method, overlay, max_frames) -> None:
-    """Rows of a folder or video; with a truth file, the error statistics after them."""
+def run_batch(
+    rig, path, truth, out, fmt, method, overlay, max_frames, serve=None, rig_path=""
+) -> None:
+    """Rows of a folder or video; with a truth file, the error statistics after them.
+    With ``serve``, a live view, the frames replayed at their own pace."""
     names = make_pipeline(rig, method).row_type.value_columns
     truth_rows = read_truth(truth, names) if truth else None
+    view = open_view(serve, rig, rig_path, method, str(path))  # a bad port: before the frames
     src = open_source(path, fps=rig.fps, max_frames=max_frames, retry_s=0.0)
+    if view is not None:
+        src = paced(src)
     # once the frames are found, before the first row (as `track` does)
     note_uncalibrated(rig)
-    rows = run_frames(
-        rig,
-        src,
-        out=out,
-        fmt=fmt,
-        method=method,
-        overlay=overlay,
-        max_frames=max_frames,
-        keep_rows=truth_rows is not None,
-    )
+    try:
+        rows = run_frames(
+            rig,
+            src,
+            out=out,
+            fmt=fmt,
+            method=method,
+            overlay=overlay,
+            max_frames=max_frames,
+            keep_rows=truth_rows is not None,
+            watchers=[view.state] if view is not None else None,
+        )
+    finally:
+        linger(view)
     if truth_rows is not None:
         stats = error_stats(rows, truth_rows, names)
         for line in stats.lines():

@@ -40,7 +40,7 @@ def _planar(rig) -> bool:
     return rig.kind == "lamps"
 
 
-def run_fused_camera(rig, frames, imu_src, method, out, fmt, camera_out) -> None:
+def run_fused_camera(rig, frames, imu_src, method, out, fmt, camera_out, view=None) -> None:
     """Camera in a thread, IMU read in another, fused rows written by this one."""
     planar = _planar(rig)
     events: queue.Queue = queue.Queue()
@@ -61,11 +61,13 @@ def run_fused_camera(rig, frames, imu_src, method, out, fmt, camera_out) -> None
         if camera_out:
             stream = stack.enter_context(open_out(camera_out))
             cam_sink = open_sink(fmt, stream, pipe.row_type.columns)
-        camera = CameraFixes(frames, pipe, events, cam_sink)
+        state = view.state if view is not None else None
+        camera = CameraFixes(frames, pipe, events, cam_sink, watcher=state)
         out_stream = stack.enter_context(open_out(out))
 
         def open_rows(is_planar: bool):
-            return open_sink(fmt, out_stream, PoseRow.columns if is_planar else AttitudeRow.columns)
+            sink = open_sink(fmt, out_stream, PoseRow.columns if is_planar else AttitudeRow.columns)
+            return sink if state is None else _Shown(sink, state)
 
         summary = run_live(imu, camera, setup, open_rows, kind=planar, end_with_fixes=True,
                            echo=lambda m: click.echo(m, err=True))  # fmt: skip
@@ -74,6 +76,18 @@ def run_fused_camera(rig, frames, imu_src, method, out, fmt, camera_out) -> None
                err=True)  # fmt: skip
     if summary.refused:
         raise SystemExit(2)
+
+
+class _Shown:
+    """A sink whose rows the live view also shows (after they are written)."""
+
+    def __init__(self, sink, state):
+        self.sink = sink
+        self.state = state
+
+    def write(self, row: dict) -> None:
+        self.sink.write(row)
+        self.state.fused(row)
 
 
 def run_fused_batch(rig, frames, imu_path, method, out, fmt, camera_out) -> None:

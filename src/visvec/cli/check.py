@@ -56,13 +56,19 @@ def check(rig_path, calibration, n_frames, seed):
             "`visvec batch ... --truth`)"
         )
         return
-    _zero_attitude(rig)
-    _envelope(rig)
+    for text, warn in geometry_lines(rig):
+        click.echo(text, err=warn)
     if n_frames:
         _accuracy(rig, n_frames, seed)
 
 
-def _zero_attitude(rig) -> None:
+def geometry_lines(rig) -> list[tuple[str, bool]]:
+    """What `visvec check` says of the rig's geometry (the target at zero attitude, the
+    tilts that keep it in view), as (line, is a warning); the live view shows it too."""
+    return [*_zero_attitude(rig), *_envelope(rig)]
+
+
+def _zero_attitude(rig) -> list[tuple[str, bool]]:
     p_c = camera_points(rig, np.eye(3)[None])[0]
     uv = rig.camera.project(p_c)
     dist = float(np.linalg.norm(p_c.mean(axis=0)))
@@ -72,32 +78,45 @@ def _zero_attitude(rig) -> None:
         shape = f"sides {sides} px"
     else:
         shape = f"{int(np.isfinite(uv).all(axis=1).sum())} of {len(uv)} LEDs in the image"
-    click.echo(
-        f"  at zero attitude: target {dist:.0f} mm from the camera, its image centred at "
-        f"({c[0]:.1f}, {c[1]:.1f}) px, {shape}"
-    )
+    return [
+        (
+            f"  at zero attitude: target {dist:.0f} mm from the camera, its image centred at "
+            f"({c[0]:.1f}, {c[1]:.1f}) px, {shape}",
+            False,
+        )
+    ]
 
 
-def _envelope(rig) -> None:
+def _envelope(rig) -> list[tuple[str, bool]]:
     env = envelope(rig)
     what = "the whole triangle" if rig.kind == "triangle" else f"all {env.n_points} LEDs"
     max_tilt = rig.max_tilt_deg
+    out: list[tuple[str, bool]] = []
     if math.isnan(env.full_tilt_deg):
-        click.echo(
-            f"  in view: even level, {what} is in view at only {100 * env.level_share:.0f} % "
-            "of yaws (a target off the axis circles the image as the platform turns: a "
-            "wider lens, or the target nearer the axis)"
+        out.append(
+            (
+                f"  in view: even level, {what} is in view at only {100 * env.level_share:.0f} % "
+                "of yaws (a target off the axis circles the image as the platform turns: a "
+                "wider lens, or the target nearer the axis)",
+                False,
+            )
         )
     elif env.limit is None:
-        click.echo(
-            f"  in view: {what} at every yaw and tilt direction up to {env.span_deg:g} deg "
-            "of tilt (the largest sampled)"
+        out.append(
+            (
+                f"  in view: {what} at every yaw and tilt direction up to {env.span_deg:g} deg "
+                "of tilt (the largest sampled)",
+                False,
+            )
         )
     else:
-        click.echo(
-            f"  in view: {what} at every yaw and tilt direction up to "
-            f"{env.full_tilt_deg:g} deg of tilt (first lost at yaw {env.limit[0]:+.0f} deg, "
-            f"tilting about the axis {env.limit[1]:.0f} deg from b1)"
+        out.append(
+            (
+                f"  in view: {what} at every yaw and tilt direction up to "
+                f"{env.full_tilt_deg:g} deg of tilt (first lost at yaw {env.limit[0]:+.0f} deg, "
+                f"tilting about the axis {env.limit[1]:.0f} deg from b1)",
+                False,
+            )
         )
     line = (
         f"  at [platform] max_tilt_deg {max_tilt:g}: {what} in view at "
@@ -105,14 +124,17 @@ def _envelope(rig) -> None:
     )
     if rig.kind == "markers":
         line += f"; at least {env.fewest_at_max} LEDs in view within it"
-    click.echo(line)
+    out.append((line, False))
     if env.share_at_max < 1.0:
-        click.echo(
-            "  warning: the target leaves the view within the platform's range: frames "
-            "there are rejected (partly_out_of_view); a wider lens or a smaller target "
-            "keeps it, or lower max_tilt_deg if the platform cannot tilt that far",
-            err=True,
+        out.append(
+            (
+                "  warning: the target leaves the view within the platform's range: frames "
+                "there are rejected (partly_out_of_view); a wider lens or a smaller target "
+                "keeps it, or lower max_tilt_deg if the platform cannot tilt that far",
+                True,
+            )
         )
+    return out
 
 
 def _accuracy(rig, n_frames: int, seed: int) -> None:

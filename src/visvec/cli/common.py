@@ -52,7 +52,17 @@ def rig_options(f=None, *, required: bool = True):
 
 
 def output_options(f):
-    """--out, --format, --method, --overlay, --max-frames."""
+    """--out, --format, --method, --overlay, --max-frames, --serve."""
+    f = click.option(
+        "--serve",
+        metavar="[HOST:]PORT",
+        default=None,
+        help="Show a live view in a web browser at http://HOST:PORT/ (HOST 127.0.0.1, "
+        "this computer only, unless given; 0.0.0.0 for every network; PORT 0: any free "
+        "port): the frame with its detection, the last row, the last minute's values and "
+        "set-up aids. A recording is then replayed at its own pace; at its end the page "
+        "stays until Ctrl-C.",
+    )(f)
     f = click.option(
         "--max-frames",
         type=click.IntRange(min=1),

@@ -75,7 +75,7 @@ from visvec.estimate.rate import rate_budget
 @output_options
 def rate(
     path, rig_path, calibration, truth, budget, ifov_deg, fps, stars, pixels_per_star,
-    off_boresight_deg, rate_dps, out, fmt, method, overlay, max_frames,
+    off_boresight_deg, rate_dps, out, fmt, method, overlay, max_frames, serve,
 ):  # fmt: skip
     """Angular rate (deg/s, camera frame) from consecutive star images in PATH (a folder
     or a video), one row per frame; or, with --budget, the expected 1-sigma accuracy."""
@@ -102,4 +102,4 @@ def rate(
         return
     if path is None or rig is None:
         raise click.UsageError("give PATH and --rig (or --budget)")
-    run_batch(rig, path, truth, out, fmt, method, overlay, max_frames)
+    run_batch(rig, path, truth, out, fmt, method, overlay, max_frames, serve, rig_path)

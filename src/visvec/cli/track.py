@@ -18,6 +18,7 @@ from visvec.cli.common import (
     rig_options,
 )
 from visvec.cli.frames import run_frames
+from visvec.cli.view import linger, open_view
 from visvec.fuse.camera import paced
 from visvec.sources import open_source
 
@@ -64,7 +65,7 @@ STATUS_EVERY_S = 2.0
 @output_options
 def track(
     rig_path, calibration, camera, retry_s, save_frames, imu_src, camera_out, realtime, out,
-    fmt, method, overlay, max_frames
+    fmt, method, overlay, max_frames, serve
 ):  # fmt: skip
     """Stream one attitude row per frame, flushed row by row, until the source ends,
     --max-frames, or Ctrl-C. With --imu, stream fused rows at the IMU's rate."""
@@ -92,6 +93,8 @@ def track(
         except ValueError:
             port = ""
         click.echo(f"visvec: connecting to {u.scheme}://{u.hostname}{port}", err=True)
+    # bound before the camera opens: a port in use is refused first (exit 2)
+    view = open_view(serve, rig, rig_path, method, _shown(spec))
     src = open_source(
         spec if isinstance(spec, int) else str(spec),
         fps=rig.fps,
@@ -103,18 +106,33 @@ def track(
     note_uncalibrated(rig)
     if realtime:
         src = paced(src)
-    if imu_src is not None:
-        run_fused_camera(rig, src, imu_src, method, out, fmt, camera_out)
-        return
-    run_frames(
-        rig,
-        src,
-        out=out,
-        fmt=fmt,
-        method=method,
-        overlay=overlay,
-        max_frames=max_frames,
-        save_frames=save_frames,
-        # rows to a file and a person at the terminal: a status line every 2 s
-        progress=STATUS_EVERY_S if out is not None and sys.stderr.isatty() else None,
-    )
+    try:
+        if imu_src is not None:
+            run_fused_camera(rig, src, imu_src, method, out, fmt, camera_out, view)
+            return
+        run_frames(
+            rig,
+            src,
+            out=out,
+            fmt=fmt,
+            method=method,
+            overlay=overlay,
+            max_frames=max_frames,
+            save_frames=save_frames,
+            # rows to a file and a person at the terminal: a status line every 2 s
+            progress=STATUS_EVERY_S if out is not None and sys.stderr.isatty() else None,
+            watchers=[view.state] if view is not None else None,
+        )
+    finally:
+        linger(view)
+
+
+def _shown(spec) -> str:
+    """The camera as the page names it: a URL without its user and password."""
+    if isinstance(spec, int):
+        return f"camera {spec}"
+    text = str(spec)
+    if "://" in text and "@" in text.split("://", 1)[1].split("/", 1)[0]:
+        scheme, rest = text.split("://", 1)
+        return f"{scheme}://" + rest.split("@", 1)[1]
+    return text

@@ -34,12 +34,16 @@ def paced(frames: Iterable[Frame]) -> Iterator[Frame]:
 
 class CameraFixes:
     """Reads ``frames`` through ``pipe`` in a thread; rows to ``sink`` (or nowhere),
-    ok rows as "fix" events with ``_host_exposure`` (time.monotonic() seconds)."""
+    ok rows as "fix" events with ``_host_exposure`` (time.monotonic() seconds); then
+    ``watcher`` (the live view) sees the frame."""
 
     name = "fix"
 
-    def __init__(self, frames: Iterable[Frame], pipe, events, sink=None, source="camera"):
+    def __init__(
+        self, frames: Iterable[Frame], pipe, events, sink=None, source="camera", watcher=None
+    ):
         self.frames = frames
+        self.watcher = watcher  # sees each frame, its row and the pipeline after the row
         self.pipe = pipe
         self.events = events
         self.sink = sink
@@ -77,6 +81,8 @@ class CameraFixes:
                     d = {k: ("" if v is None else str(v)) for k, v in row.as_dict().items()}
                     d["_host_exposure"] = t0 + (frame.time_s - first)
                     self.events.put(Event("fix", "fix", time.monotonic(), d))
+                if self.watcher is not None:
+                    self.watcher.see(frame, row, self.pipe)
         except Exception as exc:  # reported by the fusion loop; the IMU rows go on
             self.error = exc
             self.events.put(Event("note", "fix", time.monotonic(),
