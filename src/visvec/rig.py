@@ -154,6 +154,23 @@ class ZeroTilt:
 
 
 @dataclass(frozen=True)
+class CameraControls:
+    """What a USB camera is set to at the start of a run (``[camera]`` keys; None: left
+    as the camera has it). ``exposure``, ``gain`` and ``focus`` are in the driver's own
+    units (V4L2: exposure in 100 us steps), as OpenCV's CAP_PROP_EXPOSURE, CAP_PROP_GAIN
+    and CAP_PROP_FOCUS pass them on."""
+
+    exposure: float | None = None
+    gain: float | None = None
+    auto_exposure: bool | None = None
+    focus: float | None = None
+    auto_focus: bool | None = None
+
+    def any(self) -> bool:
+        return any(v is not None for v in vars(self).values())
+
+
+@dataclass(frozen=True)
 class Rig:
     """One setup: camera, mount, target and settings."""
 
@@ -175,6 +192,7 @@ class Rig:
     readout_ms: float = 0.0
     # its 1-sigma (ms), as `calibrate readout` measured it: the rows' sigma carries it
     readout_sigma_ms: float = 0.0
+    controls: CameraControls = field(default_factory=CameraControls)
     path: Path | None = None
 
     @property
@@ -286,6 +304,14 @@ class _Section:
             return None
         if v not in options:
             raise ConfigError(f"{self._where(key)} = {v!r}: expected one of {list(options)}")
+        return v
+
+    def flag(self, key: str, default: bool | None = None) -> bool | None:
+        v = self.get(key, default)
+        if v is None:
+            return None
+        if not isinstance(v, bool):
+            raise ConfigError(f"{self._where(key)} = {v!r}: expected true or false")
         return v
 
     def check_unknown(self) -> None:
@@ -466,6 +492,23 @@ def rig_from_dict(
             f"{cam._where('readout_sigma_ms')} = {readout_sigma_ms}: needs a readout_ms "
             "(0 declares a global shutter, whose readout has no uncertainty)"
         )
+    controls = CameraControls(
+        exposure=cam.number("exposure", None, lo=0.0),
+        gain=cam.number("gain", None, lo=0.0),
+        auto_exposure=cam.flag("auto_exposure"),
+        focus=cam.number("focus", None, lo=0.0),
+        auto_focus=cam.flag("auto_focus"),
+    )
+    if controls.exposure is not None and controls.auto_exposure:
+        raise ConfigError(
+            f"{cam._where('exposure')} = {controls.exposure:g} with auto_exposure = true: the "
+            "camera would not keep it; set auto_exposure = false (or drop exposure)"
+        )
+    if controls.focus is not None and controls.auto_focus:
+        raise ConfigError(
+            f"{cam._where('focus')} = {controls.focus:g} with auto_focus = true: the camera "
+            "would not keep it; set auto_focus = false (or drop focus)"
+        )
     cam.check_unknown()
     for k, v, lo, hi in (("fx", camera.fx, 0.0, 100.0 * camera.width),
                          ("fy", camera.fy, 0.0, 100.0 * camera.height),
@@ -554,6 +597,7 @@ def rig_from_dict(
         exposure_ms=exposure_ms,
         readout_ms=readout_ms,
         readout_sigma_ms=readout_sigma_ms,
+        controls=controls,
         path=Path(src.split(" (+")[0]) if base_dir is not None else None,
     )
     _check_visible(rig, src)

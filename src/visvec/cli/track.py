@@ -101,7 +101,16 @@ def track(
         max_frames=max_frames,
         retry_s=retry_s,
         size=(rig.camera.width, rig.camera.height),
+        controls=rig.controls,
     )
+    # what a camera runs with, and the settings it refused or that move the measurement
+    for line in getattr(src, "settings", []):
+        click.echo(f"visvec: {line}", err=True)
+    for line in getattr(src, "settings_warnings", []):
+        click.echo(f"visvec: warning: {line}", err=True)
+    if view is not None:
+        view.state.info.extend(getattr(src, "settings", []))
+        view.state.info.extend(f"warning: {w}" for w in getattr(src, "settings_warnings", []))
     # said once the camera is open, before the first row: a live run may go on for hours
     note_uncalibrated(rig)
     if realtime:

@@ -16,13 +16,16 @@ def open_source(
     max_frames: int | None = None,
     retry_s: float = 5.0,
     size: tuple[int, int] | None = None,
+    controls=None,
 ):
     """A camera index ("0"), a folder of images, a single image, a video file or a URL.
 
     A camera is asked for ``size`` (width, height) and ``fps``, and refused if it cannot
-    deliver that size (see :class:`VideoSource`)."""
+    deliver that size (see :class:`VideoSource`), and set to ``controls`` (the rig's
+    exposure, gain and focus)."""
     if isinstance(spec, int) or (isinstance(spec, str) and spec.isdigit()):
-        return VideoSource(int(spec), fps=fps, retry_s=retry_s, max_frames=max_frames, size=size)
+        return VideoSource(int(spec), fps=fps, retry_s=retry_s, max_frames=max_frames, size=size,
+                           controls=controls)  # fmt: skip
     if "://" in spec:
         return VideoSource(spec, fps=fps, retry_s=retry_s, max_frames=max_frames)
     p = Path(spec)

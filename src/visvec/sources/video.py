@@ -10,6 +10,8 @@ import cv2
 
 from visvec.data import Frame
 from visvec.errors import SourceError
+from visvec.rig import CameraControls
+from visvec.sources.controls import apply_controls, describe_controls
 from visvec.sources.folder import to_gray
 
 _log = logging.getLogger(__name__)
@@ -63,8 +65,14 @@ class VideoSource:
         retry_s: float = 5.0,
         max_frames: int | None = None,
         size: tuple[int, int] | None = None,
+        controls: CameraControls | None = None,
     ):
         self.spec = spec
+        # a camera's exposure, gain and focus, set at every open; what it runs with and
+        # what it refused, said once (track prints them, the live view shows them)
+        self.controls = controls if isinstance(spec, int) else None
+        self.settings: list[str] = []
+        self.settings_warnings: list[str] = []
         self.live = isinstance(spec, int) or "://" in str(spec)
         # a network stream: opened and read with timeouts, and waited for up to retry_s
         self.stream = isinstance(spec, str) and "://" in spec
@@ -135,6 +143,13 @@ class VideoSource:
             # the driver's queue while the last was processed (the latency column counts
             # from the frame in hand, so a queue would hide its age)
             cap.set(cv2.CAP_PROP_BUFFERSIZE, 1.0)
+        if isinstance(self.spec, int) and cap.isOpened():
+            name = f"camera {self.spec}"
+            refused = apply_controls(cap, self.controls, name) if self.controls else []
+            if not self.settings:
+                line, warnings = describe_controls(cap, name)
+                self.settings = [line]
+                self.settings_warnings = refused + warnings
         return cap
 
     def __iter__(self) -> Iterator[Frame]:
