@@ -450,10 +450,11 @@ def test_fuse_live_from_stdin_matches_the_file_replay(tmp_path):
             assert abs(float(x["x_mm"]) - float(y["x_mm"])) < 1e-6
 
 
-def _track_live(tmp_path, rig, sim_args, n_frames):
+def _track_live(tmp_path, rig, sim_args, n_frames, serve=False):
     """`track --imu` on a simulated recording played at its own pace, the recording's
     imu.csv sent over UDP at its real rate by this thread: (fused rows, camera rows,
-    IMU samples sent, stderr)."""
+    IMU samples sent, stderr). With ``serve``, a live view too: the stderr has the
+    live page's last state as JSON appended, read before the run is ended by Ctrl-C."""
     import socket
     import subprocess
     import sys
@@ -468,14 +469,17 @@ def _track_live(tmp_path, rig, sim_args, n_frames):
     proc = subprocess.Popen(
         [sys.executable, "-m", "visvec", "track", "--rig", str(rig), "--camera", str(rec),
          "--realtime", "--imu", f"udp://127.0.0.1:{port}", "--out", str(out), "--camera-out",
-         str(cam)], stderr=subprocess.PIPE, text=True,
+         str(cam), *(["--serve", "0"] if serve else [])], stderr=subprocess.PIPE, text=True,
     )  # fmt: skip
+    url = None
     try:
         deadline = time.monotonic() + 30
         got = set()
         t0 = None
         while len(got) < 2 and time.monotonic() < deadline:
             line = proc.stderr.readline()
+            if "live view at " in line:
+                url = line.split("live view at ")[1].strip()
             got |= {w for w in ("listening", "first frame") if w in line}
             if "first frame" in line:
                 # the camera's first frame on this machine's monotonic clock: the IMU
@@ -486,7 +490,23 @@ def _track_live(tmp_path, rig, sim_args, n_frames):
         with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
             s.sendto(lines[0].encode(), ("127.0.0.1", port))
             _send_paced(s, lines[1:], port, t0)
+        state = None
+        if serve:
+            import json
+            import signal
+            import urllib.request
+
+            assert url, "no live view address"
+            while time.monotonic() < deadline + 30:
+                with urllib.request.urlopen(url + "api/state", timeout=5) as resp:
+                    state = json.loads(resp.read())
+                if state["run"]["ended"]:
+                    break
+                time.sleep(0.2)
+            proc.send_signal(signal.SIGINT)
         _, err = proc.communicate(timeout=30)
+        if state is not None:
+            err += "\n" + json.dumps(state)
     finally:
         proc.kill()
     assert proc.returncode == 0, err
@@ -516,6 +536,28 @@ def test_track_with_imu_lamps_live(tmp_path):
     e = [math.hypot(float(r["x_mm"]) - tt[int(r["frame"]), 0],
                     float(r["y_mm"]) - tt[int(r["frame"]), 1]) for r in ok]  # fmt: skip
     assert np.sqrt(np.mean(np.square(e))) < 5.0, np.sqrt(np.mean(np.square(e)))
+
+
+def test_track_with_imu_live_view(tmp_path):
+    """`track --imu --serve`: the live page has the camera's rows and the fused ones,
+    each exactly as written."""
+    import json
+
+    from conftest import ROOT
+
+    rows, cam_rows, n_imu, rec, err = _track_live(
+        tmp_path, ROOT / "configs" / "lamps.toml", ["--motion", "perimeter"], 30, serve=True
+    )
+    state = json.loads(err.rstrip().splitlines()[-1])
+    assert [h["frame"] for h in state["history"]] == [int(r["frame"]) for r in cam_rows]
+    fused = state["fused"]
+    # the page keeps the last minute of the fused rows: all of this short run's
+    assert len(fused) == len(rows) > 0.9 * n_imu
+    for f, r in zip(fused, rows, strict=True):
+        assert f["status"] == r["status"] and f["frame"] == int(r["frame"])
+        if r["status"] == "ok":
+            assert f["x_mm"] == pytest.approx(float(r["x_mm"]), abs=1e-9)
+    assert state["run"]["ended"] and state["values"] == ["x_mm", "y_mm", "heading_deg"]
 
 
 def test_track_with_imu_triangle_live(tmp_path):

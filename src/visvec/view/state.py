@@ -18,9 +18,13 @@ from visvec.view.words import in_words
 WINDOW_S = 60.0
 # at most this many rows of history are kept (a 1 kHz IMU for a minute)
 MAX_HISTORY = 60_000
-# a frame is drawn and encoded for the page at most this often (s): frames are dropped
+# a frame is drawn and encoded for the page at most this often (s), and less often when
+# drawing takes more than RENDER_SHARE of the time (a slow computer): frames are dropped
 # for the page, never for the rows
 FRAME_EVERY_S = 0.1
+RENDER_SHARE = 0.02
+# the set-up aids (histogram, sharpness, margin) are computed at most this often (s)
+AIDS_EVERY_S = 0.5
 # the picture sent is at most this wide (px)
 MAX_WIDTH_PX = 960
 JPEG_QUALITY = 80
@@ -58,8 +62,11 @@ class ViewState:
         self._arrivals: deque = deque(maxlen=RECENT)
         self._latency: deque = deque(maxlen=RECENT)
         self.ended = False
-        self._jpeg: tuple[int, bytes, int, Aids | None] | None = None
+        self._jpeg: tuple[int, bytes, int] | None = None
         self._jpeg_t = 0.0
+        self._every = FRAME_EVERY_S
+        self._aids: Aids | None = None
+        self._aids_t = -1e9
         self.t0 = time.monotonic()
 
     # ---- the sensor's side: O(1), no drawing, no encoding
@@ -117,7 +124,6 @@ class ViewState:
         fps = None
         if len(arrivals) > 2 and arrivals[-1] > arrivals[0]:
             fps = (len(arrivals) - 1) / (arrivals[-1] - arrivals[0])
-        jpeg = self._jpeg
         out = {
             "seq": seq,
             "values": self.value_columns,
@@ -135,7 +141,7 @@ class ViewState:
             "frame": frame_no,
             "history": hist,
             "fused": fused,
-            "aids": jpeg[3].as_dict() if jpeg and jpeg[3] else None,
+            "aids": self._aids.as_dict() if self._aids is not None else None,
             "info": self.info,
         }
         return out
@@ -151,10 +157,11 @@ class ViewState:
                 return None
             seq, index, image, det, row = latest
             cached = self._jpeg
-            if cached is not None and (cached[0] == seq or now - self._jpeg_t < FRAME_EVERY_S):
+            if cached is not None and (cached[0] == seq or now - self._jpeg_t < self._every):
                 return cached[2], cached[1]
             from visvec.overlay import draw_overlay
 
+            t0 = time.perf_counter()
             img = draw_overlay(image, det, row, self.rig)
             if img.shape[1] > MAX_WIDTH_PX:
                 f = MAX_WIDTH_PX / img.shape[1]
@@ -162,7 +169,12 @@ class ViewState:
             ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
             if not ok:
                 return None
-            gray = image if image.dtype == np.uint8 else np.clip(image, 0, 255).astype(np.uint8)
-            self._jpeg = (seq, buf.tobytes(), index, aids(gray, det))
+            if now - self._aids_t >= AIDS_EVERY_S:
+                gray = image if image.dtype == np.uint8 else np.clip(image, 0, 255).astype(np.uint8)
+                self._aids = aids(gray, det)
+                self._aids_t = now
+            self._jpeg = (seq, buf.tobytes(), index)
             self._jpeg_t = now
+            # the next frame no sooner than keeps the drawing within RENDER_SHARE
+            self._every = max(FRAME_EVERY_S, (time.perf_counter() - t0) / RENDER_SHARE)
             return index, self._jpeg[1]
