@@ -3,6 +3,7 @@
 import csv
 import io
 import json
+import re
 import shutil
 from pathlib import Path
 
@@ -37,9 +38,20 @@ def assert_within_3_sigma(rows, truth):
 
 
 def besides_the_zero_tilt_note(stderr: str) -> str:
-    """stderr without the note a run on an uncalibrated triangle rig starts with."""
+    """stderr without the note a run on an uncalibrated triangle rig starts with, and
+    without the summary line every run of frames ends with (checked there: it says
+    every frame was ok)."""
     note = "visvec: note: no zero-tilt calibration given"
-    return "".join(x for x in stderr.splitlines(keepends=True) if not x.startswith(note))
+    lines = [x for x in stderr.splitlines(keepends=True) if not x.startswith(note)]
+    summary = re.compile(r"visvec: (\d+) frames, (\d+) ok \(")
+    kept = []
+    for x in lines:
+        m = summary.match(x)
+        if m:
+            assert m.group(1) == m.group(2), x  # a summary of a run with refusals
+            continue
+        kept.append(x)
+    return "".join(kept)
 
 
 def rows_of(text):
@@ -267,7 +279,7 @@ def test_status_lines_for_an_operator(tmp_path, capsys):
         method=None,
         overlay=None,
         max_frames=None,
-        progress=0.0,
+        progress=1e-9,  # a status line after every frame (stderr is not a terminal here)
     )
     lines = [x for x in capsys.readouterr().err.splitlines() if "frames/s" in x]
     assert len(lines) == 5  # one per frame at a 0 s interval, and the last
@@ -906,3 +918,55 @@ def test_rows_stream_to_udp_one_datagram_each(fmt):
 def test_bad_udp_address_is_refused_before_any_row(url, words):
     r = run("batch", SAMPLES, "--rig", RIG, "--out", url)
     assert r.exit_code == 2 and words in r.output
+
+
+def test_status_lines_when_stderr_is_not_a_terminal(tmp_path):
+    """Long work says it is alive: status lines every --status-every seconds (none with
+    0), and every batch ends with its one-line summary."""
+    runner = CliRunner()
+    r = runner.invoke(cli, ["--status-every", "0.001", "batch", str(SAMPLES), "--rig", str(RIG),
+                            "--out", str(tmp_path / "a.csv")])  # fmt: skip
+    assert r.exit_code == 0, r.output
+    lines = [x for x in r.stderr.splitlines() if x.startswith("visvec: batch: ")]
+    assert lines and all(" of 12 frames (" in x and "ok " in x for x in lines)
+    assert r.stderr.splitlines()[-1].startswith("visvec: 12 frames, 12 ok (100.0 %)")
+    r = runner.invoke(cli, ["--status-every", "0", "batch", str(SAMPLES), "--rig", str(RIG),
+                            "--out", str(tmp_path / "b.csv")])  # fmt: skip
+    assert r.exit_code == 0, r.output
+    assert not [x for x in r.stderr.splitlines() if x.startswith("visvec: batch: ")]
+    assert "visvec: 12 frames, 12 ok" in r.stderr
+
+
+def test_progress_bar_at_a_terminal(tmp_path):
+    """At a terminal, a bar (with the frame count and the ok share) instead of lines."""
+    import fcntl
+    import os
+    import pty
+    import struct
+    import subprocess
+    import sys
+    import termios
+
+    master, slave = pty.openpty()
+    fcntl.ioctl(slave, termios.TIOCSWINSZ, struct.pack("HHHH", 40, 120, 0, 0))
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "visvec", "batch", str(SAMPLES), "--rig", str(RIG), "--out",
+         str(tmp_path / "rows.csv")],
+        stderr=slave, stdout=subprocess.DEVNULL,
+    )  # fmt: skip
+    os.close(slave)
+    out = b""
+    while True:
+        try:
+            chunk = os.read(master, 4096)
+        except OSError:
+            break
+        if not chunk:
+            break
+        out += chunk
+    proc.wait(timeout=60)
+    os.close(master)
+    text = out.decode(errors="replace")
+    assert proc.returncode == 0, text
+    assert "visvec batch:" in text and "/12 [" in text  # tqdm's bar: done/total
+    assert "visvec: 12 frames, 12 ok (100.0 %)" in text  # and the summary stays

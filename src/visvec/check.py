@@ -175,22 +175,27 @@ def random_attitudes_within(n: int, max_tilt_deg: float, rng: np.random.Generato
     return tilted(yaw, d, t)
 
 
-def simulated_accuracy(rig: Rig, n: int, seed: int = 0, workers: int | None = None) -> Outcome:
+def simulated_accuracy(
+    rig: Rig, n: int, seed: int = 0, workers: int | None = None, progress=None
+) -> Outcome:
     """Rows of ``n`` frames rendered at random attitudes within max_tilt_deg (the
-    simulator's default scene), each processed cold, against their truth."""
+    simulator's default scene), each processed cold, against their truth;
+    ``progress(1)`` after each frame rendered and each processed (2n in all)."""
     rng = np.random.default_rng(seed)
     Rs = random_attitudes_within(n, rig.max_tilt_deg, rng)
     euler = [np.array(matrix_to_euler(R)) for R in Rs]
     cases = [Case(e, Scene(), seed * 100003 + k) for k, e in enumerate(euler)]
     if rig.kind == "triangle":
-        images = render_cases(rig, cases, workers)
+        images = render_cases(rig, cases, workers, progress)
     elif rig.kind == "markers":
-        images = [
-            render_markers(rig, R, SpotScene(), c.seed) for R, c in zip(Rs, cases, strict=True)
-        ]
+        images = []
+        for R, c in zip(Rs, cases, strict=True):
+            images.append(render_markers(rig, R, SpotScene(), c.seed))
+            if progress is not None:
+                progress(1)
     else:
         raise ValueError(f"target kind {rig.kind!r}: expected one of {ATTITUDE_KINDS}")
-    return evaluate(rig, images, cases, "full")
+    return evaluate(rig, images, cases, "full", progress=progress)
 
 
 def field_of_view_deg(rig: Rig) -> tuple[float, float, float] | None:

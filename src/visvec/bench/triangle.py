@@ -5,7 +5,7 @@ from __future__ import annotations
 import os
 import platform
 import subprocess
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field, replace
 
@@ -34,11 +34,22 @@ def _render(args: tuple[Rig, Case]) -> np.ndarray:
     return render_frame(rig, euler_to_matrix(*case.euler), case.scene, case.seed)
 
 
-def render_cases(world: Rig, cases: Sequence[Case], workers: int | None = None) -> list[np.ndarray]:
-    """Render every case with the true rig ``world``, in parallel."""
+def render_cases(
+    world: Rig,
+    cases: Sequence[Case],
+    workers: int | None = None,
+    progress: Callable[[int], None] | None = None,
+) -> list[np.ndarray]:
+    """Render every case with the true rig ``world``, in parallel; ``progress(1)``
+    after each."""
     workers = workers or os.cpu_count() or 1
+    out = []
     with ProcessPoolExecutor(workers) as ex:
-        return list(ex.map(_render, [(world, c) for c in cases], chunksize=4))
+        for img in ex.map(_render, [(world, c) for c in cases], chunksize=4):
+            out.append(img)
+            if progress is not None:
+                progress(1)
+    return out
 
 
 @dataclass
@@ -124,6 +135,7 @@ def evaluate(
     method: str,
     track: bool = False,
     shear: bool = True,
+    progress: Callable[[int], None] | None = None,
 ) -> Outcome:
     """Run the pipeline (estimation rig ``rig``) on ``images`` and compare with the truth
     (``shear`` False: no readout estimated from the frames of a rig that declares none,
@@ -145,6 +157,8 @@ def evaluate(
             e[0] = (e[0] + 180.0) % 360.0 - 180.0
             out.err_deg.append(e)
             out.sigma_deg.append(row.sigma_deg)
+        if progress is not None:
+            progress(1)
     return out
 
 

@@ -92,10 +92,15 @@ def find_corners(
 
 
 def calibrate_camera(
-    files: list[Path], pattern: tuple[int, int], square_mm: float, recipe: str = "precise"
+    files: list[Path],
+    pattern: tuple[int, int],
+    square_mm: float,
+    recipe: str = "precise",
+    progress=None,
 ) -> CameraCalibration:
     """Calibrate from chessboard photos with cv2.calibrateCamera (flags = 0; its
-    Extended form, for the intrinsics' standard deviations).
+    Extended form, for the intrinsics' standard deviations); ``progress(1)`` after each
+    photo is searched.
 
     Raises
     ------
@@ -107,6 +112,8 @@ def calibrate_camera(
     obj_pts, img_pts, used, skipped = [], [], [], []
     size = None
     for f in files:
+        if progress is not None:
+            progress(1)
         img = read_image(f, cv2.IMREAD_GRAYSCALE)
         if img is None:
             skipped.append(f"{f.name} (unreadable)")

@@ -43,7 +43,7 @@ it: 2 ms over 5 s).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -117,7 +117,7 @@ class _Trial:
         return self.chi2_used / max(self.dof_used, 1)
 
 
-def _cost(frames: Sequence[Frame], rig: Rig, readout_ms: float) -> _Trial:
+def _cost_of(frames: Sequence[Frame], rig: Rig, readout_ms: float) -> _Trial:
     """The recording tracked with ``readout_ms``: each used frame counts its chi-square
     capped at its refusal threshold (its degrees of freedom: 3 with the height known
     over the frames, 2 on a frame estimating it alone), every other frame the cap of 3."""
@@ -172,8 +172,17 @@ def _median_rate_dps(attitudes: list) -> float:
     return float(np.median(speeds)) if speeds else 0.0
 
 
+def readout_trials(rig: Rig) -> int:
+    """About how many readouts :func:`calibrate_readout` tries (for a progress bar)."""
+    span = 1000.0 / rig.fps
+    return len(np.arange(-span, span + 1e-9, COARSE_STEP_MS)) + 9
+
+
 def calibrate_readout(
-    frames: Sequence[Frame], rig: Rig, principal_point_px: float | None = None
+    frames: Sequence[Frame],
+    rig: Rig,
+    principal_point_px: float | None = None,
+    progress: Callable[[int], None] | None = None,
 ) -> ReadoutCalibration:
     """The rolling-shutter readout time of the rig's camera from ``frames`` of the
     platform turning (a tracked recording with its times, as `visvec track` or a video
@@ -185,9 +194,17 @@ def calibrate_readout(
     negative: the last row read first): a coarse grid, 1 ms steps around its best point,
     then a parabola over the trials within +-2.5 sigma of it. Not converged (with the
     reason) when the platform does not turn, the minimum is flat or at the end of the
-    search, or its sigma exceeds a quarter of the frame interval.
+    search, or its sigma exceeds a quarter of the frame interval. ``progress(1)`` after
+    each readout tried (about :func:`readout_trials`).
     """
     frames = [f for f in frames if f.image is not None]
+
+    def _cost(frames, rig, r):
+        out = _cost_of(frames, rig, r)
+        if progress is not None:
+            progress(1)
+        return out
+
     span = 1000.0 / rig.fps
     base = _cost(frames, rig, ZERO_MS)
     base_dof = base.per_dof()

@@ -67,7 +67,7 @@ def batch(path, rig_path, calibration, truth, imu_path, camera_out, out, fmt, me
 
 
 def run_batch(
-    rig, path, truth, out, fmt, method, overlay, max_frames, serve=None, rig_path=""
+    rig, path, truth, out, fmt, method, overlay, max_frames, serve=None, rig_path="", what="batch"
 ) -> None:
     """Rows of a folder or video; with a truth file, the error statistics after them.
     With ``serve``, a live view, the frames replayed at their own pace."""
@@ -90,6 +90,7 @@ def run_batch(
             max_frames=max_frames,
             keep_rows=truth_rows is not None,
             watchers=[view.state] if view is not None else None,
+            what=what,
         )
     finally:
         linger(view)

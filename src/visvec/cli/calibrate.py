@@ -10,13 +10,14 @@ import click
 import numpy as np
 
 from visvec.calib.camera import RECIPES, calibrate_camera, camera_section, parse_pattern
-from visvec.calib.readout import calibrate_readout, readout_sections
+from visvec.calib.readout import calibrate_readout, readout_sections, readout_trials
 from visvec.calib.system import Observations, calibrate_system, initial_attitudes
 from visvec.calib.system import calibration_sections as system_sections
 from visvec.calib.tomlout import dumps
 from visvec.calib.zero_tilt import calibrate_zero_tilt, calibration_sections
 from visvec.camera import CameraModel
 from visvec.cli.common import FiniteFloat, check_output, load, note_inputs, rig_options, write_whole
+from visvec.cli.progress import Work
 from visvec.data import Status
 from visvec.detect.markers import MarkerIdentifier
 from visvec.detect.spots import find_spots
@@ -70,10 +71,13 @@ def zero_tilt(frames, rig_path, calibration, out):
     sources = [open_source(f, fps=rig.fps, retry_s=0.0) for f in frames]
     pipe = TrianglePipeline(rig, "full", still=True)
     dets, names, bad = [], [], 0
+    total = sum(len(s) for s in sources) if all(hasattr(s, "__len__") for s in sources) else None
+    bar = Work("calibrate zero-tilt", total)
     for path, src in zip(frames, sources, strict=True):
         pipe.reset()  # another recording: another yaw
         where = f"{path}: " if len(frames) > 1 else ""
         for frame in src:
+            bar.update(1)
             row = pipe.process(frame)
             if pipe.last_detection is not None and pipe.last_detection.status is Status.OK:
                 dets.append(pipe.last_detection)
@@ -86,6 +90,7 @@ def zero_tilt(frames, rig_path, calibration, out):
                     else ";".join(row.warnings) or "no detail"
                 )
                 click.echo(f"{where}frame {frame.index}: skipped ({row.status}: {why})", err=True)
+    bar.close()
     res = calibrate_zero_tilt(dets, rig)
     not_level = res.converged and res.sigma_ratio > NOT_LEVEL_RATIO
     if res.converged and not res.camera_off and not not_level:
@@ -244,7 +249,9 @@ def readout(frames, rig_path, calibration, out, max_frames, principal_point_sigm
             "zero-tilt` first, then its file as --calibration)",
             err=True,
         )
-    res = calibrate_readout(list(src), rig, principal_point_sigma)
+    frames_in = list(src)
+    with Work("calibrate readout", readout_trials(rig), unit="trial") as bar:
+        res = calibrate_readout(frames_in, rig, principal_point_sigma, progress=bar.update)
     if res.converged:
         sections = readout_sections(res)
         if abs(res.readout_ms) < 2.0 * res.sigma_ms:
@@ -320,7 +327,8 @@ def camera(frames, pattern, square_mm, recipe, out):
     files.sort(key=lambda f: natural_key(f.name))
     if not files:
         raise SourceError(f"{frames}: no images found")
-    cal = calibrate_camera(files, pat, square_mm, recipe)
+    with Work("calibrate camera", len(files), unit="photo") as bar:
+        cal = calibrate_camera(files, pat, square_mm, recipe, progress=bar.update)
     text = dumps(
         {"camera": camera_section(cal)},
         f"visvec camera calibration ({recipe}), pattern {pattern}, "
@@ -397,7 +405,10 @@ def system(frames, rig_path, calibration, out, max_iterations):
     fr, mk, uv = [], [], []
     n_used = 0
     seen: dict[bytes, int] = {}  # image digest -> the frame it came first in
-    for frame in open_source(frames, fps=rig.fps, retry_s=0.0):
+    src = open_source(frames, fps=rig.fps, retry_s=0.0)
+    bar = Work("calibrate system", len(src) if hasattr(src, "__len__") else None)
+    for frame in src:
+        bar.update(1)
         if frame.image is None or frame.image.shape != (rig.camera.height, rig.camera.width):
             click.echo(f"frame {frame.index}: skipped (unreadable or wrong size)", err=True)
             continue
@@ -423,6 +434,7 @@ def system(frames, rig_path, calibration, out, max_iterations):
         mk += res.ids[sel].tolist()
         uv.append(spots.centroids_px[sel])
         n_used += 1
+    bar.close()
     if n_used == 0:
         raise InputFileError(f"{frames}: no frame with identified markers")
     fr_a, mk_a, uv_a = np.array(fr), np.array(mk), np.vstack(uv)

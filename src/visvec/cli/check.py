@@ -16,6 +16,7 @@ from visvec.check import (
     simulated_accuracy,
 )
 from visvec.cli.common import load, rig_options
+from visvec.cli.progress import Work
 from visvec.detect.edges import side_lengths
 from visvec.sim.markers import SpotScene
 from visvec.sim.scene import Scene
@@ -154,7 +155,8 @@ def _accuracy(rig, n_frames: int, seed: int) -> None:
         f"  simulated: {n_frames} frames at random yaws and tilts within "
         f"{rig.max_tilt_deg:g} deg, each cold (the simulator's default scene: {scene})"
     )
-    out = simulated_accuracy(rig, n_frames, seed)
+    with Work("check", 2 * n_frames, unit="step") as bar:
+        out = simulated_accuracy(rig, n_frames, seed, progress=bar.update)
     line = f"    ok {out.n_ok} of {out.n}"
     if out.n_ok:
         rms = out.rms()

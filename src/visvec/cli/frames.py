@@ -5,6 +5,7 @@ to a row's latency."""
 
 from __future__ import annotations
 
+import sys
 import time
 from pathlib import Path
 from typing import Protocol
@@ -80,36 +81,62 @@ class OverlayWriter:
 
 # the reasons a status line names for the rows not ok (the most frequent first)
 PROGRESS_REASONS = 2
+# the bar's text (the ok share, the last values) is remade at most this often (s)
+TEXT_EVERY_S = 0.5
 
 
 class Progress:
-    """A status line on stderr every ``interval`` seconds, for an operator watching a run
-    whose rows go to a file: frames, the ok share, the frame rate, the last ok values,
-    and why the others were not ok (the counts the pipeline ``pipe`` keeps of its rows);
-    and one at the end."""
+    """The run's progress on stderr (:class:`visvec.cli.progress.Work`: a bar at a
+    terminal, a status line every ``every`` seconds otherwise), and its summary line at
+    the end: frames, the ok share, the frame rate, the last ok values, and why the
+    others were not ok (the counts the pipeline ``pipe`` keeps of its rows)."""
 
-    def __init__(self, interval: float, pipe: Pipeline):
-        self.interval = interval
+    def __init__(self, pipe: Pipeline, what: str, total: int | None, bar: bool,
+                 every: float | None = None):  # fmt: skip
+        from visvec.cli.progress import Work
+
         self.pipe = pipe
+        self.work = Work(what, total, "frame", bar=bar)
+        if every is not None and self.work.bar is None:
+            self.work.every = every
+            self.work.next = self.work.t0 + every
         self.t0 = time.monotonic()
-        self.next = self.t0 + interval
         self.last: Row | None = None
+        self.text_at = 0.0
+        self.quiet = False
 
     def see(self, frame: Frame, row: Row, pipe: Pipeline) -> None:
-        self.update(row)
-
-    def update(self, row: Row) -> None:
         if row.ok:
             self.last = row
         now = time.monotonic()
-        if now >= self.next:
-            self.next = now + self.interval
-            click.echo(self.line(now), err=True)
+        text = None
+        if now >= self.text_at:  # the text only when it may be shown
+            self.text_at = now + TEXT_EVERY_S
+            text = self.text()
+        self.work.update(1, text)
 
     def close(self) -> None:
-        click.echo(self.line(), err=True)
+        self.work.close()
+        if not self.quiet:
+            click.echo(self.line(), err=True)
+
+    def text(self) -> str:
+        """The ok share (a bar's text); with the last ok values (a status line's)."""
+        n, refused = self.pipe.n_rows, self.pipe.refused
+        n_ok = n - sum(refused.values())
+        text = f"ok {100.0 * n_ok / max(n, 1):.1f} %"
+        if self.last is not None and self.work.bar is None:
+            text += "; last " + self._values()
+        return text
+
+    def _values(self) -> str:
+        return ", ".join(
+            f"{name.removesuffix('_deg').removesuffix('_mm').removesuffix('_dps')} {v:+.4f}"
+            for name, v in zip(type(self.last).value_columns, self.last.values(), strict=True)
+        )
 
     def line(self, now: float | None = None) -> str:
+        """The summary: frames, ok share, rate, the last ok values, the reasons."""
         dt = (time.monotonic() if now is None else now) - self.t0
         n, refused = self.pipe.n_rows, self.pipe.refused
         n_ok = n - sum(refused.values())
@@ -118,11 +145,7 @@ class Progress:
             f", {n / max(dt, 1e-9):.1f} frames/s"
         )
         if self.last is not None:
-            vals = ", ".join(
-                f"{name.removesuffix('_deg').removesuffix('_mm').removesuffix('_dps')} {v:+.4f}"
-                for name, v in zip(type(self.last).value_columns, self.last.values(), strict=True)
-            )
-            text += f"; last ok (frame {self.last.frame}): {vals}"
+            text += f"; last ok (frame {self.last.frame}): {self._values()}"
         if refused:
             top = refused.most_common(PROGRESS_REASONS)
             text += "; not ok: " + ", ".join(f"{reason} {n}" for reason, n in top)
@@ -142,13 +165,16 @@ def run_frames(
     save_frames: str | None = None,
     progress: float | None = None,
     watchers: list[Watcher] | None = None,
+    what: str = "batch",
 ) -> list[Row]:
     """Process frames, writing each row as it is made; Ctrl-C ends the loop cleanly.
 
     Returns the rows only with ``keep_rows`` (a live camera can run for hours: rows are
     not held in memory unless the caller needs them). ``save_frames``: a folder where
-    every readable frame is kept losslessly (see :class:`FrameRecorder`). ``progress``:
-    seconds between status lines on stderr (see :class:`Progress`), and one at the end.
+    every readable frame is kept losslessly (see :class:`FrameRecorder`). The progress
+    (see :class:`Progress`: ``what`` the run is, a bar at a terminal unless the rows go
+    to the same terminal, else a status line every ``progress`` seconds, default
+    `visvec --status-every`) and a summary line at the end go to stderr.
     ``watchers``: more that see each frame after its row (the live view).
     What the run found out about the rig (the pipeline's notes: a target's height off
     the rig file's, a rolling shutter it does not declare) goes to stderr at the end.
@@ -162,8 +188,14 @@ def run_frames(
         seen.append(OverlayWriter(overlay, rig))
     if save_frames:
         seen.insert(0, FrameRecorder(save_frames))
-    if progress is not None:
-        seen.append(Progress(progress, pipe))
+    try:
+        total = len(frames)
+    except TypeError:
+        total = None
+    # rows to stdout at a terminal are the progress already: no bar over them
+    bar = not (out in (None, "-") and sys.stdout.isatty())
+    status = Progress(pipe, what, total, bar, progress)
+    seen.append(status)
     seen.extend(watchers or ())
     with open_out(out) as stream:
         sink = open_sink(fmt, stream, pipe.row_type.columns)
@@ -194,6 +226,9 @@ def run_frames(
         except KeyboardInterrupt:
             interrupted = True
             click.echo(f"visvec: interrupted after {n} frames; all rows written", err=True)
+        except BrokenPipeError:
+            status.quiet = True  # the rows' reader went away (`| head`): end quietly
+            raise
         finally:
             for w in seen:
                 w.close()

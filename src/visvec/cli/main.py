@@ -91,7 +91,16 @@ def _route_library_warnings() -> None:
 @click.group(cls=VisvecGroup, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(__version__, prog_name="visvec")
 @click.option("--debug", is_flag=True, help="Show tracebacks of unexpected errors.")
-def cli(debug: bool) -> None:
+@click.option(
+    "--status-every",
+    type=click.FloatRange(min=0),
+    default=10.0,
+    show_default=True,
+    metavar="S",
+    help="Long work shows a progress bar at a terminal; otherwise (a service's log, nohup) "
+    "a status line every S seconds. 0: neither.",
+)
+def cli(debug: bool, status_every: float) -> None:
     """visvec: camera attitude sensor for air-bearing spacecraft simulators.
 
     Units are mm and degrees; see docs/reference.md for the frames and the rig file.
@@ -101,6 +110,9 @@ def cli(debug: bool) -> None:
     from visvec.cli.common import forget_inputs
 
     forget_inputs()  # a new command (tests run many in one process)
+    from visvec.cli.progress import set_status_every
+
+    set_status_every(status_every)
     if not debug:
         # OpenCV's own warnings (for instance every backend it tried on a camera that
         # cannot be opened) would bury visvec's one-line message; --debug keeps them

@@ -5,7 +5,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import sys
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
@@ -13,6 +12,7 @@ import click
 
 from visvec.bench.markers import METHODS, RunSpec, run_one, summarise
 from visvec.cli.common import load, rig_options
+from visvec.cli.progress import Work
 
 
 def _floats(text: str, what: str) -> list[float]:
@@ -115,12 +115,11 @@ def montecarlo(
     results = []
     with (
         ProcessPoolExecutor(workers or os.cpu_count() or 1) as ex,
-        click.progressbar(
-            ex.map(run_one, specs), length=len(specs), label="Monte Carlo runs", file=sys.stderr
-        ) as bar,
+        Work("montecarlo", len(specs), unit="run") as bar,
     ):
-        for r in bar:
+        for r in ex.map(run_one, specs):
             results.append(r)
+            bar.update(1)
     summary = summarise(results)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

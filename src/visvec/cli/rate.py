@@ -102,4 +102,4 @@ def rate(
         return
     if path is None or rig is None:
         raise click.UsageError("give PATH and --rig (or --budget)")
-    run_batch(rig, path, truth, out, fmt, method, overlay, max_frames, serve, rig_path)
+    run_batch(rig, path, truth, out, fmt, method, overlay, max_frames, serve, rig_path, "rate")

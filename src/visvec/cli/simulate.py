@@ -8,6 +8,7 @@ from dataclasses import replace
 import click
 
 from visvec.cli.common import FiniteFloat, check_new_recording, load, rig_options
+from visvec.cli.progress import Work
 from visvec.sim.lamps import LampScene, PerimeterPath, simulate_imu, simulate_lamps
 from visvec.sim.markers import SpotScene
 from visvec.sim.scene import Scene
@@ -281,7 +282,7 @@ def _simulate(rig_path, calibration, out_dir, n_frames, seed, motion, max_tilt_d
         show_triangle=not no_triangle,
     )
     world = true_rig(rig, tuple(target_offset_mm), tuple(camera_askew_deg), target_height_mm)
-    with click.progressbar(length=n_frames, label="rendering", file=sys.stderr) as bar:
+    with Work("simulate", n_frames) as bar:
         truth = run_simulation(
             rig,
             out_dir,
@@ -313,7 +314,7 @@ def _lamps(rig, out_dir, n_frames, seed, noise, motion, spurious, imu, fps) -> N
         spurious=spurious,
     )
     fps = fps or rig.fps
-    with click.progressbar(length=n_frames, label="rendering", file=sys.stderr) as bar:
+    with Work("simulate", n_frames) as bar:
         truth = simulate_lamps(
             rig, out_dir, n_frames, path=path, scene=scene, seed=seed, fps=fps,
             progress=lambda i: bar.update(1),
@@ -329,7 +330,7 @@ def _stars(rig, out_dir, n_frames, seed, noise, case, rate_dps, fps) -> None:
         raise click.UsageError("give --case or --rate-dps, not both")
     w = PAPER_CASES[case] if case is not None else tuple(rate_dps or PAPER_CASES[1])
     scene = replace(StarScene(exposure_ms=rig.exposure_ms or 50.0), read_noise_dn=noise)
-    with click.progressbar(length=n_frames, label="rendering", file=sys.stderr) as bar:
+    with Work("simulate", n_frames) as bar:
         truth = simulate_stars(
             rig, out_dir, n_frames, w, seed=seed, scene=scene, fps=fps,
             progress=lambda i: bar.update(1),

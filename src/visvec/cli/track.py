@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import sys
-
 import click
 
 from visvec.cli.camera_fusion import camera_out_option, check_fusable, run_fused_camera
@@ -21,8 +19,6 @@ from visvec.cli.frames import run_frames
 from visvec.cli.view import linger, open_view
 from visvec.fuse.camera import paced
 from visvec.sources import open_source
-
-STATUS_EVERY_S = 2.0
 
 
 @click.command()
@@ -128,8 +124,7 @@ def track(
             overlay=overlay,
             max_frames=max_frames,
             save_frames=save_frames,
-            # rows to a file and a person at the terminal: a status line every 2 s
-            progress=STATUS_EVERY_S if out is not None and sys.stderr.isatty() else None,
+            what="track",
             watchers=[view.state] if view is not None else None,
         )
     finally:
