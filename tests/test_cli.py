@@ -970,3 +970,31 @@ def test_progress_bar_at_a_terminal(tmp_path):
     assert proc.returncode == 0, text
     assert "visvec batch:" in text and "/12 [" in text  # tqdm's bar: done/total
     assert "visvec: 12 frames, 12 ok (100.0 %)" in text  # and the summary stays
+
+
+def test_misspelt_required_key_is_named(tmp_path):
+    text = Path(RIG).read_text()
+    assert "\nfx = " in text
+    (tmp_path / "fxx.toml").write_text(text.replace("\nfx = ", "\nfxx = ", 1))
+    r = run("batch", SAMPLES, "--rig", tmp_path / "fxx.toml")
+    assert r.exit_code == 2 and "fx: missing (required); the file has 'fxx'" in r.stderr
+    # a key of its own (fy) is not offered for a missing fx
+    (tmp_path / "nofx.toml").write_text(
+        "\n".join(x for x in text.splitlines() if not x.startswith("fx = "))
+    )
+    r = run("batch", SAMPLES, "--rig", tmp_path / "nofx.toml")
+    assert r.exit_code == 2 and r.stderr.rstrip().endswith("fx: missing (required)")
+
+
+def test_batch_takes_a_quoted_glob(tmp_path):
+    """`batch 'frames/frame_000[0-3].png'` (a pattern the shell did not expand): those
+    images, in natural order, with the folder's times."""
+    out = tmp_path / "rows.csv"
+    r = run("batch", f"{SAMPLES}/frame_000[0-3].png", "--rig", RIG, "--out", out)
+    assert r.exit_code == 0, r.stderr
+    rows = rows_of(out.read_text())
+    assert [x["status"] for x in rows] == ["ok"] * 4
+    full = rows_of(run("batch", SAMPLES, "--rig", RIG).stdout)
+    assert [x["yaw_deg"] for x in rows] == [x["yaw_deg"] for x in full[:4]]
+    r = run("batch", f"{SAMPLES}/nothing_*.png", "--rig", RIG)
+    assert r.exit_code == 3 and "no image matches the pattern" in r.stderr

@@ -7,6 +7,7 @@ A calibration file has the same sections; the keys it names override the rig's.
 
 from __future__ import annotations
 
+import difflib
 import logging
 import math
 import tomllib
@@ -248,7 +249,13 @@ class _Section:
         self.used.add(key)
         if key not in self.table:
             if required:
-                raise ConfigError(f"{self._where(key)}: missing (required)")
+                # a misspelt key (fxx for fx) is named, not only the one that is missing
+                # (a key that holds it or that it holds: fxx, f_x; not fy, a key of its own)
+                cands = [str(k) for k in self.table if key in str(k) or str(k) in key
+                         or str(k).replace("_", "") == key.replace("_", "")]  # fmt: skip
+                near = difflib.get_close_matches(key, cands, 1, 0.6)
+                hint = f"; the file has {near[0]!r}: misspelt?" if near else ""
+                raise ConfigError(f"{self._where(key)}: missing (required){hint}")
             return default
         return self.table[key]
 

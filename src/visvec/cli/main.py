@@ -1,4 +1,4 @@
-"""Entry point: the `visvec` command group and its exit codes (SPEC section 3).
+"""Entry point: the `visvec` command group and its exit codes (docs/reference.md).
 
 0 success; 2 bad usage, rig or calibration file; 3 a source that cannot be opened or
 read at all; 4 a run that gave not one ok row; 1 an output that cannot be written, a
@@ -46,7 +46,7 @@ class VisvecGroup(click.Group):
 
             os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
             sys.exit(0)
-        except Exception as exc:  # noqa: BLE001 - the last resort promised by the SPEC
+        except Exception as exc:  # noqa: BLE001 - the last resort the contract promises
             if debug:
                 raise
             click.echo(

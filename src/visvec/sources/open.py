@@ -6,7 +6,7 @@ from pathlib import Path
 
 from visvec.errors import SourceError
 from visvec.imageio import opencv_path
-from visvec.sources.folder import IMAGE_SUFFIXES, FolderSource
+from visvec.sources.folder import IMAGE_SUFFIXES, FolderSource, natural_key
 from visvec.sources.video import VideoSource
 
 
@@ -31,6 +31,15 @@ def open_source(
     p = Path(spec)
     if p.is_dir():
         return FolderSource(p, fps=fps)
+    if not p.exists() and any(c in spec for c in "*?["):
+        # a pattern the shell did not expand (quoted): its images, in natural order
+        files = sorted(
+            (f for f in p.parent.glob(p.name) if f.suffix.lower() in IMAGE_SUFFIXES),
+            key=lambda f: natural_key(f.name),
+        )
+        if not files:
+            raise SourceError(f"{spec}: no image matches the pattern")
+        return FolderSource(p.parent, fps=fps, files=files)
     if not p.exists():
         raise SourceError(f"{p}: no such file or folder")
     if p.suffix.lower() in IMAGE_SUFFIXES:
