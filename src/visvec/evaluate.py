@@ -70,6 +70,7 @@ class ErrorStats:
     max_abs: np.ndarray
     mean_sigma: np.ndarray
     within_3sigma: float  # fraction of ok rows with every quantity within 3 sigma
+    z: np.ndarray | None = None  # (n_ok, k) errors over their sigmas
 
     def lines(self) -> list[str]:
         out = [
@@ -124,4 +125,84 @@ def error_stats(
         np.abs(E).max(axis=0),
         S.mean(axis=0),
         within,
+        np.divide(E, S, out=np.full_like(E, np.nan), where=S > 0),
     )
+
+
+# the calibration test of a sigma (a Gaussian puts 0.27 % beyond 3 sigma): at most
+# twice that share of (ok row, quantity) pairs beyond 3 sigma, and none beyond 5
+GAUSS_BEYOND_3 = 0.0027
+
+
+def frame_errors(
+    rows: Sequence[Row], truth: dict[int, np.ndarray], names: Sequence[str] = ANGLES
+) -> list[dict[str, object]]:
+    """One dict per row with a truth: frame, time_s, status, and for an ok row each
+    quantity's error (``err_<name>``, yaw and heading wrapped to +-180) and the error
+    over its sigma (``z_<name>``); empty for the others."""
+    wrap = [i for i, k in enumerate(names) if k in WRAPPED]
+    out = []
+    for r in rows:
+        if r.frame not in truth:
+            continue
+        d: dict[str, object] = {"frame": r.frame, "time_s": round(r.time_s, 6),
+                                "status": str(r.status)}  # fmt: skip
+        if r.ok:
+            e = r.values() - truth[r.frame]
+            e[wrap] = wrap_deg(e[wrap])
+            s = r.sigmas()
+            for i, k in enumerate(names):
+                d[f"err_{k}"] = float(e[i])
+            for i, k in enumerate(names):
+                d[f"z_{k}"] = float(e[i] / s[i]) if s[i] > 0 else None
+        else:
+            d.update({f"err_{k}": None for k in names})
+            d.update({f"z_{k}": None for k in names})
+        out.append(d)
+    return out
+
+
+def summary_dict(
+    rows: Sequence[Row], stats: ErrorStats | None, names: Sequence[str]
+) -> dict[str, object]:
+    """The run's figures as JSON: rows, ok share, statuses and reasons; with a truth,
+    per quantity RMS, mean, std, max |error|, mean sigma, the shares beyond 3 and 5
+    sigma and whether the sigmas pass the calibration test."""
+    from collections import Counter
+
+    statuses = Counter(str(r.status) for r in rows)
+    reasons = Counter(r.reason for r in rows if not r.ok)
+    n = len(rows)
+    out: dict[str, object] = {
+        "rows": n,
+        "ok": statuses.get("ok", 0),
+        "ok_share": statuses.get("ok", 0) / n if n else None,
+        "statuses": dict(statuses),
+        "reasons": dict(reasons.most_common()),
+    }
+    if stats is None:
+        return out
+
+    def nums(a) -> dict[str, float | None]:
+        return {k: (float(v) if np.isfinite(v) else None) for k, v in zip(names, a, strict=True)}
+
+    truth: dict[str, object] = {
+        "frames_with_truth": stats.n_frames,
+        "ok_with_truth": stats.n_ok,
+        "rms": nums(stats.rms),
+        "mean": nums(stats.mean),
+        "std": nums(stats.std),
+        "max_abs": nums(stats.max_abs),
+        "mean_sigma": nums(stats.mean_sigma),
+        "within_3sigma_every_axis": stats.within_3sigma if stats.n_ok else None,
+    }
+    if stats.z is not None and len(stats.z):
+        az = np.abs(stats.z[np.isfinite(stats.z)])
+        beyond3 = float(np.mean(az > 3.0)) if len(az) else None
+        truth["beyond_3sigma_share"] = beyond3
+        truth["beyond_5sigma_count"] = int(np.sum(az > 5.0))
+        truth["sigma_calibrated"] = bool(
+            beyond3 is not None and beyond3 <= 2 * GAUSS_BEYOND_3 and not np.any(az > 5.0)
+        )
+    out["truth"] = truth
+    return out

@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import csv
+import io
+import json
+
 import click
 
 from visvec.cli.camera_fusion import camera_out_option, check_fusable, run_fused_batch
@@ -11,11 +15,13 @@ from visvec.cli.common import (
     note_inputs,
     note_uncalibrated,
     output_options,
+    result_options,
     rig_options,
+    write_whole,
 )
 from visvec.cli.frames import run_frames
 from visvec.cli.view import linger, open_view
-from visvec.evaluate import error_stats, read_truth
+from visvec.evaluate import error_stats, frame_errors, read_truth, summary_dict
 from visvec.fuse.camera import paced
 from visvec.pipeline import make_pipeline
 from visvec.sources import open_source
@@ -39,14 +45,16 @@ from visvec.sources import open_source
     "frames' ok rows the fixes (available at their exposure plus their latency).",
 )
 @camera_out_option
+@result_options
 @output_options
-def batch(path, rig_path, calibration, truth, imu_path, camera_out, out, fmt, method, overlay,
-          max_frames, serve):  # fmt: skip
+def batch(path, rig_path, calibration, truth, imu_path, camera_out, errors, summary, out, fmt,
+          method, overlay, max_frames, serve):  # fmt: skip
     """Process a folder of images (natural sort order) or a video file."""
     rig = load(rig_path, calibration)
     note_inputs(path, truth, imu_path)
     check_output(overlay, "--overlay")
     check_output(camera_out, "--camera-out")
+    check_results(truth, errors, summary, imu_path)
     if imu_path is not None:
         check_fusable(rig, overlay, None)
         if serve:
@@ -63,14 +71,29 @@ def batch(path, rig_path, calibration, truth, imu_path, camera_out, out, fmt, me
         return
     if camera_out:
         raise click.UsageError("--camera-out goes with --imu")
-    run_batch(rig, path, truth, out, fmt, method, overlay, max_frames, serve, rig_path)
+    run_batch(rig, path, truth, out, fmt, method, overlay, max_frames, serve, rig_path,
+              errors=errors, summary=summary)  # fmt: skip
+
+
+def check_results(truth, errors, summary, imu=None) -> None:
+    """--errors and --summary: refused before any work when unwritable or meaningless."""
+    check_output(errors, "--errors")
+    check_output(summary, "--summary")
+    if errors and not truth:
+        raise click.UsageError("--errors needs --truth (errors against what?)")
+    if imu and (errors or summary):
+        raise click.UsageError("--errors and --summary are for frames' rows; with --imu, "
+                               "`visvec fuse --truth` compares the fused rows")  # fmt: skip
 
 
 def run_batch(
-    rig, path, truth, out, fmt, method, overlay, max_frames, serve=None, rig_path="", what="batch"
-) -> None:
-    """Rows of a folder or video; with a truth file, the error statistics after them.
-    With ``serve``, a live view, the frames replayed at their own pace."""
+    rig, path, truth, out, fmt, method, overlay, max_frames, serve=None, rig_path="",
+    what="batch", errors=None, summary=None,
+) -> None:  # fmt: skip
+    """Rows of a folder or video; with a truth file, the error statistics after them
+    (and with ``errors``, ``summary`` files of them). With ``serve``, a live view, the
+    frames replayed at their own pace."""
+    check_results(truth, errors, summary)
     names = make_pipeline(rig, method).row_type.value_columns
     truth_rows = read_truth(truth, names) if truth else None
     view = open_view(serve, rig, rig_path, method, str(path))  # a bad port: before the frames
@@ -88,13 +111,30 @@ def run_batch(
             method=method,
             overlay=overlay,
             max_frames=max_frames,
-            keep_rows=truth_rows is not None,
+            keep_rows=truth_rows is not None or summary is not None,
             watchers=[view.state] if view is not None else None,
             what=what,
         )
     finally:
         linger(view)
+    stats = None
     if truth_rows is not None:
         stats = error_stats(rows, truth_rows, names)
         for line in stats.lines():
             click.echo(line, err=out is None)
+        if errors:
+            write_whole(errors, _csv(frame_errors(rows, truth_rows, names), names))
+    if summary:
+        write_whole(summary, json.dumps(summary_dict(rows, stats, names), indent=2) + "\n")
+
+
+def _csv(records: list[dict], names) -> str:
+    cols = ["frame", "time_s", "status", *(f"err_{k}" for k in names),
+            *(f"z_{k}" for k in names)]  # fmt: skip
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, cols, lineterminator="\n")
+    w.writeheader()
+    for r in records:
+        w.writerow({k: ("" if v is None else (f"{v:.9g}" if isinstance(v, float) else v))
+                    for k, v in r.items()})  # fmt: skip
+    return buf.getvalue()

@@ -51,6 +51,25 @@ def rig_options(f=None, *, required: bool = True):
     return f
 
 
+def result_options(f):
+    """--errors, --summary (batch, rate)."""
+    f = click.option(
+        "--summary",
+        type=click.Path(dir_okay=False),
+        default=None,
+        help="Write the run's figures as JSON: rows, ok share, statuses and reasons; with "
+        "--truth the error statistics and the sigma calibration check too.",
+    )(f)
+    f = click.option(
+        "--errors",
+        type=click.Path(dir_okay=False),
+        default=None,
+        help="With --truth: write each frame's errors (yaw and heading wrapped to +-180) "
+        "and errors over their sigma as CSV, for plotting.",
+    )(f)
+    return f
+
+
 def output_options(f):
     """--out, --format, --method, --overlay, --max-frames, --serve."""
     f = click.option(
@@ -188,6 +207,18 @@ def check_output(path, option: str = "--out") -> None:
                 f"{path}: inside the input folder {inp}; put outputs elsewhere",
                 param_hint=option,
             )
+    # the nearest folder that exists must be a folder, and one this user may write in
+    for parent in p.absolute().parents:
+        if parent.exists():
+            if not parent.is_dir():
+                raise click.BadParameter(
+                    f"{path}: {parent} is a file, not a folder", param_hint=option
+                )
+            if not os.access(parent, os.W_OK | os.X_OK):
+                raise click.BadParameter(
+                    f"{path}: {parent} is not writable by this user", param_hint=option
+                )
+            break
 
 
 def write_whole(path, text: str) -> None:

@@ -129,6 +129,7 @@ def _register() -> None:
         check,
         fuse,
         montecarlo,
+        plot,
         rate,
         simulate,
         track,
@@ -143,6 +144,7 @@ def _register() -> None:
     cli.add_command(catalog.catalog)
     cli.add_command(fuse.fuse)
     cli.add_command(check.check)
+    cli.add_command(plot.plot)
     # every command's help ends with the exit codes
     todo = list(cli.commands.values())
     while todo:

@@ -13,6 +13,7 @@ from visvec.cli.common import (
     load,
     note_inputs,
     output_options,
+    result_options,
     rig_options,
 )
 from visvec.estimate.rate import rate_budget
@@ -72,10 +73,11 @@ from visvec.estimate.rate import rate_budget
     show_default=True,
     help="Budget: rate about the boresight (for the full Eq. 26).",
 )
+@result_options
 @output_options
 def rate(
     path, rig_path, calibration, truth, budget, ifov_deg, fps, stars, pixels_per_star,
-    off_boresight_deg, rate_dps, out, fmt, method, overlay, max_frames, serve,
+    off_boresight_deg, rate_dps, errors, summary, out, fmt, method, overlay, max_frames, serve,
 ):  # fmt: skip
     """Angular rate (deg/s, camera frame) from consecutive star images in PATH (a folder
     or a video), one row per frame; or, with --budget, the expected 1-sigma accuracy."""
@@ -102,4 +104,5 @@ def rate(
         return
     if path is None or rig is None:
         raise click.UsageError("give PATH and --rig (or --budget)")
-    run_batch(rig, path, truth, out, fmt, method, overlay, max_frames, serve, rig_path, "rate")
+    run_batch(rig, path, truth, out, fmt, method, overlay, max_frames, serve, rig_path, "rate",
+              errors=errors, summary=summary)  # fmt: skip

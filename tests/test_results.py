@@ -1,0 +1,88 @@
+"""Results a lab can plot: --errors and --summary beside --truth, and `visvec plot`."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from pathlib import Path
+
+import pytest
+from click.testing import CliRunner
+
+from visvec.cli.main import cli
+
+ROOT = Path(__file__).resolve().parents[1]
+RIG = ROOT / "configs" / "triangle.toml"
+SAMPLES = ROOT / "data" / "sample_frames"
+
+
+def run(*args):
+    return CliRunner().invoke(cli, [str(a) for a in args])
+
+
+def rows(path: Path) -> list[dict]:
+    with open(path, newline="") as fh:
+        return list(csv.DictReader(fh))
+
+
+def test_errors_and_summary_files(tmp_path):
+    out, err, summ = tmp_path / "rows.csv", tmp_path / "err.csv", tmp_path / "sum.json"
+    r = run("batch", SAMPLES, "--rig", RIG, "--truth", SAMPLES / "truth.csv", "--out", out,
+            "--errors", err, "--summary", summ)  # fmt: skip
+    assert r.exit_code == 0, r.output
+    got, truth = rows(out), {int(t["frame"]): t for t in rows(SAMPLES / "truth.csv")}
+    errs = rows(err)
+    assert [int(e["frame"]) for e in errs] == [int(g["frame"]) for g in got]
+    for e, g in zip(errs, got, strict=True):
+        t = truth[int(g["frame"])]
+        for k in ("yaw_deg", "pitch_deg", "roll_deg"):
+            want = float(g[k]) - float(t[k])
+            want = (want + 180) % 360 - 180
+            # the rows file holds the values to 1e-6 deg, the errors file to 9 digits
+            assert float(e[f"err_{k}"]) == pytest.approx(want, abs=1.5e-6)
+            sig = float(g[f"sigma_{k}"])
+            assert float(e[f"z_{k}"]) == pytest.approx(want / sig, abs=2e-6 / sig)
+    s = json.loads(summ.read_text())
+    assert s["rows"] == len(got) and s["ok"] == sum(g["status"] == "ok" for g in got)
+    rms_yaw = math.sqrt(sum(float(e["err_yaw_deg"]) ** 2 for e in errs) / len(errs))
+    assert s["truth"]["rms"]["yaw_deg"] == pytest.approx(rms_yaw, rel=1e-6)
+    z = [abs(float(e[f"z_{k}"])) for e in errs for k in ("yaw_deg", "pitch_deg", "roll_deg")]
+    assert s["truth"]["beyond_3sigma_share"] == pytest.approx(sum(x > 3 for x in z) / len(z))
+    assert s["truth"]["beyond_5sigma_count"] == sum(x > 5 for x in z)
+
+
+def test_errors_needs_truth_and_a_writable_place(tmp_path):
+    r = run("batch", SAMPLES, "--rig", RIG, "--errors", tmp_path / "e.csv")
+    assert r.exit_code == 2 and "--errors needs --truth" in r.output
+    (tmp_path / "a-file").write_text("x")
+    where = tmp_path / "a-file" / "s.json"  # under a file: can never be written
+    r = run("batch", SAMPLES, "--rig", RIG, "--truth", SAMPLES / "truth.csv", "--summary",
+            where, "--out", tmp_path / "rows.csv")  # fmt: skip
+    # refused before any frame: no rows written
+    assert r.exit_code == 2 and "--summary" in r.output
+    assert not (tmp_path / "rows.csv").exists()
+
+
+def test_plot_draws_a_run_and_its_truth(tmp_path):
+    pytest.importorskip("matplotlib")
+    out = tmp_path / "rows.csv"
+    assert run("batch", SAMPLES, "--rig", RIG, "--out", out).exit_code == 0
+    fig = tmp_path / "run.png"
+    r = run("plot", out, "--truth", SAMPLES / "truth.csv", "--out", fig)
+    assert r.exit_code == 0, r.output
+    assert fig.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and fig.stat().st_size > 30_000
+    assert "12 of 12 attitude rows ok" in r.output and "RMS error yaw_deg" in r.output
+    svg = tmp_path / "run.svg"
+    assert run("plot", out, "--out", svg).exit_code == 0 and b"<svg" in svg.read_bytes()[:500]
+
+
+def test_plot_refuses_a_file_that_is_not_rows(tmp_path):
+    pytest.importorskip("matplotlib")
+    bad = tmp_path / "other.csv"
+    bad.write_text("a,b\n1,2\n")
+    r = run("plot", bad, "--out", tmp_path / "f.png")
+    assert r.exit_code == 2 and "other.csv: not visvec rows: needs the columns" in r.output
+    assert "yaw_deg" in r.output and not (tmp_path / "f.png").exists()
+    r = run("plot", bad, "--out", tmp_path / "f.jpg")
+    assert r.exit_code == 2 and ".png, .svg or .pdf" in r.output
