@@ -998,3 +998,19 @@ def test_batch_takes_a_quoted_glob(tmp_path):
     assert [x["yaw_deg"] for x in rows] == [x["yaw_deg"] for x in full[:4]]
     r = run("batch", f"{SAMPLES}/nothing_*.png", "--rig", RIG)
     assert r.exit_code == 3 and "no image matches the pattern" in r.stderr
+
+
+def test_help_groups_the_options_of_each_kind():
+    """`simulate --help`: the options for one target kind under that kind's heading,
+    after the options for all; every option described; no range shown as None."""
+    text = run("simulate", "--help").output
+    heads = [line for line in text.splitlines() if line.endswith("options:") or line == "Options:"]
+    assert heads == ["Options:", "Triangle options:", "Markers options:", "Starfield options:",
+                     "Lamps options:"]  # fmt: skip
+    tri = text.split("Triangle options:")[1].split("Markers options:")[0]
+    assert "--blur" in tri and "--readout-ms" in tri and "--spurious" not in tri
+    assert "--spurious" in text.split("Lamps options:")[1]
+    assert "None]" not in text
+    rate = run("rate", "--help").output
+    assert "[required unless --budget]" in " ".join(rate.split())
+    assert "--budget options:" in rate

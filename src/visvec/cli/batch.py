@@ -10,6 +10,7 @@ import click
 
 from visvec.cli.camera_fusion import camera_out_option, check_fusable, run_fused_batch
 from visvec.cli.common import (
+    KindCommand,
     check_output,
     load,
     note_inputs,
@@ -27,7 +28,7 @@ from visvec.pipeline import make_pipeline
 from visvec.sources import open_source
 
 
-@click.command()
+@click.command(cls=KindCommand)
 @click.argument("path", type=click.Path())
 @rig_options
 @click.option(

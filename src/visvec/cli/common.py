@@ -27,12 +27,48 @@ class FiniteFloat(click.FloatRange):
             self.fail(f"{value!r}: expected a finite number", param, ctx)
         return v
 
+    def _describe_range(self) -> str:
+        # no bounds: nothing to say (click would print "x<=None")
+        if self.min is None and self.max is None:
+            return ""
+        return super()._describe_range()
 
-def rig_options(f=None, *, required: bool = True):
-    """--rig and --calibration (``@rig_options``, or ``@rig_options(required=False)``
-    for a command that can run without a rig)."""
+
+# an option whose help starts with one of these applies to that kind (or mode) only:
+# `--help` lists it under that heading, after the options for every kind
+KIND_PREFIXES = ("Triangle", "Markers", "Starfield", "Lamps", "Budget")
+
+
+class KindCommand(click.Command):
+    """A command whose --help groups the options that apply to one target kind (their
+    help starts "Triangle:", "Lamps:", ...) under that kind's heading."""
+
+    def format_options(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
+        groups: dict[str, list[tuple[str, str]]] = {}
+        for param in self.get_params(ctx):
+            rec = param.get_help_record(ctx)
+            if rec is None:
+                continue
+            head = "Options"
+            text = rec[1]
+            for k in KIND_PREFIXES:
+                if text.startswith(k + ":"):
+                    head = f"{k} options" if k != "Budget" else "--budget options"
+                    rest = text[len(k) + 1 :].lstrip()
+                    rec = (rec[0], rest[:1].upper() + rest[1:])
+                    break
+            groups.setdefault(head, []).append(rec)
+        order = ["Options", *(f"{k} options" for k in KIND_PREFIXES[:-1]), "--budget options"]
+        for head, recs in sorted(groups.items(), key=lambda kv: order.index(kv[0])):
+            with formatter.section(head):
+                formatter.write_dl(recs)
+
+
+def rig_options(f=None, *, required: bool = True, unless: str | None = None):
+    """--rig and --calibration (``@rig_options``, or ``@rig_options(required=False,
+    unless="--budget")`` for a command that can run without a rig in that mode)."""
     if f is None:
-        return lambda g: rig_options(g, required=required)
+        return lambda g: rig_options(g, required=required, unless=unless)
     f = click.option(
         "--calibration",
         "calibration",
@@ -46,7 +82,7 @@ def rig_options(f=None, *, required: bool = True):
         "rig_path",
         required=required,
         type=click.Path(dir_okay=False),
-        help="Rig file (TOML), see configs/.",
+        help="Rig file (TOML), see configs/." + (f"  [required unless {unless}]" if unless else ""),
     )(f)
     return f
 

@@ -9,6 +9,7 @@ import click
 from visvec.cli.batch import run_batch
 from visvec.cli.common import (
     FiniteFloat,
+    KindCommand,
     check_output,
     load,
     note_inputs,
@@ -19,9 +20,9 @@ from visvec.cli.common import (
 from visvec.estimate.rate import rate_budget
 
 
-@click.command()
+@click.command(cls=KindCommand)
 @click.argument("path", type=click.Path(), required=False)
-@rig_options(required=False)
+@rig_options(required=False, unless="--budget")
 @click.option(
     "--truth",
     type=click.Path(dir_okay=False),

@@ -7,7 +7,7 @@ from dataclasses import replace
 
 import click
 
-from visvec.cli.common import FiniteFloat, check_new_recording, load, rig_options
+from visvec.cli.common import FiniteFloat, KindCommand, check_new_recording, load, rig_options
 from visvec.cli.progress import Work
 from visvec.sim.lamps import LampScene, PerimeterPath, simulate_imu, simulate_lamps
 from visvec.sim.markers import SpotScene
@@ -17,7 +17,7 @@ from visvec.sim.simulate import simulate as run_simulation
 from visvec.sim.stars import PAPER_CASES, StarScene, simulate_stars
 
 
-@click.command()
+@click.command(cls=KindCommand)
 @rig_options
 @click.option(
     "--out",
@@ -59,37 +59,39 @@ from visvec.sim.stars import PAPER_CASES, StarScene, simulate_stars
     type=FiniteFloat(-255, 255),
     default=28.0,
     show_default=True,
-    help="Triangle over board, grey levels.",
+    help="Triangle: the triangle over the board, grey levels.",
 )
 @click.option(
     "--blur",
     type=FiniteFloat(0, 20),
     default=0.6,
     show_default=True,
-    help="Defocus blur sigma, px.",
+    help="Triangle: defocus blur sigma, px.",
 )
 @click.option(
     "--exposure",
     type=FiniteFloat(0, 100),
     default=1.0,
     show_default=True,
-    help="Exposure factor (> 1 over-exposes).",
+    help="Triangle: exposure factor (> 1 over-exposes).",
 )
 @click.option(
     "--lights",
     type=FiniteFloat(0, 1),
     default=0.0,
     show_default=True,
-    help="Fraction of frames with ceiling lights in view.",
+    help="Triangle: fraction of frames with ceiling lights in view.",
 )
 @click.option(
     "--occluder",
     type=FiniteFloat(0, 1),
     default=0.0,
     show_default=True,
-    help="Fraction of frames with a person leaning over.",
+    help="Triangle: fraction of frames with a person leaning over.",
 )
-@click.option("--no-triangle", is_flag=True, help="Render the board without the triangle.")
+@click.option(
+    "--no-triangle", is_flag=True, help="Triangle: render the board without the triangle."
+)
 @click.option(
     "--reflections",
     type=click.IntRange(0, 100),
@@ -102,20 +104,21 @@ from visvec.sim.stars import PAPER_CASES, StarScene, simulate_stars
     nargs=2,
     type=FiniteFloat(-10000, 10000),
     default=(0.0, 0.0),
-    help="Shift the real target on the ceiling (dx dy) against the rig file.",
+    help="Triangle: shift the real target on the ceiling (dx dy) against the rig file.",
 )
 @click.option(
     "--target-height-mm",
     type=FiniteFloat(-10000, 10000),
     default=0.0,
-    help="Hang the real target this much higher than the rig file says (a ceiling measured wrong).",
+    help="Triangle: hang the real target this much higher than the rig file says (a "
+    "ceiling measured wrong).",
 )
 @click.option(
     "--camera-askew-deg",
     nargs=2,
     type=FiniteFloat(-45, 45),
     default=(0.0, 0.0),
-    help="Tilt the real camera on its mount (about b1, b2) against the rig file.",
+    help="Triangle: tilt the real camera on its mount (about b1, b2) against the rig file.",
 )
 @click.option(
     "--case",

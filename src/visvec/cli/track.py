@@ -7,6 +7,7 @@ import click
 from visvec.cli.camera_fusion import camera_out_option, check_fusable, run_fused_camera
 from visvec.cli.common import (
     FiniteFloat,
+    KindCommand,
     check_new_recording,
     check_output,
     load,
@@ -21,7 +22,7 @@ from visvec.fuse.camera import paced
 from visvec.sources import open_source
 
 
-@click.command()
+@click.command(cls=KindCommand)
 @rig_options
 @click.option(
     "--camera",
