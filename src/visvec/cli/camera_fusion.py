@@ -3,11 +3,11 @@
 from __future__ import annotations
 
 import queue
-from contextlib import ExitStack
+from contextlib import ExitStack, nullcontext
 
 import click
 
-from visvec.cli.common import open_out
+from visvec.cli.common import rows_out
 from visvec.cli.fuse import fusion_model, live_summary
 from visvec.errors import ConfigError, InputFileError
 from visvec.fuse.camera import CameraFixes
@@ -18,7 +18,6 @@ from visvec.fuse.replay import fuse as run_fusion
 from visvec.fuse.run import fused_rows
 from visvec.output import AttitudeRow, PoseRow
 from visvec.pipeline import make_pipeline
-from visvec.sinks import open_sink
 
 camera_out_option = click.option(
     "--camera-out",
@@ -59,14 +58,15 @@ def run_fused_camera(rig, frames, imu_src, method, out, fmt, camera_out, view=No
     with ExitStack() as stack:
         cam_sink = None
         if camera_out:
-            stream = stack.enter_context(open_out(camera_out))
-            cam_sink = open_sink(fmt, stream, pipe.row_type.columns)
+            cam_sink = stack.enter_context(
+                rows_out(camera_out, fmt, pipe.row_type.columns, "--camera-out")
+            )
         state = view.state if view is not None else None
         camera = CameraFixes(frames, pipe, events, cam_sink, watcher=state)
-        out_stream = stack.enter_context(open_out(out))
 
         def open_rows(is_planar: bool):
-            sink = open_sink(fmt, out_stream, PoseRow.columns if is_planar else AttitudeRow.columns)
+            cols = PoseRow.columns if is_planar else AttitudeRow.columns
+            sink = stack.enter_context(rows_out(out, fmt, cols))
             return sink if state is None else _Shown(sink, state)
 
         summary = run_live(imu, camera, setup, open_rows, kind=planar, end_with_fixes=True,
@@ -96,8 +96,11 @@ def run_fused_batch(rig, frames, imu_path, method, out, fmt, camera_out) -> None
     planar = _planar(rig)
     pipe = make_pipeline(rig, method)
     fixes: list[Fix] = []
-    with open_out(camera_out) if camera_out else ExitStack() as stream:
-        sink = open_sink(fmt, stream, pipe.row_type.columns) if camera_out else None
+    with (
+        rows_out(camera_out, fmt, pipe.row_type.columns, "--camera-out")
+        if camera_out
+        else (nullcontext()) as sink
+    ):
         for frame in frames:
             row = pipe.process(frame)
             if sink is not None:
@@ -111,8 +114,7 @@ def run_fused_batch(rig, frames, imu_path, method, out, fmt, camera_out) -> None
     model, limits = fusion_model(planar, imu.period_s, "kalman", None, 0.002, None, False, None,
                                  0.5)  # fmt: skip
     n = n_ok = 0
-    with open_out(out) as stream:
-        sink = open_sink(fmt, stream, PoseRow.columns if planar else AttitudeRow.columns)
+    with rows_out(out, fmt, PoseRow.columns if planar else AttitudeRow.columns) as sink:
         for row in fused_rows(run_fusion(imu, fixes, model, limits=limits), model):
             sink.write(row.as_dict())
             n += 1

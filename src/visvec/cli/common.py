@@ -14,7 +14,7 @@ import click
 from visvec.errors import ConfigError
 from visvec.pipeline import METHODS
 from visvec.rig import Rig, load_rig
-from visvec.sinks import UdpStream
+from visvec.sinks import UdpStream, open_sink
 
 
 class FiniteFloat(click.FloatRange):
@@ -230,6 +230,10 @@ def check_output(path, option: str = "--out") -> None:
     p = Path(str(path))
     if "://" in str(path) or str(path) == "-":
         return
+    if p.suffix.lower() == ".mcap":
+        from visvec.sinks.ros import check_available
+
+        check_available()  # the extra installed, or exit 2 before any work
     target = p.resolve()
     for inp in _INPUTS:
         try:
@@ -325,6 +329,24 @@ def open_out(path: str | None, option: str = "--out"):
             raise
         else:
             fh.close()
+
+
+@contextlib.contextmanager
+def rows_out(path: str | None, fmt: str, columns, option: str = "--out", source: str = ""):
+    """A sink for rows of ``columns`` at ``path``: ROS 2 messages in an MCAP file for a
+    ``.mcap`` path (see visvec.sinks.ros), else CSV or JSON lines through
+    :func:`open_out` (a file, stdout or UDP); closed at the end."""
+    if path is not None and str(path).lower().endswith(".mcap"):
+        from visvec.sinks.ros import McapSink
+
+        sink = McapSink(str(path), columns, source)
+        try:
+            yield sink
+        finally:
+            sink.close()
+        return
+    with open_out(path, option) as stream:
+        yield open_sink(fmt, stream, columns)
 
 
 def make_folder(folder: Path, option: str) -> None:

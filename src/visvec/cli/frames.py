@@ -12,14 +12,13 @@ from typing import Protocol
 
 import click
 
-from visvec.cli.common import check_new_recording, make_folder, open_out
+from visvec.cli.common import check_new_recording, make_folder, rows_out
 from visvec.data import Frame
 from visvec.errors import NoOkRows
 from visvec.imageio import write_image
 from visvec.output import Row
 from visvec.pipeline import Pipeline, make_pipeline
 from visvec.rig import Rig
-from visvec.sinks import open_sink
 
 
 class Watcher(Protocol):
@@ -197,8 +196,7 @@ def run_frames(
     status = Progress(pipe, what, total, bar, progress)
     seen.append(status)
     seen.extend(watchers or ())
-    with open_out(out) as stream:
-        sink = open_sink(fmt, stream, pipe.row_type.columns)
+    with rows_out(out, fmt, pipe.row_type.columns, source=str(rig.path or "")) as sink:
         try:
             for frame in frames:
                 row = pipe.process(frame)

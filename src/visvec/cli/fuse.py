@@ -4,12 +4,13 @@ from __future__ import annotations
 
 import math
 import queue
+from contextlib import ExitStack
 from dataclasses import replace
 
 import click
 import numpy as np
 
-from visvec.cli.common import FiniteFloat, note_inputs, open_out
+from visvec.cli.common import FiniteFloat, note_inputs, rows_out
 from visvec.errors import ConfigError, InputFileError, NoOkRows
 from visvec.evaluate import error_stats, read_truth
 from visvec.fuse.inputs import read_fixes, read_imu
@@ -20,7 +21,6 @@ from visvec.fuse.replay import fuse as run_fusion
 from visvec.fuse.run import fused_rows, rest_biases
 from visvec.output import AttitudeRow, PoseRow
 from visvec.rotations import logmap
-from visvec.sinks import open_sink
 
 
 @click.command()
@@ -174,8 +174,7 @@ def fuse(imu_path, fixes_path, follow, max_samples, silent_s, gyro_range_dps, ou
 
     rows = []
     columns = PoseRow.columns if fixes.planar else AttitudeRow.columns
-    with open_out(out) as stream:
-        sink = open_sink(fmt, stream, columns)
+    with rows_out(out, fmt, columns) as sink:
         for row in fused_rows(tap(samples), model):
             sink.write(row.as_dict())
             rows.append(row)
@@ -281,10 +280,13 @@ def _run_live(imu_src, fixes_src, follow, max_samples, silent_s, setup, out, fmt
         except (ConfigError, InputFileError) as exc:
             raise click.BadParameter(str(exc), param_hint="--imu" if r.name == "imu" else
                                      "--fixes") from None  # fmt: skip
-    with open_out(out) as stream:
+    with ExitStack() as stack:
 
         def open_rows(planar: bool):
-            return open_sink(fmt, stream, PoseRow.columns if planar else AttitudeRow.columns)
+            # opened once the kind is known (the first rows say it)
+            return stack.enter_context(
+                rows_out(out, fmt, PoseRow.columns if planar else AttitudeRow.columns)
+            )
 
         summary = run_live(*readers, setup, open_rows, max_samples=max_samples,
                            silent_s=silent_s, echo=lambda m: click.echo(m, err=True))  # fmt: skip
