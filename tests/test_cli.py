@@ -82,6 +82,7 @@ def test_batch_on_sample_frames_with_truth(tmp_path):
         "n_points",
         "latency_ms",
         "warnings",
+        "time_unix",  # absolute time, empty for a recording without one (issue 34)
     ]
     assert all(row["status"] == "ok" for row in rows)
     assert all(row["warnings"] == "" for row in rows)  # clean frames: nothing to warn of

@@ -86,3 +86,52 @@ def test_plot_refuses_a_file_that_is_not_rows(tmp_path):
     assert "yaw_deg" in r.output and not (tmp_path / "f.png").exists()
     r = run("plot", bad, "--out", tmp_path / "f.jpg")
     assert r.exit_code == 2 and ".png, .svg or .pdf" in r.output
+
+
+def test_covariance_columns(tmp_path):
+    """--covariance: each ok row's 3x3 covariance, its diagonal the sigmas squared."""
+    out = tmp_path / "rows.csv"
+    assert run("batch", SAMPLES, "--rig", RIG, "--covariance", "--out", out).exit_code == 0
+    got = rows(out)
+    names = ("yaw", "pitch", "roll")
+    for g in got:
+        for n in names:
+            sig = float(g[f"sigma_{n}_deg"])
+            assert float(g[f"cov_{n}_{n}"]) == pytest.approx(sig**2, rel=2e-3)
+        c = [[float(g[f"cov_{min(a, b, key=names.index)}_{max(a, b, key=names.index)}"])
+              for b in names] for a in names]  # fmt: skip
+        import numpy as np
+
+        assert np.all(np.linalg.eigvalsh(np.array(c)) > 0)  # a covariance
+    lamps = ROOT / "configs" / "lamps.toml"
+    rec = tmp_path / "rec"
+    assert run("simulate", "--rig", lamps, "--out", rec, "--frames", 4).exit_code == 0
+    assert run("batch", rec, "--rig", lamps, "--covariance", "--out", out).exit_code == 0
+    for g in rows(out):
+        assert float(g["cov_x_x"]) == pytest.approx(float(g["sigma_x_mm"]) ** 2, rel=2e-3)
+        assert float(g["cov_heading_heading"]) == pytest.approx(
+            float(g["sigma_heading_deg"]) ** 2, rel=2e-3
+        )
+
+
+def test_time_unix_from_a_recording_with_it(tmp_path):
+    """A recording whose times.csv has time_unix (as `track --save-frames` writes it)
+    gives its rows those times; one without leaves the column empty."""
+    import shutil
+
+    rec = tmp_path / "rec"
+    shutil.copytree(SAMPLES, rec, ignore=shutil.ignore_patterns("truth.csv"))
+    names = sorted(p.name for p in rec.glob("*.png"))
+    base = 1_790_000_000.25
+    with open(rec / "times.csv", "w") as fh:
+        fh.write("file,time_s,time_unix\n")
+        for i, n in enumerate(names):
+            fh.write(f"{n},{i / 30:.6f},{base + i / 30:.6f}\n")
+    out = tmp_path / "rows.csv"
+    assert run("batch", rec, "--rig", RIG, "--out", out).exit_code == 0
+    got = rows(out)
+    assert [float(g["time_unix"]) for g in got] == pytest.approx(
+        [base + i / 30 for i in range(len(names))], abs=1e-6
+    )
+    assert run("batch", SAMPLES, "--rig", RIG, "--out", out).exit_code == 0
+    assert {g["time_unix"] for g in rows(out)} == {""}

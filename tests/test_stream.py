@@ -109,6 +109,12 @@ def test_stream_that_stalls_or_drops_is_reopened_without_shifting_rows(tmp_path,
     if then == "stall":
         # noticed within 2 s (plus the reconnect), not after FFmpeg's 30 s
         assert 1.0 < gaps[k] < 2.6, gaps[k]
+    # a live source's rows carry the absolute time: the computer's clock at the first
+    # frame plus time_s, across the reconnect too
+    unix = [float(x["time_unix"]) for x in rows]
+    offsets = [u - tt for u, tt in zip(unix, t, strict=True)]
+    assert max(offsets) - min(offsets) < 1e-5
+    assert abs(unix[-1] - time.time()) < 30.0
 
 
 def test_stream_that_never_answers_is_given_up_after_retry_s(tmp_path):

@@ -34,6 +34,9 @@ class Frame:
         File name or a description of where the frame came from.
     error : str
         Why the frame could not be read (empty when ``image`` is set).
+    time_unix : float or None
+        Its absolute time (s since 1970, UTC) where the source knows it: a live
+        source's capture clock, a recording's times.csv with a time_unix column.
     """
 
     index: int
@@ -41,6 +44,7 @@ class Frame:
     image: np.ndarray | None
     name: str = ""
     error: str = ""
+    time_unix: float | None = None
 
 
 @dataclass(frozen=True)

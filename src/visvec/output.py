@@ -29,6 +29,7 @@ ATTITUDE_COLUMNS = (
     "n_points",
     "latency_ms",
     "warnings",
+    "time_unix",
 )
 
 
@@ -46,6 +47,7 @@ RATE_COLUMNS = (
     "n_points",
     "latency_ms",
     "warnings",
+    "time_unix",
 )
 
 PLANAR_COLUMNS = (
@@ -62,6 +64,7 @@ PLANAR_COLUMNS = (
     "n_points",
     "latency_ms",
     "warnings",
+    "time_unix",
 )
 
 
@@ -80,6 +83,11 @@ class Row:
     n_points: int
     latency_ms: float
     warnings: tuple[str, ...]
+    # the frame's absolute time (s since 1970, UTC): the capture clock of a live source,
+    # a recording's own where it has them; nan where neither is known
+    time_unix: float = math.nan
+    # the covariance of values() (their units squared), where the solver has one
+    cov: np.ndarray | None = None
 
     columns: ClassVar[tuple[str, ...]] = ()
     value_columns: ClassVar[tuple[str, ...]] = ()  # the values a truth file holds
@@ -123,7 +131,23 @@ class Row:
         d["n_points"] = self.n_points
         d["latency_ms"] = round(self.latency_ms, 3)
         d["warnings"] = ";".join(dict.fromkeys(self.warnings))
+        d["time_unix"] = round(self.time_unix, 6) if math.isfinite(self.time_unix) else None
         return d
+
+    @classmethod
+    def cov_columns(cls) -> tuple[str, ...]:
+        """The covariance's columns (``--covariance``): its upper triangle,
+        ``cov_<a>_<b>`` for the values a, b (their units squared or multiplied)."""
+        names = [c.rsplit("_", 1)[0] for c in cls.value_columns]
+        return tuple(f"cov_{names[i]}_{names[j]}" for i in range(3) for j in range(i, 3))
+
+    def cov_dict(self) -> dict[str, float | None]:
+        """The covariance's columns of this row (empty unless ok and known)."""
+        cols = self.cov_columns()
+        if not self.ok or self.cov is None or not np.all(np.isfinite(self.cov)):
+            return dict.fromkeys(cols)
+        vals = [float(self.cov[i, j]) for i in range(3) for j in range(i, 3)]
+        return {c: float(f"{v:.6g}") for c, v in zip(cols, vals, strict=True)}
 
 
 @dataclass(frozen=True)
@@ -217,7 +241,8 @@ def attitude_row(
         )
     e = np.array(matrix_to_euler(sol.R_nb))
     J = euler_rates_from_body(*e)
-    sigma = np.sqrt(np.clip(np.diag(J @ sol.cov_b @ J.T), 0.0, None))
+    cov_e = J @ sol.cov_b @ J.T
+    sigma = np.sqrt(np.clip(np.diag(cov_e), 0.0, None))
     return AttitudeRow(
         frame,
         time_s,
@@ -229,4 +254,5 @@ def attitude_row(
         euler_deg=np.degrees(e),
         q_nb=matrix_to_quat(sol.R_nb),
         sigma_deg=np.degrees(sigma),
+        cov=np.degrees(np.degrees(cov_e)),
     )

@@ -107,7 +107,14 @@ def result_options(f):
 
 
 def output_options(f):
-    """--out, --format, --method, --overlay, --max-frames, --serve."""
+    """--out, --format, --method, --overlay, --max-frames, --serve, --covariance."""
+    f = click.option(
+        "--covariance",
+        is_flag=True,
+        help="Add the values' full 3x3 covariance to each row (its upper triangle, "
+        "cov_<a>_<b>, in the values' units squared: deg^2 for yaw, pitch, roll; "
+        "(deg/s)^2 for rates; mm^2, mm deg, deg^2 for a planar pose).",
+    )(f)
     f = click.option(
         "--serve",
         metavar="[HOST:]PORT",

@@ -39,7 +39,7 @@ class FrameRecorder:
         check_new_recording(self.dir)
         make_folder(self.dir, "--save-frames")
         self._times = open(self.dir / "times.csv", "w", newline="")  # noqa: SIM115
-        self._times.write("file,time_s\n")
+        self._times.write("file,time_s,time_unix\n")
 
     def see(self, frame: Frame, row: Row, pipe: Pipeline) -> None:
         if frame.image is None:
@@ -47,7 +47,8 @@ class FrameRecorder:
         name = f"frame_{frame.index:06d}.png"
         if not write_image(self.dir / name, frame.image):
             raise click.ClickException(f"{self.dir / name}: cannot write the frame")
-        self._times.write(f"{name},{frame.time_s:.6f}\n")
+        unix = "" if frame.time_unix is None else f"{frame.time_unix:.6f}"
+        self._times.write(f"{name},{frame.time_s:.6f},{unix}\n")
         self._times.flush()
 
     def close(self) -> None:
@@ -165,6 +166,7 @@ def run_frames(
     progress: float | None = None,
     watchers: list[Watcher] | None = None,
     what: str = "batch",
+    covariance: bool = False,
 ) -> list[Row]:
     """Process frames, writing each row as it is made; Ctrl-C ends the loop cleanly.
 
@@ -175,6 +177,7 @@ def run_frames(
     to the same terminal, else a status line every ``progress`` seconds, default
     `visvec --status-every`) and a summary line at the end go to stderr.
     ``watchers``: more that see each frame after its row (the live view).
+    ``covariance``: each row with its values' 3x3 covariance (Row.cov_columns).
     What the run found out about the rig (the pipeline's notes: a target's height off
     the rig file's, a rolling shutter it does not declare) goes to stderr at the end.
     """
@@ -196,11 +199,15 @@ def run_frames(
     status = Progress(pipe, what, total, bar, progress)
     seen.append(status)
     seen.extend(watchers or ())
-    with rows_out(out, fmt, pipe.row_type.columns, source=str(rig.path or "")) as sink:
+    columns = pipe.row_type.columns + (pipe.row_type.cov_columns() if covariance else ())
+    with rows_out(out, fmt, columns, source=str(rig.path or "")) as sink:
         try:
             for frame in frames:
                 row = pipe.process(frame)
-                sink.write(row.as_dict())
+                d = row.as_dict()
+                if covariance:
+                    d.update(row.cov_dict())
+                sink.write(d)
                 n += 1
                 n_ok += int(row.ok)
                 if keep_rows:

@@ -62,7 +62,7 @@ from visvec.sources import open_source
 @output_options
 def track(
     rig_path, calibration, camera, retry_s, save_frames, imu_src, camera_out, realtime, out,
-    fmt, method, overlay, max_frames, serve
+    fmt, method, overlay, max_frames, serve, covariance
 ):  # fmt: skip
     """Stream one attitude row per frame, flushed row by row, until the source ends,
     --max-frames, or Ctrl-C. With --imu, stream fused rows at the IMU's rate."""
@@ -126,6 +126,7 @@ def track(
             max_frames=max_frames,
             save_frames=save_frames,
             what="track",
+            covariance=covariance,
             watchers=[view.state] if view is not None else None,
         )
     finally:

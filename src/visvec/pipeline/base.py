@@ -6,6 +6,7 @@ from __future__ import annotations
 import time
 from collections import Counter
 from collections.abc import Callable, Iterable, Iterator
+from dataclasses import replace
 
 import numpy as np
 
@@ -118,6 +119,8 @@ class Pipeline:
     def process(self, frame: Frame, t_in: float | None = None) -> Row:
         """The row of one frame; never raises on frame content."""
         row = self._process(frame, t_in)
+        if frame.time_unix is not None:
+            row = replace(row, time_unix=frame.time_unix)
         self.n_rows += 1
         if not row.ok:
             self.refused[row.reason] += 1

@@ -125,7 +125,8 @@ class LampPipeline(Pipeline):
         sig = np.sqrt(np.clip(np.diag(sol.cov), 0.0, None))
         sig[2] = np.degrees(sig[2])
         pose = np.array([sol.pose[0], sol.pose[1], np.degrees(sol.pose[2])])
+        to_deg = np.diag([1.0, 1.0, np.degrees(1.0)])  # (mm, mm, rad) -> (mm, mm, deg)
         return PoseRow(
             frame.index, frame.time_s, status, sol.rms_px, sol.n_points, latency_ms, warnings,
-            pose=pose, sigma=sig,
+            pose=pose, sigma=sig, cov=to_deg @ sol.cov @ to_deg,
         )  # fmt: skip

@@ -272,4 +272,5 @@ class RatePipeline(Pipeline):
             warnings,
             w_dps=np.degrees(sol.omega),
             sigma_dps=np.degrees(np.sqrt(np.clip(np.diag(sol.cov), 0.0, None))),
+            cov=np.degrees(np.degrees(sol.cov)),
         )

@@ -38,8 +38,10 @@ def to_gray(image: np.ndarray) -> np.ndarray:
     return image
 
 
-def read_sidecar(path: Path) -> dict[str, float]:
-    """file name -> time_s from a CSV with columns ``file`` and ``time_s``.
+def read_sidecar(path: Path, unix: dict[str, float] | None = None) -> dict[str, float]:
+    """file name -> time_s from a CSV with columns ``file`` and ``time_s``; with a
+    ``time_unix`` column too (as `track --save-frames` writes it), file name ->
+    time_unix into ``unix`` where it is a finite number.
 
     Raises
     ------
@@ -75,6 +77,13 @@ def read_sidecar(path: Path) -> dict[str, float]:
                     )
                 last = (line, t)
                 out[row["file"]] = t
+                if unix is not None and row.get("time_unix"):
+                    try:
+                        u = float(row["time_unix"])
+                    except ValueError:
+                        u = math.nan
+                    if math.isfinite(u):
+                        unix[row["file"]] = u
         except UnicodeDecodeError:
             raise InputFileError(f"{path}: not a UTF-8 text file") from None
         except csv.Error as exc:
@@ -113,10 +122,11 @@ class FolderSource:
         self.files = files
         self.fps = fps
         self.times: dict[str, float] = {}
+        self.unix: dict[str, float] = {}
         for name in SIDECARS:
             side = self.path / name
             if side.is_file():
-                self.times = read_sidecar(side)
+                self.times = read_sidecar(side, self.unix)
                 if self.times:
                     break
 
@@ -126,8 +136,9 @@ class FolderSource:
     def __iter__(self) -> Iterator[Frame]:
         for i, f in enumerate(self.files):
             t = self.times.get(f.name, i / self.fps)
+            u = self.unix.get(f.name)
             img, why = read_image_why(f)
             if img is None:
-                yield Frame(i, t, None, f.name, error=f"{f.name}: {why}")
+                yield Frame(i, t, None, f.name, error=f"{f.name}: {why}", time_unix=u)
                 continue
-            yield Frame(i, t, to_gray(img), f.name)
+            yield Frame(i, t, to_gray(img), f.name, time_unix=u)

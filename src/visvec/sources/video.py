@@ -189,8 +189,13 @@ class VideoSource:
                 self._last_frame_at = now
                 if self._t0 is None:
                     self._t0 = now
+                    # the computer's clock at the first frame: a live frame's absolute
+                    # time is this plus its time from the first
+                    self._unix0 = time.time()
+                unix = None
                 if self.live:
                     t = self._live_time(now - self._t0)
+                    unix = self._unix0 + t
                 else:
                     ms = self.cap.get(cv2.CAP_PROP_POS_MSEC)
                     t = ms / 1000.0 if ms and ms > 0 else i / self.fps
@@ -203,11 +208,12 @@ class VideoSource:
                                     "decoder")  # fmt: skip
                         i += 1
                 if img is None or img.size == 0:
-                    yield Frame(i, t, None, f"{self.spec}#{i}", error="empty frame")
+                    yield Frame(i, t, None, f"{self.spec}#{i}", error="empty frame",
+                                time_unix=unix)  # fmt: skip
                 else:
                     if self.size is not None:
                         self._check_size(img)
-                    yield Frame(i, t, to_gray(img), f"{self.spec}#{i}")
+                    yield Frame(i, t, to_gray(img), f"{self.spec}#{i}", time_unix=unix)
                 i += 1
         finally:
             self.cap.release()
