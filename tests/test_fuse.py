@@ -30,9 +30,24 @@ def planar_case(tmp_path, duration=40.0, latency_ms=600.0, fix_hz=1.7, seed=0, s
         wr.writerow(PLANAR_COLUMNS)
         for i, t in enumerate(np.arange(0.2, duration, 1.0 / fix_hz)):
             x, y, h = PATH.at(t)
-            wr.writerow([i, f"{t:.4f}", "ok", x + rng.normal(0, sigma), y + rng.normal(0, sigma),
-                         math.degrees(h) + rng.normal(0, 0.005), sigma, sigma, 0.005, 0.05, 20,
-                         latency_ms, "", ""])  # fmt: skip (warnings, time_unix)
+            wr.writerow(
+                [
+                    i,
+                    f"{t:.4f}",
+                    "ok",
+                    x + rng.normal(0, sigma),
+                    y + rng.normal(0, sigma),
+                    math.degrees(h) + rng.normal(0, 0.005),
+                    sigma,
+                    sigma,
+                    0.005,
+                    0.05,
+                    20,
+                    latency_ms,
+                    "",
+                    "",
+                ]
+            )  # fmt: skip (warnings, time_unix)
     return imu, truth, fixes
 
 

@@ -106,6 +106,14 @@ def result_options(f):
     return f
 
 
+def _format_available(ctx, param, value):
+    if value == "rosbag2":
+        from visvec.sinks.ros import check_available
+
+        check_available()  # the extra installed, or exit 2 before any work
+    return value
+
+
 def output_options(f):
     """--out, --format, --method, --overlay, --max-frames, --serve, --covariance."""
     f = click.option(
@@ -148,10 +156,12 @@ def output_options(f):
     f = click.option(
         "--format",
         "fmt",
-        type=click.Choice(["csv", "jsonl"]),
+        type=click.Choice(["csv", "jsonl", "rosbag2"]),
         default="csv",
         show_default=True,
-        help="Row format.",
+        callback=_format_available,
+        help="Row format; rosbag2: a ROS 2 bag folder at --out (ROS 2 messages, as an "
+        '--out *.mcap file holds them; pip install "visvec[ros]").',
     )(f)
     f = click.option(
         "--out",
@@ -343,10 +353,13 @@ def rows_out(path: str | None, fmt: str, columns, option: str = "--out", source:
     """A sink for rows of ``columns`` at ``path``: ROS 2 messages in an MCAP file for a
     ``.mcap`` path (see visvec.sinks.ros), else CSV or JSON lines through
     :func:`open_out` (a file, stdout or UDP); closed at the end."""
-    if path is not None and str(path).lower().endswith(".mcap"):
+    if fmt == "rosbag2" or (path is not None and str(path).lower().endswith(".mcap")):
         from visvec.sinks.ros import McapSink
 
-        sink = McapSink(str(path), columns, source)
+        if path is None or "://" in str(path) or str(path) == "-":
+            raise ConfigError(f"{option}: ROS 2 messages go to a .mcap file or, with "
+                              "--format rosbag2, a new bag folder")  # fmt: skip
+        sink = McapSink(str(path), columns, source, bag=fmt == "rosbag2")
         try:
             yield sink
         finally:

@@ -11,6 +11,7 @@ import click
 import numpy as np
 
 from visvec.cli.common import FiniteFloat, note_inputs, rows_out
+from visvec.cli.progress import Work
 from visvec.errors import ConfigError, InputFileError, NoOkRows
 from visvec.evaluate import error_stats, read_truth
 from visvec.fuse.inputs import read_fixes, read_imu
@@ -174,10 +175,11 @@ def fuse(imu_path, fixes_path, follow, max_samples, silent_s, gyro_range_dps, ou
 
     rows = []
     columns = PoseRow.columns if fixes.planar else AttitudeRow.columns
-    with rows_out(out, fmt, columns) as sink:
+    with rows_out(out, fmt, columns) as sink, Work("fuse", len(imu.t), unit="sample") as bar:
         for row in fused_rows(tap(samples), model):
             sink.write(row.as_dict())
             rows.append(row)
+            bar.update(1)
     n_ok = sum(r.ok for r in rows)
     n_fault = sum("imu_fault" in r.warnings for r in rows)
     n_rej = sum("fix_rejected" in r.warnings for r in rows)

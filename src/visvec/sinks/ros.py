@@ -76,18 +76,33 @@ def euler_cov_to_rotation_cov(yaw, pitch, sigmas_rad) -> np.ndarray:
 
 
 class McapSink:
-    """Rows (as dicts of their columns) to ROS 2 messages in an MCAP file."""
+    """Rows (as dicts of their columns) to ROS 2 messages in an MCAP file, or with
+    ``bag`` in a ROS 2 bag folder (rosbags' writer, MCAP storage: `ros2 bag play DIR`;
+    its index and metadata.yaml are written when the run ends)."""
 
-    def __init__(self, path: str, columns, rig_name: str = ""):
+    def __init__(self, path: str, columns, rig_name: str = "", bag: bool = False):
         Writer, ts = _need()
         self.ts = ts
         self.path = path
-        try:
-            self.fh = open(path, "wb")  # noqa: SIM115 - closed by close()
-        except OSError as exc:
-            raise OutputError(f"{path}: cannot write ({exc.strerror})") from None
-        self.w = Writer(self.fh, use_chunking=False)
-        self.w.start(profile="ros2", library="visvec")
+        self.bag = None
+        self.fh = None
+        if bag:
+            from rosbags.rosbag2 import StoragePlugin
+            from rosbags.rosbag2 import Writer as BagWriter
+
+            try:
+                self.bag = BagWriter(path, version=8, storage_plugin=StoragePlugin.MCAP)
+                self.bag.open()
+            except Exception as exc:  # noqa: BLE001 - rosbags' own errors name the folder
+                raise OutputError(f"{path}: cannot write the bag folder ({exc})") from None
+            self.bag_conns: dict[str, object] = {}
+        else:
+            try:
+                self.fh = open(path, "wb")  # noqa: SIM115 - closed by close()
+            except OSError as exc:
+                raise OutputError(f"{path}: cannot write ({exc.strerror})") from None
+            self.w = Writer(self.fh, use_chunking=False)
+            self.w.start(profile="ros2", library="visvec")
         self.t0 = time.time()
         self.rig_name = rig_name
         self.kind = ("attitude" if "yaw_deg" in columns else "rate" if "wx_dps" in columns
@@ -104,6 +119,12 @@ class McapSink:
 
     def _put(self, topic: str, typename: str, msg, stamp_ns: int) -> None:
         data = bytes(self.ts.serialize_cdr(msg, typename))
+        if self.bag is not None:
+            if topic not in self.bag_conns:
+                self.bag_conns[topic] = self.bag.add_connection(topic, typename,
+                                                                typestore=self.ts)  # fmt: skip
+            self.bag.write(self.bag_conns[topic], stamp_ns, data)
+            return
         self.w.add_message(self._channel(topic, typename), log_time=stamp_ns, data=data,
                            publish_time=stamp_ns)  # fmt: skip
 
@@ -122,7 +143,8 @@ class McapSink:
             if ok:
                 self._value(row, header, T, ns)
             self._status(row, header, T, ns, ok)
-            self.fh.flush()
+            if self.fh is not None:
+                self.fh.flush()
         except OSError as exc:
             raise OutputError(f"{self.path}: cannot write ({exc.strerror or exc}); it holds "
                               f"{self.n} rows") from None  # fmt: skip
@@ -194,6 +216,9 @@ class McapSink:
         self._put("/visvec/status", "diagnostic_msgs/msg/DiagnosticArray", arr, ns)
 
     def close(self) -> None:
+        if self.bag is not None:
+            self.bag.close()
+            return
         try:
             self.w.finish()
         finally:
