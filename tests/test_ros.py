@@ -149,3 +149,17 @@ def test_rows_as_a_ros2_bag_folder(tmp_path):
     assert n == 3 * 12  # the Imu, the quaternion and the status of each of the 12 rows
     r = run("batch", SAMPLES, "--rig", RIG, "--format", "rosbag2")
     assert r.exit_code == 2 and "bag folder" in r.output
+
+
+def test_overlay_frames_as_compressed_images(tmp_path):
+    import cv2
+
+    out = tmp_path / "run.mcap"
+    r = run("batch", SAMPLES, "--rig", RIG, "--out", out, "--ros-images")
+    assert r.exit_code == 0, r.output
+    imgs = [m for m in messages(out) if m[0] == "/visvec/overlay/compressed"]
+    assert len(imgs) == 12 and {m[1] for m in imgs} == {"sensor_msgs/msg/CompressedImage"}
+    pic = cv2.imdecode(np.asarray(imgs[0][3].data, np.uint8), cv2.IMREAD_COLOR)
+    assert imgs[0][3].format == "jpeg" and pic.shape[:2] == (480, 640)
+    r = run("batch", SAMPLES, "--rig", RIG, "--ros-images", "--out", tmp_path / "rows.csv")
+    assert r.exit_code == 2 and not (tmp_path / "rows.csv").exists()

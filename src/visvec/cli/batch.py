@@ -49,7 +49,7 @@ from visvec.sources import open_source
 @result_options
 @output_options
 def batch(path, rig_path, calibration, truth, imu_path, camera_out, errors, summary, out, fmt,
-          method, overlay, max_frames, serve, covariance):  # fmt: skip
+          method, overlay, max_frames, serve, covariance, ros_images):  # fmt: skip
     """Process a folder of images (natural sort order) or a video file."""
     rig = load(rig_path, calibration)
     note_inputs(path, truth, imu_path)
@@ -73,7 +73,8 @@ def batch(path, rig_path, calibration, truth, imu_path, camera_out, errors, summ
     if camera_out:
         raise click.UsageError("--camera-out goes with --imu")
     run_batch(rig, path, truth, out, fmt, method, overlay, max_frames, serve, rig_path,
-              errors=errors, summary=summary, covariance=covariance)  # fmt: skip
+              errors=errors, summary=summary, covariance=covariance,
+              ros_images=ros_images)  # fmt: skip
 
 
 def check_results(truth, errors, summary, imu=None) -> None:
@@ -89,7 +90,7 @@ def check_results(truth, errors, summary, imu=None) -> None:
 
 def run_batch(
     rig, path, truth, out, fmt, method, overlay, max_frames, serve=None, rig_path="",
-    what="batch", errors=None, summary=None, covariance=False,
+    what="batch", errors=None, summary=None, covariance=False, ros_images=False,
 ) -> None:  # fmt: skip
     """Rows of a folder or video; with a truth file, the error statistics after them
     (and with ``errors``, ``summary`` files of them). With ``serve``, a live view, the
@@ -116,6 +117,7 @@ def run_batch(
             watchers=[view.state] if view is not None else None,
             what=what,
             covariance=covariance,
+            ros_images=ros_images,
         )
     finally:
         linger(view)

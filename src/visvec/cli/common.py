@@ -115,7 +115,14 @@ def _format_available(ctx, param, value):
 
 
 def output_options(f):
-    """--out, --format, --method, --overlay, --max-frames, --serve, --covariance."""
+    """--out, --format, --method, --overlay, --max-frames, --serve, --covariance,
+    --ros-images."""
+    f = click.option(
+        "--ros-images",
+        is_flag=True,
+        help="With an --out *.mcap file or --format rosbag2: also each frame with its "
+        "detection drawn, as sensor_msgs/CompressedImage (JPEG) on /visvec/overlay/compressed.",
+    )(f)
     f = click.option(
         "--covariance",
         is_flag=True,

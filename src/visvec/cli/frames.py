@@ -55,6 +55,30 @@ class FrameRecorder:
         self._times.close()
 
 
+class RosImages:
+    """Each frame with its detection drawn, into the ROS 2 output as a JPEG
+    CompressedImage (``--ros-images``)."""
+
+    def __init__(self, sink, rig: Rig):
+        self.sink = sink
+        self.rig = rig
+
+    def see(self, frame: Frame, row: Row, pipe: Pipeline) -> None:
+        if frame.image is None:
+            return
+        import cv2
+
+        from visvec.overlay import draw_overlay
+
+        img = draw_overlay(frame.image, pipe.last_detection, row, self.rig)
+        ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, 85])
+        if ok:
+            self.sink.image(frame.time_s, buf.tobytes())
+
+    def close(self) -> None:
+        pass
+
+
 class OverlayWriter:
     """Each frame with its detection drawn (:func:`visvec.overlay.draw_overlay`) as
     DIR/overlay_NNNNNN.png."""
@@ -167,6 +191,7 @@ def run_frames(
     watchers: list[Watcher] | None = None,
     what: str = "batch",
     covariance: bool = False,
+    ros_images: bool = False,
 ) -> list[Row]:
     """Process frames, writing each row as it is made; Ctrl-C ends the loop cleanly.
 
@@ -178,6 +203,7 @@ def run_frames(
     `visvec --status-every`) and a summary line at the end go to stderr.
     ``watchers``: more that see each frame after its row (the live view).
     ``covariance``: each row with its values' 3x3 covariance (Row.cov_columns).
+    ``ros_images``: the frames with their detection drawn into the ROS 2 output.
     What the run found out about the rig (the pipeline's notes: a target's height off
     the rig file's, a rolling shutter it does not declare) goes to stderr at the end.
     """
@@ -200,7 +226,12 @@ def run_frames(
     seen.append(status)
     seen.extend(watchers or ())
     columns = pipe.row_type.columns + (pipe.row_type.cov_columns() if covariance else ())
+    ros_out = fmt == "rosbag2" or (out is not None and out.lower().endswith(".mcap"))
+    if ros_images and not ros_out:
+        raise click.UsageError("--ros-images goes with an --out *.mcap file or --format rosbag2")
     with rows_out(out, fmt, columns, source=str(rig.path or "")) as sink:
+        if ros_images:
+            seen.insert(0, RosImages(sink, rig))
         try:
             for frame in frames:
                 row = pipe.process(frame)

@@ -79,7 +79,7 @@ from visvec.estimate.rate import rate_budget
 def rate(
     path, rig_path, calibration, truth, budget, ifov_deg, fps, stars, pixels_per_star,
     off_boresight_deg, rate_dps, errors, summary, out, fmt, method, overlay, max_frames, serve,
-    covariance,
+    covariance, ros_images,
 ):  # fmt: skip
     """Angular rate (deg/s, camera frame) from consecutive star images in PATH (a folder
     or a video), one row per frame; or, with --budget, the expected 1-sigma accuracy."""
@@ -107,4 +107,5 @@ def rate(
     if path is None or rig is None:
         raise click.UsageError("give PATH and --rig (or --budget)")
     run_batch(rig, path, truth, out, fmt, method, overlay, max_frames, serve, rig_path, "rate",
-              errors=errors, summary=summary, covariance=covariance)  # fmt: skip
+              errors=errors, summary=summary, covariance=covariance,
+              ros_images=ros_images)  # fmt: skip

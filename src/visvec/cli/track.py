@@ -62,7 +62,7 @@ from visvec.sources import open_source
 @output_options
 def track(
     rig_path, calibration, camera, retry_s, save_frames, imu_src, camera_out, realtime, out,
-    fmt, method, overlay, max_frames, serve, covariance
+    fmt, method, overlay, max_frames, serve, covariance, ros_images
 ):  # fmt: skip
     """Stream one attitude row per frame, flushed row by row, until the source ends,
     --max-frames, or Ctrl-C. With --imu, stream fused rows at the IMU's rate."""
@@ -127,6 +127,7 @@ def track(
             save_frames=save_frames,
             what="track",
             covariance=covariance,
+            ros_images=ros_images,
             watchers=[view.state] if view is not None else None,
         )
     finally:

@@ -202,6 +202,25 @@ class McapSink:
             )  # fmt: skip
             self._put("/visvec/pose", "geometry_msgs/msg/PoseWithCovarianceStamped", msg, ns)
 
+    def image(self, time_s: float, jpeg: bytes) -> None:
+        """A frame with its detection drawn, as ``/visvec/overlay/compressed``
+        (``sensor_msgs/msg/CompressedImage``, JPEG, ``frame_id`` the camera's optical
+        frame), stamped as the frame's row."""
+        ns = int(round((self.t0 + float(time_s)) * 1e9))
+        T = self.ts.types
+        stamp = T["builtin_interfaces/msg/Time"](sec=ns // 1_000_000_000,
+                                                  nanosec=ns % 1_000_000_000)  # fmt: skip
+        msg = T["sensor_msgs/msg/CompressedImage"](
+            header=T["std_msgs/msg/Header"](stamp=stamp, frame_id=CAMERA_FRAME),
+            format="jpeg", data=np.frombuffer(jpeg, np.uint8),
+        )  # fmt: skip
+        try:
+            self._put("/visvec/overlay/compressed", "sensor_msgs/msg/CompressedImage", msg, ns)
+            if self.fh is not None:
+                self.fh.flush()
+        except OSError as exc:
+            raise OutputError(f"{self.path}: cannot write ({exc.strerror or exc})") from None
+
     def _status(self, row, header, T, ns, ok) -> None:
         KV = T["diagnostic_msgs/msg/KeyValue"]
         warnings = str(row.get("warnings") or "")
