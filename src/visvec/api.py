@@ -1,8 +1,13 @@
-"""The public API of visvec.
+"""The public API of visvec: rigs, sources, the pipelines of the four target kinds,
+the fusion engine, the calibrations and the simulator.
 
->>> from visvec.api import load_rig, TrianglePipeline, FolderSource
+Examples
+--------
+Rows of a recording:
+
+>>> from visvec.api import load_rig, make_pipeline, FolderSource
 >>> rig = load_rig("configs/triangle.toml")
->>> rows = list(TrianglePipeline(rig).run(FolderSource("data/sample_frames")))
+>>> rows = list(make_pipeline(rig).run(FolderSource("data/sample_frames")))
 
 Fusion, fed live (each IMU sample as it comes, each fix when it arrives):
 
