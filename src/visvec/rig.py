@@ -24,7 +24,6 @@ from visvec.errors import ConfigError
 from visvec.lamps import LampMap, read_lamp_map
 
 TARGET_KINDS = ("triangle", "markers", "lamps", "starfield")
-SUPPORTED_KINDS = ("triangle", "markers", "starfield", "lamps")
 REFINE_METHODS = ("lines", "corners")
 
 _log = logging.getLogger(__name__)
@@ -545,11 +544,6 @@ def rig_from_dict(
 
     tgt = _Section(src, "target", raw["target"], origins.get("target", {}))
     kind = tgt.choice("kind", TARGET_KINDS, required=True)
-    if kind not in SUPPORTED_KINDS:
-        raise ConfigError(
-            f"{src}: [target] kind = {kind!r}: not supported by this version of visvec "
-            f"(supported: {list(SUPPORTED_KINDS)})"
-        )
     if kind == "triangle":
         target = _triangle_target(tgt, mount, src)
     elif kind == "starfield":

@@ -139,8 +139,7 @@ def evaluate(
 ) -> Outcome:
     """Run the pipeline (estimation rig ``rig``) on ``images`` and compare with the truth
     (``shear`` False: no readout estimated from the frames of a rig that declares none,
-    as the sensor was before the thirteenth session, for comparison; a markers rig's
-    frames go through its own pipeline)."""
+    for comparison; a markers rig's frames go through its own pipeline)."""
     if rig.kind == "triangle":
         pipe = TrianglePipeline(rig, method, check_shutter=shear)
     else:

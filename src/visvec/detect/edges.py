@@ -50,12 +50,12 @@ TRACK_RECENTRE_PX = 0.75
 # 1.7 % -> 0.7 %, EDGE_VARIANCE_INFLATION re-calibrated).
 LEVEL_EXTENT_PX = 1.0
 # The fine profiles reach 3 blur widths + 0.75 px each side of the edge, at most this
-# far (px). At the old cap of 4 px (the sparse pass's window), a defocused edge (blur
-# sigma 2 px at 640x480) was cut at 2 sigma: a line the first pass left a fraction of a
-# pixel off then gave biased steps, the acute vertex scattered 0.05 px (noise-free) and
-# its sigma no longer covered the tilt errors (pitch error/sigma RMS 1.4, up to 5 sigma
-# at 320x240). The sparse pass is repeated on a wider window when the blur it measures
-# needs one, so that the width itself is not cut short.
+# far (px). A cap of 4 px (the sparse pass's window) would cut a defocused edge (blur
+# sigma 2 px at 640x480) at 2 sigma: a line the first pass left a fraction of a pixel
+# off then gives biased steps, the acute vertex scatters 0.05 px (noise-free) and its
+# sigma no longer covers the tilt errors (pitch error/sigma RMS 1.4, up to 5 sigma at
+# 320x240; benchmarks/triangle_defocus.py). The sparse pass is repeated on a wider
+# window when the blur it measures needs one, so that the width itself is not cut short.
 MAX_HALF_PX = 8.0
 # The blur width is measured over the whole first-pass window, or when that is wider
 # than this (px), again within 4 measured widths of the edge (at least this far)

@@ -70,7 +70,8 @@ class TrianglePipeline(AttitudePipeline):
         "on a turning platform, a camera that reads its rows out one after another ([camera] "
         "readout_ms)",
         "no_triangle": "no bright region of the triangle's shape and size: is it in view "
-        "(look with --overlay DIR), and are [target] vertices_mm and [camera] fx right?",
+        "(look at the frames with the detection drawn on them), and are [target] vertices_mm "
+        "and [camera] fx right?",
         "low_contrast": "the triangle too faint against the board (under [detect] "
         "min_contrast): light it, or a longer exposure",
         "overexposed": "the triangle saturates: a shorter exposure",
