@@ -48,3 +48,13 @@ def summarise(out) -> dict:
         rms = np.sqrt(np.mean(z**2, axis=0)).round(2).tolist()
         s["z_rms"] = dict(zip(("yaw", "pitch", "roll"), rms, strict=True))
     return s
+
+
+def pyplot():
+    """matplotlib's pyplot drawing to files (no screen)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt

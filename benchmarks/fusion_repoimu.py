@@ -34,7 +34,7 @@ import numpy as np
 
 from visvec.rotations import expmap, logmap, matrix_to_euler, matrix_to_quat, quat_to_matrix
 
-from _common import OUT, ROOT, run_record, save_json
+from _common import OUT, ROOT, pyplot, run_record, save_json
 
 DATA = ROOT.parent / "shared" / "data" / "repoimu"
 TRIALS = ("Test02_Trial1", "Test04_Trial1", "Test06_Trial2", "Test10_Trial1", "Test11_Trial1")
@@ -256,10 +256,7 @@ def main() -> None:
            "fix_noise_deg": NOISE_DEG, "trials": res}  # fmt: skip
     save_json("fusion_repoimu", out)
     try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
+        plt = pyplot()
     except ImportError:
         return
     fig, axes = plt.subplots(len(plots), 1, figsize=(10, 2.2 * len(plots)), sharex=True)

@@ -26,11 +26,6 @@ camera) by visvec.sim.lamps and processed by the same LampPipeline as `visvec ba
 
 from __future__ import annotations
 
-import os
-
-os.environ.setdefault("OMP_NUM_THREADS", "1")
-os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
-
 import argparse  # noqa: E402
 import csv  # noqa: E402
 import json  # noqa: E402
@@ -41,7 +36,7 @@ import time  # noqa: E402
 from dataclasses import replace  # noqa: E402
 from pathlib import Path  # noqa: E402
 
-import cv2  # noqa: E402
+import _onecore  # noqa: F401, I001 - one thread each for BLAS and OpenMP, before numpy
 import numpy as np  # noqa: E402
 
 from visvec.bench.triangle import machine  # noqa: E402
@@ -57,9 +52,9 @@ from visvec.sim.lamps import (  # noqa: E402
     simulate_imu,
 )
 
-from _common import CONFIGS, OUT, command, save_json  # noqa: E402
+from _common import CONFIGS, OUT, command, pyplot, save_json  # noqa: E402
 
-cv2.setNumThreads(1)
+_onecore.one_core()
 WRONG_MM, WRONG_DEG = 10.0, 0.5
 
 
@@ -282,10 +277,7 @@ def main() -> None:
                                 for k, v in fu.items()}))  # fmt: skip
     save_json("lamps", result)
     try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
+        plt = pyplot()
 
         fig, ax = plt.subplots(figsize=(10, 4))
         for k, label in (("imu_alone", "IMU alone (first fix, rest biases)"),

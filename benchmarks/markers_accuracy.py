@@ -11,11 +11,9 @@ holds the nominal layout). Poses: yaw uniform, pitch and roll uniform within +-2
 from __future__ import annotations
 
 import argparse
-import os
 import time
 
-os.environ.setdefault("OMP_NUM_THREADS", "1")
-
+import _onecore  # noqa: I001 - one thread each for BLAS and OpenMP, before numpy
 import cv2
 import numpy as np
 
@@ -90,7 +88,7 @@ def study(rig, poses, sigma_c, sigma_m, rng):
 
 
 def speed(rig, n_frames=200):
-    cv2.setNumThreads(1)
+    _onecore.one_core()
     eul = random_attitudes(3 * n_frames, 20.0, np.random.default_rng(5), "sweep")[:n_frames]
     imgs = [render_markers(rig, euler_to_matrix(*e), SpotScene(), rng=k) for k, e in enumerate(eul)]
     pipe = MarkerPipeline(rig)

@@ -15,14 +15,10 @@ decode, which is timed separately on the same frames.
 
 from __future__ import annotations
 
-import os
-
-os.environ.setdefault("OMP_NUM_THREADS", "1")
-os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
-
 import argparse  # noqa: E402
 import time  # noqa: E402
 
+import _onecore  # noqa: F401, I001 - one thread each for BLAS and OpenMP, before numpy
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
@@ -40,7 +36,7 @@ from visvec.sim.stars import (  # noqa: E402
     star_image,
 )
 
-from _common import CONFIGS, OUT, command, save_json  # noqa: E402
+from _common import CONFIGS, OUT, command, pyplot, save_json  # noqa: E402
 
 # Fasano et al., Tables 4 and 5: error standard deviation (deg/s) per axis
 PAPER_STD = {
@@ -120,7 +116,7 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=101)
     ap.add_argument("--seed", type=int, default=1)
     args = ap.parse_args()
-    cv2.setNumThreads(1)
+    _onecore.one_core()
     rig = load_rig(CONFIGS / "starfield.toml")
     ifov = float(np.degrees(np.arctan(1.0 / rig.camera.fx)))
     res: dict = {"command": command(), "machine": machine(), "cases": {}}
@@ -170,10 +166,7 @@ def main() -> None:
 
 
 def plot(res: dict) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     fig, axs = plt.subplots(3, 4, figsize=(14, 8), sharex=True)
     for j, (case, out) in enumerate(res["cases"].items()):

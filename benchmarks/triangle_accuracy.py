@@ -12,17 +12,13 @@ from __future__ import annotations
 import argparse
 import time
 
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt
 import numpy as np
 
 from visvec.bench.triangle import evaluate, random_cases, render_cases, with_refine
 from visvec.rig import load_rig
 from visvec.sim.scene import Scene
 
-from _common import CONFIGS, OUT, run_record, save_json
+from _common import CONFIGS, OUT, pyplot, run_record, save_json
 
 
 def main() -> None:
@@ -30,6 +26,7 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=300)
     args = ap.parse_args()
     results = run_record()
+    plt = pyplot()
     fig, axes = plt.subplots(2, 4, figsize=(16, 7))
     for row, (name, cfg) in enumerate(
         (("320x240", "triangle-320.toml"), ("640x480", "triangle.toml"))

@@ -16,15 +16,11 @@ another rig file (a lab's own camera).
 
 from __future__ import annotations
 
-import os
-
-os.environ.setdefault("OMP_NUM_THREADS", "1")
-os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
-
 import argparse  # noqa: E402
 import time  # noqa: E402
 from dataclasses import replace  # noqa: E402
 
+import _onecore  # noqa: F401, I001 - one thread each for BLAS and OpenMP, before numpy
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
@@ -45,7 +41,7 @@ def main() -> None:
     ap.add_argument("--rig", default=str(CONFIGS / "triangle.toml"))
     ap.add_argument("--size", help="WxH: the same lens on a sensor of this size")
     args = ap.parse_args()
-    cv2.setNumThreads(1)
+    _onecore.one_core()
     rig = load_rig(args.rig)
     name = "triangle_speed"
     if args.size:
