@@ -17,6 +17,8 @@ Fusion, fed live (each IMU sample as it comes, each fix when it arrives):
 """
 
 from visvec.calib.camera import calibrate_camera
+from visvec.calib.readout import calibrate_readout
+from visvec.calib.system import calibrate_system
 from visvec.calib.zero_tilt import calibrate_zero_tilt
 from visvec.camera import CameraModel
 from visvec.data import AttitudeSolution, Detection, Frame, Status
@@ -75,6 +77,8 @@ __all__ = [
     "VideoSource",
     "VisvecError",
     "calibrate_camera",
+    "calibrate_readout",
+    "calibrate_system",
     "calibrate_zero_tilt",
     "load_rig",
     "open_source",
