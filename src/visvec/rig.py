@@ -193,6 +193,8 @@ class Rig:
     # its 1-sigma (ms), as `calibrate readout` measured it: the rows' sigma carries it
     readout_sigma_ms: float = 0.0
     controls: CameraControls = field(default_factory=CameraControls)
+    # whether the rig file (or a calibration) gave [platform] max_tilt_deg, or the default
+    max_tilt_given: bool = True
     path: Path | None = None
 
     @property
@@ -554,6 +556,7 @@ def rig_from_dict(
         target = _marker_target(tgt, mount, src)
 
     plat = _Section(src, "platform", raw.get("platform", {}), origins.get("platform", {}))
+    max_tilt_given = plat.has("max_tilt_deg")
     max_tilt = plat.number("max_tilt_deg", 10.0, positive=True, hi=60.0)
     max_rate = plat.number("max_rate_dps", 10.0, positive=True, hi=360.0)
     max_tilt_rate = plat.number("max_tilt_rate_dps", 2.0, positive=True, hi=360.0)
@@ -599,6 +602,7 @@ def rig_from_dict(
         readout_ms=readout_ms,
         readout_sigma_ms=readout_sigma_ms,
         controls=controls,
+        max_tilt_given=max_tilt_given,
         path=Path(src.split(" (+")[0]) if base_dir is not None else None,
     )
     _check_visible(rig, src)

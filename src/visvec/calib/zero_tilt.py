@@ -6,8 +6,9 @@ a camera's tone curve and most of a print's scale show here too) and the camera'
 mounting tilt (small rotations about b1 and b2), jointly with
 each frame's unknown yaw, by weighted least squares on the vertex positions
 (scipy.optimize.least_squares). A camera rotation about b3 cannot be told from a yaw
-offset without a yaw reference and is not estimated; nor can a sideways camera offset be
-told from a camera tilt (the target is one plane), so the rig's camera position is kept.
+offset without a yaw reference: with stops at known yaws it is estimated after the fit
+(:func:`yaw_reference`). A sideways camera offset cannot be told from a camera tilt (the
+target is one plane), so the rig's camera position is kept.
 
 Before the sigma check below, the frames test the rig's camera model: the fit is repeated with
 the camera's aspect fy / fx and principal point free. A wrong aspect stretches the
@@ -113,6 +114,16 @@ class ZeroTiltResult:
     principal_point_px: np.ndarray = field(default_factory=lambda: np.zeros(2))
     sigma_principal_point_px: np.ndarray = field(default_factory=lambda: np.full(2, np.inf))
     camera_off: bool = False
+    # (K,) each frame's yaw sigma from the fit (deg; nan for a frame left out)
+    sigma_yaw_deg: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    # the camera's turn about b3 on its mount (deg), from stops at known yaws (see
+    # yaw_reference); nan: not calibrated
+    camera_turn_deg: float = float("nan")
+    sigma_camera_turn_deg: float = float("nan")
+    yaw_stops: int = 0
+    # the stops' scatter about the turn over their sigma (chi-square per degree of
+    # freedom, nan with one stop): above about 3, a yaw given wrong or a stop that moved
+    yaw_stop_chi2_dof: float = float("nan")
 
     def apply(self, rig: Rig) -> Rig:
         """The rig with the calibration applied."""
@@ -121,6 +132,9 @@ class ZeroTiltResult:
         v[:, 2] += self.height_offset_mm
         a = np.radians(self.camera_tilt_deg)
         R_bc = rot_x(a[0]) @ rot_y(a[1]) @ rig.R_bc
+        if np.isfinite(self.camera_turn_deg):
+            # the camera turned about b3 (the body's own axis, applied last)
+            R_bc = rot_z(np.radians(self.camera_turn_deg)) @ R_bc
         return replace(
             rig,
             target=replace(rig.target, vertices_mm=v),
@@ -287,6 +301,8 @@ def calibrate_zero_tilt(dets: list[Detection], rig: Rig) -> ZeroTiltResult:
     ratio_95 = ratio * np.sqrt(dof / chi2_dist.ppf([0.975, 0.025], dof))
     wider = chi2_own > chi2_dist.ppf(SIGMA_CHECK_QUANTILE, dof)
     sig = np.sqrt(np.diag(cov))
+    sigma_yaw = np.full(n, np.nan)
+    sigma_yaw[idx] = np.degrees(sig[N_COMMON:])
     # the camera check: the same frames with the camera's aspect and principal point free
     check = _fit([dets[i] for i in idx], rig, sol.x[N_COMMON:], sol.x[:N_COMMON], camera=True)
     check_chi2 = float(check.fun @ check.fun)
@@ -333,6 +349,61 @@ def calibrate_zero_tilt(dets: list[Detection], rig: Rig) -> ZeroTiltResult:
         principal_point_px=check_x[1:].copy(),
         sigma_principal_point_px=check_sig[1:].copy(),
         camera_off=bool(significant and large),
+        sigma_yaw_deg=sigma_yaw,
+    )
+
+
+def yaw_reference(
+    res: ZeroTiltResult,
+    known_yaw_deg: np.ndarray,
+    stop: np.ndarray,
+    reference_sigma_deg: float,
+) -> ZeroTiltResult:
+    """The camera's turn about b3 from frames whose platform yaw the lab knows.
+
+    Level frames cannot tell a camera turned on its mount from where the platform's yaw
+    zero is: both add to every frame's yaw (the fit's ``yaw_deg`` is the true yaw plus
+    the turn, exactly, for a level platform: R_NC = Rz(yaw) Rz(turn) R_BC). A lab that
+    sets the platform at known yaws (a mark on the table, an encoder, a laser on a wall;
+    yaws about n3 from n1, toward the triangle's most acute vertex) gives the turn as
+    the weighted mean over its stops of (fitted yaw - known yaw). Each stop's frames
+    share its reference's error ``reference_sigma_deg``; a stop's variance is that plus
+    its mean yaw's (the frames' fit sigma, or their scatter when wider), and the stops'
+    scatter against the turn is checked (``yaw_stop_chi2_dof``).
+
+    ``known_yaw_deg`` (K,) per frame, nan where not known; ``stop`` (K,) which stop
+    (recording) each frame is of. Frames left out of the fit as outliers are not used.
+    """
+    use = np.isfinite(known_yaw_deg) & ~res.outliers
+    if not use.any():
+        return res
+    d = (res.yaw_deg[use] - known_yaw_deg[use] + 180.0) % 360.0 - 180.0
+    stops = stop[use]
+    sy = res.sigma_yaw_deg[use] if len(res.sigma_yaw_deg) else np.zeros(len(d))
+    means, var = [], []
+    for s_id in np.unique(stops):
+        sel = stops == s_id
+        ds = d[sel]
+        means.append(float(np.mean(ds)))
+        # the stop's mean yaw: its frames' own sigma, or their scatter when wider
+        fit = float(np.mean(np.square(sy[sel]))) / len(ds)
+        scatter = float(np.var(ds, ddof=1) / len(ds)) if len(ds) > 1 else 0.0
+        var.append(reference_sigma_deg**2 + max(fit, scatter))
+    means_a, var_a = np.array(means), np.array(var)
+    w = 1.0 / var_a
+    turn = float(np.sum(w * means_a) / np.sum(w))
+    sigma = float(np.sqrt(1.0 / np.sum(w)))
+    chi2_dof = (
+        float(np.sum(w * (means_a - turn) ** 2) / (len(means_a) - 1))
+        if len(means_a) > 1
+        else float("nan")
+    )
+    return replace(
+        res,
+        camera_turn_deg=turn,
+        sigma_camera_turn_deg=sigma,
+        yaw_stops=len(means_a),
+        yaw_stop_chi2_dof=chi2_dof,
     )
 
 
@@ -366,5 +437,14 @@ def calibration_sections(res: ZeroTiltResult, rig: Rig) -> dict[str, dict[str, o
             "sigma_ratio": round(res.sigma_ratio, 4),
             "sigma_ratio_95": np.round(res.sigma_ratio_95, 4),
             "sigma_dof": res.dof,
+            **(
+                {
+                    "camera_turn_deg": round(res.camera_turn_deg, 5),
+                    "sigma_camera_turn_deg": round(res.sigma_camera_turn_deg, 5),
+                    "yaw_stops": res.yaw_stops,
+                }
+                if np.isfinite(res.camera_turn_deg)
+                else {"yaw_zero": "not calibrated (no stops at known yaws)"}
+            ),
         },
     }

@@ -10,6 +10,7 @@ import click
 
 from visvec.cli.camera_fusion import camera_out_option, check_fusable, run_fused_batch
 from visvec.cli.common import (
+    FiniteFloat,
     KindCommand,
     check_output,
     load,
@@ -45,11 +46,17 @@ from visvec.sources import open_source
     help="An IMU file on the frames' clock: the rows are the fused ones at its rate, the "
     "frames' ok rows the fixes (available at their exposure plus their latency).",
 )
+@click.option(
+    "--fps",
+    type=FiniteFloat(min=0, min_open=True),
+    default=None,
+    help="Frame rate (Hz) of a folder of frames without times.csv (default: the rig's fps).",
+)
 @camera_out_option
 @result_options
 @output_options
-def batch(path, rig_path, calibration, truth, imu_path, camera_out, errors, summary, out, fmt,
-          method, overlay, max_frames, serve, covariance, ros_images):  # fmt: skip
+def batch(path, rig_path, calibration, truth, imu_path, fps, camera_out, errors, summary, out,
+          fmt, method, overlay, max_frames, serve, covariance, ros_images):  # fmt: skip
     """Process a folder of images (natural sort order) or a video file."""
     rig = load(rig_path, calibration)
     note_inputs(path, truth, imu_path)
@@ -74,7 +81,7 @@ def batch(path, rig_path, calibration, truth, imu_path, camera_out, errors, summ
         raise click.UsageError("--camera-out goes with --imu")
     run_batch(rig, path, truth, out, fmt, method, overlay, max_frames, serve, rig_path,
               errors=errors, summary=summary, covariance=covariance,
-              ros_images=ros_images)  # fmt: skip
+              ros_images=ros_images, fps=fps)  # fmt: skip
 
 
 def check_results(truth, errors, summary, imu=None) -> None:
@@ -90,7 +97,7 @@ def check_results(truth, errors, summary, imu=None) -> None:
 
 def run_batch(
     rig, path, truth, out, fmt, method, overlay, max_frames, serve=None, rig_path="",
-    what="batch", errors=None, summary=None, covariance=False, ros_images=False,
+    what="batch", errors=None, summary=None, covariance=False, ros_images=False, fps=None,
 ) -> None:  # fmt: skip
     """Rows of a folder or video; with a truth file, the error statistics after them
     (and with ``errors``, ``summary`` files of them). With ``serve``, a live view, the
@@ -99,7 +106,10 @@ def run_batch(
     names = make_pipeline(rig, method).row_type.value_columns
     truth_rows = read_truth(truth, names) if truth else None
     view = open_view(serve, rig, rig_path, method, str(path))  # a bad port: before the frames
-    src = open_source(path, fps=rig.fps, max_frames=max_frames, retry_s=0.0)
+    src = open_source(path, fps=fps or rig.fps, max_frames=max_frames, retry_s=0.0)
+    if fps and getattr(src, "times", None):
+        click.echo(f"visvec: note: {path} has its own frame times (times.csv): --fps "
+                   f"{fps:g} is not used for them", err=True)  # fmt: skip
     if view is not None:
         src = paced(src)
     # once the frames are found, before the first row (as `track` does)

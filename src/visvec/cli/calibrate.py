@@ -14,7 +14,7 @@ from visvec.calib.readout import calibrate_readout, readout_sections, readout_tr
 from visvec.calib.system import Observations, calibrate_system, initial_attitudes
 from visvec.calib.system import calibration_sections as system_sections
 from visvec.calib.tomlout import dumps
-from visvec.calib.zero_tilt import calibrate_zero_tilt, calibration_sections
+from visvec.calib.zero_tilt import calibrate_zero_tilt, calibration_sections, yaw_reference
 from visvec.camera import CameraModel
 from visvec.cli.common import FiniteFloat, check_output, load, note_inputs, rig_options, write_whole
 from visvec.cli.progress import Work
@@ -59,18 +59,38 @@ def calibrate():
 @click.argument("frames", nargs=-1, required=True, type=click.Path())
 @rig_options
 @calibration_out()
-def zero_tilt(frames, rig_path, calibration, out):
+@click.option(
+    "--yaw-deg",
+    "yaws",
+    multiple=True,
+    metavar="DEG|-",
+    help="The platform's known yaw (deg about n3 from n1, toward the triangle's most acute "
+    "vertex) in each recording of FRAMES, in their order ('-' where not known): with two "
+    "stops or more, the camera's turn about b3 on its mount is calibrated too, which "
+    "level frames alone cannot tell from the yaw zero.",
+)
+@click.option(
+    "--yaw-sigma-deg",
+    type=FiniteFloat(min=0, min_open=True),
+    default=0.05,
+    show_default=True,
+    help="How well the lab knows each stop's yaw (1-sigma, deg): a mark on the table, an "
+    "encoder, a laser on a wall.",
+)
+def zero_tilt(frames, rig_path, calibration, out, yaws, yaw_sigma_deg):
     """Zero-tilt offsets from FRAMES (folders or videos: one recording, or one per yaw)
     taken with the platform level at several yaws: target offset from the rotation axis
     and camera mounting tilt (for --method full), zero-tilt centroid (for --method
-    paper)."""
+    paper); with --yaw-deg per recording, the camera's turn about b3 (the yaw zero)."""
     rig = load(rig_path, calibration, "triangle", "zero-tilt calibration")
     note_inputs(*frames)
     check_output(out)
+    known = _known_yaws(yaws, frames)
     # every source opened first: a missing one is refused before any work
     sources = [open_source(f, fps=rig.fps, retry_s=0.0) for f in frames]
     pipe = TrianglePipeline(rig, "full", still=True)
     dets, names, bad = [], [], 0
+    det_known, det_stop = [], []
     total = sum(len(s) for s in sources) if all(hasattr(s, "__len__") for s in sources) else None
     bar = Work("calibrate zero-tilt", total)
     for path, src in zip(frames, sources, strict=True):
@@ -82,6 +102,8 @@ def zero_tilt(frames, rig_path, calibration, out):
             if pipe.last_detection is not None and pipe.last_detection.status is Status.OK:
                 dets.append(pipe.last_detection)
                 names.append(where + (frame.name or f"frame {frame.index}"))
+                det_known.append(known[frames.index(path)])
+                det_stop.append(frames.index(path))
             else:
                 bad += 1
                 why = (
@@ -92,6 +114,8 @@ def zero_tilt(frames, rig_path, calibration, out):
                 click.echo(f"{where}frame {frame.index}: skipped ({row.status}: {why})", err=True)
     bar.close()
     res = calibrate_zero_tilt(dets, rig)
+    if not all(np.isnan(known)):
+        res = yaw_reference(res, np.array(det_known), np.array(det_stop), yaw_sigma_deg)
     not_level = res.converged and res.sigma_ratio > NOT_LEVEL_RATIO
     if res.converged and not res.camera_off and not not_level:
         # written before the report is printed: a reader that closes the pipe early
@@ -133,6 +157,7 @@ def zero_tilt(frames, rig_path, calibration, out):
         f"{res.sigma_camera_tilt_deg[0]:.4f} deg, about b2 {res.camera_tilt_deg[1]:+.4f}"
         f" +- {res.sigma_camera_tilt_deg[1]:.4f} deg"
     )
+    _yaw_zero_lines(res)
     click.echo(
         f"  zero-tilt centroid (paper): u {res.centroid_px[0]:.3f} +- "
         f"{res.sigma_centroid_px[0]:.3f} px, v {res.centroid_px[1]:.3f} +- "
@@ -172,6 +197,56 @@ def zero_tilt(frames, rig_path, calibration, out):
         click.echo("visvec: error: the calibration did not converge; nothing written", err=True)
         raise SystemExit(1)
     click.echo(f"wrote {out}; later runs take {_runs_with(calibration, out)}")
+
+
+def _known_yaws(yaws: tuple[str, ...], frames: tuple[str, ...]) -> np.ndarray:
+    """--yaw-deg per recording: (len(frames),) deg, nan where '-' or not given."""
+    if not yaws:
+        return np.full(len(frames), np.nan)
+    if len(yaws) != len(frames):
+        raise click.BadParameter(
+            f"{len(yaws)} values for {len(frames)} recordings: give one per recording, in "
+            "their order, '-' where the yaw is not known",
+            param_hint="--yaw-deg",
+        )
+    out = []
+    for y in yaws:
+        if y.strip() in ("-", ""):
+            out.append(np.nan)
+            continue
+        try:
+            v = float(y)
+        except ValueError:
+            v = np.nan
+        if not np.isfinite(v):
+            raise click.BadParameter(
+                f"{y!r}: expected a yaw in deg, or '-'", param_hint="--yaw-deg"
+            )
+        out.append(v)
+    return np.array(out)
+
+
+def _yaw_zero_lines(res) -> None:
+    if not np.isfinite(res.camera_turn_deg):
+        click.echo(
+            "  yaw zero: not calibrated. Level frames cannot tell the camera's turn on its "
+            "mount from where yaw zero is: every yaw carries that turn, and a tilt of t deg "
+            "puts about t x turn (rad) of it into the other tilt axis. Set the platform at "
+            "two known yaws or more and give them with --yaw-deg (the lab guide, Yaw zero)"
+        )
+        return
+    text = (
+        f"  camera turn about b3 (yaw zero): {res.camera_turn_deg:+.4f} +- "
+        f"{res.sigma_camera_turn_deg:.4f} deg from {res.yaw_stops} stop(s) at known yaws"
+    )
+    if res.yaw_stops < 2:
+        text += " (one stop: give two or more, so that a yaw given wrong shows)"
+    elif res.yaw_stop_chi2_dof > 3.0:
+        text += (
+            f"; the stops disagree by {np.sqrt(res.yaw_stop_chi2_dof):.1f}x their sigma: a "
+            "yaw given wrong, a stop that moved, or --yaw-sigma-deg too small?"
+        )
+    click.echo(text)
 
 
 def made_for(rig) -> dict[str, object]:

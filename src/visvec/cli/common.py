@@ -192,10 +192,24 @@ def load(
     return rig
 
 
+def note_defaults(rig: Rig) -> None:
+    """Say on stderr, once, the defaults a rig runs with that refuse frames: an
+    attitude rig without [platform] max_tilt_deg refuses every frame tilted more than
+    its default 10 deg as impossible_tilt."""
+    if rig.kind in ("triangle", "markers") and not rig.max_tilt_given:
+        click.echo(
+            f"visvec: note: the rig file has no [platform] max_tilt_deg: the default "
+            f"{rig.max_tilt_deg:g} deg applies, and every frame tilted more is refused as "
+            "impossible_tilt (set it to the largest tilt your platform can make)",
+            err=True,
+        )
+
+
 def note_uncalibrated(rig: Rig) -> None:
     """Say on stderr, once, that a triangle rig has no zero-tilt calibration: its tilts
     then carry whatever mounting error and target offset the rig file has (a camera
     0.5 deg askew reads 0.5 deg of tilt), which no row's sigma covers."""
+    note_defaults(rig)
     if rig.kind == "triangle" and rig.zero_tilt.centroid_px is None:
         click.echo(
             "visvec: note: no zero-tilt calibration given (`visvec calibrate zero-tilt`, "

@@ -44,7 +44,8 @@ from visvec.estimate.rate import rate_budget
     "--fps",
     type=FiniteFloat(min=0, min_open=True),
     default=None,
-    help="Budget: frame rate (default: the rig's, else 10).",
+    help="Frame rate (Hz): of a folder of frames without times.csv (default: the rig's "
+    "fps), and for --budget (default: the rig's, else 10).",
 )
 @click.option(
     "--stars",
@@ -108,4 +109,4 @@ def rate(
         raise click.UsageError("give PATH and --rig (or --budget)")
     run_batch(rig, path, truth, out, fmt, method, overlay, max_frames, serve, rig_path, "rate",
               errors=errors, summary=summary, covariance=covariance,
-              ros_images=ros_images)  # fmt: skip
+              ros_images=ros_images, fps=fps)  # fmt: skip

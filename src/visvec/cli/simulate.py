@@ -121,6 +121,13 @@ from visvec.sim.stars import PAPER_CASES, StarScene, simulate_stars
     help="Triangle: tilt the real camera on its mount (about b1, b2) against the rig file.",
 )
 @click.option(
+    "--camera-turn-deg",
+    type=FiniteFloat(-45, 45),
+    default=0.0,
+    help="Triangle: turn the real camera about its own optical axis against the rig file "
+    "(what only stops at known yaws calibrate: calibrate zero-tilt --yaw-deg).",
+)
+@click.option(
     "--case",
     type=click.IntRange(1, 4),
     default=None,
@@ -194,6 +201,7 @@ def simulate(
     target_offset_mm,
     target_height_mm,
     camera_askew_deg,
+    camera_turn_deg,
     case,
     rate_dps,
     spurious,
@@ -205,6 +213,7 @@ def simulate(
 ):
     """Render frames of the rig's target at known attitudes (or, for a starfield rig, a
     sky turning at a known rate); write OUT/truth.csv."""
+    camera_askew_deg = (*camera_askew_deg, camera_turn_deg)  # about b1, b2, and its axis
     try:
         _simulate(rig_path, calibration, out_dir, n_frames, seed, motion, max_tilt_deg, noise,
                   contrast, blur, exposure, lights, occluder, no_triangle, reflections,
@@ -259,8 +268,8 @@ def _simulate(rig_path, calibration, out_dir, n_frames, seed, motion, max_tilt_d
     ):
         raise click.UsageError(
             "--lights, --occluder, --no-triangle, --target-offset-mm, --target-height-mm, "
-            "--camera-askew-deg, --readout-ms, --exposure-ms and --yaw-rate-dps apply to "
-            "triangle rigs only"
+            "--camera-askew-deg, --camera-turn-deg, --readout-ms, --exposure-ms and "
+            "--yaw-rate-dps apply to triangle rigs only"
         )
     if exposure_ms is not None and exposure_ms > 1000.0 / rig.fps:
         raise click.BadParameter(
@@ -284,7 +293,8 @@ def _simulate(rig_path, calibration, out_dir, n_frames, seed, motion, max_tilt_d
         exposure=exposure,
         show_triangle=not no_triangle,
     )
-    world = true_rig(rig, tuple(target_offset_mm), tuple(camera_askew_deg), target_height_mm)
+    world = true_rig(rig, tuple(target_offset_mm), tuple(camera_askew_deg[:2]), target_height_mm,
+                     camera_askew_deg[2])  # fmt: skip
     with Work("simulate", n_frames) as bar:
         truth = run_simulation(
             rig,

@@ -19,6 +19,7 @@ from visvec.rotations import (
     matrix_to_quat,
     rot_x,
     rot_y,
+    rot_z,
 )
 from visvec.sim.markers import SpotScene, render_markers
 from visvec.sim.render import render_frame
@@ -143,12 +144,13 @@ def true_rig(
     target_offset_mm: tuple[float, float] = (0.0, 0.0),
     camera_askew_deg: tuple[float, float] = (0.0, 0.0),
     height_offset_mm: float = 0.0,
+    camera_turn_deg: float = 0.0,
 ) -> Rig:
     """The lab as it really is: the target shifted on the ceiling (and ``height_offset_mm``
-    higher) and the camera tilted on its mount (about b1 and b2) against what the rig
-    file says (triangle rigs)."""
+    higher) and the camera tilted on its mount (about b1 and b2) and turned about its own
+    optical axis (``camera_turn_deg``) against what the rig file says (triangle rigs)."""
     if rig.kind != "triangle":
-        if any(target_offset_mm) or any(camera_askew_deg) or height_offset_mm:
+        if any(target_offset_mm) or any(camera_askew_deg) or height_offset_mm or camera_turn_deg:
             raise ValueError("target offset and camera askew apply to triangle rigs only")
         return rig
     v = rig.target.vertices_mm.copy()
@@ -156,7 +158,7 @@ def true_rig(
     v[:, 1] += target_offset_mm[1]
     v[:, 2] += height_offset_mm
     a = np.radians(camera_askew_deg)
-    R_bc = rot_x(a[0]) @ rot_y(a[1]) @ rig.R_bc
+    R_bc = rot_x(a[0]) @ rot_y(a[1]) @ rig.R_bc @ rot_z(np.radians(camera_turn_deg))
     return replace(
         rig, target=replace(rig.target, vertices_mm=v), mount=replace(rig.mount, rotation=R_bc)
     )
