@@ -7,6 +7,7 @@ import time
 from collections import Counter
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import replace
+from typing import Generic, TypeVar
 
 import numpy as np
 
@@ -23,9 +24,16 @@ REFUSED_NOTE_MIN = 3
 REFUSED_NOTE_REASONS = 4
 
 
-class Pipeline:
+# what a kind's detector finds in a frame, and what its estimator makes of it
+DetT = TypeVar("DetT")
+SolT = TypeVar("SolT")
+
+
+class Pipeline(Generic[DetT, SolT]):
     """Shared frame loop of every target kind. Subclasses implement :meth:`estimate`
-    and :meth:`make_row`."""
+    (a frame -> status, solution of type SolT or None, warnings; the detection of type
+    DetT is kept as ``last_detection`` for the overlay) and :meth:`make_row` (-> a row
+    of ``row_type``)."""
 
     methods: tuple[str, ...] = ()
     row_type: type[Row] = Row
@@ -42,8 +50,8 @@ class Pipeline:
             )
         self.rig = rig
         self.method = method
-        self.last_detection: object | None = None
-        self.last_solution: AttitudeSolution | None = None
+        self.last_detection: DetT | None = None
+        self.last_solution: SolT | None = None
         self.last_error = ""
         # the run's rows, and its refused ones by reason (their warnings, or the status)
         self.n_rows = 0
@@ -71,7 +79,7 @@ class Pipeline:
         """Called after a frame without an ok row (forgets the previous frame)."""
         self.reset()
 
-    def estimate(self, frame: Frame) -> tuple[Status, object | None, tuple[str, ...]]:
+    def estimate(self, frame: Frame) -> tuple[Status, SolT | None, tuple[str, ...]]:
         """Status, solution (or None) and warnings of one readable frame."""
         raise NotImplementedError
 
@@ -79,19 +87,19 @@ class Pipeline:
         self,
         frame: Frame,
         status: Status,
-        sol: object | None,
+        sol: SolT | None,
         warnings: tuple[str, ...],
         latency_ms: float,
     ) -> Row:
         raise NotImplementedError
 
     def check_solution(
-        self, status: Status, sol: object | None, warnings: tuple[str, ...]
+        self, status: Status, sol: SolT, warnings: tuple[str, ...]
     ) -> tuple[Status, tuple[str, ...]]:
         """A last physical check of an ok solution (none by default)."""
         return status, warnings
 
-    def after_success(self, sol: object) -> None:
+    def after_success(self, sol: SolT) -> None:
         """Called with the solution of every row that is ok (nothing by default)."""
 
     def notes(self) -> list[str]:
@@ -160,7 +168,7 @@ class Pipeline:
             yield row
 
 
-class AttitudePipeline(Pipeline):
+class AttitudePipeline(Pipeline[DetT, AttitudeSolution]):
     """Attitude rows (triangle, markers), with the physically-possible tilt check."""
 
     row_type = AttitudeRow

@@ -32,7 +32,7 @@ EDGE_PX = 5.0  # lamp spots closer than this to the image border may be cut
 MIN_TRACKED_FRACTION = 0.5  # of the spots, matched from the predicted pose, to keep tracking
 
 
-class LampPipeline(Pipeline):
+class LampPipeline(Pipeline["LampDetection", PlanarSolution]):
     """Position and heading of a mock-up from ceiling lamps (LuVeX, Keldysh preprint
     2011-24): spots, identification (tracking from the predicted pose, else the paper's
     Delaunay lookup), and a least-squares fit over every identified lamp."""

@@ -32,7 +32,7 @@ MAX_ELONGATION = 1.8
 TRACK_WINDOW_PX = 24
 
 
-class MarkerPipeline(AttitudePipeline):
+class MarkerPipeline(AttitudePipeline["MarkerDetection"]):
     """LED markers seen by a camera fixed in the lab; ``method`` "full" (the constrained
     3-parameter solver) or a PnP baseline ("pnp-sqpnp", "pnp-ippe", ...)."""
 

@@ -52,7 +52,7 @@ class _PreviousFrame:
     sig: np.ndarray
 
 
-class RatePipeline(Pipeline):
+class RatePipeline(Pipeline["RateDetection", RateSolution]):
     """Angular rate of a star camera from consecutive frames (Fasano et al. 2013);
     ``method`` "poisson" (the paper, default) or "crassidis". One row per frame: the
     rate over the interval from the previous frame to this one.

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from visvec.data import AttitudeSolution, Status
+from visvec.data import AttitudeSolution, Detection, Status
 from visvec.detect import TriangleDetector
 from visvec.errors import ConfigError
 from visvec.estimate import ESTIMATORS
@@ -57,7 +57,7 @@ def body_rate(a: tuple[float, np.ndarray], b: tuple[float, np.ndarray]) -> np.nd
     return omega_b
 
 
-class TrianglePipeline(AttitudePipeline):
+class TrianglePipeline(AttitudePipeline[Detection]):
     """The triangle target; ``method`` "full" (default) or "paper"."""
 
     methods = TRIANGLE_METHODS
