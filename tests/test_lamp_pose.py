@@ -263,3 +263,35 @@ def test_histogram_threshold_equals_the_sorted_median(rng):
         med = float(np.median(sub))
         mad = float(np.median(np.abs(sub - med))) * 1.4826
         assert auto_threshold(img) == pytest.approx(max(med + 6 * max(mad, 0.5), 20.0))
+
+
+def test_fix_sigma_follows_the_measured_scatter(tmp_path):
+    """A lamps recording at rest: the rows' sigma is learned from the fits' scatter, not
+    the rig's 0.1 px guess, so that error / sigma follows N(0, 1): RMS about 1, at most
+    twice the Gaussian share beyond 3 sigma, none beyond 5."""
+    import csv
+
+    from click.testing import CliRunner
+
+    from visvec.cli.main import cli
+
+    from conftest import ROOT
+
+    rig = ROOT / "configs" / "lamps.toml"
+    rec = tmp_path / "rec"
+    r = CliRunner().invoke(cli, ["simulate", "--rig", str(rig), "--out", str(rec), "--frames",
+                                 "150", "--motion", "rest"])  # fmt: skip
+    assert r.exit_code == 0, r.output
+    out = tmp_path / "rows.csv"
+    r = CliRunner().invoke(cli, ["batch", str(rec), "--rig", str(rig), "--out", str(out)])
+    assert r.exit_code == 0, r.output
+    truth = {t["frame"]: t for t in csv.DictReader(open(rec / "truth.csv"))}
+    z = []
+    for row in list(csv.DictReader(open(out)))[20:]:  # after the first frames' learning
+        assert row["status"] == "ok"
+        t = truth[row["frame"]]
+        for k in ("x_mm", "y_mm", "heading_deg"):
+            z.append((float(row[k]) - float(t[k])) / float(row[f"sigma_{k}"]))
+    z = np.abs(np.array(z))
+    assert 0.7 < np.sqrt(np.mean(z**2)) < 1.3
+    assert np.mean(z > 3) <= 2 * 0.0027 and not np.any(z > 5)

@@ -28,6 +28,11 @@ class LampDetection:
     votes: int = 0
 
 
+# the learned centroid noise: old frames forgotten by this factor per frame (about the
+# last 100), the rig's value worth this many degrees of freedom, and never below this
+NOISE_FORGET = 0.99
+NOISE_PRIOR_DOF = 20.0
+NOISE_FLOOR_PX = 0.005
 EDGE_PX = 5.0  # lamp spots closer than this to the image border may be cut
 MIN_TRACKED_FRACTION = 0.5  # of the spots, matched from the predicted pose, to keep tracking
 
@@ -54,6 +59,10 @@ class LampPipeline(Pipeline["LampDetection", PlanarSolution]):
             raise ConfigError(f"LampPipeline needs a lamps rig, not {rig.kind!r}")
         super().__init__(rig, method)
         self.identifier = LampIdentifier(rig, catalog)
+        # the centroid noise, learned from the fits' residuals (see _learn_noise); the
+        # rig's [detect] centroid_sigma_px is its prior
+        self.noise_r2 = 0.0  # forgetting sums of the squared residuals (px^2) ...
+        self.noise_dof = 0.0  # ... and of their degrees of freedom
         self.sigma_px = rig.detect.centroid_sigma_px
         self.track_state: tuple[float, np.ndarray, np.ndarray | None] | None = None
 
@@ -69,7 +78,29 @@ class LampPipeline(Pipeline["LampDetection", PlanarSolution]):
     def _fit(self, xy: np.ndarray, ident) -> PlanarSolution:
         sel = ident.ids >= 0
         lamps = self.identifier.lamps[ident.ids[sel]]
-        return solve_planar(xy[sel], lamps, self.rig, self.sigma_px, ident.pose)
+        sol = solve_planar(xy[sel], lamps, self.rig, self.sigma_px, ident.pose)
+        if sol.status is Status.OK:
+            self._learn_noise(sol)
+        return sol
+
+    def _learn_noise(self, sol: PlanarSolution) -> None:
+        """The centroid noise the next frames' covariance uses: the pooled residual
+        variance of the fits so far (sum of squared residuals over their degrees of
+        freedom, 2n - 3 per frame; the a-posteriori variance factor of least squares),
+        forgetting old frames (NOISE_FORGET) and with the rig's centroid_sigma_px as
+        a prior worth NOISE_PRIOR_DOF degrees of freedom. A fixed sigma would be the
+        lab's guess: 0.1 px where simulated lamps scatter by 0.02, four times too wide
+        for the fusion's innovation test. A frame's own chi-square still widens its
+        covariance when it scatters more (solve_planar)."""
+        n = sol.n_points
+        dof = 2 * n - 3
+        if dof <= 0:
+            return
+        self.noise_r2 = NOISE_FORGET * self.noise_r2 + 2 * n * sol.rms_px**2
+        self.noise_dof = NOISE_FORGET * self.noise_dof + dof
+        s0 = self.rig.detect.centroid_sigma_px
+        var = (NOISE_PRIOR_DOF * s0**2 + self.noise_r2) / (NOISE_PRIOR_DOF + self.noise_dof)
+        self.sigma_px = max(float(np.sqrt(var)), NOISE_FLOOR_PX)
 
     def estimate(self, frame):
         d = self.rig.detect
