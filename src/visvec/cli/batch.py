@@ -60,6 +60,7 @@ def batch(path, rig_path, calibration, truth, imu_path, fps, camera_out, errors,
     """Process a folder of images (natural sort order) or a video file."""
     rig = load(rig_path, calibration)
     note_inputs(path, truth, imu_path)
+    check_output(out)
     check_output(overlay, "--overlay")
     check_output(camera_out, "--camera-out")
     check_results(truth, errors, summary, imu_path)

@@ -86,6 +86,7 @@ def rate(
     or a video), one row per frame; or, with --budget, the expected 1-sigma accuracy."""
     rig = load(rig_path, calibration, "starfield", "visvec rate") if rig_path else None
     note_inputs(path, truth)
+    check_output(out)
     check_output(overlay, "--overlay")
     if budget:
         if ifov_deg is None:

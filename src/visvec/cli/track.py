@@ -68,6 +68,7 @@ def track(
     --max-frames, or Ctrl-C. With --imu, stream fused rows at the IMU's rate."""
     rig = load(rig_path, calibration)
     note_inputs(camera)
+    check_output(out)
     check_output(overlay, "--overlay")
     check_output(save_frames, "--save-frames")
     check_output(camera_out, "--camera-out")
