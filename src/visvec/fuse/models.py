@@ -201,9 +201,13 @@ class AttitudeState:
     acc: tuple[float, float, float] = (0.0, 0.0, 0.0)
     saturated: bool = False
     disputed: bool = False
+    # the fading factor on the process noise until the next fix (see _fade)
+    fade: float = 1.0
 
 
 RATE_NOISE_FLOOR = 0.001
+# the fading factor's memory: each fix's NIS over its expected 3 counts this much
+FADE_NEW = 0.5
 NOISE_FORGET = 0.93  # per fix: the noise fit remembers about the last 15 fixes
 NOISE_PRIOR_FIXES = 3.0  # the prior counts as this many fixes
 
@@ -283,7 +287,7 @@ class AttitudeModel:
         # qw (integral of |w| dt)^2 grows by qw ((A + |w| dt)^2 - A^2)
         A = s.acc[1]
         A1 = A + math.sqrt(float(w @ w)) * dt
-        q = qa * dt + qw * (A1 * A1 - A * A)
+        q = (qa * dt + qw * (A1 * A1 - A * A)) * s.fade
         Q = np.zeros((13, 13))
         Q[0:3, 0:3] = np.eye(3) * q
         sat = bool(np.any(gsat > 0))
@@ -296,7 +300,7 @@ class AttitudeModel:
         P = F @ s.P @ F.T + Q
         acc = (s.acc[0] + dt, A1, s.acc[2] + float(np.trace(Q[0:3, 0:3])))
         return AttitudeState(Rn, s.b, s.Rm, s.k, s.tau, P, s.noise, acc, s.saturated or sat,
-                             s.disputed)  # fmt: skip
+                             s.disputed, s.fade)  # fmt: skip
 
     def update(self, s: AttitudeState, fix: Fix) -> tuple[AttitudeState, bool, float]:
         R = self._fix_cov(fix)
@@ -304,6 +308,7 @@ class AttitudeModel:
         S = s.P[0:3, 0:3] + R
         nis = float(r @ np.linalg.solve(S, r))
         noise = self._learn(s, r, R, S)
+        fade = self._fade(s.fade, nis)
         acc0 = (0.0, 0.0, 0.0)
         if nis > NIS_LIMIT:
             # refused: the filter or the fix is wrong. Widen the attitude's covariance
@@ -314,7 +319,7 @@ class AttitudeModel:
             P[0:3, 0:3] += np.outer(r, r)
             acc = (s.acc[0], s.acc[1], s.acc[2] + float(r @ r))
             return AttitudeState(s.R, s.b, s.Rm, s.k, s.tau, P, noise, acc, s.saturated,
-                                 True), False, nis  # fmt: skip
+                                 True, fade), False, nis  # fmt: skip
         K = np.linalg.solve(S, s.P[0:3, :]).T
         dx = K @ r
         IKH = np.eye(13)
@@ -324,7 +329,19 @@ class AttitudeModel:
         Rm = expmap(dx[6:9]) @ s.Rm
         tau = float(np.clip(s.tau + dx[12], -0.1, 0.1))
         return AttitudeState(Rn, s.b + dx[3:6], Rm, s.k + dx[9:12], tau, P, noise,
-                             acc0), True, nis  # fmt: skip
+                             acc0, fade=fade), True, nis  # fmt: skip
+
+    @staticmethod
+    def _fade(fade: float, nis: float) -> float:
+        """The fading factor on the next interval's process noise (an adaptive fading
+        Kalman filter: Xia, Rao, Ying, Shen 1994, the factor from the innovations):
+        the last fixes' NIS over its expected 3, remembered with weight 1 - FADE_NEW,
+        at least 1 and at most the gate's. The learned noise is the motion's average;
+        real gyros err in bursts (a swing beyond the scale factors' linear range, a
+        bump), and after a fix that found the filter off, the next interval is trusted
+        less, so that its rows' sigma covers a burst that goes on."""
+        f = (1.0 - FADE_NEW) * fade + FADE_NEW * nis / 3.0
+        return float(min(max(f, 1.0), NIS_LIMIT / 3.0))
 
     def _learn(self, s: AttitudeState, r, R, S) -> NoiseFit:
         """The noise fit after a fix's innovation (covariance matching, module doc)."""
