@@ -135,3 +135,24 @@ def test_time_unix_from_a_recording_with_it(tmp_path):
     )
     assert run("batch", SAMPLES, "--rig", RIG, "--out", out).exit_code == 0
     assert {g["time_unix"] for g in rows(out)} == {""}
+
+
+def test_fuse_writes_errors_and_summary(tmp_path):
+    """`visvec fuse --truth --errors --summary`: the fused rows' errors and figures."""
+    lamps = ROOT / "configs" / "lamps.toml"
+    rec = tmp_path / "rec"
+    assert run("simulate", "--rig", lamps, "--out", rec, "--frames", 20, "--imu").exit_code == 0
+    fixes = tmp_path / "fixes.csv"
+    assert run("batch", rec, "--rig", lamps, "--out", fixes).exit_code == 0
+    out, err, summ = tmp_path / "fused.csv", tmp_path / "err.csv", tmp_path / "sum.json"
+    r = run("fuse", "--imu", rec / "imu.csv", "--fixes", fixes, "--truth", rec / "imu_truth.csv",
+            "--out", out, "--errors", err, "--summary", summ)  # fmt: skip
+    assert r.exit_code == 0, r.output
+    fused, errs = rows(out), rows(err)
+    assert len(errs) == len(fused)
+    ok = [e for e in errs if e["status"] == "ok"]
+    rms_x = math.sqrt(sum(float(e["err_x_mm"]) ** 2 for e in ok) / len(ok))
+    s = json.loads(summ.read_text())
+    assert s["rows"] == len(fused) and s["truth"]["rms"]["x_mm"] == pytest.approx(rms_x, rel=1e-6)
+    r = run("fuse", "--imu", rec / "imu.csv", "--fixes", fixes, "--errors", err)
+    assert r.exit_code == 2 and "--errors needs --truth" in r.output

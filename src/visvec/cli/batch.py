@@ -2,10 +2,6 @@
 
 from __future__ import annotations
 
-import csv
-import io
-import json
-
 import click
 
 from visvec.cli.camera_fusion import camera_out_option, check_fusable, run_fused_batch
@@ -19,11 +15,11 @@ from visvec.cli.common import (
     output_options,
     result_options,
     rig_options,
-    write_whole,
 )
 from visvec.cli.frames import run_frames
+from visvec.cli.results import check_results, write_results
 from visvec.cli.view import linger, open_view
-from visvec.evaluate import error_stats, frame_errors, read_truth, summary_dict
+from visvec.evaluate import error_stats, read_truth
 from visvec.fuse.camera import paced
 from visvec.pipeline import make_pipeline
 from visvec.sources import open_source
@@ -85,17 +81,6 @@ def batch(path, rig_path, calibration, truth, imu_path, fps, camera_out, errors,
               ros_images=ros_images, fps=fps)  # fmt: skip
 
 
-def check_results(truth, errors, summary, imu=None) -> None:
-    """--errors and --summary: refused before any work when unwritable or meaningless."""
-    check_output(errors, "--errors")
-    check_output(summary, "--summary")
-    if errors and not truth:
-        raise click.UsageError("--errors needs --truth (errors against what?)")
-    if imu and (errors or summary):
-        raise click.UsageError("--errors and --summary are for frames' rows; with --imu, "
-                               "`visvec fuse --truth` compares the fused rows")  # fmt: skip
-
-
 def run_batch(
     rig, path, truth, out, fmt, method, overlay, max_frames, serve=None, rig_path="",
     what="batch", errors=None, summary=None, covariance=False, ros_images=False, fps=None,
@@ -137,19 +122,4 @@ def run_batch(
         stats = error_stats(rows, truth_rows, names)
         for line in stats.lines():
             click.echo(line, err=out is None)
-        if errors:
-            write_whole(errors, _csv(frame_errors(rows, truth_rows, names), names))
-    if summary:
-        write_whole(summary, json.dumps(summary_dict(rows, stats, names), indent=2) + "\n")
-
-
-def _csv(records: list[dict], names) -> str:
-    cols = ["frame", "time_s", "status", *(f"err_{k}" for k in names),
-            *(f"z_{k}" for k in names)]  # fmt: skip
-    buf = io.StringIO()
-    w = csv.DictWriter(buf, cols, lineterminator="\n")
-    w.writeheader()
-    for r in records:
-        w.writerow({k: ("" if v is None else (f"{v:.9g}" if isinstance(v, float) else v))
-                    for k, v in r.items()})  # fmt: skip
-    return buf.getvalue()
+    write_results(errors, summary, rows, truth_rows, stats, names)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import hashlib
+from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -88,39 +89,15 @@ def zero_tilt(frames, rig_path, calibration, out, yaws, yaw_sigma_deg):
     known = _known_yaws(yaws, frames)
     # every source opened first: a missing one is refused before any work
     sources = [open_source(f, fps=rig.fps, retry_s=0.0) for f in frames]
-    pipe = TrianglePipeline(rig, "full", still=True)
-    dets, names, bad = [], [], 0
-    det_known, det_stop = [], []
-    total = sum(len(s) for s in sources) if all(hasattr(s, "__len__") for s in sources) else None
-    bar = Work("calibrate zero-tilt", total)
-    for path, src in zip(frames, sources, strict=True):
-        pipe.reset()  # another recording: another yaw
-        where = f"{path}: " if len(frames) > 1 else ""
-        for frame in src:
-            bar.update(1)
-            row = pipe.process(frame)
-            if pipe.last_detection is not None and pipe.last_detection.status is Status.OK:
-                dets.append(pipe.last_detection)
-                names.append(where + (frame.name or f"frame {frame.index}"))
-                det_known.append(known[frames.index(path)])
-                det_stop.append(frames.index(path))
-            else:
-                bad += 1
-                why = (
-                    frame.error or pipe.check_frame(frame) or "unreadable"
-                    if row.status == "read_error"
-                    else ";".join(row.warnings) or "no detail"
-                )
-                click.echo(f"{where}frame {frame.index}: skipped ({row.status}: {why})", err=True)
-    bar.close()
-    res = calibrate_zero_tilt(dets, rig)
+    level = _level_frames(frames, sources, rig)
+    res = calibrate_zero_tilt(level.dets, rig)
     if not all(np.isnan(known)):
-        res = yaw_reference(res, np.array(det_known), np.array(det_stop), yaw_sigma_deg)
+        res = yaw_reference(res, known[level.stop], level.stop, yaw_sigma_deg)
     not_level = res.converged and res.sigma_ratio > NOT_LEVEL_RATIO
     if res.converged and not res.camera_off and not not_level:
         # written before the report is printed: a reader that closes the pipe early
         # (`| head`) loses none of it
-        n_used = len(dets) - int(res.outliers.sum())
+        n_used = len(level.dets) - int(res.outliers.sum())
         header = (
             f"visvec zero-tilt calibration, {datetime.now(UTC):%Y-%m-%d %H:%M} UTC\n"
             f"{_rig_named(rig_path, calibration)}, frames {' '.join(frames)} ({n_used} used)"
@@ -128,8 +105,8 @@ def zero_tilt(frames, rig_path, calibration, out, yaws, yaw_sigma_deg):
         sections = {**calibration_sections(res, rig), "made_for": made_for(rig)}
         write_whole(out, dumps(sections, header))
     click.echo(
-        f"zero-tilt calibration from {len(dets) - int(res.outliers.sum())} frames "
-        f"({bad} skipped, {int(res.outliers.sum())} left out)"
+        f"zero-tilt calibration from {len(level.dets) - int(res.outliers.sum())} frames "
+        f"({level.bad} skipped, {int(res.outliers.sum())} left out)"
     )
     if not_level:
         click.echo(
@@ -141,6 +118,57 @@ def zero_tilt(frames, rig_path, calibration, out, yaws, yaw_sigma_deg):
             err=True,
         )
         raise SystemExit(1)
+    _zero_tilt_report(res, rig, level.names)
+    if not res.converged:
+        click.echo("visvec: error: the calibration did not converge; nothing written", err=True)
+        raise SystemExit(1)
+    click.echo(f"wrote {out}; later runs take {_runs_with(calibration, out)}")
+
+
+@dataclass
+class _LevelFrames:
+    """The ok detections of the level recordings, each frame's name and recording
+    (stop) index, and how many frames were skipped."""
+
+    dets: list = field(default_factory=list)
+    names: list = field(default_factory=list)
+    stop: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
+    bad: int = 0
+
+
+def _level_frames(frames, sources, rig) -> _LevelFrames:
+    """Every frame of every recording through the still-platform triangle pipeline;
+    the skipped ones named on stderr with the reason."""
+    pipe = TrianglePipeline(rig, "full", still=True)
+    out = _LevelFrames()
+    stops = []
+    total = sum(len(s) for s in sources) if all(hasattr(s, "__len__") for s in sources) else None
+    with Work("calibrate zero-tilt", total) as bar:
+        for k, (path, src) in enumerate(zip(frames, sources, strict=True)):
+            pipe.reset()  # another recording: another yaw
+            where = f"{path}: " if len(frames) > 1 else ""
+            for frame in src:
+                bar.update(1)
+                row = pipe.process(frame)
+                det = pipe.last_detection
+                if det is not None and det.status is Status.OK:
+                    out.dets.append(det)
+                    out.names.append(where + (frame.name or f"frame {frame.index}"))
+                    stops.append(k)
+                    continue
+                out.bad += 1
+                why = (
+                    frame.error or pipe.check_frame(frame) or "unreadable"
+                    if row.status == "read_error"
+                    else ";".join(row.warnings) or "no detail"
+                )
+                click.echo(f"{where}frame {frame.index}: skipped ({row.status}: {why})", err=True)
+    out.stop = np.array(stops, int)
+    return out
+
+
+def _zero_tilt_report(res, rig, names) -> None:
+    """What the zero-tilt calibration found, for the operator."""
     _camera_check(res, rig)
     click.echo(
         f"  target offset from the axis: dx {res.target_offset_mm[0]:+.2f} +- "
@@ -193,10 +221,6 @@ def zero_tilt(frames, rig_path, calibration, out, yaws, yaw_sigma_deg):
     for name, yaw, r, out_ in zip(names, res.yaw_deg, res.residual_px, res.outliers, strict=True):
         flag = "  <- left out" if out_ else ""
         click.echo(f"    {name}: yaw {yaw:+9.3f} deg, {r:.4f} px{flag}")
-    if not res.converged:
-        click.echo("visvec: error: the calibration did not converge; nothing written", err=True)
-        raise SystemExit(1)
-    click.echo(f"wrote {out}; later runs take {_runs_with(calibration, out)}")
 
 
 def _known_yaws(yaws: tuple[str, ...], frames: tuple[str, ...]) -> np.ndarray:

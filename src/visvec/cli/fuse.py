@@ -10,8 +10,9 @@ from dataclasses import replace
 import click
 import numpy as np
 
-from visvec.cli.common import FiniteFloat, note_inputs, rows_out
+from visvec.cli.common import FiniteFloat, note_inputs, result_options, rows_out
 from visvec.cli.progress import Work
+from visvec.cli.results import check_results, write_results
 from visvec.errors import ConfigError, InputFileError, NoOkRows
 from visvec.evaluate import error_stats, read_truth
 from visvec.fuse.inputs import read_fixes, read_imu
@@ -78,9 +79,10 @@ from visvec.rotations import logmap
 @click.option("--truth", default=None, type=click.Path(dir_okay=False),
               help="Truth per inertial sample (frame = sample index): print error "
               "statistics.")  # fmt: skip
+@result_options
 def fuse(imu_path, fixes_path, follow, max_samples, silent_s, gyro_range_dps, out, fmt, method,
          rest_s, max_rate_dps, max_accel_mps2, gyro_noise_dps, accel_noise_mps2, fix_sigma_deg,
-         no_misalignment, history_s, truth):  # fmt: skip
+         no_misalignment, history_s, truth, errors, summary):  # fmt: skip
     """Fuse an IMU with late camera fixes: one row per inertial sample, causal (the row
     at time t uses the samples up to t and the fixes available by t). From files, or
     live from streams (stdin, UDP, a serial device, a file being written)."""
@@ -93,9 +95,11 @@ def fuse(imu_path, fixes_path, follow, max_samples, silent_s, gyro_range_dps, ou
         if v is not None and not math.isfinite(v):
             raise click.BadParameter(f"{v}: expected a finite number", param_hint=name)
     note_inputs(imu_path, fixes_path, truth)
+    check_results(truth, errors, summary)
     if is_live(imu_path, follow) or is_live(fixes_path, follow):
-        if truth or rest_s:
-            raise click.UsageError("--truth and --rest-s apply to files, not live sources")
+        if truth or rest_s or errors or summary:
+            raise click.UsageError("--truth, --errors, --summary and --rest-s apply to files, "
+                                   "not live sources")  # fmt: skip
 
         def setup(planar: bool):
             model, limits = fusion_model(planar, None, method, gyro_noise_dps, accel_noise_mps2,
@@ -212,11 +216,13 @@ def fuse(imu_path, fixes_path, follow, max_samples, silent_s, gyro_range_dps, ou
     if rows and n_ok == 0:
         raise NoOkRows(f"none of the {len(rows)} inertial samples gave a fused row (no fix "
                        "could start the filter)")  # fmt: skip
-    if truth and rows:
+    if rows and (truth or summary):
         names = rows[0].value_columns
-        stats = error_stats(rows, read_truth(truth, names), names)
-        for line in stats.lines():
+        truth_rows = read_truth(truth, names) if truth else None
+        stats = error_stats(rows, truth_rows, names) if truth_rows is not None else None
+        for line in stats.lines() if stats is not None else ():
             click.echo(line, err=out is None)
+        write_results(errors, summary, rows, truth_rows, stats, names)
 
 
 def fusion_model(planar, period_s, method, gyro_noise_dps, accel_noise_mps2, fix_sigma_deg,
