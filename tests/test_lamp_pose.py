@@ -175,7 +175,9 @@ def test_a_regular_grid_is_ambiguous_never_a_guess(tmp_path, rng):
         assert row.status is not Status.OK
 
 
-def test_too_few_lamps_and_a_dark_frame_are_refused(rng):
+def test_three_lamps_identify_two_are_too_few_and_a_dark_frame_is_refused(rng):
+    """Three lamps lit whose triangle is unique in the map fix the pose (issue 35: the
+    few-lamps lookup); two cannot, and are refused; a dark frame has no lamps."""
     pipe = LampPipeline(RIG)
     pose = np.array([0.0, 0.0, 0.0])
     uv = RIG.camera.project(lamps_to_camera(RIG, pose, RIG.target.lamps.xyz_mm))
@@ -183,7 +185,15 @@ def test_too_few_lamps_and_a_dark_frame_are_refused(rng):
     hidden = tuple(int(k) for k in seen[3:])  # three lamps left
     img = render_lamps(RIG, still(0, 0, 0), 0.0, LampScene(hidden=hidden), rng)
     row = pipe.process(Frame(0, 0.0, img))
+    assert row.ok and row.n_points == 3
+    assert np.all(np.abs(truth_err(row, still(0, 0, 0)(0.0))) < [1.0, 1.0, 0.05])
+    assert np.all(np.abs(truth_err(row, still(0, 0, 0)(0.0))) < 5 * row.sigmas())
+    pipe.reset()
+    hidden = tuple(int(k) for k in seen[2:])  # two lamps left
+    img = render_lamps(RIG, still(0, 0, 0), 0.0, LampScene(hidden=hidden), rng)
+    row = pipe.process(Frame(0, 0.0, img))
     assert row.status is Status.REJECTED and not np.isfinite(row.values()).any()
+    assert row.warnings == ("too_few_lamps",)
     dark = np.full((480, 640), 12, np.uint8)
     row = pipe.process(Frame(1, 0.1, dark))
     assert row.status is Status.NO_TARGET and row.warnings == ("no_lamps",)

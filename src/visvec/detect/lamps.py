@@ -52,6 +52,11 @@ AMBIGUOUS_RATIO = 0.6  # a rival with this fraction of the winner's verified lam
 FALLBACK_REASONS = frozenset({"no_catalogue_match", "no_consensus"})
 FRAME_NEIGHBOURS = 4
 MAP_NEIGHBOURS = 10
+# few lamps lit: frames of at most FEW_MAX spots, none of whose Delaunay or neighbour
+# triangles found a pose, have every triangle of their spots looked up among every map
+# triangle that fits in the view, by its three side lengths within FEW_SIDE_MM
+FEW_MAX = 8
+FEW_SIDE_MM = 2.0
 
 
 @dataclass(frozen=True)
@@ -137,8 +142,11 @@ class LampIdentifier:
         try:
             tri = idx[Delaunay(pts[fin]).simplices]
         except (QhullError, ValueError):
-            return Identification(none, None, reason="lamps_collinear")
+            collinear = Identification(none, None, reason="lamps_collinear")
+            return self._few_or(collinear, pts, idx) if len(idx) <= FEW_MAX else collinear
         first = self._lookup(pts, tri, self.catalog, self.cat_perimeter)
+        if first.pose is None and first.reason == "no_triangles" and len(idx) <= FEW_MAX:
+            return self._few_or(first, pts, idx)
         if first.pose is not None or first.reason not in FALLBACK_REASONS:
             return first
         if self._neighbours is None:
@@ -146,7 +154,83 @@ class LampIdentifier:
             self._neighbour_perimeter = _perimeter(self.lamps[self._neighbours.triangles, :2])
         tri_nb = idx[neighbour_triangles(pts[fin], FRAME_NEIGHBOURS)]
         second = self._lookup(pts, tri_nb, self._neighbours, self._neighbour_perimeter)
-        return second if second.pose is not None else first
+        if second.pose is not None or not 3 <= len(idx) <= FEW_MAX:
+            return second if second.pose is not None else first
+        return self._few_or(first, pts, idx)
+
+    def _few_or(self, other: Identification, pts: np.ndarray, idx: np.ndarray):
+        """The few-lamps lookup's result, or ``other`` where it finds nothing to say."""
+        few = self._few(pts, idx)
+        return few if few.pose is not None or few.reason == "ambiguous" else other
+
+    def _few(self, pts: np.ndarray, idx: np.ndarray) -> Identification:
+        """Few lamps lit: every triangle of the spots (their side lengths on the ceiling)
+        looked up among every map triangle that fits in the view, each match's pose
+        verified against every spot. A pose must explain every spot (all but one from
+        six on: a stray reflection); poses that explain as many and disagree make the
+        frame ambiguous. Three lamps fix a pose when their triangle is unique in the
+        map, more leave little doubt (issue 35)."""
+        from itertools import combinations
+
+        none = np.full(len(pts), -1)
+        T, feats, tree = self._all_triangles()
+        src_list, dst_list, tri_of = [], [], []
+        for k, comb in enumerate(combinations(idx, 3)):
+            tri = np.array(comb)
+            f, order = _sides(pts[tri][None])
+            near = tree.query_ball_point(f[0], FEW_SIDE_MM * np.sqrt(3.0))
+            if not near:
+                continue
+            near = np.array(near)
+            near = near[np.all(np.abs(feats[near] - f[0]) <= FEW_SIDE_MM, axis=1)]
+            ordered = tri[order[0]]
+            for c in near:
+                # the canonical order, and with the two closest sides swapped (an
+                # isosceles triangle's order is not fixed by its sides)
+                for swap in ((0, 1, 2), (1, 0, 2), (0, 2, 1)):
+                    src_list.append(pts[ordered[list(swap)]])
+                    dst_list.append(self.lamps[T[c], :2])
+                    tri_of.append(k)
+        if not src_list:
+            return Identification(none, None, reason="no_catalogue_match")
+        hyp, perr = _procrustes(np.array(src_list), np.array(dst_list))
+        good = perr < 2.0 * FEW_SIDE_MM
+        if not good.any():
+            return Identification(none, None, reason="no_catalogue_match")
+        hyp = hyp[good]
+        need = len(idx) if len(idx) < 6 else len(idx) - 1
+        ver = np.array([np.sum(self.match_to_map(pts, h, self.verify_gate_mm) >= 0)
+                        for h in hyp])  # fmt: skip
+        full = ver >= need
+        if not full.any():
+            return Identification(none, None, reason="no_consensus")
+        hyp, ver = hyp[full], ver[full]
+        best = int(np.argmax(ver))
+        rivals = ~_agrees(hyp, hyp[best])
+        if np.any(rivals & (ver >= ver[best] - 1)):
+            return Identification(none, None, reason="ambiguous")
+        ids = self.match_to_map(pts, hyp[best], self.verify_gate_mm)
+        return Identification(ids, hyp[best], int(np.sum(_agrees(hyp, hyp[best]))))
+
+    def _all_triangles(self):
+        """Every map triangle whose sides all fit in the camera's view on the ceiling:
+        lamp indices (T, 3) in the canonical order of :func:`_sides`, their sorted side
+        lengths (T, 3) and a k-d tree over them (built on first need)."""
+        if getattr(self, "_few_cat", None) is None:
+            xy = self.lamps[:, :2]
+            cam = self.rig.camera
+            reach = float(np.hypot(cam.width, cam.height)) * self.mm_per_px
+            pairs = cKDTree(xy).query_pairs(reach, output_type="ndarray")
+            nb: list[set] = [set() for _ in range(len(xy))]
+            for i, j in pairs:
+                nb[i].add(j)
+                nb[j].add(i)
+            tris = [(i, j, k) for i, j in pairs for k in nb[i] & nb[j] if k > max(i, j)]
+            T = np.array(tris, int).reshape(-1, 3)
+            feats, order = _sides(xy[T])
+            T = np.take_along_axis(T, order, axis=1)
+            self._few_cat = (T, feats, cKDTree(feats))
+        return self._few_cat
 
     def _lookup(
         self, pts: np.ndarray, tri: np.ndarray, catalog: Catalog, cat_perimeter: np.ndarray
@@ -198,6 +282,17 @@ class LampIdentifier:
             if n_rival >= max(MIN_VERIFIED, AMBIGUOUS_RATIO * n_ver):
                 return Identification(none, None, votes=int(votes[best]), reason="ambiguous")
         return Identification(ids, hyp[best], int(votes[best]))
+
+
+def _sides(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Triangles (m, 3, 2): their side lengths sorted (m, 3), and the vertex order (m,
+    3) that puts first the vertex opposite the shortest side, then the next."""
+    opp = np.stack(
+        [np.linalg.norm(p[:, 1] - p[:, 2], axis=1), np.linalg.norm(p[:, 2] - p[:, 0], axis=1),
+         np.linalg.norm(p[:, 0] - p[:, 1], axis=1)], axis=1,
+    )  # fmt: skip
+    order = np.argsort(opp, axis=1)
+    return np.take_along_axis(opp, order, axis=1), order
 
 
 def _perimeter(p: np.ndarray) -> np.ndarray:

@@ -20,7 +20,8 @@ from visvec.rig import Rig
 
 MAX_ITERATIONS = 15
 STEP_TOL = 1e-7  # mm and rad
-MIN_LAMPS = 4
+# three identified lamps fix the pose with three degrees of freedom to spare
+MIN_LAMPS = 3
 OUTLIER_SIGMAS = 5.0
 OUTLIER_FLOOR_PX = 1.5  # residuals under this are never outliers (model error of a real map)
 

@@ -10,7 +10,7 @@ from visvec.data import Status
 from visvec.detect.lamps import LampIdentifier
 from visvec.detect.spots import Spots, find_spots
 from visvec.errors import ConfigError
-from visvec.estimate.planar import MIN_LAMPS, PlanarSolution, solve_planar
+from visvec.estimate.planar import PlanarSolution, solve_planar
 from visvec.lamps import Catalog
 from visvec.output import PoseRow
 from visvec.pipeline.base import Pipeline
@@ -34,7 +34,10 @@ NOISE_FORGET = 0.99
 NOISE_PRIOR_DOF = 20.0
 NOISE_FLOOR_PX = 0.005
 EDGE_PX = 5.0  # lamp spots closer than this to the image border may be cut
-MIN_TRACKED_FRACTION = 0.5  # of the spots, matched from the predicted pose, to keep tracking
+# tracking goes on while at least MIN_TRACKED lamps and MIN_TRACKED_FRACTION of the spots
+# match the map from the predicted pose
+MIN_TRACKED = 5
+MIN_TRACKED_FRACTION = 0.5
 
 
 class LampPipeline(Pipeline["LampDetection", PlanarSolution]):
@@ -121,7 +124,7 @@ class LampPipeline(Pipeline["LampDetection", PlanarSolution]):
         sol, ident, mode = None, None, "track"
         if pred is not None:
             ident = self.identifier.track(xy, pred)
-            if ident.n_identified >= max(MIN_LAMPS + 1, MIN_TRACKED_FRACTION * len(xy)):
+            if ident.n_identified >= max(MIN_TRACKED, MIN_TRACKED_FRACTION * len(xy)):
                 sol = self._fit(xy, ident)
         if sol is None or not sol.ok:
             mode = "lost_in_space"
