@@ -23,6 +23,7 @@ Beyond the paper:
 from __future__ import annotations
 
 from dataclasses import dataclass
+from itertools import combinations
 
 import numpy as np
 from scipy.spatial import Delaunay, QhullError, cKDTree
@@ -43,6 +44,10 @@ CLUSTER_MM = 50.0  # hypotheses this close (and CLUSTER_DEG) agree
 CLUSTER_DEG = 2.0
 MIN_VOTES = 2  # distinct frame triangles agreeing on the pose
 MIN_VERIFIED = 5  # spots explained by the winning pose
+# ... and at least this share of the spots: a pose that leaves most spots unexplained
+# matched a few stray ones by chance (the lit lamps are always explained: every lamp is
+# on the map), as tracking asks of its matches (MIN_TRACKED_FRACTION)
+MIN_VERIFIED_SHARE = 0.5
 VERIFY_GATE_PX = 6.0  # a spot this close (on the ceiling) to a predicted lamp is that lamp
 TRACK_GATE_PX = 15.0
 AMBIGUOUS_RATIO = 0.6  # a rival with this fraction of the winner's verified lamps
@@ -91,6 +96,8 @@ class LampIdentifier:
         # the nearest-neighbour catalogue, built on first need (dark lamps)
         self._neighbours: Catalog | None = None
         self._neighbour_perimeter = np.zeros(0)
+        # every map triangle that fits in the view, built on first need (few lamps lit)
+        self._few_cat: tuple[np.ndarray, np.ndarray, cKDTree] | None = None
 
     def body_points(self, xy_n: np.ndarray) -> np.ndarray:
         """Spots put on the ceiling plane, in body coordinates (x, y mm; level table)."""
@@ -170,8 +177,6 @@ class LampIdentifier:
         six on: a stray reflection); poses that explain as many and disagree make the
         frame ambiguous. Three lamps fix a pose when their triangle is unique in the
         map, more leave little doubt (issue 35)."""
-        from itertools import combinations
-
         none = np.full(len(pts), -1)
         T, feats, tree = self._all_triangles()
         src_list, dst_list, tri_of = [], [], []
@@ -216,7 +221,7 @@ class LampIdentifier:
         """Every map triangle whose sides all fit in the camera's view on the ceiling:
         lamp indices (T, 3) in the canonical order of :func:`_sides`, their sorted side
         lengths (T, 3) and a k-d tree over them (built on first need)."""
-        if getattr(self, "_few_cat", None) is None:
+        if self._few_cat is None:
             xy = self.lamps[:, :2]
             cam = self.rig.camera
             reach = float(np.hypot(cam.width, cam.height)) * self.mm_per_px
@@ -272,7 +277,7 @@ class LampIdentifier:
             return Identification(none, None, votes=int(votes[best]), reason="no_consensus")
         ids = self.match_to_map(pts, hyp[best], self.verify_gate_mm)
         n_ver = int(np.sum(ids >= 0))
-        if n_ver < MIN_VERIFIED:
+        if n_ver < max(MIN_VERIFIED, MIN_VERIFIED_SHARE * np.isfinite(pts).all(axis=1).sum()):
             return Identification(none, None, votes=int(votes[best]), reason="no_consensus")
         # the strongest hypothesis that disagrees with the winner
         rival = ~_agrees(hyp, hyp[best])
