@@ -268,7 +268,7 @@ def check_output(path, option: str = "--out") -> None:
     p = Path(str(path))
     if "://" in str(path) or str(path) == "-":
         return
-    if p.suffix.lower() == ".mcap":
+    if ros_output(str(path)):
         from visvec.sinks.ros import check_available
 
         check_available()  # the extra installed, or exit 2 before any work
@@ -369,12 +369,17 @@ def open_out(path: str | None, option: str = "--out"):
             fh.close()
 
 
+def ros_output(path: str | None, fmt: str = "csv") -> bool:
+    """Whether rows go out as ROS 2 messages: an .mcap file, or --format rosbag2."""
+    return fmt == "rosbag2" or (path is not None and str(path).lower().endswith(".mcap"))
+
+
 @contextlib.contextmanager
 def rows_out(path: str | None, fmt: str, columns, option: str = "--out", source: str = ""):
     """A sink for rows of ``columns`` at ``path``: ROS 2 messages in an MCAP file for a
     ``.mcap`` path (see visvec.sinks.ros), else CSV or JSON lines through
     :func:`open_out` (a file, stdout or UDP); closed at the end."""
-    if fmt == "rosbag2" or (path is not None and str(path).lower().endswith(".mcap")):
+    if ros_output(path, fmt):
         from visvec.sinks.ros import McapSink
 
         if path is None or "://" in str(path) or str(path) == "-":

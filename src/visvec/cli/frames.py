@@ -12,7 +12,7 @@ from typing import Protocol
 
 import click
 
-from visvec.cli.common import check_new_recording, make_folder, rows_out
+from visvec.cli.common import check_new_recording, make_folder, ros_output, rows_out
 from visvec.data import Frame
 from visvec.errors import NoOkRows
 from visvec.imageio import write_image
@@ -226,8 +226,7 @@ def run_frames(
     seen.append(status)
     seen.extend(watchers or ())
     columns = pipe.row_type.columns + (pipe.row_type.cov_columns() if covariance else ())
-    ros_out = fmt == "rosbag2" or (out is not None and out.lower().endswith(".mcap"))
-    if ros_images and not ros_out:
+    if ros_images and not ros_output(out, fmt):
         raise click.UsageError("--ros-images goes with an --out *.mcap file or --format rosbag2")
     with rows_out(out, fmt, columns, source=str(rig.path or "")) as sink:
         if ros_images:
