@@ -200,7 +200,8 @@ def test_3d_fusion_learns_bias_and_misalignment():
     imu = ImuData(t, gyro, None, np.arange(n) + 2, (), dt)
     fixes = [Fix(t[i], t[i] + 0.6, R[i] @ expmap(np.radians(0.1) * rng.standard_normal(3)),
                  None, i) for i in range(0, n, 50)]  # fmt: skip
-    model = AttitudeModel(gyro_noise=np.radians(0.05))
+    # the simulated gyro and fixes share one clock: no jitter between them
+    model = AttitudeModel(gyro_noise=np.radians(0.05), jitter_sigma=0.0)
     out = list(fuse(imu, fixes, model, limits=Limits(2000.0, None)))
     s = out[-1].state
     assert np.degrees(np.linalg.norm(logmap(s.Rm.T @ Rm))) < 0.3
@@ -748,3 +749,50 @@ def test_fuse_3d_through_the_cli(tmp_path):
         sig = max(float(x[f"sigma_{k}"]) for k in ("yaw_deg", "pitch_deg", "roll_deg"))
         assert e < 5 * np.sqrt(3) * sig + 1e-4, (x["frame"], e, sig)
     assert np.sqrt(np.mean(np.square(err))) < 0.05
+
+
+def test_3d_clock_jitter_keeps_the_sigma_honest():
+    """A gyro whose clock wanders against the fixes' (a Gauss-Markov time error of
+    10 ms, 0.2 s) on a body that rests and swings in short bursts (a hand, a bump):
+    with the default jitter (one sample period, a considered state) the rows' errors
+    stay within their sigma as a Gaussian's would; a filter told that the clocks agree
+    is overconfident in the bursts."""
+    rng = np.random.default_rng(7)
+    dt, n = 0.01, 3000
+    t = np.arange(n) * dt
+    w_b = np.zeros((n, 3))
+    for c in np.arange(0.7, t[-1] - 0.5, 0.9):
+        # a swing out and back: a 0.3 s sine of up to 4 rad/s about a random axis
+        axis = rng.standard_normal(3)
+        m = (t >= c) & (t < c + 0.3)
+        w_b[m] = np.outer(4.0 * np.sin(2 * np.pi * (t[m] - c) / 0.3), axis / np.linalg.norm(axis))
+    R = [np.eye(3)]
+    for i in range(1, n):
+        R.append(R[-1] @ expmap(0.5 * (w_b[i] + w_b[i - 1]) * dt))
+    a = np.exp(-dt / 0.2)
+    d = np.zeros(n)
+    for i in range(1, n):
+        d[i] = a * d[i - 1] + 0.010 * np.sqrt(1 - a * a) * rng.standard_normal()
+    # each reading is the body rate at its own, wandering time
+    w_at = np.column_stack([np.interp(t + d, t, w_b[:, k]) for k in range(3)])
+    gyro = w_at + rng.normal(0, np.radians(0.05), (n, 3))
+    imu = ImuData(t, gyro, None, np.arange(n) + 2, (), dt)
+    fixes = [Fix(t[i], t[i] + 0.6, R[i] @ expmap(np.radians(0.1) * rng.standard_normal(3)),
+                 None, i) for i in range(0, n, 50)]  # fmt: skip
+
+    def beyond(model):
+        z = []
+        for x in fuse(imu, fixes, model, limits=Limits(2000.0, None)):
+            if x.state is None or x.index < 500:
+                continue
+            e = logmap(x.state.R.T @ R[x.index])
+            z.extend(np.abs(e) / np.sqrt(np.diag(x.state.P[:3, :3])))
+        z = np.array(z)
+        return float(np.mean(z > 3.0)), int(np.sum(z > 5.0))
+
+    model = AttitudeModel(sample_s=dt)
+    assert model.jitter == dt
+    share, over5 = beyond(model)
+    assert share <= 2 * 0.0027 and over5 == 0
+    share0, over5_0 = beyond(replace(model, jitter_sigma=0.0))
+    assert share0 > 3 * max(share, 0.0027) and over5_0 > 0

@@ -69,6 +69,9 @@ from visvec.rotations import logmap
               help="Planar: accelerometer white noise per sample (the paper's).")  # fmt: skip
 @click.option("--fix-sigma-deg", type=FiniteFloat(min=0, min_open=True), default=None,
               help="3-D: fix attitude noise, overriding the fixes' sigma columns.")  # fmt: skip
+@click.option("--clock-jitter-ms", type=FiniteFloat(min=0), default=None,
+              help="3-D: 1-sigma jitter of the gyro's clock against the fixes' [one IMU "
+              "sample period; 0 when one clock triggers both].")  # fmt: skip
 @click.option(
     "--no-misalignment",
     is_flag=True,
@@ -82,7 +85,7 @@ from visvec.rotations import logmap
 @result_options
 def fuse(imu_path, fixes_path, follow, max_samples, silent_s, gyro_range_dps, out, fmt, method,
          rest_s, max_rate_dps, max_accel_mps2, gyro_noise_dps, accel_noise_mps2, fix_sigma_deg,
-         no_misalignment, history_s, truth, errors, summary):  # fmt: skip
+         clock_jitter_ms, no_misalignment, history_s, truth, errors, summary):  # fmt: skip
     """Fuse an IMU with late camera fixes: one row per inertial sample, causal (the row
     at time t uses the samples up to t and the fixes available by t). From files, or
     live from streams (stdin, UDP, a serial device, a file being written)."""
@@ -90,6 +93,7 @@ def fuse(imu_path, fixes_path, follow, max_samples, silent_s, gyro_range_dps, ou
         (gyro_noise_dps, "--gyro-noise-dps"),
         (accel_noise_mps2, "--accel-noise-mps2"),
         (fix_sigma_deg, "--fix-sigma-deg"),
+        (clock_jitter_ms, "--clock-jitter-ms"),
         (max_rate_dps, "--max-rate-dps"),
     ):
         if v is not None and not math.isfinite(v):
@@ -104,7 +108,7 @@ def fuse(imu_path, fixes_path, follow, max_samples, silent_s, gyro_range_dps, ou
         def setup(planar: bool):
             model, limits = fusion_model(planar, None, method, gyro_noise_dps, accel_noise_mps2,
                                    fix_sigma_deg, no_misalignment, max_rate_dps,
-                                   max_accel_mps2)  # fmt: skip
+                                   max_accel_mps2, clock_jitter_ms)  # fmt: skip
             eng = Fusion(model, limits=limits, history_s=history_s,
                          gyro_range_dps=gyro_range_dps)  # fmt: skip
             return eng, model
@@ -139,7 +143,7 @@ def fuse(imu_path, fixes_path, follow, max_samples, silent_s, gyro_range_dps, ou
             )
     model, limits = fusion_model(fixes.planar, imu.period_s, method, gyro_noise_dps,
                            accel_noise_mps2, fix_sigma_deg, no_misalignment, max_rate_dps,
-                           max_accel_mps2)  # fmt: skip
+                           max_accel_mps2, clock_jitter_ms)  # fmt: skip
     if fix_sigma_deg is not None:
         fixes = replace(fixes, fixes=tuple(replace(f, cov=None) for f in fixes.fixes))
     if rest_s > 0:
@@ -226,11 +230,12 @@ def fuse(imu_path, fixes_path, follow, max_samples, silent_s, gyro_range_dps, ou
 
 
 def fusion_model(planar, period_s, method, gyro_noise_dps, accel_noise_mps2, fix_sigma_deg,
-           no_misalignment, max_rate_dps, max_accel_mps2):  # fmt: skip
+           no_misalignment, max_rate_dps, max_accel_mps2, clock_jitter_ms=None):  # fmt: skip
     """The filter and the fault limits the options ask for."""
     if planar:
-        if fix_sigma_deg is not None or no_misalignment:
-            raise click.UsageError("--fix-sigma-deg and --no-misalignment apply to 3-D fixes")
+        if fix_sigma_deg is not None or no_misalignment or clock_jitter_ms is not None:
+            raise click.UsageError("--fix-sigma-deg, --clock-jitter-ms and --no-misalignment "
+                                   "apply to 3-D fixes")  # fmt: skip
         model = PlanarModel(method=method, accel_noise=accel_noise_mps2 * 1000.0)
         if gyro_noise_dps is not None:
             model = replace(model, gyro_noise=math.radians(gyro_noise_dps))
@@ -244,6 +249,8 @@ def fusion_model(planar, period_s, method, gyro_noise_dps, accel_noise_mps2, fix
         model = replace(model, gyro_noise=math.radians(gyro_noise_dps))
     if fix_sigma_deg is not None:
         model = replace(model, fix_sigma=math.radians(fix_sigma_deg))
+    if clock_jitter_ms is not None:
+        model = replace(model, jitter_sigma=clock_jitter_ms / 1000.0)
     return model, Limits(max_rate_dps or 2000.0, None)
 
 

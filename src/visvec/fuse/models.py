@@ -25,7 +25,8 @@ order; dth' = -[w]x dth + (w_true - w^))
            + R_m^ (1 + k^) d(omega_g)/dt dtau,
     w = R_m^ (1 + k^) (omega_g + tau^ d(omega_g)/dt - b^),
 so misalignment, scale and time offset show whenever the body turns; they are
-estimated from the data. A zero prior sigma keeps a parameter fixed.
+estimated from the data. A zero prior sigma keeps a parameter fixed. The clock jitter
+between the gyro and the fixes is a fourteenth, considered state (AttitudeModel.jitter).
 
 The process noise is learned from the fixes' innovations (covariance matching, Mehra,
 "Approaches to adaptive filtering", IEEE TAC 17(5), 1972, Sec. IV; Myers & Tapley,
@@ -194,7 +195,7 @@ class AttitudeState:
     Rm: np.ndarray  # gyro axes -> body axes
     k: np.ndarray  # gyro scale factor errors (3,)
     tau: float  # gyro time offset, s (the gyro's reading at t + tau belongs to t)
-    P: np.ndarray  # (13, 13): dtheta (body), db, dphi (body), dk, dtau
+    P: np.ndarray  # (14, 14): dtheta (body), db, dphi (body), dk, dtau, jitter (consider)
     noise: NoiseFit
     # since the last fix: [seconds, integral of |w| dt (rad), trace of the attitude
     # noise added]; whether a saturated reading was integrated; whether the last fix was refused
@@ -206,6 +207,9 @@ class AttitudeState:
 
 
 RATE_NOISE_FLOOR = 0.001
+# the correlation time of the clock jitter between the gyro and the fixes (see
+# AttitudeModel.jitter): short against the fixes' spacing, long against the samples'
+JITTER_TIME_S = 0.2
 # the fading factor's memory: each fix's NIS over its expected 3 counts this much
 FADE_NEW = 0.5
 NOISE_FORGET = 0.93  # per fix: the noise fit remembers about the last 15 fixes
@@ -227,9 +231,29 @@ class AttitudeModel:
     misalignment_sigma: float = math.radians(5.0)  # 0: not estimated
     scale_sigma: float = 0.02  # relative; 0: not estimated
     time_offset_sigma: float = 0.01  # s; 0: not estimated
+    jitter_sigma: float | None = None  # s; None: one IMU sample period (sample_s)
+    jitter_time: float = JITTER_TIME_S
     fix_sigma: float = math.radians(0.1)
 
     planar = False
+
+    @property
+    def jitter(self) -> float:
+        """The 1-sigma clock jitter between the gyro's samples and the fixes (s).
+
+        Unless the two are triggered by one clock, a sample's time on the fixes' clock
+        is known to about one sample period (the reading is the mean over its period,
+        and the link adds its own delay), and it wanders: RepoIMU's gyro and motion
+        capture slip against each other by several milliseconds
+        (benchmarks/fusion_repoimu.py). A wrong time offset d turns into an attitude
+        error d (w(t) - w(t_fix)), largest where the rate changes fastest. The filter
+        carries it as a Schmidt consider state (Schmidt 1966; Simon, Optimal State
+        Estimation, 2006, Sec. 7.5): a first-order Gauss-Markov time error of this
+        sigma and correlation time ``jitter_time``, propagated into the attitude's
+        covariance like the time offset but never estimated (its gain is zero), so
+        that the rows' sigma and the fixes' gate know of it while no fix is
+        explained away as jitter."""
+        return self.sample_s if self.jitter_sigma is None else self.jitter_sigma
 
     def prior_theta(self) -> np.ndarray:
         return np.array([self.gyro_noise**2 * self.sample_s, self.rate_noise**2])
@@ -243,8 +267,9 @@ class AttitudeModel:
                        gyro_bias_sigma=sigma)  # fmt: skip
 
     def init(self, fix: Fix) -> AttitudeState:
-        P = np.zeros((13, 13))
+        P = np.zeros((14, 14))
         P[0:3, 0:3] = self._fix_cov(fix)
+        P[13, 13] = self.jitter**2
         P[3:6, 3:6] = np.eye(3) * self.gyro_bias_sigma**2
         P[6:9, 6:9] = np.eye(3) * self.misalignment_sigma**2
         P[9:12, 9:12] = np.eye(3) * self.scale_sigma**2
@@ -274,13 +299,15 @@ class AttitudeModel:
         wg = scale * (g + s.tau * gdot - s.b)  # scaled, in gyro axes
         w = s.Rm @ wg
         Rn = s.R @ expmap(w * dt)
-        F = np.eye(13)
+        F = np.eye(14)
         F[0:3, 0:3] = expmap(-w * dt)  # exact transition of -[w]x
         RmS = s.Rm * scale
         F[0:3, 3:6] = -RmS * dt
         F[0:3, 6:9] = -skew(w) * dt
         F[0:3, 9:12] = s.Rm * (g + s.tau * gdot - s.b) * dt
-        F[0:3, 12] = RmS @ gdot * dt
+        F[0:3, 12] = F[0:3, 13] = RmS @ gdot * dt
+        fade_j = math.exp(-dt / self.jitter_time)
+        F[13, 13] = fade_j
         qa, qw = s.noise.theta() if self.learn_noise else self.prior_theta()
         # white: qa dt; rate-proportional, held since the last fix (an error of the
         # rate's size kappa |w|, the same through the interval): its variance
@@ -288,7 +315,8 @@ class AttitudeModel:
         A = s.acc[1]
         A1 = A + math.sqrt(float(w @ w)) * dt
         q = (qa * dt + qw * (A1 * A1 - A * A)) * s.fade
-        Q = np.zeros((13, 13))
+        Q = np.zeros((14, 14))
+        Q[13, 13] = self.jitter**2 * (1.0 - fade_j * fade_j)
         Q[0:3, 0:3] = np.eye(3) * q
         sat = bool(np.any(gsat > 0))
         if sat:
@@ -321,8 +349,9 @@ class AttitudeModel:
             return AttitudeState(s.R, s.b, s.Rm, s.k, s.tau, P, noise, acc, s.saturated,
                                  True, fade), False, nis  # fmt: skip
         K = np.linalg.solve(S, s.P[0:3, :]).T
+        K[13] = 0.0  # the jitter is considered, never estimated (Schmidt)
         dx = K @ r
-        IKH = np.eye(13)
+        IKH = np.eye(14)
         IKH[:, 0:3] -= K
         P = IKH @ s.P @ IKH.T + K @ R @ K.T
         Rn = s.R @ expmap(dx[0:3])
