@@ -796,3 +796,35 @@ def test_3d_clock_jitter_keeps_the_sigma_honest():
     assert share <= 2 * 0.0027 and over5 == 0
     share0, over5_0 = beyond(replace(model, jitter_sigma=0.0))
     assert share0 > 3 * max(share, 0.0027) and over5_0 > 0
+
+
+def test_3d_a_fix_after_a_dispute_is_unconfirmed_until_the_next_agrees():
+    """The gyro misses a 40 deg turn (a dropout): the filter refuses the fixes that see
+    it, widening its prediction by the disagreement, takes the next one through that
+    wide gate, and says `fix_unconfirmed` until a fix agrees through a narrow gate;
+    then the rows are accurate and unwarned again."""
+    rng = np.random.default_rng(11)
+    dt, n = 0.01, 2500
+    t = np.arange(n) * dt
+    w_b = np.column_stack([0.3 * np.sin(0.9 * t), 0.2 * np.cos(1.3 * t), 0.25 * np.sin(0.4 * t)])
+    turn = (t >= 8.0) & (t < 8.2)
+    w_b[turn, 2] += np.radians(40.0) / 0.2
+    R = [np.eye(3)]
+    for i in range(1, n):
+        R.append(R[-1] @ expmap(0.5 * (w_b[i] + w_b[i - 1]) * dt))
+    gyro = w_b + rng.normal(0, np.radians(0.05), (n, 3))
+    gyro[turn, 2] -= np.radians(40.0) / 0.2  # the dropout: the gyro never saw the turn
+    imu = ImuData(t, gyro, None, np.arange(n) + 2, (), dt)
+    fixes = [Fix(t[i], t[i] + 0.6, R[i] @ expmap(np.radians(0.1) * rng.standard_normal(3)),
+                 None, i) for i in range(0, n, 50)]  # fmt: skip
+    out = list(fuse(imu, fixes, AttitudeModel(sample_s=dt), limits=Limits(2000.0, None)))
+    disputed = [x.index for x in out if "fix_disputed" in x.warnings]
+    unconfirmed = [x.index for x in out if "fix_unconfirmed" in x.warnings]
+    assert disputed and 8.0 < t[disputed[0]] < 9.0
+    # the wide gate's fix follows the dispute at once, and the next fix confirms it
+    assert unconfirmed and unconfirmed[0] == disputed[-1] + 1
+    assert t[unconfirmed[-1]] - t[unconfirmed[0]] <= 0.5 + 1e-9
+    after = [x for x in out if t[x.index] > t[unconfirmed[-1]]]
+    assert after and not any(x.warnings for x in after)
+    e = [np.degrees(np.linalg.norm(logmap(R[x.index].T @ x.state.R))) for x in after]
+    assert max(e) < 1.0

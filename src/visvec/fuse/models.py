@@ -204,9 +204,16 @@ class AttitudeState:
     disputed: bool = False
     # the fading factor on the process noise until the next fix (see _fade)
     fade: float = 1.0
+    # whether the attitude rests on a fix checked against the filter's prediction: one
+    # taken while the prediction was too wide to gate it (after a long saturation, a
+    # restart) must first be confirmed by a later fix that passes a narrow gate
+    confirmed: bool = True
 
 
 RATE_NOISE_FLOOR = 0.001
+# a prediction wider than this (1-sigma, any axis) cannot tell a good fix from a
+# glitch: at the gate's 5.5 sigma it would take a fix 30 deg off
+CONFIRM_SIGMA = math.radians(5.0)
 # the correlation time of the clock jitter between the gyro and the fixes (see
 # AttitudeModel.jitter): short against the fixes' spacing, long against the samples'
 JITTER_TIME_S = 0.2
@@ -284,7 +291,8 @@ class AttitudeModel:
         P[0:3, :] = 0.0
         P[:, 0:3] = 0.0
         P[0:3, 0:3] = self._fix_cov(fix)
-        return AttitudeState(fix.value.copy(), s.b, s.Rm, s.k, s.tau, P, s.noise)
+        return AttitudeState(fix.value.copy(), s.b, s.Rm, s.k, s.tau, P, s.noise,
+                             confirmed=False)  # fmt: skip
 
     def _fix_cov(self, fix: Fix) -> np.ndarray:
         if fix.cov is not None:
@@ -328,7 +336,7 @@ class AttitudeModel:
         P = F @ s.P @ F.T + Q
         acc = (s.acc[0] + dt, A1, s.acc[2] + float(np.trace(Q[0:3, 0:3])))
         return AttitudeState(Rn, s.b, s.Rm, s.k, s.tau, P, s.noise, acc, s.saturated or sat,
-                             s.disputed, s.fade)  # fmt: skip
+                             s.disputed, s.fade, s.confirmed)  # fmt: skip
 
     def update(self, s: AttitudeState, fix: Fix) -> tuple[AttitudeState, bool, float]:
         R = self._fix_cov(fix)
@@ -347,7 +355,7 @@ class AttitudeModel:
             P[0:3, 0:3] += np.outer(r, r)
             acc = (s.acc[0], s.acc[1], s.acc[2] + float(r @ r))
             return AttitudeState(s.R, s.b, s.Rm, s.k, s.tau, P, noise, acc, s.saturated,
-                                 True, fade), False, nis  # fmt: skip
+                                 True, fade, s.confirmed), False, nis  # fmt: skip
         K = np.linalg.solve(S, s.P[0:3, :]).T
         K[13] = 0.0  # the jitter is considered, never estimated (Schmidt)
         dx = K @ r
@@ -357,8 +365,9 @@ class AttitudeModel:
         Rn = s.R @ expmap(dx[0:3])
         Rm = expmap(dx[6:9]) @ s.Rm
         tau = float(np.clip(s.tau + dx[12], -0.1, 0.1))
+        gated = bool(np.sqrt(np.diag(s.P[0:3, 0:3])).max() <= CONFIRM_SIGMA)
         return AttitudeState(Rn, s.b + dx[3:6], Rm, s.k + dx[9:12], tau, P, noise,
-                             acc0, fade=fade), True, nis  # fmt: skip
+                             acc0, fade=fade, confirmed=gated), True, nis  # fmt: skip
 
     @staticmethod
     def _fade(fade: float, nis: float) -> float:

@@ -412,6 +412,8 @@ class Fusion:
             warnings.append("gyro_saturated")
         if getattr(st, "disputed", False):
             warnings.append("fix_disputed")
+        if not getattr(st, "confirmed", True):
+            warnings.append("fix_unconfirmed")
         return FusedSample(k, t, st, self.n_applied, tuple(warnings), tuple(nis_new))
 
 
