@@ -67,7 +67,7 @@ def _recording(args) -> list[Frame]:
     R = np.array([euler_to_matrix(*e) for e in eul])
     w = body_rates(R, 1.0 / FPS)
     return [
-        Frame(k, k / FPS, render_frame(rig, R[k], Scene(), seed * 1000 + k, readout_ms / 1e3, w[k]))
+        Frame(k, k / FPS, render_frame(rig, R[k], Scene(), seed * 1000 + k, readout_ms, w[k]))
         for k in range(FRAMES)
     ]
 

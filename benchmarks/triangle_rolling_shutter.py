@@ -58,9 +58,9 @@ PRINCIPAL_POINT_ERRORS_PX = (2.0, 4.0)
 def _render(args) -> np.ndarray:
     """A frame of the platform turning about the lab's n3 at ``omega_n`` (rad/s): its
     body rate is R_nb^T omega_n."""
-    rig, case, readout_s, omega_n = args
+    rig, case, readout_ms, omega_n = args
     R = euler_to_matrix(*case.euler)
-    return render_frame(rig, R, case.scene, case.seed, readout_s, R.T @ omega_n)
+    return render_frame(rig, R, case.scene, case.seed, readout_ms, R.T @ omega_n)
 
 
 def main() -> None:
@@ -68,7 +68,7 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=80)
     ap.add_argument("--readout-ms", type=float, default=25.0)
     args = ap.parse_args()
-    readout = args.readout_ms / 1000.0
+    readout = args.readout_ms
     results = {
         **run_record(),
         "readout_ms": args.readout_ms,
@@ -110,7 +110,7 @@ def main() -> None:
             calibrated = level_calibration(rig, lab)[0].apply(rig)
             where = f"principal_point_{dcx:g}px_global_"
             runs.append((where, 20.0, lab, calibrated, LONG_FRAMES, "oneway", 0.0))
-        for where, rate, lab, r0, n, motion, readout_s in runs:
+        for where, rate, lab, r0, n, motion, readout_ms in runs:
             w, t = np.radians(rate), np.arange(n) / 30.0
             if motion == "swing":
                 amp = w * SWING_PERIOD_S / (2.0 * np.pi)
@@ -124,13 +124,13 @@ def main() -> None:
                 for k in range(n)
             ]
             jobs = [
-                (lab, c, readout_s, np.array([0.0, 0.0, yaw_rate[k]])) for k, c in enumerate(cases)
+                (lab, c, readout_ms, np.array([0.0, 0.0, yaw_rate[k]])) for k, c in enumerate(cases)
             ]
             with ProcessPoolExecutor(os.cpu_count() or 1) as ex:
                 images = list(ex.map(_render, jobs))
             rolled = replace(r0, readout_ms=args.readout_ms, max_rate_dps=max(RATES_DPS))
             labels = [("uncorrected", r0, False), ("estimated", r0, True)]
-            if readout_s:
+            if readout_ms:
                 labels.append(("corrected", rolled, True))
             for label, r, shear in labels:
                 out = evaluate(r, images, cases, "full", track=True, shear=shear)

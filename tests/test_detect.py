@@ -75,13 +75,13 @@ def test_rolling_shutter_rendering_exposes_each_row_band_at_its_own_attitude(rig
 
     cam = rig640.camera
     R = euler_to_matrix(0.4, 0.03, -0.02)
-    w, ro = np.radians([3.0, -2.0, 20.0]), 0.025
+    w, ro = np.radians([3.0, -2.0, 20.0]), 25.0  # ms
     np.testing.assert_array_equal(
         render_clean(rig640, R, Scene(), ro, np.zeros(3)), render_clean(rig640, R, Scene())
     )
     img = render_clean(rig640, R, Scene(), ro, w)
     for r0 in (120, 200, 300):  # bands across the triangle
-        t = (r0 + 0.5 * (ROLLING_BAND_ROWS - 1) - cam.cy) / cam.height * ro
+        t = (r0 + 0.5 * (ROLLING_BAND_ROWS - 1) - cam.cy) / cam.height * ro / 1000.0
         ref = render_clean(rig640, R @ expmap(w * t), Scene())
         rows = slice(r0 + 1, r0 + ROLLING_BAND_ROWS - 1)  # away from the band's edges
         np.testing.assert_array_equal(img[rows], ref[rows])
@@ -159,7 +159,7 @@ def test_rolling_shutter_is_taken_out_while_tracking(rig640):
     for k in range(20):
         e = np.array([0.3 + w_lab[2] * k / 30.0, np.radians(2.0), np.radians(-1.0)])
         R = euler_to_matrix(*e)
-        img = render_frame(rig640, R, Scene(), 900 + k, 0.025, R.T @ w_lab)
+        img = render_frame(rig640, R, Scene(), 900 + k, 25.0, R.T @ w_lab)
         frames.append(Frame(k, k / 30.0, img))
         truth.append(np.degrees(e))
 
@@ -202,7 +202,7 @@ def test_rolling_shutter_readout_sigma_is_carried_into_the_rows(rig640):
     frames, truth = [], []
     for k in range(20):
         R = R0 @ expmap(w_b * k / 30.0)
-        frames.append(Frame(k, k / 30.0, render_frame(rig640, R, Scene(), 900 + k, 0.025, w_b)))
+        frames.append(Frame(k, k / 30.0, render_frame(rig640, R, Scene(), 900 + k, 25.0, w_b)))
         truth.append(np.degrees(matrix_to_euler(R)))
 
     def run(sigma_ms):
@@ -236,7 +236,7 @@ def test_rolling_shutter_covariance_is_the_linearised_correction(rig640):
     cam = rig640.camera
     xy = np.array([[0.31, -0.12], [-0.22, 0.25], [-0.05, -0.33]])
     rows = cam.cy + xy[:, 1] * cam.fy
-    readout, h = 0.025, 1e-4
+    readout, h = 25.0, 1e-4  # ms, rad/s
     A = np.zeros((6, 3))
     for j in range(3):
         w = np.zeros(3)
@@ -270,7 +270,7 @@ def test_edge_fit_shutter_gain_is_how_its_vertices_move_with_the_rate(rig640):
     rig = replace(rig640, readout_ms=25.0)
     w_b = np.radians([0.0, 0.0, 10.0])
     R = euler_to_matrix(0.4, np.radians(2.0), np.radians(-1.5))
-    img = render_frame(rig640, R, Scene(), 31, 0.025, w_b)
+    img = render_frame(rig640, R, Scene(), 31, 25.0, w_b)
     det = TriangleDetector(rig)
     seen = det.detect(img)
     assert seen.status is Status.OK
@@ -279,7 +279,7 @@ def test_edge_fit_shutter_gain_is_how_its_vertices_move_with_the_rate(rig640):
     gain = seen.shutter_gain_n  # the gain its covariance used
     moved = (det.redetect(img, omega_c).points_n - seen.points_n).ravel() * fx
     np.testing.assert_allclose(gain @ omega_c * fx, moved, atol=0.004)
-    A = shutter_matrix(seen.points_n, seen.points_px[:, 1], rig.camera, 0.025, det.lever_c)
+    A = shutter_matrix(seen.points_n, seen.points_px[:, 1], rig.camera, 25.0, det.lever_c)
     assert np.abs(A @ omega_c * fx - moved).max() > 0.01
 
 
@@ -310,8 +310,8 @@ def test_rolling_shutter_correction_follows_a_camera_off_the_axis(rig640):
         xy_t, _ = seen(t)
         rows = np.full(2, cam.cy + t / 0.025 * cam.height)  # rows read t after the centre
         w_c = R_bc.T @ w_b
-        fixed = unroll(xy_t, rows, cam, w_c, 0.025, lever)
-        rot_only = unroll(xy_t, rows, cam, w_c, 0.025)
+        fixed = unroll(xy_t, rows, cam, w_c, 25.0, lever)
+        rot_only = unroll(xy_t, rows, cam, w_c, 25.0)
         assert np.abs(fixed - xy0).max() * cam.fx < 0.005
         assert np.abs(rot_only - xy0).max() * cam.fx > 0.1
 
@@ -357,7 +357,7 @@ def test_rolling_shutter_of_a_camera_off_the_axis_is_taken_out_while_tracking(ri
     for k in range(20):
         e = np.array([0.3 + w * k / 30.0, np.radians(2.0), np.radians(-1.0)])
         R = euler_to_matrix(*e)
-        img = render_frame(rig, R, Scene(), 700 + k, 0.025, R.T @ [0.0, 0.0, w])
+        img = render_frame(rig, R, Scene(), 700 + k, 25.0, R.T @ [0.0, 0.0, w])
         row = pipe.process(Frame(k, k / 30.0, img))
         assert row.ok, (k, row.warnings)
         z.append((row.euler_deg - np.degrees(e)) / row.sigma_deg)
@@ -383,7 +383,7 @@ def test_a_turn_faster_than_the_rate_bounds_is_acquired_at_once(rig640):
     w_b = body_rates(R, 1.0 / 30.0)
     pipe = TrianglePipeline(rig)
     rows = [
-        pipe.process(Frame(k, k / 30.0, render_frame(rig, R[k], Scene(), 73000 + k, 0.025, w_b[k])))
+        pipe.process(Frame(k, k / 30.0, render_frame(rig, R[k], Scene(), 73000 + k, 25.0, w_b[k])))
         for k in range(8)
     ]
     assert rows[0].ok and rows[0].warnings == ("rolling_shutter_uncorrected",)
@@ -405,7 +405,7 @@ def test_rolling_shutter_read_bottom_up_is_taken_out_too(rig640):
         rate = w if k < 12 else -w
         e = np.array([0.3 + w * min(k, 22 - k) / 30.0, np.radians(2.0), np.radians(-1.0)])
         R = euler_to_matrix(*e)
-        img = render_frame(rig640, R, Scene(), 950 + k, -0.025, R.T @ [0, 0, rate])
+        img = render_frame(rig640, R, Scene(), 950 + k, -25.0, R.T @ [0, 0, rate])
         frames.append(Frame(k, k / 30.0, img))
         truth.append(np.degrees(e))
 

@@ -216,7 +216,7 @@ def test_the_residuals_measure_a_shear_no_attitude_explains(rig640):
     R = euler_to_matrix(0.6, 0.04, -0.03)
     exact = _detection(rig640, R)
     xy, rows = exact.points_n, exact.points_px[:, 1]
-    g = -shutter_matrix(xy, rows, rig640.camera, 1.0) @ np.radians([2.0, -1.0, 20.0])
+    g = -shutter_matrix(xy, rows, rig640.camera, 1000.0) @ np.radians([2.0, -1.0, 20.0])
     for k in (0.0, 0.025):
         det = replace(exact, points_n=xy + k * g.reshape(3, 2))
         a, b = solve_full(det, rig640).residual.explain(g)
@@ -245,7 +245,7 @@ def test_readout_evidence_counts_what_a_correction_took_out(rig640):
         for yaw, omega in zip(np.radians(yaws_deg), rates, strict=True):
             exact = _detection(rig640, euler_to_matrix(yaw, 0.04, -0.03))
             xy, rows = exact.points_n, exact.points_px[:, 1]
-            g = -shutter_shift(xy, rows, cam, 1.0, omega)
+            g = -shutter_shift(xy, rows, cam, 1000.0, omega)  # a 1 s readout
             out.append((exact, xy, rows, omega, g))
         return out
 

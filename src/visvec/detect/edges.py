@@ -17,7 +17,7 @@ import cv2
 import numpy as np
 
 from visvec.camera import CameraModel
-from visvec.shutter import unroll
+from visvec.shutter import RollingShutter, unroll
 
 # Variance inflation of the edge-point residuals for correlated neighbouring profiles
 # (profiles 1.5 px apart, bilinear sampling); calibrated by simulation (300 frames at
@@ -109,7 +109,7 @@ class EdgeFit:
         (vertex i+1, vertex i+2) beyond the planned corner clearance
     width : (3,) RMS blur width of each edge (px)
     ok : False when the lines do not make a triangle near the given corners
-    shutter_gain : (6, 3) or None, with ``rolling``: how the vertices (normalised) move
+    shutter_gain : (6, 3) or None, with ``gain``: how the vertices (normalised) move
         per rad/s of camera rate when the edge points are taken to the centre row's
         exposure (:func:`_shutter_gain`)
     """
@@ -568,8 +568,9 @@ def fit_edges(
     step: float = 0.5,
     trim: float = 0.06,
     width: np.ndarray | None = None,
-    shutter: tuple[np.ndarray, float, np.ndarray | None] | None = None,
-    rolling: tuple[float, np.ndarray | None] | None = None,
+    shutter: RollingShutter | None = None,
+    rate_c: np.ndarray | None = None,
+    gain: bool = False,
 ) -> EdgeFit:
     """Fit the three edges of the triangle whose coarse corners are ``corners_px`` (3, 2).
 
@@ -586,18 +587,17 @@ def fit_edges(
     lens refocusing); the fine pass is repeated if the vertices move by more than
     ``TRACK_RECENTRE_PX``.
 
-    With ``shutter`` = (omega_c, readout_s, lever), a rolling shutter: image row v is
-    exposed t = (v - cy) / H * readout_s after the centre row while the camera turns at
-    omega_c (rad/s, camera frame) about the platform's centre of rotation. Each edge
+    With ``shutter`` and ``rate_c``, a rolling shutter whose rate is known: image row v
+    is exposed t = (v - cy) / H * readout after the centre row while the camera turns
+    at ``rate_c`` (rad/s, camera frame) about the platform's centre of rotation. Each edge
     point's ray d is taken back to the centre row's exposure, d0 = d + t omega_c x
     (d + lever) (see :func:`visvec.shutter.unroll`: the rotation, and the camera's
     translation on its lever arm), before the lines are fitted, so the lines and
     vertices are those of one instant. First order in the rotation.
 
-    With ``rolling`` = (readout_s, lever), a rolling shutter's readout whether or not the
-    rate is known: the fit also carries ``shutter_gain`` (:func:`_shutter_gain`), the
-    vertices' sensitivity to the rate, for the covariance of a rate not known yet or of
-    the readout's error.
+    With ``shutter`` and ``gain``, whether or not the rate is known: the fit also
+    carries ``shutter_gain`` (:func:`_shutter_gain`), the vertices' sensitivity to the
+    rate, for the covariance of a rate not known yet or of the readout's error.
     """
     reach = MAX_HALF_PX + LEVEL_EXTENT_PX + 3.0
     lo = np.floor(corners_px.min(axis=0) - reach).astype(int)
@@ -666,8 +666,9 @@ def fit_edges(
         pts_px = bases + e[:, None] * normals
         raw = camera.undistort(pts_px)
         ideal = raw * f
-        if shutter is not None:
-            ideal = unroll(raw, pts_px[:, 1], camera, *shutter) * f
+        if shutter is not None and rate_c is not None:
+            ideal = unroll(raw, pts_px[:, 1], camera, rate_c, shutter.readout_ms,
+                           shutter.lever) * f  # fmt: skip
         # an edge's points with a clear step; all of them if fewer than 5 are clear
         use = clear | (np.bincount(gid, clear, 3) < 5)[gid]
         normals_l, offsets, centres, spreads, sigmas, keep = _robust_lines(
@@ -715,12 +716,12 @@ def fit_edges(
             gaps,
             width.copy(),
         )
-        if rolling is not None and not failed:
-            omega = np.zeros(3) if shutter is None else np.asarray(shutter[0], float)
+        if gain and shutter is not None and not failed:
+            omega = np.zeros(3) if rate_c is None else np.asarray(rate_c, float)
             fit = replace(
                 fit,
                 shutter_gain=_shutter_gain(
-                    raw, pts_px[:, 1], camera, gid, keep, normals_l, offsets / f, omega, *rolling
+                    raw, pts_px[:, 1], camera, gid, keep, normals_l, offsets / f, omega, shutter
                 ),
             )
         if failed:
@@ -755,8 +756,7 @@ def _shutter_gain(
     normals: np.ndarray,
     offsets: np.ndarray,
     omega_c: np.ndarray,
-    readout_s: float,
-    lever: np.ndarray | None,
+    shutter: RollingShutter,
 ) -> np.ndarray:
     """(6, 3) G: the vertices (x1, y1, x2, ...; normalised) of the lines fitted through the
     edge points ``xy`` (normalised, as seen, at image ``rows``) after :func:`~visvec.shutter.unroll`
@@ -772,7 +772,7 @@ def _shutter_gain(
     for k in range(1, 4):
         w = np.array(omega_c, float)
         w[k - 1] += SHUTTER_GAIN_STEP
-        p = unroll(xy, rows, camera, w, readout_s, lever)
+        p = unroll(xy, rows, camera, w, shutter.readout_ms, shutter.lever)
         _, c, _, n, _, _ = _group_tls(p[:, 0], p[:, 1], gid, keep)
         n = n * np.where(np.sum(n * normals, axis=1) < 0.0, -1.0, 1.0)[:, None]
         V.append(_vertices(n, np.sum(n * c, axis=1))[0].ravel())

@@ -29,7 +29,7 @@ from visvec.detect.edges import (
 from visvec.errors import ConfigError
 from visvec.geometry import project_target
 from visvec.rig import Rig
-from visvec.shutter import shutter_matrix, shutter_shift
+from visvec.shutter import RollingShutter, shutter_matrix, shutter_shift
 
 # Tolerances of the shape checks (relative, or degrees), chosen to pass every tilt
 # within max_tilt_deg of the paper's geometry with a wide margin.
@@ -273,10 +273,8 @@ class TriangleDetector:
         ``omega_c``: the camera's angular rate (rad/s, camera frame) for a rolling-shutter
         rig (``readout_ms`` != 0): the vertices are then those of the centre row's
         exposure (see fit_edges)."""
-        shutter = (
-            (np.asarray(omega_c, float), self.readout_ms / 1000.0, self.lever_c)
-            if omega_c is not None and self.readout_ms != 0
-            else None
+        rate_c = (
+            np.asarray(omega_c, float) if omega_c is not None and self.readout_ms != 0 else None
         )
         mean, warnings = self._brightness(image)
         reason, contour = "", np.zeros((0, 2))
@@ -287,7 +285,7 @@ class TriangleDetector:
             pred = self._last_points
             if self._prev_points is not None:
                 pred = 2.0 * self._last_points - self._prev_points  # constant velocity
-            det = self._verify(image, self._tracked_candidate(pred), warnings, mean, shutter)
+            det = self._verify(image, self._tracked_candidate(pred), warnings, mean, rate_c)
             if det.status is Status.OK:
                 self._prev_points, self._last_points = self._last_points, det.points_px
                 self._last_width = self._fit_width
@@ -303,7 +301,7 @@ class TriangleDetector:
                 levels=levels,
                 area_at=self._image_area_at,
             ):
-                det = self._verify(image, cand, warnings, mean, shutter)
+                det = self._verify(image, cand, warnings, mean, rate_c)
                 if det.status is Status.OK:
                     self._last_level = cand.level
                     self._prev_points, self._last_points = None, det.points_px
@@ -352,10 +350,10 @@ class TriangleDetector:
         own first detection. On success it replaces the last detection's vertices."""
         if self._last_points is None or self.readout_ms == 0:
             raise ValueError("redetect needs a rolling-shutter rig and a last detection")
-        shutter = (np.asarray(omega_c, float), self.readout_ms / 1000.0, self.lever_c)
+        rate_c = np.asarray(omega_c, float)
         mean, warnings = self._brightness(image)
         det = self._verify(
-            image, self._tracked_candidate(self._last_points), warnings, mean, shutter
+            image, self._tracked_candidate(self._last_points), warnings, mean, rate_c
         )
         if det.status is Status.OK:
             self._last_points = det.points_px
@@ -396,11 +394,11 @@ class TriangleDetector:
         cand: Candidate,
         warnings: list[str],
         mean: float,
-        shutter: tuple[np.ndarray, float, np.ndarray] | None = None,
+        rate_c: np.ndarray | None = None,
     ) -> Detection:
         """The candidate's vertices and covariance, or the reason it is refused
-        (``shutter``: a rolling shutter's camera rate, readout and lever arm, see
-        fit_edges)."""
+        (``rate_c``: the camera's rate, rad/s, camera axes, for a rolling-shutter rig;
+        see fit_edges)."""
         cam, s = self.rig.camera, self.rig.detect
         # beyond the fold of a strong distortion's polynomial the model has no rays (a
         # calibration's fit extrapolated past the photos' corners): a triangle there
@@ -432,12 +430,11 @@ class TriangleDetector:
                 # needed a third pass)
                 half=max(4.0, float(self.scale)),
                 width=self._last_width if cand.tracked else None,
-                shutter=shutter,
+                shutter=RollingShutter(self.readout_ms, self.lever_c) if self.readout_ms else None,
+                rate_c=rate_c,
                 # the shutter gain, for the covariance of a rate not known yet or of the
                 # readout's error (not computed when neither is there)
-                rolling=(self.readout_ms / 1000.0, self.lever_c)
-                if self.readout_ms and (shutter is None or self.readout_sigma_ms > 0)
-                else None,
+                gain=bool(self.readout_ms) and (rate_c is None or self.readout_sigma_ms > 0),
             )
             self._fit_width = fit.width
             if not fit.ok:
@@ -513,27 +510,25 @@ class TriangleDetector:
         if not np.all(cam.in_image(pts_px, BORDER_MARGIN_PX + 0.02 * cam.width)):
             w.append("near_fov_edge")
         consider = None
-        if shutter is None and self.readout_ms != 0:
+        if rate_c is None and self.readout_ms != 0:
             # a rolling shutter whose rate is not known yet (first frame): the rows'
             # exposure times stay in the vertices, by up to the platform's fastest turn
             # (an estimated readout k +- s: E[k^2] = k^2 + s^2). With edge lines, the
             # sensitivity of their fit (the edges curve under a turn about the
             # boresight); with corners, the vertices' own
             if gain is None:
-                gain = shutter_matrix(
-                    xy / cam.fx, pts_px[:, 1], cam, self.readout_ms / 1000.0, self.lever_c
-                )
+                gain = shutter_matrix(xy / cam.fx, pts_px[:, 1], cam, self.readout_ms, self.lever_c)
             consider = (gain @ self._cov_omega @ gain.T) * (
                 1.0 + (self.readout_sigma_ms / self.readout_ms) ** 2
             )
-        elif shutter is not None and self.readout_sigma_ms > 0:
+        elif rate_c is not None and self.readout_sigma_ms > 0:
             # taken out with a measured or estimated readout: what its sigma s leaves,
             # the shift of a readout error s at the rate omega (linear in the readout)
-            omega_c, sigma_s = shutter[0], self.readout_sigma_ms / 1000.0
             if gain is None:
-                g = shutter_shift(xy / cam.fx, pts_px[:, 1], cam, sigma_s, omega_c, self.lever_c)
+                g = shutter_shift(xy / cam.fx, pts_px[:, 1], cam, self.readout_sigma_ms, rate_c,
+                                  self.lever_c)  # fmt: skip
             else:
-                g = gain @ omega_c * (self.readout_sigma_ms / self.readout_ms)
+                g = gain @ rate_c * (self.readout_sigma_ms / self.readout_ms)
             consider = np.outer(g, g)
         return Detection(
             Status.OK,

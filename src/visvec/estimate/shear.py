@@ -191,7 +191,7 @@ class ReadoutEvidence:
             return  # vertices that alone do not fix the parameters measure nothing here
         # seen = centre row - A omega readout: the pattern of a unit (1 s) readout
         design = np.empty((6, N_PARAMS))
-        design[:, 0] = -shutter_shift(xy, rows, camera, 1.0, omega_c, lever)
+        design[:, 0] = -shutter_shift(xy, rows, camera, 1000.0, omega_c, lever)
         design[:, 1:] = model_error_design(xy, camera)
         a, b = residual.explain(design)
         ka = applied_ms / 1000.0

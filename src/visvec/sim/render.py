@@ -162,7 +162,7 @@ def render_clean(
     rig: Rig,
     R_nb: np.ndarray,
     scene: Scene,
-    readout_s: float = 0.0,
+    readout_ms: float = 0.0,
     omega_b: np.ndarray | None = None,
     exposure_s: float = 0.0,
 ) -> np.ndarray:
@@ -176,8 +176,8 @@ def render_clean(
     Pixels whose 3x3 neighbourhood holds more than one surface are averaged over
     ``scene.supersample``^2 sub-pixel rays (box pixel response).
 
-    Rolling shutter: with ``readout_s`` != 0 (negative: the last row read first) and a
-    body rate ``omega_b`` (rad/s), row v is exposed (v - cy) / H * readout_s after the
+    Rolling shutter: with ``readout_ms`` != 0 (negative: the last row read first) and a
+    body rate ``omega_b`` (rad/s), row v is exposed (v - cy) / H * readout after the
     centre row, at attitude R_nb expm([omega_b] t) (R_nb is the centre row's); bands of
     ROLLING_BAND_ROWS rows share one attitude (at 20 deg/s and 25 ms the attitude moves
     0.004 deg in a band).
@@ -194,20 +194,21 @@ def render_clean(
         n = int(np.clip(np.ceil(travel_px / MOTION_STEP_PX), 1, MAX_MOTION_SUBFRAMES))
         taus = ((np.arange(n) + 0.5) / n - 0.5) * exposure_s
         return np.mean(
-            [render_clean(rig, R_nb @ expmap(w * tau), scene, readout_s, w) for tau in taus],
+            [render_clean(rig, R_nb @ expmap(w * tau), scene, readout_ms, w) for tau in taus],
             axis=0,
         )
     grid = _ray_grid(
         cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy, tuple(float(k) for k in cam.dist)
     )
-    rolling = readout_s != 0 and omega_b is not None and np.any(omega_b)
+    rolling = readout_ms != 0 and omega_b is not None and np.any(omega_b)
     bands = range(0, cam.height, ROLLING_BAND_ROWS) if rolling else [0]  # first row of each band
     band_h = ROLLING_BAND_ROWS if rolling else cam.height
     shaders = []
     for r0 in bands:
         R = R_nb
         if rolling:
-            t = (r0 + 0.5 * (min(band_h, cam.height - r0) - 1) - cam.cy) / cam.height * readout_s
+            row = r0 + 0.5 * (min(band_h, cam.height - r0) - 1)
+            t = (row - cam.cy) / cam.height * (readout_ms / 1000.0)
             R = R_nb @ expmap(np.asarray(omega_b, float) * t)
         shaders.append(_Shader(rig, scene, R))
     centres = grid[1:-1, 1:-1]
@@ -260,7 +261,7 @@ def render_frame(
     R_nb: np.ndarray,
     scene: Scene,
     rng: np.random.Generator | int | None = None,
-    readout_s: float = 0.0,
+    readout_ms: float = 0.0,
     omega_b: np.ndarray | None = None,
     exposure_s: float = 0.0,
 ) -> np.ndarray:
@@ -276,8 +277,8 @@ def render_frame(
         Photometry, clutter and noise.
     rng : numpy Generator or seed
         Source of the noise.
-    readout_s, omega_b : float, (3,) ndarray
-        A rolling shutter's readout time (s) and the platform's body rate (rad/s): see
+    readout_ms, omega_b : float, (3,) ndarray
+        A rolling shutter's readout time (ms) and the platform's body rate (rad/s): see
         :func:`render_clean` (R_nb is then the attitude when the centre row is exposed).
     exposure_s : float
         Each row's exposure time (s): motion blur while the platform turns.
@@ -285,7 +286,7 @@ def render_frame(
     rng = np.random.default_rng(rng)
     g = scene.tone_gamma
     linear = scene if g == 1.0 else _linear_scene(scene)
-    img = render_clean(rig, R_nb, linear, readout_s, omega_b, exposure_s) * scene.exposure
+    img = render_clean(rig, R_nb, linear, readout_ms, omega_b, exposure_s) * scene.exposure
     if scene.blur_sigma_px > 0:
         img = cv2.GaussianBlur(img, (0, 0), scene.blur_sigma_px)
     if g != 1.0:

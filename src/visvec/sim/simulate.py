@@ -268,7 +268,7 @@ def simulate(
             raise ValueError("a gyro is simulated for a sweep or a swing only")
         eul = random_attitudes(n_frames, max_tilt_deg, rng, motion, turn, wobble)
     world = render_rig or rig
-    readout_s = (rig.readout_ms if readout_ms is None else readout_ms) / 1000.0
+    readout = rig.readout_ms if readout_ms is None else readout_ms
     if exposure_ms is None:
         exposure_ms = rig.exposure_ms or 0.0
     Rs = np.array([euler_to_matrix(*e) for e in eul])
@@ -286,7 +286,7 @@ def simulate(
                 img = render_markers(world, R, spot_scene or SpotScene(), rng)
             else:
                 sc = scene_for_frame(scene, clutter, world, rng)
-                img = render_frame(world, R, sc, rng, readout_s, rates[i], exposure_ms / 1000.0)
+                img = render_frame(world, R, sc, rng, readout, rates[i], exposure_ms / 1000.0)
             name = f"frame_{i:0{width}d}.png"
             write_image(out / name, img)
             e = np.degrees(matrix_to_euler(R))
