@@ -466,7 +466,37 @@ def rig_from_dict(
         if not isinstance(raw[name], dict):
             raise ConfigError(f"{src}: {name} must be a [table]")
 
-    cam = _Section(src, "camera", raw["camera"], origins.get("camera", {}))
+    def section(name: str) -> _Section:
+        return _Section(src, name, raw.get(name, {}), origins.get(name, {}))
+
+    fields = _camera_fields(section("camera"), src)
+    mount = _mount(section("mount"))
+    tgt = section("target")
+    kind = tgt.choice("kind", TARGET_KINDS, required=True)
+    if kind == "triangle":
+        target = _triangle_target(tgt, mount, src)
+    elif kind == "starfield":
+        target = _starfield_target(tgt, mount, src)
+    elif kind == "lamps":
+        target = _lamp_target(tgt, mount, src, base_dir)
+    else:
+        target = _marker_target(tgt, mount, src)
+    fields |= _platform_fields(section("platform"))
+    rig = Rig(
+        mount=mount,
+        target=target,
+        detect=_detect_settings(section("detect"), src),
+        zero_tilt=_zero_tilt(section("zero_tilt")),
+        path=Path(src.split(" (+")[0]) if base_dir is not None else None,
+        **fields,
+    )
+    _check_visible(rig, src)
+    return rig
+
+
+def _camera_fields(cam: _Section, src: str) -> dict[str, Any]:
+    """The [camera] section's Rig fields: the lens model, the device and its timing
+    (fps, exposure, rolling-shutter readout) and the controls visvec sets on it."""
     width = cam.number("width", required=True, positive=True)
     height = cam.number("height", required=True, positive=True)
     for k, v in (("width", width), ("height", height)):
@@ -501,6 +531,16 @@ def rig_from_dict(
             f"{cam._where('readout_sigma_ms')} = {readout_sigma_ms}: needs a readout_ms "
             "(0 declares a global shutter, whose readout has no uncertainty)"
         )
+    controls = _camera_controls(cam)
+    cam.check_unknown()
+    _check_intrinsics(camera, cam)
+    return {"camera": camera, "device": device, "fps": fps, "exposure_ms": exposure_ms,
+            "readout_ms": readout_ms, "readout_sigma_ms": readout_sigma_ms,
+            "controls": controls}  # fmt: skip
+
+
+def _camera_controls(cam: _Section) -> CameraControls:
+    """The exposure, gain and focus the rig asks the camera to keep."""
     controls = CameraControls(
         exposure=cam.number("exposure", None, lo=0.0),
         gain=cam.number("gain", None, lo=0.0),
@@ -518,7 +558,11 @@ def rig_from_dict(
             f"{cam._where('focus')} = {controls.focus:g} with auto_focus = true: the camera "
             "would not keep it; set auto_focus = false (or drop focus)"
         )
-    cam.check_unknown()
+    return controls
+
+
+def _check_intrinsics(camera: CameraModel, cam: _Section) -> None:
+    """Refuse a focal length, principal point or distortion no lens has."""
     for k, v, lo, hi in (("fx", camera.fx, 0.0, 100.0 * camera.width),
                          ("fy", camera.fy, 0.0, 100.0 * camera.height),
                          ("cx", camera.cx, 0.0, camera.width),
@@ -537,33 +581,30 @@ def rig_from_dict(
         )
     _check_lens(camera, cam._where("dist"))
 
-    mnt = _Section(src, "mount", raw["mount"], origins.get("mount", {}))
+
+def _mount(mnt: _Section) -> Mount:
     mount = Mount(
         on=mnt.choice("on", ("platform", "lab"), required=True),
         position_mm=mnt.array("position_mm", (3,), required=True),
         rotation=_rotation(mnt, "rotation"),
     )
     mnt.check_unknown()
+    return mount
 
-    tgt = _Section(src, "target", raw["target"], origins.get("target", {}))
-    kind = tgt.choice("kind", TARGET_KINDS, required=True)
-    if kind == "triangle":
-        target = _triangle_target(tgt, mount, src)
-    elif kind == "starfield":
-        target = _starfield_target(tgt, mount, src)
-    elif kind == "lamps":
-        target = _lamp_target(tgt, mount, src, base_dir)
-    else:
-        target = _marker_target(tgt, mount, src)
 
-    plat = _Section(src, "platform", raw.get("platform", {}), origins.get("platform", {}))
-    max_tilt_given = plat.has("max_tilt_deg")
-    max_tilt = plat.number("max_tilt_deg", 10.0, positive=True, hi=60.0)
-    max_rate = plat.number("max_rate_dps", 10.0, positive=True, hi=360.0)
-    max_tilt_rate = plat.number("max_tilt_rate_dps", 2.0, positive=True, hi=360.0)
+def _platform_fields(plat: _Section) -> dict[str, Any]:
+    """The [platform] section's Rig fields: the tilt and rates the platform reaches."""
+    fields = {
+        "max_tilt_given": plat.has("max_tilt_deg"),
+        "max_tilt_deg": plat.number("max_tilt_deg", 10.0, positive=True, hi=60.0),
+        "max_rate_dps": plat.number("max_rate_dps", 10.0, positive=True, hi=360.0),
+        "max_tilt_rate_dps": plat.number("max_tilt_rate_dps", 2.0, positive=True, hi=360.0),
+    }
     plat.check_unknown()
+    return fields
 
-    det = _Section(src, "detect", raw.get("detect", {}), origins.get("detect", {}))
+
+def _detect_settings(det: _Section, src: str) -> DetectSettings:
     band = det.array("brightness_band", (2,), default=[35.0, 220.0])
     if not 0 <= band[0] < band[1] <= 255:
         raise ConfigError(
@@ -582,32 +623,14 @@ def rig_from_dict(
         max_spot_px=int(det.number("max_spot_px", 400, positive=True)),
     )
     det.check_unknown()
+    return detect
 
-    zt = _Section(src, "zero_tilt", raw.get("zero_tilt", {}), origins.get("zero_tilt", {}))
+
+def _zero_tilt(zt: _Section) -> ZeroTilt:
     zero = ZeroTilt(centroid_px=zt.array("centroid_px", (2,)))
-    zt.get("residual_px")
+    zt.get("residual_px")  # written by `calibrate zero-tilt`, for the reader
     zt.check_unknown()
-
-    rig = Rig(
-        camera=camera,
-        mount=mount,
-        target=target,
-        max_tilt_deg=max_tilt,
-        max_rate_dps=max_rate,
-        max_tilt_rate_dps=max_tilt_rate,
-        detect=detect,
-        zero_tilt=zero,
-        device=device,
-        fps=fps,
-        exposure_ms=exposure_ms,
-        readout_ms=readout_ms,
-        readout_sigma_ms=readout_sigma_ms,
-        controls=controls,
-        max_tilt_given=max_tilt_given,
-        path=Path(src.split(" (+")[0]) if base_dir is not None else None,
-    )
-    _check_visible(rig, src)
-    return rig
+    return zero
 
 
 APEX_MARGIN_DEG = 10.0

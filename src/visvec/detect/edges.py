@@ -558,6 +558,64 @@ def _widths(
     return w
 
 
+def _crop(image: np.ndarray, corners_px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The part of the image (float32) that any profile of the triangle with these
+    corners can reach, and its top-left corner (x, y) in the image."""
+    reach = MAX_HALF_PX + LEVEL_EXTENT_PX + 3.0
+    lo = np.floor(corners_px.min(axis=0) - reach).astype(int)
+    hi = np.ceil(corners_px.max(axis=0) + reach).astype(int)
+    lo = np.maximum(lo, 0)
+    hi = np.minimum(hi, [image.shape[1] - 1, image.shape[0] - 1])
+    roi = image[lo[1] : hi[1] + 1, lo[0] : hi[0] + 1].astype(np.float32)
+    return roi, lo.astype(float)
+
+
+def _edge_fit(normals, offsets, centres, spreads, sigmas, level_px, h_mid, mid, width, gid,
+              keep, along, trims, lengths) -> EdgeFit:  # fmt: skip
+    """A fine pass's EdgeFit: its lines with their statistics (per edge: inliers,
+    outlier share, contrast, and how far the inliers stop short of the ends)."""
+    # the levels' error, common to the edge's profiles (see _level_gain): added per
+    # point, so that over the count it is the variance of the line's shift from the
+    # fitted level line
+    sigmas = np.hypot(sigmas, level_px / np.maximum(np.abs(h_mid), 1e-6))
+    counts = np.bincount(gid, keep, 3)
+    n_profiles = np.bincount(gid, minlength=3)
+    outl = 1.0 - counts / n_profiles
+    # how far the inlier edge points stop short of the two ends of the edge
+    starts = np.cumsum(n_profiles) - n_profiles
+    s_min = np.minimum.reduceat(np.where(keep, along, np.inf), starts)
+    s_max = np.maximum.reduceat(np.where(keep, along, -np.inf), starts)
+    gaps = np.where(
+        (counts > 0)[:, None],
+        np.column_stack([s_min - trims[[1, 2, 0]], lengths - trims[[2, 0, 1]] - s_max]),
+        lengths[:, None],
+    )
+    return EdgeFit(normals, offsets, centres, spreads, counts, sigmas, outl, h_mid, mid, gaps,
+                   width.copy())  # fmt: skip
+
+
+def _pass_window(npass: int, corners: np.ndarray, w_mid: float, half0: float, step: float,
+                 trim: float) -> tuple[float, float, np.ndarray, float]:  # fmt: skip
+    """A pass's profiles: their half-length (px), how far beyond it the levels are read,
+    how far from each vertex they stop, and their spacing along the edge. The sparse
+    pass (0) uses ``half0``; a fine pass as long as the median blur ``w_mid`` needs."""
+    ext = LEVEL_EXTENT_PX if npass >= 1 else 0.0
+    if npass >= 1:
+        half = step * np.ceil(min(max(3.0 * w_mid + 0.75, 1.5), MAX_HALF_PX) / step)
+    else:
+        half = half0
+    # near a vertex of angle alpha the other edge is d sin(alpha) away: keep the
+    # profiles (and the blur around them) clear of it
+    sides = side_lengths(corners)
+    trims = np.maximum(
+        trim * sides.min(),
+        (half + ext + 2.0 * w_mid + 0.5)
+        / np.sin(np.clip(corner_angles(corners, sides), 0.2, None)),
+    )
+    spacing = SPARSE_SPACING_PX if npass == 0 else PROFILE_SPACING_PX
+    return half, ext, trims, spacing
+
+
 def fit_edges(
     image: np.ndarray,
     corners_px: np.ndarray,
@@ -599,13 +657,7 @@ def fit_edges(
     carries ``shutter_gain`` (:func:`_shutter_gain`), the vertices' sensitivity to the
     rate, for the covariance of a rate not known yet or of the readout's error.
     """
-    reach = MAX_HALF_PX + LEVEL_EXTENT_PX + 3.0
-    lo = np.floor(corners_px.min(axis=0) - reach).astype(int)
-    hi = np.ceil(corners_px.max(axis=0) + reach).astype(int)
-    lo = np.maximum(lo, 0)
-    hi = np.minimum(hi, [image.shape[1] - 1, image.shape[0] - 1])
-    roi = image[lo[1] : hi[1] + 1, lo[0] : hi[0] + 1].astype(np.float32)
-    off = lo.astype(float)
+    roi, off = _crop(image, corners_px)
     f = camera.fx
     corners = corners_px.astype(float)
     tracked = width is not None
@@ -620,20 +672,8 @@ def fit_edges(
         k += 1
         start = corners
         w_mid = sorted(width)[1]  # median blur width of the three edges
-        ext = LEVEL_EXTENT_PX if npass >= 1 else 0.0
-        if npass >= 1:
-            half = step * np.ceil(min(max(3.0 * w_mid + 0.75, 1.5), MAX_HALF_PX) / step)
-        else:
-            half = half0
-        # near a vertex of angle alpha the other edge is d sin(alpha) away: keep the
-        # profiles (and the blur around them) clear of it
+        half, ext, trims, spacing = _pass_window(npass, corners, w_mid, half0, step, trim)
         sides = side_lengths(corners)
-        trims = np.maximum(
-            trim * sides.min(),
-            (half + ext + 2.0 * w_mid + 0.5)
-            / np.sin(np.clip(corner_angles(corners, sides), 0.2, None)),
-        )
-        spacing = SPARSE_SPACING_PX if npass == 0 else PROFILE_SPACING_PX
         bases, normals, gid, index, t, along, vals, lengths = _sample(
             roi, corners, off, half + ext, step, trims, spacing
         )
@@ -686,36 +726,8 @@ def fit_edges(
             # needed
             corners = new
             continue
-        # the levels' error, common to the edge's profiles (see _level_gain): added per
-        # point, so that over the count it is the variance of the line's shift from the
-        # fitted level line
-        sigmas = np.hypot(sigmas, level_px / np.maximum(np.abs(h_mid), 1e-6))
-        counts = np.bincount(gid, keep, 3)
-        n_profiles = np.bincount(gid, minlength=3)
-        outl = 1.0 - counts / n_profiles
-        contrast = h_mid
-        # how far the inlier edge points stop short of the two ends of the edge
-        starts = np.cumsum(n_profiles) - n_profiles
-        s_min = np.minimum.reduceat(np.where(keep, along, np.inf), starts)
-        s_max = np.maximum.reduceat(np.where(keep, along, -np.inf), starts)
-        gaps = np.where(
-            (counts > 0)[:, None],
-            np.column_stack([s_min - trims[[1, 2, 0]], lengths - trims[[2, 0, 1]] - s_max]),
-            lengths[:, None],
-        )
-        fit = EdgeFit(
-            normals_l,
-            offsets,
-            centres,
-            spreads,
-            counts,
-            sigmas,
-            outl,
-            contrast,
-            mid,
-            gaps,
-            width.copy(),
-        )
+        fit = _edge_fit(normals_l, offsets, centres, spreads, sigmas, level_px, h_mid, mid,
+                        width, gid, keep, along, trims, lengths)  # fmt: skip
         if gain and shutter is not None and not failed:
             omega = np.zeros(3) if rate_c is None else np.asarray(rate_c, float)
             fit = replace(
