@@ -8,10 +8,12 @@ import numpy as np
 import pytest
 
 from visvec.rig import load_rig
+from visvec.rotations import euler_to_matrix
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = ROOT / "configs"
 SHARED_DATA = ROOT.parent / "shared" / "data"
+TEST_DATA = ROOT / "tests" / "data"  # small files the tests own
 
 
 @pytest.fixture(scope="session")
@@ -46,3 +48,13 @@ def rig_variant(rig_path: Path, key: str, old: str, new: str, out: Path) -> Path
     lines[hits[0]] = lines[hits[0]].replace(f"{key} = {old}", f"{key} = {new}", 1)
     out.write_text("".join(lines))
     return out
+
+
+def attitudes(n: int, seed: int, tilt_deg: float = 5.0) -> list[np.ndarray]:
+    """n attitudes R_NB: yaw uniform over the circle, pitch and roll uniform within
+    +-``tilt_deg``."""
+    r = np.random.default_rng(seed)
+    return [
+        euler_to_matrix(r.uniform(-np.pi, np.pi), *np.radians(r.uniform(-tilt_deg, tilt_deg, 2)))
+        for _ in range(n)
+    ]

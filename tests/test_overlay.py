@@ -14,7 +14,8 @@ from visvec.pipeline import make_pipeline
 from visvec.rig import load_rig
 from visvec.sources import open_source
 
-ROOT = Path(__file__).resolve().parents[1]
+from conftest import ROOT
+
 GREEN, BLUE, YELLOW = (60, 200, 60), (230, 120, 30), (0, 220, 230)
 
 
@@ -86,3 +87,52 @@ def test_star_flow_overlay_draws_stars_and_their_motion(tmp_path):
     inl = det.inliers if det.inliers is not None else np.ones(len(det.matches), bool)
     starts = det.matches.uv1[inl]
     assert sum(colour_near(img, uv, GREEN, 3) > 0 for uv in starts) >= 0.9 * len(starts)
+
+
+def test_overlay_text_sits_on_a_dark_box_without_black_outlines():
+    """The overlay's header is white text on a darkened box. A thick black outline under
+    the text was misaligned with it under OpenCV 5 (wider glyph spacing) and made the
+    numbers unreadable; nothing may be darker than the darkened background."""
+    from visvec.data import Status
+    from visvec.output import AttitudeRow
+    from visvec.overlay import _text
+
+    grey = np.full((120, 400, 3), 150, np.uint8)
+    row = AttitudeRow(
+        frame=7,
+        time_s=0.2,
+        status=Status.OK,
+        euler_deg=np.array([-42.11, -2.434, -0.775]),
+        sigma_deg=np.array([0.014, 0.001, 0.001]),
+        rms_px=0.02,
+        n_points=3,
+        latency_ms=1.0,
+        warnings=("near_fov_edge",),
+    )
+    out = _text(grey.copy(), row)
+    assert out.min() >= 150 // 3  # no black outline pixels
+    assert out.max() >= 250  # the white text is there
+    assert (out[5:60, 5:200] < 150).mean() > 0.5  # on a darkened box
+    assert np.array_equal(out[100:, :], grey[100:, :])  # below the box: untouched
+
+
+def test_overlay_draws_where_the_lens_models_field_ends(rig640):
+    """A rig whose lens model folds over 345 px out (short of the 400 px corners): the
+    overlay draws that edge, beyond which nothing is measured; a rig whose model holds
+    to the corners draws none."""
+    from dataclasses import replace
+
+    from visvec.data import Status
+    from visvec.output import AttitudeRow
+    from visvec.overlay import draw_overlay
+
+    frame = np.full((480, 640), 100, np.uint8)
+    row = AttitudeRow(frame=0, time_s=0.0, status=Status.NO_TARGET, rms_px=np.nan,
+                      n_points=0, latency_ms=1.0, warnings=("no_triangle",))  # fmt: skip
+    dist = np.array([-0.32, 0.12, 0.0, 0.0, -0.02])
+    folding = replace(rig640, camera=replace(rig640.camera, fx=340.0, fy=340.0, dist=dist))
+    r = folding.camera.field_radius_px
+    u, v = int(round(319.5 + 0.8 * r)), int(round(239.5 + 0.6 * r))  # towards a corner
+    assert np.any(draw_overlay(frame, None, row, folding)[v - 1 : v + 2, u - 1 : u + 2] != 100)
+    plain = draw_overlay(frame, None, row, rig640)
+    assert np.all(plain[200:, :] == 100)  # below the header: the frame alone

@@ -12,7 +12,7 @@ spots on a dark background: few pixels above the threshold (at most 3 %), at lea
 70 % of them in compact spots, a few spots with a clear peak (the 90th-percentile peak at
 least 15 sigma above the threshold) and at least 5 spots. A photo of a tree against the
 sky or of a roof fails these; a real sky, even with a comet, passes (tested on real
-frames in tests/test_stars.py).
+frames in tests/detect/test_stars.py).
 
 Pixel convention: (0, 0) is the centre of the top-left pixel (SPEC). Tools that put
 (0, 0) at the pixel's corner (tetra3, cedar-solve) report coordinates 0.5 px larger.

@@ -6,7 +6,6 @@ from __future__ import annotations
 import csv
 import shutil
 import tomllib
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -15,7 +14,8 @@ from click.testing import CliRunner
 from visvec.calib.zero_tilt import ZeroTiltResult, yaw_reference
 from visvec.cli.main import cli
 
-ROOT = Path(__file__).resolve().parents[1]
+from conftest import ROOT
+
 RIG = ROOT / "configs" / "triangle.toml"
 TURN = 0.3
 

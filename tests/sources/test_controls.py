@@ -14,7 +14,8 @@ from visvec.errors import ConfigError
 from visvec.rig import load_rig
 from visvec.sources.video import VideoSource
 
-ROOT = Path(__file__).resolve().parents[1]
+from conftest import ROOT
+
 RIG = ROOT / "configs" / "triangle.toml"
 
 

@@ -17,7 +17,8 @@ from visvec.cli.main import cli
 pytest.importorskip("mcap")
 pytest.importorskip("rosbags")
 
-ROOT = Path(__file__).resolve().parents[1]
+from conftest import ROOT
+
 RIG = ROOT / "configs" / "triangle.toml"
 SAMPLES = ROOT / "data" / "sample_frames"
 

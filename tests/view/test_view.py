@@ -24,7 +24,8 @@ from visvec.errors import ConfigError
 from visvec.view import parse_address
 from visvec.view.words import in_words
 
-ROOT = Path(__file__).resolve().parents[1]
+from conftest import ROOT
+
 RIG = ROOT / "configs" / "triangle.toml"
 SAMPLES = sorted((ROOT / "data" / "sample_frames").glob("*.png"))
 FRAME_GAP_S = 0.4  # the replay's pace: long enough to watch a frame change

@@ -16,7 +16,8 @@ from pathlib import Path
 import cv2
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
+from conftest import ROOT
+
 RIG = ROOT / "configs" / "triangle.toml"
 SAMPLES = sorted((ROOT / "data" / "sample_frames").glob("*.png"))
 FPS = 30.0

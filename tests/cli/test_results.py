@@ -12,7 +12,8 @@ from click.testing import CliRunner
 
 from visvec.cli.main import cli
 
-ROOT = Path(__file__).resolve().parents[1]
+from conftest import ROOT
+
 RIG = ROOT / "configs" / "triangle.toml"
 SAMPLES = ROOT / "data" / "sample_frames"
 

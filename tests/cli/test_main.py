@@ -1,0 +1,164 @@
+"""The command line's contract (visvec.cli.main): exit codes, one-line errors, a closed
+pipe, Ctrl-C, help."""
+
+import csv
+import io
+import re
+from pathlib import Path
+
+import cv2
+import pytest
+from click.testing import CliRunner
+
+from visvec.cli.frames import run_frames
+from visvec.cli.main import cli
+from visvec.data import Frame
+from visvec.rig import load_rig
+
+from conftest import CONFIGS, ROOT
+
+RIG = str(CONFIGS / "triangle.toml")
+SAMPLES = ROOT / "data" / "sample_frames"
+
+
+def run(*args):
+    return CliRunner().invoke(cli, [str(a) for a in args], catch_exceptions=False)
+
+
+def besides_the_zero_tilt_note(stderr: str) -> str:
+    """stderr without the note a run on an uncalibrated triangle rig starts with, and
+    without the summary line every run of frames ends with (checked there: it says
+    every frame was ok)."""
+    note = "visvec: note: no zero-tilt calibration given"
+    lines = [x for x in stderr.splitlines(keepends=True) if not x.startswith(note)]
+    summary = re.compile(r"visvec: (\d+) frames, (\d+) ok \(")
+    kept = []
+    for x in lines:
+        m = summary.match(x)
+        if m:
+            assert m.group(1) == m.group(2), x  # a summary of a run with refusals
+            continue
+        kept.append(x)
+    return "".join(kept)
+
+
+def rows_of(text):
+    return list(csv.DictReader(io.StringIO(text)))
+
+
+def test_bad_rig_exit_2_before_any_frame(tmp_path):
+    bad = tmp_path / "bad.toml"
+    bad.write_text(Path(RIG).read_text().replace("fy = 600.0", ""))
+    out = tmp_path / "rows.csv"
+    r = run("batch", SAMPLES, "--rig", bad, "--out", out)
+    assert r.exit_code == 2
+    assert "bad.toml" in r.output and "[camera] fy" in r.output and "missing" in r.output
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("what", ["missing_folder", "empty_folder", "missing_video"])
+def test_unopenable_sources_exit_3(tmp_path, what):
+    path = {
+        "missing_folder": tmp_path / "nope",
+        "empty_folder": tmp_path,
+        "missing_video": tmp_path / "rec.avi",
+    }[what]
+    r = run("batch", path, "--rig", RIG)
+    assert r.exit_code == 3
+    assert str(path) in r.output
+
+
+def test_a_reader_that_closes_the_pipe_ends_the_run_quietly(tmp_path):
+    """`visvec batch ... | head -2`: the run ends with status 0 and no error message, and
+    a calibration whose report is cut short has still written its file."""
+    import subprocess
+    import sys
+
+    rig320 = str(CONFIGS / "triangle-320.toml")
+    frames = tmp_path / "level"
+    r = run("simulate", "--rig", rig320, "--out", frames, "--frames", 40, "--motion", "level")
+    assert r.exit_code == 0
+    vis = [sys.executable, "-m", "visvec"]
+    p = subprocess.Popen(
+        [*vis, "batch", str(frames), "--rig", rig320],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    assert p.stdout.readline().startswith("frame,time_s,status")
+    p.stdout.close()  # the reader is gone before the rows come
+    assert p.wait(timeout=120) == 0
+    assert besides_the_zero_tilt_note(p.stderr.read()) == ""
+    cal = tmp_path / "cal.toml"
+    cmd = [*vis, "calibrate", "zero-tilt", str(frames), "--rig", rig320, "--out", str(cal)]
+    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    p.stdout.close()
+    assert p.wait(timeout=120) == 0
+    assert p.stderr.read() == ""
+    assert "sigma_scale" in cal.read_text()
+
+
+def test_ctrl_c_ends_cleanly_with_every_row_written(tmp_path):
+    rig = load_rig(RIG)
+    img = cv2.imread(str(sorted(SAMPLES.glob("*.png"))[0]), cv2.IMREAD_GRAYSCALE)
+
+    def frames():
+        for i in range(3):
+            yield Frame(i, i / 30, img, f"f{i}")
+        raise KeyboardInterrupt
+
+    out = tmp_path / "rows.csv"
+    rows = run_frames(
+        rig,
+        frames(),
+        out=str(out),
+        fmt="csv",
+        method="full",
+        overlay=None,
+        max_frames=None,
+        keep_rows=True,
+    )
+    assert len(rows) == 3
+    assert len(rows_of(out.read_text())) == 3
+
+
+def test_unexpected_error_is_one_line_exit_1(monkeypatch):
+    import visvec.cli.batch as b
+
+    def boom(*a, **k):
+        raise RuntimeError("kaboom")
+
+    monkeypatch.setattr(b, "run_frames", boom)
+    r = CliRunner().invoke(cli, ["batch", str(SAMPLES), "--rig", RIG])
+    assert r.exit_code == 1
+    assert "kaboom" in r.output and "Traceback" not in r.output
+
+
+def test_misspelt_required_key_is_named(tmp_path):
+    text = Path(RIG).read_text()
+    assert "\nfx = " in text
+    (tmp_path / "fxx.toml").write_text(text.replace("\nfx = ", "\nfxx = ", 1))
+    r = run("batch", SAMPLES, "--rig", tmp_path / "fxx.toml")
+    assert r.exit_code == 2 and "fx: missing (required); the file has 'fxx'" in r.stderr
+    # a key of its own (fy) is not offered for a missing fx
+    (tmp_path / "nofx.toml").write_text(
+        "\n".join(x for x in text.splitlines() if not x.startswith("fx = "))
+    )
+    r = run("batch", SAMPLES, "--rig", tmp_path / "nofx.toml")
+    assert r.exit_code == 2 and r.stderr.rstrip().endswith("fx: missing (required)")
+
+
+def test_help_groups_the_options_of_each_kind():
+    """`simulate --help`: the options for one target kind under that kind's heading,
+    after the options for all; every option described; no range shown as None."""
+    text = run("simulate", "--help").output
+    heads = [line for line in text.splitlines() if line.endswith("options:") or line == "Options:"]
+    assert heads == ["Options:", "Triangle options:", "Markers options:", "Starfield options:",
+                     "Lamps options:"]  # fmt: skip
+    tri = text.split("Triangle options:")[1].split("Markers options:")[0]
+    assert "--blur" in tri and "--readout-ms" in tri and "--spurious" not in tri
+    assert "--spurious" in text.split("Lamps options:")[1]
+    assert "None]" not in text
+    rate = run("rate", "--help").output
+    assert "[required unless --budget]" in " ".join(rate.split())
+    assert "--budget options:" in rate
