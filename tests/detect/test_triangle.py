@@ -137,8 +137,8 @@ def test_occluder_inside_the_triangle_leaves_it_exact(rig640):
     # something bright entirely inside the triangle, clear of its edges, changes nothing
     sc = Scene(noise_sigma=0.0, occluder=Occluder(0.0, 0.0, 1300.0, 40.0, 200.0))
     d = TriangleDetector(rig640).detect(render_frame(rig640, np.eye(3), sc, rng=3))
-    if d.status is Status.OK:
-        assert np.abs(d.points_px - project_target(rig640, np.eye(3))).max() < NOISE_FREE_TOL_PX
+    assert d.status is Status.OK
+    assert np.abs(d.points_px - project_target(rig640, np.eye(3))).max() < NOISE_FREE_TOL_PX
 
 
 def test_dark_head_against_an_edge_gives_no_biased_row(rig320):
@@ -323,7 +323,22 @@ def test_detector_never_crashes_or_reports_clutter(seed, n_shapes, background):
     assert d.status in (Status.OK, Status.NO_TARGET, Status.REJECTED)
     if d.status is Status.OK:
         # only a real triangle of the rig's shape may pass: check it is one
-        assert np.all(np.isfinite(d.points_px))
+        _assert_shaped_like_the_target(d.points_px, _DET320.rig)
+
+
+def _assert_shaped_like_the_target(points_px: np.ndarray, rig) -> None:
+    """Vertices (3, 2) that make the rig's triangle as the camera sees it within the
+    platform's tilt: its sides, from the rig file's geometry (project_target at zero
+    attitude), within 10 % each, the most acute vertex first."""
+    cam = rig.camera
+    ref = cam.undistort(project_target(rig, np.eye(3)))
+    got = cam.undistort(np.asarray(points_px, float))
+    assert np.all(np.isfinite(got))
+
+    def sides(p):
+        return np.linalg.norm(p[[1, 2, 0]] - p[[2, 0, 1]], axis=1)
+
+    np.testing.assert_allclose(sides(got), sides(ref), rtol=0.10)
 
 
 def test_a_detector_for_a_triangle_past_the_fold_is_refused(rig640):
@@ -369,6 +384,7 @@ def test_detector_never_crashes_on_clutter_reaching_past_the_lens_models_field(s
     assert d.status in (Status.OK, Status.NO_TARGET, Status.REJECTED)
     if d.status is Status.OK:
         assert np.all(_FOLDING.camera.in_field(d.points_px))
+        _assert_shaped_like_the_target(d.points_px, _FOLDING)
 
 
 @pytest.mark.parametrize("rig_name", ["rig640", "rig320"])

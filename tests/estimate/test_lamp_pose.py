@@ -222,12 +222,15 @@ def test_heavy_motion_blur_is_right_or_refused(rng):
     """A fast push with a long exposure: smeared lamps give a right fix or none."""
     fast = PerimeterPath(lap_s=12.0)  # about 1 m/s
     pipe = LampPipeline(RIG)
+    n_ok = 0
     for i in range(8):
         t = i * 0.7
         img = render_lamps(RIG, fast.at, t, LampScene(exposure_ms=33.0), rng)
         row = pipe.process(Frame(i, t, img))
         if row.ok:
+            n_ok += 1
             assert np.all(np.abs(truth_err(row, fast.at(t))) < 5 * row.sigmas() + [1.0, 1.0, 0.05])
+    assert n_ok >= 6  # smeared, not lost: most frames still give a fix
 
 
 def test_simulate_and_batch_cli(tmp_path):

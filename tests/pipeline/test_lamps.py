@@ -27,11 +27,22 @@ def test_example_map_and_its_catalogue():
     assert 300 <= len(cat.triangles) <= 360  # the paper: 322 triangles for ~180 lamps
     f = cat.features
     assert np.all((f[:, 0] >= 3.0) & (f[:, 0] <= 60.0) & (f[:, 1] >= 60.0) & (f[:, 1] < 180))
-    # canonical order: the smallest angle's lamp first, then counter-clockwise
+    # each vertex's angle from the dot product of its two edges (not the law of
+    # cosines the catalogue uses)
     p = cat.lamps_mm[cat.triangles][:, :, :2]
-    order, feats = triangle_features(p)
-    assert np.all(order[:, 0] == 0) and np.all(order[:, 1] == 1)
-    np.testing.assert_allclose(feats, f)
+
+    def angle(at, u, v):
+        e1, e2 = u - at, v - at
+        cos = np.sum(e1 * e2, axis=1) / np.linalg.norm(e1, axis=1) / np.linalg.norm(e2, axis=1)
+        return np.degrees(np.arccos(cos))
+
+    ang = np.column_stack([angle(p[:, 0], p[:, 1], p[:, 2]), angle(p[:, 1], p[:, 2], p[:, 0]),
+                           angle(p[:, 2], p[:, 0], p[:, 1])])  # fmt: skip
+    np.testing.assert_allclose(f, np.column_stack([ang.min(axis=1), ang.max(axis=1)]), atol=1e-9)
+    # canonical order: the smallest angle's lamp first, then counter-clockwise
+    assert np.all(ang[:, 0] <= ang[:, 1:].min(axis=1) + 1e-9)
+    d1, d2 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
+    assert np.all(d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0] > 0)
 
 
 def test_lookup_is_invariant_to_position_heading_and_scale(rng):
