@@ -50,6 +50,10 @@ MIN_VERIFIED = 5  # spots explained by the winning pose
 MIN_VERIFIED_SHARE = 0.5
 VERIFY_GATE_PX = 6.0  # a spot this close (on the ceiling) to a predicted lamp is that lamp
 TRACK_GATE_PX = 15.0
+# through the dark (2 to 4 lamps tracked from the predicted pose): no other lamp within
+# this many tracking gates of a spot's predicted place (with the lamp within one gate,
+# a prediction off by up to a gate cannot swap it for another)
+DARK_CLEAR = 2.0
 AMBIGUOUS_RATIO = 0.6  # a rival with this fraction of the winner's verified lamps
 # dark lamps: each spot's triangles with pairs of its FRAME_NEIGHBOURS nearest spots are
 # looked up among each lamp's triangles with pairs of its MAP_NEIGHBOURS nearest lamps
@@ -133,6 +137,22 @@ class LampIdentifier:
         pts = self.body_points(xy_n)
         ids = self.match_to_map(pts, pose_pred, gate_px * self.mm_per_px)
         return Identification(ids, pose_pred if (ids >= 0).any() else None)
+
+    def track_few(self, xy_n: np.ndarray, pose_pred: np.ndarray,
+                  gate_px: float = TRACK_GATE_PX) -> Identification:  # fmt: skip
+        """Spots matched from the predicted pose when too few lamps are lit for the
+        usual tracking (through the dark): every spot must be a map lamp within
+        ``gate_px`` of its prediction, and no other lamp may lie within DARK_CLEAR
+        gates of it, so that a prediction off by up to a gate cannot swap lamps."""
+        pts = self.body_points(xy_n)
+        gate_mm = gate_px * self.mm_per_px
+        ids = self.match_to_map(pts, pose_pred, gate_mm)
+        if len(ids) == 0 or np.any(ids < 0):
+            return Identification(np.full(len(xy_n), -1), None, reason="too_few_lamps")
+        d, _ = self.map_tree.query(_to_map(pts, pose_pred), k=2)
+        if np.any(d[:, 1] < DARK_CLEAR * gate_mm):
+            return Identification(np.full(len(xy_n), -1), None, reason="ambiguous")
+        return Identification(ids, pose_pred)
 
     def lost_in_space(self, xy_n: np.ndarray) -> Identification:
         """The paper's Delaunay-triangle lookup with votes, then verification; when that

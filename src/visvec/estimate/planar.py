@@ -87,19 +87,21 @@ def solve_planar(
     rig: Rig,
     sigma_px: float,
     pose0: np.ndarray,
+    min_lamps: int = MIN_LAMPS,
 ) -> PlanarSolution:
     """Least-squares pose from lamps ``lamps_n`` (K, 3, mm in N) seen at ``xy_n`` (K, 2,
     undistorted normalised), starting from ``pose0`` (x, y, heading rad).
 
     Lamps whose residual exceeds 5 robust sigmas (and 1.5 px) are dropped once and the
-    fit repeated; the covariance is sigma^2 (J^T J)^-1 with sigma the larger of the
-    rig's centroid noise and the fit's own residual scatter.
+    fit repeated (at least ``min_lamps`` must stay: two fix the pose, with one degree of
+    freedom to check it, their distance); the covariance is sigma^2 (J^T J)^-1 with
+    sigma the larger of the rig's centroid noise and the fit's own residual scatter.
     """
     f = float(rig.camera.fx)
     keep = np.ones(len(xy_n), bool)
     pose = np.asarray(pose0, dtype=float).copy()
     for rnd in range(2):
-        if keep.sum() < MIN_LAMPS:
+        if keep.sum() < min_lamps:
             return PlanarSolution(
                 Status.REJECTED, n_points=int(keep.sum()), warnings=("too_few_lamps",)
             )

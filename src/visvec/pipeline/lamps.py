@@ -5,9 +5,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.stats import chi2 as chi2_dist
 
 from visvec.data import Status
-from visvec.detect.lamps import LampIdentifier
+from visvec.detect.lamps import TRACK_GATE_PX, LampIdentifier
 from visvec.detect.spots import Spots, find_spots
 from visvec.errors import ConfigError
 from visvec.estimate.planar import PlanarSolution, solve_planar
@@ -33,11 +34,19 @@ class LampDetection:
 NOISE_FORGET = 0.99
 NOISE_PRIOR_DOF = 20.0
 NOISE_FLOOR_PX = 0.005
+NOISE_CAP = 3.0
 EDGE_PX = 5.0  # lamp spots closer than this to the image border may be cut
 # tracking goes on while at least MIN_TRACKED lamps and MIN_TRACKED_FRACTION of the spots
 # match the map from the predicted pose
 MIN_TRACKED = 5
 MIN_TRACKED_FRACTION = 0.5
+# through the dark: with fewer lamps than that and none identified lost in space, a
+# prediction at most DARK_MAX_AGE_S old may still assign DARK_MIN or more (every spot),
+# and the fitted pose must lie within a tracking gate of it
+DARK_MIN = 2
+DARK_MAX_AGE_S = 1.0
+# lost-in-space fits of this many spots or fewer must explain them within the noise
+FEW_CHECKED = 8
 
 
 class LampPipeline(Pipeline["LampDetection", PlanarSolution]):
@@ -50,6 +59,8 @@ class LampPipeline(Pipeline["LampDetection", PlanarSolution]):
         **Pipeline.hints,
         "no_lamps": "no bright spots: are the lamps on and in view?",
         "too_few_lamps": "too few lamps seen or identified",
+        "ambiguous": "the lamps in view fit more than one place on the map, or fit it only "
+        "loosely: too few to be sure",
         "no_catalogue_match": "the lamps' triangles match none of the lamp map's: check the "
         "map and the [camera] model",
         "no_consensus": "no pose agreed by the lamps' triangles: check the map and the "
@@ -78,32 +89,74 @@ class LampPipeline(Pipeline["LampDetection", PlanarSolution]):
         t0, pose, vel = self.track_state
         return pose if vel is None else pose + vel * (t - t0)
 
-    def _fit(self, xy: np.ndarray, ident) -> PlanarSolution:
+    def _fit(self, xy: np.ndarray, ident, check: bool = False) -> PlanarSolution | None:
+        """The pose fitted to the identified spots; with ``check``, None when it does
+        not explain them within the noise (see _consistent)."""
         sel = ident.ids >= 0
         lamps = self.identifier.lamps[ident.ids[sel]]
         sol = solve_planar(xy[sel], lamps, self.rig, self.sigma_px, ident.pose)
         if sol.status is Status.OK:
+            if check and not self._consistent(sol):
+                return None
             self._learn_noise(sol)
         return sol
+
+    def _through_the_dark(self, xy: np.ndarray, pred: np.ndarray | None, t: float):
+        """(identification, solution) of a frame with too few lamps for tracking and
+        lost in space, from the predicted pose (LampIdentifier.track_few), or None.
+        Two identified lamps fix x, y and heading; their distance checks them."""
+        if pred is None or self.track_state is None or t - self.track_state[0] > DARK_MAX_AGE_S:
+            return None
+        if not DARK_MIN <= len(xy) < MIN_TRACKED:
+            return None
+        ident = self.identifier.track_few(xy, pred)
+        if ident.pose is None:
+            return None
+        lamps = self.identifier.lamps[ident.ids]
+        sol = solve_planar(xy, lamps, self.rig, self.sigma_px, pred, min_lamps=DARK_MIN)
+        if not sol.ok or (sol.inliers is not None and not sol.inliers.all()):
+            return None
+        # the lamps' distance is the one check two of them give (_consistent), and the
+        # pose must lie near the prediction
+        gate_mm = TRACK_GATE_PX * self.identifier.mm_per_px
+        if not self._consistent(sol) or np.hypot(*(sol.pose[:2] - pred[:2])) > gate_mm:
+            return None
+        self._learn_noise(sol)
+        return ident, sol
 
     def _learn_noise(self, sol: PlanarSolution) -> None:
         """The centroid noise the next frames' covariance uses: the pooled residual
         variance of the fits so far (sum of squared residuals over their degrees of
         freedom, 2n - 3 per frame; the a-posteriori variance factor of least squares),
         forgetting old frames (NOISE_FORGET) and with the rig's centroid_sigma_px as
-        a prior worth NOISE_PRIOR_DOF degrees of freedom. A fixed sigma would be the
-        lab's guess: 0.1 px where simulated lamps scatter by 0.02, four times too wide
-        for the fusion's innovation test. A frame's own chi-square still widens its
-        covariance when it scatters more (solve_planar)."""
+        a prior worth NOISE_PRIOR_DOF degrees of freedom. A frame scattering more than
+        NOISE_CAP times the noise so far counts as if at that cap (a stray spot taken
+        for a lamp, a smeared frame: the pooled variance is not an outlier's), so the
+        learned sigma follows the lamps' own scatter: 0.02 px for simulated lamps
+        where the rig's guess is 0.1 (benchmarks/lamps_few_lit.py). A frame's own
+        chi-square still widens its covariance when it scatters more (solve_planar)."""
         n = sol.n_points
         dof = 2 * n - 3
         if dof <= 0:
             return
-        self.noise_r2 = NOISE_FORGET * self.noise_r2 + 2 * n * sol.rms_px**2
+        r2 = min(2 * n * sol.rms_px**2, dof * (NOISE_CAP * self.sigma_px) ** 2)
+        self.noise_r2 = NOISE_FORGET * self.noise_r2 + r2
         self.noise_dof = NOISE_FORGET * self.noise_dof + dof
         s0 = self.rig.detect.centroid_sigma_px
         var = (NOISE_PRIOR_DOF * s0**2 + self.noise_r2) / (NOISE_PRIOR_DOF + self.noise_dof)
         self.sigma_px = max(float(np.sqrt(var)), NOISE_FLOOR_PX)
+
+    def _consistent(self, sol: PlanarSolution) -> bool:
+        """Whether a fit of few lamps explains its spots within the noise (chi-square
+        over its 2n - 3 degrees of freedom, p = 0.001). With few lamps an identification
+        that is wrong (a stray spot completing a triangle that matches the map's
+        somewhere else within its tolerance) still fits to a fraction of a pixel:
+        only the learned noise tells it from the lamps' own scatter."""
+        dof = 2 * sol.n_points - 3
+        if dof <= 0:
+            return True
+        chi2 = 2 * sol.n_points * (sol.rms_px / self.sigma_px) ** 2
+        return chi2 <= float(chi2_dist.ppf(0.999, dof))
 
     def estimate(self, frame):
         d = self.rig.detect
@@ -130,9 +183,16 @@ class LampPipeline(Pipeline["LampDetection", PlanarSolution]):
             mode = "lost_in_space"
             ident = self.identifier.lost_in_space(xy)
             if ident.pose is None:
-                self.last_detection = LampDetection(spots, ident.ids, mode, ident.reason)
-                return Status.REJECTED, None, (ident.reason,)
-            sol = self._fit(xy, ident)
+                dark = self._through_the_dark(xy, pred, frame.time_s)
+                if dark is None:
+                    self.last_detection = LampDetection(spots, ident.ids, mode, ident.reason)
+                    return Status.REJECTED, None, (ident.reason,)
+                mode, ident, sol = "dark", *dark
+            else:
+                sol = self._fit(xy, ident, check=len(xy) <= FEW_CHECKED)
+                if sol is None:
+                    self.last_detection = LampDetection(spots, ident.ids, mode, "ambiguous")
+                    return Status.REJECTED, None, ("ambiguous",)
         ids = ident.ids.copy()
         if sol.inliers is not None:
             ids[np.nonzero(ids >= 0)[0][~sol.inliers]] = -1
@@ -142,6 +202,8 @@ class LampPipeline(Pipeline["LampDetection", PlanarSolution]):
         warnings = list(sol.warnings)
         if np.sum(ids < 0) > 0:
             warnings.append("extra_spots")
+        if mode == "dark":
+            warnings.append("few_lamps")
         if self.track_state is not None and frame.time_s > self.track_state[0]:
             t0, p0, _ = self.track_state
             dp = sol.pose - p0
