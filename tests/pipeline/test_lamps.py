@@ -9,7 +9,7 @@ from visvec.errors import ConfigError
 from visvec.lamps import build_catalog, load_catalog, read_lamp_map, triangle_features
 from visvec.rig import load_rig
 
-from conftest import CONFIGS
+from conftest import CONFIGS, rig_variant
 
 MAP = CONFIGS / "lamps.csv"
 
@@ -120,3 +120,32 @@ def test_lamps_rig(tmp_path):
                         "rotation = [[1, 0, 0], [0, -1, 0], [0, 0, -1]]")  # fmt: skip
     with pytest.raises(ConfigError, match="looks down"):
         load_rig(write(tmp_path, down, "c.toml"))
+
+
+def test_catalog_build_and_check_say_how_unique_the_maps_triangles_are(tmp_path):
+    """Issue 35: with a rig, `catalog build` says how many map triangles fit in its view
+    and the share with a rival within the few-lamps lookup's tolerance; a regular grid
+    (every triangle repeated by a translation: all rivals, separated by 0 mm) is warned
+    about, here and by `visvec check`; the shipped map is not."""
+    rig = CONFIGS / "lamps.toml"
+    res = CliRunner().invoke(cli, ["catalog", "build", str(MAP), "--out", str(tmp_path / "c.npz"),
+                                   "--rig", str(rig)])  # fmt: skip
+    assert res.exit_code == 0, res.output
+    share = float(res.output.split("lamp triangles fit in the view; ")[1].split(" %")[0])
+    assert share < 5.0 and "warning" not in res.output
+    grid = tmp_path / "grid.csv"
+    grid.write_text("x_mm,y_mm\n" + "".join(f"{500 * x},{500 * y}\n" for x in range(-7, 8)
+                                            for y in range(-5, 6)))  # fmt: skip
+    res = CliRunner().invoke(cli, ["catalog", "build", str(grid), "--out",
+                                   str(tmp_path / "g.npz"), "--rig", str(rig)])  # fmt: skip
+    assert res.exit_code == 0, res.output
+    assert "100.0 % have a rival" in res.output and "differ by 0.00 mm" in res.output
+    assert f"warning: {grid}: 100 % of the map's triangles in view have a rival" in res.output
+    gridded = rig_variant(rig, "map", '"lamps.csv"', f'"{grid}"', tmp_path / "grid.toml")
+    res = CliRunner().invoke(cli, ["check", "--rig", str(gridded)])
+    assert res.exit_code == 0, res.output
+    assert "lamp map: " in res.output and "100 % of the map's triangles" in res.output
+    triangle = str(CONFIGS / "triangle.toml")
+    res = CliRunner().invoke(cli, ["catalog", "build", str(grid), "--out",
+                                   str(tmp_path / "x.npz"), "--rig", triangle])  # fmt: skip
+    assert res.exit_code == 2 and not (tmp_path / "x.npz").exists()

@@ -6,7 +6,7 @@ import warnings
 
 import click
 
-from visvec.cli.common import FiniteFloat
+from visvec.cli.common import FiniteFloat, load
 from visvec.lamps import build_catalog, read_lamp_map
 
 
@@ -27,9 +27,16 @@ def catalog() -> None:
     show_default=True,
     help="Lamp height where the map has no z_mm.",
 )
-def build(map_path, out, ceiling_z_mm) -> None:
+@click.option("--rig", "rig_path", default=None, type=click.Path(dir_okay=False),
+              help="A lamps rig whose camera sees this map: also say how unique the map's "
+              "triangles are in its view (three lamps lit identify the pose only where "
+              "their triangle has no rival).")  # fmt: skip
+def build(map_path, out, ceiling_z_mm, rig_path) -> None:
     """Delaunay triangles of the lamps in MAP (CSV x_mm,y_mm[,z_mm]) with their smallest
     and largest angles, indexed for lookup; written to --out."""
+    rig = None
+    if rig_path is not None:
+        rig = load(rig_path, kind="lamps", what="catalog build --rig")
     lamps = read_lamp_map(map_path, ceiling_z_mm)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
@@ -42,3 +49,18 @@ def build(map_path, out, ceiling_z_mm) -> None:
         f"(smallest angle {cat.features[:, 0].min():.1f}-{cat.features[:, 0].max():.1f} deg) "
         f"-> {path}"
     )
+    if rig is not None:
+        from dataclasses import replace
+
+        from visvec.detect.lamps import LampIdentifier
+
+        seen = replace(rig, target=replace(rig.target, lamps=lamps))
+        u = LampIdentifier(seen, cat).uniqueness()
+        click.echo(f"in the view of {rig_path}: {u.words()}")
+        if u.too_few_unique:
+            click.echo(
+                f"visvec: warning: {map_path}: {100 * u.rival_share:.0f} % of the map's "
+                "triangles in view have a rival: frames with three lamps lit will mostly be "
+                "refused; light lamps that break the pattern",
+                err=True,
+            )

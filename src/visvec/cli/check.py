@@ -50,6 +50,8 @@ def check(rig_path, calibration, n_frames, seed):
         f"rig {rig_path}: {rig.kind} target, camera {cam.width}x{cam.height}, "
         f"fx {cam.fx:g} px, {field}"
     )
+    if rig.kind == "lamps":
+        _lamp_map_lines(rig)
     if rig.kind not in ATTITUDE_KINDS:
         click.echo(
             f"  rig file valid; the view envelope and the simulated accuracy are for "
@@ -61,6 +63,21 @@ def check(rig_path, calibration, n_frames, seed):
         click.echo(text, err=warn)
     if n_frames:
         _accuracy(rig, n_frames, seed)
+
+
+def _lamp_map_lines(rig) -> None:
+    """How unique the lamp map's triangles are for this camera's view (issue 35)."""
+    from visvec.detect.lamps import LampIdentifier
+
+    u = LampIdentifier(rig).uniqueness()
+    click.echo(f"  lamp map: {u.words()}")
+    if u.too_few_unique:
+        click.echo(
+            f"visvec: warning: {rig.target.lamps.path}: {100 * u.rival_share:.0f} % of the "
+            "map's triangles in view have a rival: frames with three lamps lit will "
+            "mostly be refused; light lamps that break the pattern",
+            err=True,
+        )
 
 
 def geometry_lines(rig) -> list[tuple[str, bool]]:

@@ -22,6 +22,7 @@ Beyond the paper:
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from itertools import combinations
 
@@ -66,6 +67,31 @@ MAP_NEIGHBOURS = 10
 # triangle that fits in the view, by its three side lengths within FEW_SIDE_MM
 FEW_MAX = 8
 FEW_SIDE_MM = 2.0
+# a map where more than this share of the triangles in view have a rival gets a warning
+# (`visvec check`, `catalog build --rig`): three lamps lit there mostly cannot be told
+MAX_RIVAL_SHARE = 0.5
+
+
+@dataclass(frozen=True)
+class TriangleUniqueness:
+    """The few-lamps lookup's view of a map (LampIdentifier.uniqueness): how many map
+    triangles fit in the view, the share that have a rival (another within the lookup's
+    tolerance on every side, or a mirror image), and the smallest separation (mm, the
+    largest side difference to the nearest other triangle)."""
+
+    n_triangles: int
+    rival_share: float
+    smallest_mm: float
+
+    def words(self) -> str:
+        return (f"{self.n_triangles} lamp triangles fit in the view; "
+                f"{100 * self.rival_share:.1f} % have a rival within {FEW_SIDE_MM:g} mm on "
+                f"every side (three lamps lit there are refused as ambiguous: a fourth "
+                f"is needed); the closest two differ by {self.smallest_mm:.2f} mm")  # fmt: skip
+
+    @property
+    def too_few_unique(self) -> bool:
+        return self.rival_share > MAX_RIVAL_SHARE
 
 
 @dataclass(frozen=True)
@@ -256,6 +282,19 @@ class LampIdentifier:
             T = np.take_along_axis(T, order, axis=1)
             self._few_cat = (T, feats, cKDTree(feats))
         return self._few_cat
+
+    def uniqueness(self) -> TriangleUniqueness:
+        """How unique the map's triangles are to the few-lamps lookup: among every map
+        triangle that fits in the camera's view, the share with another within the
+        lookup's FEW_SIDE_MM on every side (a frame whose three lit lamps form one is
+        refused as ambiguous, and needs a fourth) and the smallest such separation."""
+        _, feats, tree = self._all_triangles()
+        if len(feats) < 2:
+            return TriangleUniqueness(len(feats), 0.0, math.inf)
+        d, _ = tree.query(feats, k=2, p=np.inf)
+        sep = d[:, 1]
+        return TriangleUniqueness(len(feats), float(np.mean(sep <= FEW_SIDE_MM)),
+                                  float(sep.min()))  # fmt: skip
 
     def _lookup(
         self, pts: np.ndarray, tri: np.ndarray, catalog: Catalog, cat_perimeter: np.ndarray
