@@ -87,6 +87,37 @@ def rig_options(f=None, *, required: bool = True, unless: str | None = None):
     return f
 
 
+def _scheduler_address(ctx, param, value):
+    if value is None:
+        return None
+    if "://" not in value:
+        value = f"tcp://{value}"
+    scheme, _, rest = value.partition("://")
+    host, _, port = rest.rpartition(":")
+    if scheme not in ("tcp", "tls", "ucx", "inproc") or not host or not port.isdigit():
+        raise click.BadParameter(
+            f"{value!r}: expected a Dask scheduler address, tcp://HOST:PORT (as `dask "
+            "scheduler` prints it)"
+        )
+    return value
+
+
+def scheduler_options(f):
+    """--scheduler and --workers: where a study's independent tasks run
+    (visvec.distribute)."""
+    f = click.option(
+        "--workers", type=click.IntRange(min=1), default=None,
+        help="Worker processes on this machine [all cores]: a local Dask cluster when the "
+        "[dask] extra is installed, else a process pool (1: this process alone).",
+    )(f)  # fmt: skip
+    f = click.option(
+        "--scheduler", metavar="ADDRESS", default=None, callback=_scheduler_address,
+        help="A running Dask scheduler (tcp://HOST:PORT) whose workers run the tasks; they "
+        "need this version of visvec (docs: studies on a cluster).",
+    )(f)  # fmt: skip
+    return f
+
+
 def result_options(f):
     """--errors, --summary (batch, rate)."""
     f = click.option(

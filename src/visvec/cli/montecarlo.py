@@ -4,15 +4,15 @@ from __future__ import annotations
 
 import json
 import math
-import os
-from concurrent.futures import ProcessPoolExecutor
+import sys
 from pathlib import Path
 
 import click
 
 from visvec.bench.markers import METHODS, RunSpec, run_one, summarise
-from visvec.cli.common import load, rig_options
+from visvec.cli.common import load, rig_options, scheduler_options
 from visvec.cli.progress import Work
+from visvec.distribute import TaskPool
 
 
 def _floats(text: str, what: str) -> list[float]:
@@ -67,9 +67,7 @@ def _floats(text: str, what: str) -> list[float]:
     is_flag=True,
     help="Skip the virtual calibration: estimate with the true lab geometry.",
 )
-@click.option(
-    "--workers", type=click.IntRange(min=1), default=None, help="Processes (default: all cores)."
-)
+@scheduler_options
 @click.option("--seed", type=int, default=0, show_default=True)
 @click.option(
     "--out",
@@ -87,6 +85,7 @@ def montecarlo(
     frames,
     poses,
     no_calibration,
+    scheduler,
     workers,
     seed,
     out_dir,
@@ -112,31 +111,27 @@ def montecarlo(
         for j, m in enumerate(ms)
         for k in range(runs)
     ]
-    results = []
-    with (
-        ProcessPoolExecutor(workers or os.cpu_count() or 1) as ex,
-        Work("montecarlo", len(specs), unit="run") as bar,
-    ):
-        for r in ex.map(run_one, specs):
-            results.append(r)
-            bar.update(1)
-    summary = summarise(results)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "montecarlo.json").write_text(
-        json.dumps(
-            {
-                "rig": str(rig_path),
-                "runs_per_point": runs,
-                "frames": frames,
-                "poses": poses,
-                "calibrated": not no_calibration,
-                "summary": summary,
-                "runs": results,
-            },
-            indent=1,
-        )
-    )
+    head = {"rig": str(rig_path), "runs_per_point": runs, "frames": frames, "poses": poses,
+            "calibrated": not no_calibration}  # fmt: skip
+    finished: dict[int, dict] = {}
+    with TaskPool(scheduler, workers) as pool:
+        click.echo(f"visvec: {len(specs)} runs on {pool.where}", err=True)
+        try:
+            with Work("montecarlo", len(specs), unit="run") as bar:
+                pool.map(run_one, specs, lambda i, r: (finished.__setitem__(i, r), bar.update(1)))
+        except KeyboardInterrupt:
+            # every finished run kept, in task order, for a study to be resumed or read
+            done = [finished[i] for i in sorted(finished)]
+            _write(out, {**head, "interrupted": True, "runs_finished": len(done),
+                         "summary": summarise(done) if done else [], "runs": done})  # fmt: skip
+            click.echo(f"visvec: interrupted: {len(done)} of {len(specs)} runs finished, "
+                       f"written to {out / 'montecarlo.json'}", err=True)  # fmt: skip
+            sys.exit(130)
+    results = [finished[i] for i in range(len(specs))]
+    summary = summarise(results)
+    _write(out, {**head, "summary": summary, "runs": results})
     for p in summary:
         click.echo(
             f"sigma_c {p['sigma_c_px']:.3f} px, sigma_m {p['sigma_m_mm']:.3f} mm: "
@@ -148,6 +143,10 @@ def montecarlo(
         click.echo(f"wrote {out / 'montecarlo.json'} and {out / 'montecarlo.png'}")
     else:
         click.echo(f"wrote {out / 'montecarlo.json'} (install matplotlib for the plots)")
+
+
+def _write(out: Path, study: dict) -> None:
+    (out / "montecarlo.json").write_text(json.dumps(study, indent=1))
 
 
 def _plot(summary, cs, ms, path: Path) -> bool:
