@@ -93,7 +93,7 @@ def test_field_of_view_of_a_pinhole():
 @pytest.mark.parametrize("kind", ["triangle-320", "markers"])
 def test_simulated_accuracy_is_ok_and_within_sigma(kind):
     rig = load_rig(CONFIGS / f"{kind}.toml")
-    out = simulated_accuracy(rig, 3, seed=4, workers=1)
+    out = simulated_accuracy(rig, 3, seed=4)
     assert out.n == 3 and out.n_ok == 3, out.reasons()
     assert out.n_outside(3.0) == 0
 

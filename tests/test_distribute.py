@@ -81,7 +81,7 @@ def test_a_scheduler_that_does_not_answer_is_exit_3_before_any_work(tmp_path, mo
     r = CliRunner().invoke(cli, ["montecarlo", *SMALL, "--out", str(out),
                                  "--scheduler", "tcp://127.0.0.1:9"])  # fmt: skip
     assert r.exit_code == 3
-    assert "tcp://127.0.0.1:9: no Dask scheduler answered" in r.output
+    assert "Dask scheduler tcp://127.0.0.1:9: no answer within 1 s" in r.output
     assert not (out / "montecarlo.json").exists()
     r = CliRunner().invoke(cli, ["montecarlo", *SMALL, "--out", str(out), "--scheduler", "nope"])
     assert r.exit_code == 2 and "tcp://HOST:PORT" in r.output
@@ -92,7 +92,7 @@ def test_workers_with_another_visvec_are_refused_naming_both(cluster, monkeypatc
     with pytest.raises(SourceError) as e:
         TaskPool(cluster.scheduler_address).__enter__()
     msg = str(e.value)
-    assert "workers must run visvec 9.9.9" in msg
+    assert "its workers must run visvec 9.9.9" in msg
     assert msg.count("has visvec 0.1.0") == 2
 
 

@@ -24,8 +24,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from visvec.bench.triangle import Case, Outcome, evaluate, render_cases
+from visvec.bench.triangle import Case, Outcome, evaluate
 from visvec.detect.markers import VISIBLE_MARGIN_PX
+from visvec.distribute import TaskPool
 from visvec.rig import Rig
 from visvec.rotations import matrix_to_euler
 from visvec.sim.markers import SpotScene, render_markers
@@ -175,27 +176,50 @@ def random_attitudes_within(n: int, max_tilt_deg: float, rng: np.random.Generato
     return tilted(yaw, d, t)
 
 
+# check's simulated frames go out in tasks of this many (rendered and processed cold)
+CHUNK_FRAMES = 10
+
+
+def _accuracy_task(args) -> Outcome:
+    """One task of :func:`simulated_accuracy`: render and process its frames."""
+    rig, Rs, cases = args
+    if rig.kind == "triangle":
+        from visvec.sim.render import render_frame
+
+        images = [render_frame(rig, R, c.scene, c.seed) for R, c in zip(Rs, cases, strict=True)]
+    else:
+        images = [render_markers(rig, R, SpotScene(), c.seed)
+                  for R, c in zip(Rs, cases, strict=True)]  # fmt: skip
+    return evaluate(rig, images, cases, "full")
+
+
 def simulated_accuracy(
-    rig: Rig, n: int, seed: int = 0, workers: int | None = None, progress=None
+    rig: Rig, n: int, seed: int = 0, pool: TaskPool | None = None, progress=None
 ) -> Outcome:
     """Rows of ``n`` frames rendered at random attitudes within max_tilt_deg (the
-    simulator's default scene), each processed cold, against their truth;
-    ``progress(1)`` after each frame rendered and each processed (2n in all)."""
+    simulator's default scene), each processed cold, against their truth. The frames
+    go out in tasks of CHUNK_FRAMES to ``pool`` (this process without one), so that the
+    outcome is the same wherever they run; ``progress(k)`` after each task (2 per
+    frame: rendered and processed)."""
+    if rig.kind not in ATTITUDE_KINDS:
+        raise ValueError(f"target kind {rig.kind!r}: expected one of {ATTITUDE_KINDS}")
     rng = np.random.default_rng(seed)
     Rs = random_attitudes_within(n, rig.max_tilt_deg, rng)
     euler = [np.array(matrix_to_euler(R)) for R in Rs]
     cases = [Case(e, Scene(), seed * 100003 + k) for k, e in enumerate(euler)]
-    if rig.kind == "triangle":
-        images = render_cases(rig, cases, workers, progress)
-    elif rig.kind == "markers":
-        images = []
-        for R, c in zip(Rs, cases, strict=True):
-            images.append(render_markers(rig, R, SpotScene(), c.seed))
-            if progress is not None:
-                progress(1)
-    else:
-        raise ValueError(f"target kind {rig.kind!r}: expected one of {ATTITUDE_KINDS}")
-    return evaluate(rig, images, cases, "full", progress=progress)
+    tasks = [(rig, Rs[k : k + CHUNK_FRAMES], cases[k : k + CHUNK_FRAMES])
+             for k in range(0, n, CHUNK_FRAMES)]  # fmt: skip
+
+    def done(i, _):
+        if progress is not None:
+            progress(2 * len(tasks[i][2]))
+
+    parts = (pool or TaskPool(workers=1)).map(_accuracy_task, tasks, done)
+    out = Outcome()
+    for part in parts:
+        for name in ("status", "warnings", "err_deg", "sigma_deg"):
+            getattr(out, name).extend(getattr(part, name))
+    return out
 
 
 def field_of_view_deg(rig: Rig) -> tuple[float, float, float] | None:

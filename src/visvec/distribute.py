@@ -114,7 +114,7 @@ class TaskPool:
             self._client = Client(self.scheduler, timeout=CONNECT_TIMEOUT_S)
         except (OSError, TimeoutError) as exc:
             raise SourceError(
-                f"--scheduler {self.scheduler}: no Dask scheduler answered within "
+                f"Dask scheduler {self.scheduler}: no answer within "
                 f"{CONNECT_TIMEOUT_S:g} s ({exc}): is it running, and is the address "
                 "tcp://HOST:PORT as `dask scheduler` printed it?"
             ) from None
@@ -123,14 +123,14 @@ class TaskPool:
         versions = self._client.run(ns["probe"])
         if not versions:
             self.close()
-            raise SourceError(f"--scheduler {self.scheduler}: the scheduler has no workers")
+            raise SourceError(f"Dask scheduler {self.scheduler}: it has no workers")
         wrong = {w: v for w, v in versions.items() if v != visvec.__version__}
         if wrong:
             self.close()
             names = ", ".join(f"{w} has {'no visvec' if v is None else 'visvec ' + v}"
                               for w, v in sorted(wrong.items()))  # fmt: skip
             raise SourceError(
-                f"--scheduler {self.scheduler}: workers must run visvec "
+                f"Dask scheduler {self.scheduler}: its workers must run visvec "
                 f"{visvec.__version__}, as here: {names}"
             )
 

@@ -321,3 +321,39 @@ def test_batch_takes_a_quoted_glob(tmp_path):
     assert [x["yaw_deg"] for x in rows] == [x["yaw_deg"] for x in full[:4]]
     r = run("batch", f"{SAMPLES}/nothing_*.png", "--rig", RIG)
     assert r.exit_code == 3 and "no image matches the pattern" in r.stderr
+
+
+def test_many_recordings_one_output_each_wherever_they_run(tmp_path):
+    """`batch REC... --out-dir DIR`: one output per recording, named after it, the same
+    rows whether the recordings run in this process or on a local Dask cluster of two
+    workers (latency_ms, the time each frame took, aside), a line per recording; one
+    recording's options are refused before any work."""
+    pytest.importorskip("distributed")
+    recs = []
+    for k in range(3):
+        rec = tmp_path / f"rec{k}"
+        r = CliRunner().invoke(cli, ["simulate", "--rig", RIG, "--out", str(rec), "--frames",
+                                     "6", "--seed", str(k)])  # fmt: skip
+        assert r.exit_code == 0, r.output
+        recs.append(str(rec))
+    outs = {}
+    for workers in ("1", "2"):
+        out = tmp_path / f"out{workers}"
+        r = CliRunner().invoke(cli, ["batch", *recs, "--rig", RIG, "--out-dir", str(out),
+                                     "--workers", workers])  # fmt: skip
+        assert r.exit_code == 0, r.output
+        for k in range(3):
+            assert f"rec{k}: 6 ok of 6 rows -> {out / f'rec{k}.csv'}" in r.output
+        outs[workers] = {
+            k: [{c: v for c, v in row.items() if c != "latency_ms"}
+                for row in csv.DictReader(open(out / f"rec{k}.csv"))]
+            for k in range(3)
+        }  # fmt: skip
+    assert outs["1"] == outs["2"]
+    assert outs["1"][0] != outs["1"][1]  # each recording its own rows
+    r = CliRunner().invoke(cli, ["batch", *recs, "--rig", RIG, "--out-dir", str(tmp_path / "x"),
+                                 "--truth", str(tmp_path / "rec0" / "truth.csv")])  # fmt: skip
+    assert r.exit_code == 2 and "--truth: one recording's options" in r.output
+    assert not (tmp_path / "x").exists()
+    r = CliRunner().invoke(cli, ["batch", *recs, "--rig", RIG])
+    assert r.exit_code == 2 and "several recordings need --out-dir" in r.output

@@ -1,6 +1,11 @@
-"""`visvec batch`: rows for a folder of images or a video file."""
+"""`visvec batch`: rows for a folder of images or a video file, or for many recordings
+(one output each) on this machine's cores or a Dask cluster."""
 
 from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
 
 import click
 
@@ -15,10 +20,13 @@ from visvec.cli.common import (
     output_options,
     result_options,
     rig_options,
+    scheduler_options,
 )
 from visvec.cli.frames import run_frames
+from visvec.cli.progress import Work
 from visvec.cli.results import check_results, write_results
 from visvec.cli.view import linger, open_view
+from visvec.distribute import TaskPool
 from visvec.evaluate import error_stats, read_truth
 from visvec.fuse.camera import paced
 from visvec.pipeline import make_pipeline
@@ -26,7 +34,7 @@ from visvec.sources import open_source
 
 
 @click.command(cls=KindCommand)
-@click.argument("path", type=click.Path())
+@click.argument("paths", metavar="PATH...", nargs=-1, required=True, type=click.Path())
 @rig_options
 @click.option(
     "--truth",
@@ -48,13 +56,41 @@ from visvec.sources import open_source
     default=None,
     help="Frame rate (Hz) of a folder of frames without times.csv (default: the rig's fps).",
 )
+@click.option(
+    "--out-dir", type=click.Path(file_okay=False), default=None,
+    help="Many recordings: one output per recording in this folder (NAME.csv or "
+    "NAME.jsonl), the recordings processed side by side (--workers, --scheduler).",
+)  # fmt: skip
+@scheduler_options
 @camera_out_option
 @result_options
 @output_options
-def batch(path, rig_path, calibration, truth, imu_path, fps, camera_out, errors, summary, out,
-          fmt, method, overlay, max_frames, serve, covariance, ros_images):  # fmt: skip
-    """Process a folder of images (natural sort order) or a video file."""
+def batch(paths, rig_path, calibration, truth, imu_path, fps, out_dir, scheduler, workers,
+          camera_out, errors, summary, out, fmt, method, overlay, max_frames, serve, covariance,
+          ros_images):  # fmt: skip
+    """Process a folder of images (natural sort order) or a video file; or many of them
+    with --out-dir, one output each."""
     rig = load(rig_path, calibration)
+    if out_dir is not None or len(paths) > 1:
+        given = [name for name, v in (("--out", out), ("--truth", truth), ("--imu", imu_path),
+                                      ("--overlay", overlay), ("--serve", serve),
+                                      ("--errors", errors), ("--summary", summary),
+                                      ("--camera-out", camera_out),
+                                      ("--ros-images", ros_images)) if v]  # fmt: skip
+        if out_dir is None:
+            raise click.UsageError("several recordings need --out-dir (one output each)")
+        if fmt == "rosbag2":
+            given.append("--format rosbag2")
+        if given:
+            raise click.UsageError(f"{', '.join(given)}: one recording's options; with "
+                                   "--out-dir each recording has its own output")  # fmt: skip
+        run_many(rig, paths, out_dir, fmt, method, max_frames, covariance, fps, scheduler,
+                 workers)  # fmt: skip
+        return
+    if scheduler is not None or workers is not None:
+        raise click.UsageError("--scheduler and --workers go with several recordings "
+                               "(--out-dir)")  # fmt: skip
+    path = paths[0]
     note_inputs(path, truth, imu_path)
     check_output(out)
     check_output(overlay, "--overlay")
@@ -123,3 +159,47 @@ def run_batch(
         for line in stats.lines():
             click.echo(line, err=out is None)
     write_results(errors, summary, rows, truth_rows, stats, names)
+
+
+def run_many(rig, paths, out_dir, fmt, method, max_frames, covariance, fps, scheduler,
+             workers) -> None:  # fmt: skip
+    """Each recording's rows to OUT_DIR/NAME.csv (or .jsonl), the recordings as tasks of
+    a TaskPool; a line per recording at the end."""
+    note_inputs(*paths)
+    for p in paths:
+        if not Path(p).exists():
+            raise click.BadParameter(f"{p}: no such folder or video", param_hint="PATH")
+    names = [Path(p).name or Path(p).resolve().name for p in paths]
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        raise click.BadParameter(f"{', '.join(dup)}: two recordings of one name would write one "
+                                 "output; rename one", param_hint="PATH")  # fmt: skip
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    ext = "jsonl" if fmt == "jsonl" else "csv"
+    tasks = [(rig, str(p), str(out / f"{n}.{ext}"), fmt, method, max_frames, covariance, fps)
+             for p, n in zip(paths, names, strict=True)]  # fmt: skip
+    for t in tasks:
+        check_output(t[2])
+    results = {}
+    with TaskPool(scheduler, workers) as pool:
+        click.echo(f"visvec: {len(tasks)} recordings on {pool.where}", err=True)
+        with Work("batch", len(tasks), unit="recording") as bar:
+            pool.map(batch_one, tasks, lambda i, r: (results.__setitem__(i, r), bar.update(1)))
+    for i in range(len(tasks)):
+        r = results[i]
+        click.echo(f"{paths[i]}: {r['ok']} ok of {r['rows']} rows -> {tasks[i][2]}")
+
+
+def batch_one(task) -> dict:
+    """One recording of :func:`run_many`: its rows written, their count and ok count."""
+    rig, path, out, fmt, method, max_frames, covariance, fps = task
+    src = open_source(path, fps=fps or rig.fps, max_frames=max_frames, retry_s=0.0)
+    run_frames(rig, src, out=out, fmt=fmt, method=method, overlay=None, max_frames=max_frames,
+               what=f"batch {Path(path).name}", covariance=covariance)  # fmt: skip
+    with open(out) as fh:
+        if fmt == "jsonl":
+            status = [json.loads(line)["status"] for line in fh if line.strip()]
+        else:
+            status = [r["status"] for r in csv.DictReader(fh)]
+    return {"rows": len(status), "ok": status.count("ok")}

@@ -15,9 +15,10 @@ from visvec.check import (
     field_of_view_deg,
     simulated_accuracy,
 )
-from visvec.cli.common import load, rig_options
+from visvec.cli.common import load, rig_options, scheduler_options
 from visvec.cli.progress import Work
 from visvec.detect.edges import side_lengths
+from visvec.distribute import TaskPool
 from visvec.sim.markers import SpotScene
 from visvec.sim.scene import Scene
 
@@ -33,7 +34,8 @@ from visvec.sim.scene import Scene
     help="Simulated frames for the expected accuracy (0: none).",
 )
 @click.option("--seed", type=int, default=0, show_default=True, help="Random seed.")
-def check(rig_path, calibration, n_frames, seed):
+@scheduler_options
+def check(rig_path, calibration, n_frames, seed, scheduler, workers):
     """What the rig's camera sees and how well: its field, the target's image at zero
     attitude, the tilts that keep the target in view at every yaw, and the accuracy of
     frames simulated within [platform] max_tilt_deg. Checks the rig file first (exit 2)."""
@@ -62,7 +64,7 @@ def check(rig_path, calibration, n_frames, seed):
     for text, warn in geometry_lines(rig):
         click.echo(text, err=warn)
     if n_frames:
-        _accuracy(rig, n_frames, seed)
+        _accuracy(rig, n_frames, seed, scheduler, workers)
 
 
 def _lamp_map_lines(rig) -> None:
@@ -155,7 +157,7 @@ def _envelope(rig) -> list[tuple[str, bool]]:
     return out
 
 
-def _accuracy(rig, n_frames: int, seed: int) -> None:
+def _accuracy(rig, n_frames: int, seed: int, scheduler: str | None, workers: int | None) -> None:
     if rig.kind == "triangle":
         sc = Scene()
         scene = (
@@ -172,8 +174,8 @@ def _accuracy(rig, n_frames: int, seed: int) -> None:
         f"  simulated: {n_frames} frames at random yaws and tilts within "
         f"{rig.max_tilt_deg:g} deg, each cold (the simulator's default scene: {scene})"
     )
-    with Work("check", 2 * n_frames, unit="step") as bar:
-        out = simulated_accuracy(rig, n_frames, seed, progress=bar.update)
+    with TaskPool(scheduler, workers) as pool, Work("check", 2 * n_frames, unit="step") as bar:
+        out = simulated_accuracy(rig, n_frames, seed, pool, progress=bar.update)
     line = f"    ok {out.n_ok} of {out.n}"
     if out.n_ok:
         rms = out.rms()
