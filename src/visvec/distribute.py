@@ -77,7 +77,7 @@ class TaskPool:
         self._pool: ProcessPoolExecutor | None = None
         if scheduler is not None and not have_dask():
             raise SourceError(
-                f'--scheduler {scheduler}: Dask is not installed here; pip install "visvec[dask]"'
+                f'Dask scheduler {scheduler}: Dask is not installed here; pip install "visvec[dask]"'
             )
 
     @property
