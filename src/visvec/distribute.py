@@ -77,7 +77,8 @@ class TaskPool:
         self._pool: ProcessPoolExecutor | None = None
         if scheduler is not None and not have_dask():
             raise SourceError(
-                f'Dask scheduler {scheduler}: Dask is not installed here; pip install "visvec[dask]"'
+                f"Dask scheduler {scheduler}: Dask is not installed here; "
+                'pip install "visvec[dask]"'
             )
 
     @property
@@ -96,12 +97,26 @@ class TaskPool:
         if self.scheduler is not None:
             self._connect()
         elif have_dask() and self.workers > 1:
+            import dask
             from distributed import Client, LocalCluster
 
-            self._cluster = LocalCluster(
-                n_workers=self.workers, threads_per_worker=1, processes=True,
-                host="127.0.0.1", dashboard_address="127.0.0.1:0", silence_logs=40,
-            )  # fmt: skip
+            # the workers' environment: one thread per numerical library (as the tasks
+            # run: one_thread), but not Dask's default MALLOC_TRIM_THRESHOLD_, whose
+            # eager trimming costs these tasks 5 %; and the workers' own bookkeeping
+            # (stack sampling every 10 ms, system and memory polls) less often, as it
+            # takes the cores the tasks need (benchmarks/dask_scale.py)
+            env = {k: 1 for k in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")}
+            quiet = {
+                "distributed.nanny.pre-spawn-environ": env,
+                "distributed.worker.profile.enabled": False,
+                "distributed.admin.system-monitor.interval": "2s",
+                "distributed.worker.memory.monitor-interval": "1s",
+            }
+            with dask.config.set(quiet):
+                self._cluster = LocalCluster(
+                    n_workers=self.workers, threads_per_worker=1, processes=True,
+                    host="127.0.0.1", dashboard_address="127.0.0.1:0", silence_logs=40,
+                )  # fmt: skip
             self._client = Client(self._cluster)
         elif self.workers > 1:
             self._pool = ProcessPoolExecutor(self.workers)
@@ -133,6 +148,17 @@ class TaskPool:
                 f"Dask scheduler {self.scheduler}: its workers must run visvec "
                 f"{visvec.__version__}, as here: {names}"
             )
+
+    def warm(self, module: str) -> None:
+        """Import ``module`` on every worker now (a study's first tasks would pay it)."""
+        if self._client is not None:
+            import importlib
+
+            self._client.run(importlib.import_module, module)
+        elif self._pool is not None:
+            import importlib
+
+            list(self._pool.map(importlib.import_module, [module] * self.workers))
 
     def __exit__(self, *exc) -> None:
         self.close()
