@@ -25,23 +25,13 @@ import os
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from functools import partial
+from importlib import metadata
 from typing import Any
 
 import visvec
 from visvec.errors import SourceError
 
 CONNECT_TIMEOUT_S = 10.0
-
-# run on every worker, sent by value (this module need not be importable there): the
-# visvec version the worker would run, or None without visvec
-_PROBE = """
-def probe():
-    try:
-        import visvec
-    except ImportError:
-        return None
-    return visvec.__version__
-"""
 
 
 def one_thread(fn: Callable, x: Any) -> Any:
@@ -133,9 +123,10 @@ class TaskPool:
                 f"{CONNECT_TIMEOUT_S:g} s ({exc}): is it running, and is the address "
                 "tcp://HOST:PORT as `dask scheduler` printed it?"
             ) from None
-        ns: dict[str, Any] = {"__name__": "visvec_probe"}
-        exec(_PROBE, ns)  # defined here so that it travels by value
-        versions = self._client.run(ns["probe"])
+        # the installed visvec's version on every worker, asked of the standard library
+        # (a worker without visvec answers with the error)
+        versions = self._client.run(metadata.version, "visvec", on_error="return")
+        versions = {w: (None if isinstance(v, Exception) else v) for w, v in versions.items()}
         if not versions:
             self.close()
             raise SourceError(f"Dask scheduler {self.scheduler}: it has no workers")
