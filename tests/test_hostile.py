@@ -6,6 +6,8 @@ import os
 import subprocess
 import sys
 
+import pytest
+
 from conftest import ROOT
 
 SAMPLE = ROOT / "data" / "sample_frames"
@@ -68,6 +70,7 @@ def test_a_video_whose_name_is_not_utf8_is_refused_clearly(tmp_path):
     assert b"not UTF-8" in r.stderr and b"Traceback" not in r.stderr
 
 
+@pytest.mark.slow
 def test_numbers_that_are_not_numbers_are_refused(tmp_path):
     """NaN and infinity in options, times and truth files: refused naming the option
     or the line (exit 2), never accepted."""
@@ -191,6 +194,7 @@ def _rig_with(tmp_path, old: str, new: str, name="rig.toml"):
     return p
 
 
+@pytest.mark.slow
 def test_a_rig_that_cannot_work_is_refused_naming_the_key(tmp_path):
     """An equilateral triangle (three attitudes 120 deg apart fit it), absurd camera
     values, a file that is not text or is nested without end, /dev/zero: refused by
@@ -315,6 +319,7 @@ def test_a_fifo_given_as_a_video_is_refused_at_once(tmp_path):
     assert r.returncode == 3 and b"not a regular file" in r.stderr
 
 
+@pytest.mark.slow
 def test_a_calibration_that_should_be_refused(tmp_path):
     """Zero-tilt frames that are not level are refused, nothing written; a
     calibration made with one camera is refused on another (size or intrinsics),

@@ -250,6 +250,7 @@ def test_batch_says_when_the_camera_principal_point_is_off(tmp_path):
     assert "rolling shutter" not in r.stderr
 
 
+@pytest.mark.slow
 def test_batch_says_when_the_frames_show_a_rolling_shutter_the_rig_does_not(tmp_path):
     """A rolling-shutter webcam (25 ms) swinging out and back at up to 20 deg/s under a
     rig file that says global shutter: the first frames are sheared (refused, or ok and
