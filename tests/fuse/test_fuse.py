@@ -232,7 +232,7 @@ def test_fuse_cli(tmp_path):
     r = CliRunner().invoke(cli, ["fuse", "--imu", str(bad), "--fixes", str(fixes)])
     assert r.exit_code == 2 and "line 3" in r.output
     r = CliRunner().invoke(cli, ["fuse", "--imu", str(imu), "--fixes", str(fixes), "--rest-s", "9"])
-    assert r.exit_code == 2 and "do not look like rest" in r.output
+    assert r.exit_code == 2 and "--rest-s 9: the first 9 s do not look like rest" in r.output
 
 
 def _sim3d(n=6000, dt=0.01, seed=4, amp=1.0, delay=0.0, rest_s=0.0, speed=1.0):

@@ -150,7 +150,7 @@ def fuse(imu_path, fixes_path, follow, max_samples, silent_s, gyro_range_dps, ou
         try:
             rb = rest_biases(imu, rest_s, limits)
         except ValueError as exc:
-            raise click.UsageError(str(exc)) from None
+            raise click.UsageError(f"--rest-s {rest_s:g}: {exc}") from None
         if fixes.planar:
             model = replace(
                 model,

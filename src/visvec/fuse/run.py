@@ -48,14 +48,14 @@ def rest_biases(imu: ImuData, duration_s: float, limits: Limits | None = None) -
         sel &= ~np.array([is_faulty(g, a, limits) for g, a in zip(imu.gyro, acc, strict=True)])
     n = int(sel.sum())
     if n < 10:
-        raise ValueError(f"--rest-s {duration_s}: {n} inertial samples; at least 10 needed")
+        raise ValueError(f"{n} inertial samples in the first {duration_s:g} s; at least 10 needed")
     g = imu.gyro[sel].mean(axis=0)
     a = imu.accel[sel].mean(axis=0) if imu.accel is not None else None
     if np.degrees(np.abs(g)).max() > REST_MAX_RATE_DPS or (
         imu.accel is not None and imu.accel[sel].std(axis=0).max() > REST_MAX_ACCEL_STD
     ):
         raise ValueError(
-            f"--rest-s {duration_s}: the first {duration_s} s do not look like rest (mean rate "
+            f"the first {duration_s:g} s do not look like rest (mean rate "
             f"{np.degrees(g).round(3).tolist()} deg/s); give a shorter rest window or none"
         )
     return RestBiases(g, a, n, duration_s)
