@@ -402,7 +402,9 @@ def _agrees(hyp: np.ndarray, h: np.ndarray) -> np.ndarray:
 
 def _votes(hyp: np.ndarray, tri_of: np.ndarray) -> np.ndarray:
     """For each hypothesis, the number of distinct frame triangles agreeing with it."""
-    A = np.atleast_2d(_agrees(hyp, hyp)).astype(np.int32)  # (m, m)
-    onehot = np.zeros((len(hyp), int(tri_of.max()) + 1), np.int32)
-    onehot[np.arange(len(hyp)), tri_of] = 1
+    # counts as float32 products (BLAS; numpy's integer products are not): exact
+    # for counts this small
+    A = np.atleast_2d(_agrees(hyp, hyp)).astype(np.float32)  # (m, m)
+    onehot = np.zeros((len(hyp), int(tri_of.max()) + 1), np.float32)
+    onehot[np.arange(len(hyp)), tri_of] = 1.0
     return np.count_nonzero(A @ onehot, axis=1)

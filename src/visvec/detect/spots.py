@@ -69,27 +69,55 @@ def _hist_median(hist: np.ndarray) -> float:
     return 0.5 * (lo + hi)
 
 
+# frames of at least this many pixels are labelled at half resolution (_max_pool2)
+POOLED_MIN_PX = 100_000
+
+
+def _max_pool2(binary: np.ndarray) -> np.ndarray:
+    """Non-zero where any pixel of a 2x2 block of the 0/255 mask is (an odd last row or
+    column kept as its own): the blocks' mean (cv2.resize INTER_AREA), which is at
+    least 64 wherever one pixel is set."""
+    h, w = binary.shape
+    if h % 2 or w % 2:
+        binary = np.pad(binary, ((0, h % 2), (0, w % 2)))
+        h, w = binary.shape
+    return cv2.resize(binary, (w // 2, h // 2), interpolation=cv2.INTER_AREA)
+
+
 def _spots_in(roi: np.ndarray, T: float, top: int, min_area: int, max_area: int,
               x0: int, y0: int, windowed: bool) -> list[tuple]:  # fmt: skip
     """Spots of one region: weighted moments of every component at once (bincount over
     the labelled pixels)."""
     _, binary = cv2.threshold(roi, T, 255, cv2.THRESH_BINARY)
-    if not binary.any():
+    binary = binary.astype(np.uint8, copy=False)
+    nz = cv2.findNonZero(binary)  # far faster than np.nonzero(labels)
+    if nz is None:
         return []
-    n, labels, stats, _ = cv2.connectedComponentsWithStatsWithAlgorithm(
-        binary.astype(np.uint8), 8, cv2.CV_32S, cv2.CCL_GRANA
-    )
-    bx, by, bw, bh, area = stats.T
+    nz = nz.reshape(-1, 2)
+    xs, ys = nz[:, 0], nz[:, 1]
+    h, w = roi.shape
+    if windowed or h * w < POOLED_MIN_PX:
+        n, labels, stats, _ = cv2.connectedComponentsWithStatsWithAlgorithm(
+            binary, 8, cv2.CV_32S, cv2.CCL_GRANA
+        )
+        lab = labels[ys, xs]
+        bx, by, bw, bh, area = stats.T
+    else:
+        # a whole frame: the components of its 2x2 max-pooled mask (a quarter of the
+        # pixels to label: 0.6 ms less per 640x480 frame; a spot stays one, spots 3 px
+        # or more apart stay apart), each full-resolution pixel labelled by its block
+        pooled = _max_pool2(binary)
+        n, labels, _, _ = cv2.connectedComponentsWithStatsWithAlgorithm(
+            pooled, 8, cv2.CV_32S, cv2.CCL_GRANA
+        )
+        lab = labels[ys >> 1, xs >> 1]
+        area = np.bincount(lab, minlength=n)
     keep = (area >= min_area) & (area <= max_area)
     keep[0] = False
     if windowed:  # spots touching a window's edge may be cut
-        h, w = roi.shape
         keep &= (bx > 0) & (by > 0) & (bx + bw < w) & (by + bh < h)
     if not keep.any():
         return []
-    nz = cv2.findNonZero(binary).reshape(-1, 2)  # far faster than np.nonzero(labels)
-    xs, ys = nz[:, 0], nz[:, 1]
-    lab = labels[ys, xs]
     v = roi[ys, xs].astype(np.float64)
     wgt = v - T
     xs = xs.astype(np.float64) + x0

@@ -81,6 +81,15 @@ def _residual_jacobian(rig: Rig, pose: np.ndarray, lamps_n: np.ndarray, xy_n: np
     return r.reshape(-1), J.reshape(-1, 3)
 
 
+def _gauss_newton_step(J: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """The least-squares step -(J^T J)^-1 J^T r through the 3x3 normal equations (a
+    fifth of lstsq's time); lstsq where they are singular."""
+    try:
+        return np.linalg.solve(J.T @ J, -(J.T @ r))
+    except np.linalg.LinAlgError:
+        return np.linalg.lstsq(J, -r, rcond=None)[0]
+
+
 def solve_planar(
     xy_n: np.ndarray,
     lamps_n: np.ndarray,
@@ -111,7 +120,7 @@ def solve_planar(
             r, J = _residual_jacobian(rig, pose, P, xy)
             if not np.all(np.isfinite(r)):
                 return PlanarSolution(Status.NOT_CONVERGED, warnings=("lamp_behind_camera",))
-            step = np.linalg.lstsq(J, -r, rcond=None)[0]
+            step = _gauss_newton_step(J, r)
             pose += step
             if abs(step[0]) + abs(step[1]) < STEP_TOL and abs(step[2]) < STEP_TOL:
                 converged = True
