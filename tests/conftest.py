@@ -2,11 +2,16 @@
 
 from __future__ import annotations
 
+import csv
+import io
+import re
 from pathlib import Path
 
 import numpy as np
 import pytest
+from click.testing import CliRunner
 
+from visvec.cli.main import cli
 from visvec.rig import load_rig
 from visvec.rotations import euler_to_matrix
 
@@ -14,6 +19,7 @@ ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = ROOT / "configs"
 SHARED_DATA = ROOT.parent / "shared" / "data"
 TEST_DATA = ROOT / "tests" / "data"  # small files the tests own
+SAMPLES = ROOT / "data" / "sample_frames"  # the shipped recording
 
 
 @pytest.fixture(scope="session")
@@ -58,3 +64,39 @@ def attitudes(n: int, seed: int, tilt_deg: float = 5.0) -> list[np.ndarray]:
         euler_to_matrix(r.uniform(-np.pi, np.pi), *np.radians(r.uniform(-tilt_deg, tilt_deg, 2)))
         for _ in range(n)
     ]
+
+
+# the command line, run as a user would
+
+
+def run(*args):
+    return CliRunner().invoke(cli, [str(a) for a in args], catch_exceptions=False)
+
+
+def rows_of(text):
+    return list(csv.DictReader(io.StringIO(text)))
+
+
+def assert_within_3_sigma(rows, truth):
+    """Every row's yaw, pitch and roll within 3 of its sigma of the truth file's."""
+    for x, t in zip(rows, truth, strict=True):
+        for k in ("yaw", "pitch", "roll"):
+            err = (float(x[f"{k}_deg"]) - float(t[f"{k}_deg"]) + 180.0) % 360.0 - 180.0
+            assert abs(err) < 3.0 * float(x[f"sigma_{k}_deg"]), (x["frame"], k)
+
+
+def besides_the_zero_tilt_note(stderr: str) -> str:
+    """stderr without the note a run on an uncalibrated triangle rig starts with, and
+    without the summary line every run of frames ends with (checked there: it says
+    every frame was ok)."""
+    note = "visvec: note: no zero-tilt calibration given"
+    lines = [x for x in stderr.splitlines(keepends=True) if not x.startswith(note)]
+    summary = re.compile(r"visvec: (\d+) frames, (\d+) ok \(")
+    kept = []
+    for x in lines:
+        m = summary.match(x)
+        if m:
+            assert m.group(1) == m.group(2), x  # a summary of a run with refusals
+            continue
+        kept.append(x)
+    return "".join(kept)

@@ -1,14 +1,6 @@
 """The public API (visvec.api): its docstring's example runs."""
 
-from click.testing import CliRunner
-
-from visvec.cli.main import cli
-
 from conftest import ROOT
-
-
-def run(*args):
-    return CliRunner().invoke(cli, [str(a) for a in args], catch_exceptions=False)
 
 
 def test_public_api_docstring_example_runs():

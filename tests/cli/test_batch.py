@@ -2,9 +2,7 @@
 on the rig and the camera."""
 
 import csv
-import io
 import json
-import re
 import shutil
 
 import cv2
@@ -16,43 +14,17 @@ from visvec.cli.main import cli
 from visvec.data import Frame
 from visvec.rig import load_rig
 
-from conftest import CONFIGS, ROOT, rig_variant
+from conftest import (
+    CONFIGS,
+    SAMPLES,
+    assert_within_3_sigma,
+    besides_the_zero_tilt_note,
+    rig_variant,
+    rows_of,
+    run,
+)
 
 RIG = str(CONFIGS / "triangle.toml")
-SAMPLES = ROOT / "data" / "sample_frames"
-
-
-def run(*args):
-    return CliRunner().invoke(cli, [str(a) for a in args], catch_exceptions=False)
-
-
-def assert_within_3_sigma(rows, truth):
-    """Every row's yaw, pitch and roll within 3 of its sigma of the truth file's."""
-    for x, t in zip(rows, truth, strict=True):
-        for k in ("yaw", "pitch", "roll"):
-            err = (float(x[f"{k}_deg"]) - float(t[f"{k}_deg"]) + 180.0) % 360.0 - 180.0
-            assert abs(err) < 3.0 * float(x[f"sigma_{k}_deg"]), (x["frame"], k)
-
-
-def besides_the_zero_tilt_note(stderr: str) -> str:
-    """stderr without the note a run on an uncalibrated triangle rig starts with, and
-    without the summary line every run of frames ends with (checked there: it says
-    every frame was ok)."""
-    note = "visvec: note: no zero-tilt calibration given"
-    lines = [x for x in stderr.splitlines(keepends=True) if not x.startswith(note)]
-    summary = re.compile(r"visvec: (\d+) frames, (\d+) ok \(")
-    kept = []
-    for x in lines:
-        m = summary.match(x)
-        if m:
-            assert m.group(1) == m.group(2), x  # a summary of a run with refusals
-            continue
-        kept.append(x)
-    return "".join(kept)
-
-
-def rows_of(text):
-    return list(csv.DictReader(io.StringIO(text)))
 
 
 def test_batch_on_sample_frames_with_truth(tmp_path):

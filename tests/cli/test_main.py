@@ -1,9 +1,6 @@
 """The command line's contract (visvec.cli.main): exit codes, one-line errors, a closed
 pipe, Ctrl-C, help."""
 
-import csv
-import io
-import re
 from pathlib import Path
 
 import cv2
@@ -15,35 +12,9 @@ from visvec.cli.main import cli
 from visvec.data import Frame
 from visvec.rig import load_rig
 
-from conftest import CONFIGS, ROOT
+from conftest import CONFIGS, SAMPLES, besides_the_zero_tilt_note, rows_of, run
 
 RIG = str(CONFIGS / "triangle.toml")
-SAMPLES = ROOT / "data" / "sample_frames"
-
-
-def run(*args):
-    return CliRunner().invoke(cli, [str(a) for a in args], catch_exceptions=False)
-
-
-def besides_the_zero_tilt_note(stderr: str) -> str:
-    """stderr without the note a run on an uncalibrated triangle rig starts with, and
-    without the summary line every run of frames ends with (checked there: it says
-    every frame was ok)."""
-    note = "visvec: note: no zero-tilt calibration given"
-    lines = [x for x in stderr.splitlines(keepends=True) if not x.startswith(note)]
-    summary = re.compile(r"visvec: (\d+) frames, (\d+) ok \(")
-    kept = []
-    for x in lines:
-        m = summary.match(x)
-        if m:
-            assert m.group(1) == m.group(2), x  # a summary of a run with refusals
-            continue
-        kept.append(x)
-    return "".join(kept)
-
-
-def rows_of(text):
-    return list(csv.DictReader(io.StringIO(text)))
 
 
 def test_bad_rig_exit_2_before_any_frame(tmp_path):

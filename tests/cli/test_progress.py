@@ -1,8 +1,5 @@
 """Progress and status lines (visvec.cli.progress) and rows streamed, not held."""
 
-import csv
-import io
-
 import cv2
 import pytest
 from click.testing import CliRunner
@@ -13,14 +10,9 @@ from visvec.data import Frame
 from visvec.errors import NoOkRows
 from visvec.rig import load_rig
 
-from conftest import CONFIGS, ROOT
+from conftest import CONFIGS, SAMPLES, rows_of
 
 RIG = str(CONFIGS / "triangle.toml")
-SAMPLES = ROOT / "data" / "sample_frames"
-
-
-def rows_of(text):
-    return list(csv.DictReader(io.StringIO(text)))
 
 
 def test_status_lines_for_an_operator(tmp_path, capsys):

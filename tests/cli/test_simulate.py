@@ -2,33 +2,13 @@
 motion blur."""
 
 import csv
-import io
 
 import cv2
 import numpy as np
-from click.testing import CliRunner
 
-from visvec.cli.main import cli
-
-from conftest import CONFIGS
+from conftest import CONFIGS, assert_within_3_sigma, rows_of, run
 
 RIG = str(CONFIGS / "triangle.toml")
-
-
-def run(*args):
-    return CliRunner().invoke(cli, [str(a) for a in args], catch_exceptions=False)
-
-
-def assert_within_3_sigma(rows, truth):
-    """Every row's yaw, pitch and roll within 3 of its sigma of the truth file's."""
-    for x, t in zip(rows, truth, strict=True):
-        for k in ("yaw", "pitch", "roll"):
-            err = (float(x[f"{k}_deg"]) - float(t[f"{k}_deg"]) + 180.0) % 360.0 - 180.0
-            assert abs(err) < 3.0 * float(x[f"sigma_{k}_deg"]), (x["frame"], k)
-
-
-def rows_of(text):
-    return list(csv.DictReader(io.StringIO(text)))
 
 
 def test_simulate_writes_frames_and_truth(tmp_path):

@@ -1,9 +1,6 @@
 """`visvec track` (visvec.cli.track): live cameras that fail to open, stop, drop off and
 come back; their clocks and settings."""
 
-import csv
-import io
-
 import cv2
 import numpy as np
 import pytest
@@ -14,18 +11,9 @@ from visvec.errors import SourceError
 from visvec.rig import load_rig
 from visvec.sources import VideoSource
 
-from conftest import CONFIGS, ROOT
+from conftest import CONFIGS, SAMPLES, rows_of, run
 
 RIG = str(CONFIGS / "triangle.toml")
-SAMPLES = ROOT / "data" / "sample_frames"
-
-
-def run(*args):
-    return CliRunner().invoke(cli, [str(a) for a in args], catch_exceptions=False)
-
-
-def rows_of(text):
-    return list(csv.DictReader(io.StringIO(text)))
 
 
 def test_camera_that_cannot_be_opened_exit_3():

@@ -1,26 +1,12 @@
 """Rows over UDP (visvec.sinks): one datagram per row, bad addresses refused."""
 
-import csv
-import io
 import json
 
 import pytest
-from click.testing import CliRunner
 
-from visvec.cli.main import cli
-
-from conftest import CONFIGS, ROOT
+from conftest import CONFIGS, SAMPLES, rows_of, run
 
 RIG = str(CONFIGS / "triangle.toml")
-SAMPLES = ROOT / "data" / "sample_frames"
-
-
-def run(*args):
-    return CliRunner().invoke(cli, [str(a) for a in args], catch_exceptions=False)
-
-
-def rows_of(text):
-    return list(csv.DictReader(io.StringIO(text)))
 
 
 @pytest.mark.parametrize("fmt", ["csv", "jsonl"])
