@@ -30,6 +30,7 @@ from visvec.distribute import TaskPool
 from visvec.rig import Rig
 from visvec.rotations import matrix_to_euler
 from visvec.sim.markers import SpotScene, render_markers
+from visvec.sim.render import render_frame
 from visvec.sim.scene import Scene
 
 # how far inside the image border a point must be to count as in view, as the pipelines
@@ -184,8 +185,6 @@ def _accuracy_task(args) -> Outcome:
     """One task of :func:`simulated_accuracy`: render and process its frames."""
     rig, Rs, cases = args
     if rig.kind == "triangle":
-        from visvec.sim.render import render_frame
-
         images = [render_frame(rig, R, c.scene, c.seed) for R, c in zip(Rs, cases, strict=True)]
     else:
         images = [render_markers(rig, R, SpotScene(), c.seed)

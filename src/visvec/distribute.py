@@ -25,7 +25,7 @@ import os
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from functools import partial
-from importlib import metadata
+from importlib import import_module, metadata
 from typing import Any
 
 import visvec
@@ -143,13 +143,9 @@ class TaskPool:
     def warm(self, module: str) -> None:
         """Import ``module`` on every worker now (a study's first tasks would pay it)."""
         if self._client is not None:
-            import importlib
-
-            self._client.run(importlib.import_module, module)
+            self._client.run(import_module, module)
         elif self._pool is not None:
-            import importlib
-
-            list(self._pool.map(importlib.import_module, [module] * self.workers))
+            list(self._pool.map(import_module, [module] * self.workers))
 
     def __exit__(self, *exc) -> None:
         self.close()

@@ -3,8 +3,6 @@
 
 from __future__ import annotations
 
-import csv
-import json
 from pathlib import Path
 
 import click
@@ -181,25 +179,34 @@ def run_many(rig, paths, out_dir, fmt, method, max_frames, covariance, fps, sche
              for p, n in zip(paths, names, strict=True)]  # fmt: skip
     for t in tasks:
         check_output(t[2])
-    results = {}
     with TaskPool(scheduler, workers) as pool:
         click.echo(f"visvec: {len(tasks)} recordings on {pool.where}", err=True)
         with Work("batch", len(tasks), unit="recording") as bar:
-            pool.map(batch_one, tasks, lambda i, r: (results.__setitem__(i, r), bar.update(1)))
-    for i in range(len(tasks)):
-        r = results[i]
-        click.echo(f"{paths[i]}: {r['ok']} ok of {r['rows']} rows -> {tasks[i][2]}")
+            results = pool.map(batch_one, tasks, lambda i, r: bar.update(1))
+    for p, t, r in zip(paths, tasks, results, strict=True):
+        click.echo(f"{p}: {r['ok']} ok of {r['rows']} rows -> {t[2]}")
+
+
+class _Count:
+    """A watcher that counts a run's rows and its ok ones."""
+
+    def __init__(self):
+        self.rows = self.ok = 0
+
+    def see(self, frame, row, pipe) -> None:
+        self.rows += 1
+        self.ok += bool(row.ok)
+
+    def close(self) -> None:
+        pass
 
 
 def batch_one(task) -> dict:
     """One recording of :func:`run_many`: its rows written, their count and ok count."""
     rig, path, out, fmt, method, max_frames, covariance, fps = task
     src = open_source(path, fps=fps or rig.fps, max_frames=max_frames, retry_s=0.0)
+    count = _Count()
     run_frames(rig, src, out=out, fmt=fmt, method=method, overlay=None, max_frames=max_frames,
-               what=f"batch {Path(path).name}", covariance=covariance)  # fmt: skip
-    with open(out) as fh:
-        if fmt == "jsonl":
-            status = [json.loads(line)["status"] for line in fh if line.strip()]
-        else:
-            status = [r["status"] for r in csv.DictReader(fh)]
-    return {"rows": len(status), "ok": status.count("ok")}
+               watchers=[count], what=f"batch {Path(path).name}",
+               covariance=covariance)  # fmt: skip
+    return {"rows": count.rows, "ok": count.ok}

@@ -120,7 +120,9 @@ def montecarlo(
         click.echo(f"visvec: {len(specs)} runs on {pool.where}", err=True)
         try:
             with Work("montecarlo", len(specs), unit="run") as bar:
-                pool.map(run_one, specs, lambda i, r: (finished.__setitem__(i, r), bar.update(1)))
+                results = pool.map(
+                    run_one, specs, lambda i, r: (finished.__setitem__(i, r), bar.update(1))
+                )
         except KeyboardInterrupt:
             # every finished run kept, in task order, for a study to be resumed or read
             done = [finished[i] for i in sorted(finished)]
@@ -129,7 +131,6 @@ def montecarlo(
             click.echo(f"visvec: interrupted: {len(done)} of {len(specs)} runs finished, "
                        f"written to {out / 'montecarlo.json'}", err=True)  # fmt: skip
             sys.exit(130)
-    results = [finished[i] for i in range(len(specs))]
     summary = summarise(results)
     _write(out, {**head, "summary": summary, "runs": results})
     for p in summary:

@@ -47,6 +47,9 @@ DARK_MIN = 2
 DARK_MAX_AGE_S = 1.0
 # lost-in-space fits of this many spots or fewer must explain them within the noise
 FEW_CHECKED = 8
+# ... at p = 0.001: the chi-square limits of their 2n - 3 degrees of freedom, once
+CONSISTENT_CHI2 = {2 * n - 3: float(chi2_dist.ppf(0.999, 2 * n - 3))
+                   for n in range(DARK_MIN, FEW_CHECKED + 1)}  # fmt: skip
 
 
 class LampPipeline(Pipeline["LampDetection", PlanarSolution]):
@@ -105,7 +108,7 @@ class LampPipeline(Pipeline["LampDetection", PlanarSolution]):
         """(identification, solution) of a frame with too few lamps for tracking and
         lost in space, from the predicted pose (LampIdentifier.track_few), or None.
         Two identified lamps fix x, y and heading; their distance checks them."""
-        if pred is None or self.track_state is None or t - self.track_state[0] > DARK_MAX_AGE_S:
+        if pred is None or t - self.track_state[0] > DARK_MAX_AGE_S:
             return None
         if not DARK_MIN <= len(xy) < MIN_TRACKED:
             return None
@@ -156,7 +159,8 @@ class LampPipeline(Pipeline["LampDetection", PlanarSolution]):
         if dof <= 0:
             return True
         chi2 = 2 * sol.n_points * (sol.rms_px / self.sigma_px) ** 2
-        return chi2 <= float(chi2_dist.ppf(0.999, dof))
+        limit = CONSISTENT_CHI2.get(dof)
+        return chi2 <= (limit if limit is not None else float(chi2_dist.ppf(0.999, dof)))
 
     def estimate(self, frame):
         d = self.rig.detect
