@@ -87,6 +87,8 @@ def test_numbers_that_are_not_numbers_are_refused(tmp_path):
          b"--square-mm"),
         (["calibrate", "camera", str(SAMPLE), "--pattern", "2x2", "--square-mm", "25"],
          b"3x3"),
+        (["calibrate", "camera", str(SAMPLE), "--pattern", "9y6", "--square-mm", "25"],
+         b"--pattern '9y6': expected inner corners as COLSxROWS"),
         (["rate", "--budget", "--ifov-deg", "nan"], b"--ifov-deg"),
         (["fuse", "--imu", "a.csv", "--fixes", "b.csv", "--gyro-noise-dps", "nan"],
          b"--gyro-noise-dps"),

@@ -131,6 +131,7 @@ def test_stream_that_never_answers_is_given_up_after_retry_s(tmp_path):
         mute.close()
     assert r.returncode == 3, r.stderr
     assert "did not answer within 1.5 s" in r.stderr
+    assert "--retry-s sets how long" in r.stderr  # the command line's advice, not the library's
     assert took < 1.5 + 3.0  # the retry time and the interpreter's start, not 30 s
 
 

@@ -60,20 +60,6 @@ class CameraCalibration:
         )
 
 
-def parse_pattern(text: str) -> tuple[int, int]:
-    """'9x6' -> (9, 6) inner corners."""
-    try:
-        a, b = (int(x) for x in text.lower().split("x"))
-    except ValueError:
-        raise InputFileError(
-            f"--pattern {text!r}: expected inner corners as COLSxROWS, for example 9x6"
-        ) from None
-    if a < 3 or b < 3:
-        # OpenCV's chessboard finder needs more than 2 inner corners each way
-        raise InputFileError(f"--pattern {text!r}: expected at least 3x3 inner corners")
-    return a, b
-
-
 def find_corners(
     image: np.ndarray, pattern: tuple[int, int], recipe: str = "precise"
 ) -> np.ndarray | None:

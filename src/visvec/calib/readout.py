@@ -283,8 +283,8 @@ def calibrate_readout(
             f"the readout is poorly determined ({readout:.1f} +- {sigma:.1f} ms with the "
             f"camera's principal point and aspect estimated beside it; {grid_readout:.1f} +- "
             f"{grid_sigma:.1f} ms taking them as exact): record longer, or swinging out and "
-            "back rather than turning one way, or give --principal-point-sigma from "
-            "`calibrate camera`",
+            "back rather than turning one way, or give a prior on the principal point "
+            "(principal_point_sigma) from a camera calibration",
             readout,
         )
     final = _cost(frames, rig, readout)

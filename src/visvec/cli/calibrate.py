@@ -10,7 +10,7 @@ from pathlib import Path
 import click
 import numpy as np
 
-from visvec.calib.camera import RECIPES, calibrate_camera, camera_section, parse_pattern
+from visvec.calib.camera import RECIPES, calibrate_camera, camera_section
 from visvec.calib.readout import calibrate_readout, readout_sections, readout_trials
 from visvec.calib.system import Observations, calibrate_system, initial_attitudes
 from visvec.calib.system import calibration_sections as system_sections
@@ -566,3 +566,17 @@ def system(frames, rig_path, calibration, out, max_iterations):
         )
         raise SystemExit(1)
     click.echo(f"wrote {out}; later runs take {_runs_with(calibration, out)}")
+
+
+def parse_pattern(text: str) -> tuple[int, int]:
+    """'9x6' -> (9, 6) inner corners."""
+    try:
+        a, b = (int(x) for x in text.lower().split("x"))
+    except ValueError:
+        raise InputFileError(
+            f"--pattern {text!r}: expected inner corners as COLSxROWS, for example 9x6"
+        ) from None
+    if a < 3 or b < 3:
+        # OpenCV's chessboard finder needs more than 2 inner corners each way
+        raise InputFileError(f"--pattern {text!r}: expected at least 3x3 inner corners")
+    return a, b

@@ -18,6 +18,7 @@ from visvec.cli.common import (
 )
 from visvec.cli.frames import run_frames
 from visvec.cli.view import linger, open_view
+from visvec.errors import SourceError
 from visvec.fuse.camera import paced
 from visvec.sources import open_source
 
@@ -93,14 +94,17 @@ def track(
         click.echo(f"visvec: connecting to {u.scheme}://{u.hostname}{port}", err=True)
     # bound before the camera opens: a port in use is refused first (exit 2)
     view = open_view(serve, rig, rig_path, method, _shown(spec))
-    src = open_source(
-        spec if isinstance(spec, int) else str(spec),
-        fps=rig.fps,
-        max_frames=max_frames,
-        retry_s=retry_s,
-        size=(rig.camera.width, rig.camera.height),
-        controls=rig.controls,
-    )
+    try:
+        src = open_source(
+            spec if isinstance(spec, int) else str(spec),
+            fps=rig.fps,
+            max_frames=max_frames,
+            retry_s=retry_s,
+            size=(rig.camera.width, rig.camera.height),
+            controls=rig.controls,
+        )
+    except SourceError as exc:
+        raise SourceError(f"{exc}{_advice(spec)}") from None
     # what a camera runs with, and the settings it refused or that move the measurement
     for line in getattr(src, "settings", []):
         click.echo(f"visvec: {line}", err=True)
@@ -133,6 +137,15 @@ def track(
         )
     finally:
         linger(view)
+
+
+def _advice(spec) -> str:
+    """What the command line offers when the camera cannot be opened."""
+    if str(spec).isdigit():
+        return "; --camera also takes a video file or URL"
+    if "://" in str(spec):
+        return " (--retry-s sets how long it is waited for)"
+    return ""
 
 
 def _shown(spec) -> str:

@@ -84,11 +84,11 @@ class VideoSource:
             if isinstance(spec, int):
                 raise SourceError(
                     f"camera {spec}: cannot open it (not connected, in use by another "
-                    f"program, or no permission?); --camera also takes a video file or URL"
+                    f"program, or no permission?)"
                 )
             if self.stream:
                 raise SourceError(
-                    f"{spec}: the stream did not answer within {retry_s:g} s (--retry-s): is "
+                    f"{spec}: the stream did not answer within {retry_s:g} s: is "
                     "the camera on, the address and port right, and the stream's path?"
                 )
             raise SourceError(f"{spec}: cannot open the video or stream")
