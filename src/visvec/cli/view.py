@@ -28,7 +28,7 @@ def open_view(spec: str | None, rig, rig_path: str, method: str | None, source: 
 
         info += [("warning: " if warn else "") + text.strip() for text, warn in geometry_lines(rig)]
     row_type = make_pipeline(rig, method).row_type
-    server = start(spec, rig, row_type, info)  # ConfigError: exit 2
+    server = start(spec, rig, row_type, info, "--serve")  # ConfigError: exit 2
     click.echo(f"visvec: live view at {server.url}", err=True)
     return server
 

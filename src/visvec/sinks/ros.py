@@ -55,7 +55,7 @@ def _need():
         from rosbags.typesys import Stores, get_typestore
     except ImportError:
         raise ConfigError(
-            '--out *.mcap needs the ROS 2 extra: pip install "visvec[ros]" (rosbags and mcap)'
+            'an MCAP output needs the ROS 2 extra: pip install "visvec[ros]" (rosbags and mcap)'
         ) from None
     return Writer, get_typestore(Stores.ROS2_HUMBLE)
 

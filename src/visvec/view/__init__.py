@@ -16,7 +16,7 @@ from visvec.view.state import ViewState
 __all__ = ["LiveServer", "ViewState", "parse_address", "start"]
 
 
-def start(spec: str, rig, row_type, info: list[str], option: str = "--serve") -> LiveServer:
+def start(spec: str, rig, row_type, info: list[str], option: str = "address") -> LiveServer:
     """A live view of rows of ``row_type`` for ``rig``, bound to ``spec`` ([HOST:]PORT)
     and serving; raises ConfigError for an address that cannot be served."""
     host, port = parse_address(spec, option)

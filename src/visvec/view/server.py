@@ -35,7 +35,7 @@ ASSETS = {
 }
 
 
-def parse_address(spec: str, option: str = "--serve") -> tuple[str, int]:
+def parse_address(spec: str, option: str = "address") -> tuple[str, int]:
     """``[HOST:]PORT`` (an IPv6 host in brackets) -> (host, port); the host defaults
     to 127.0.0.1, this computer only."""
     host, sep, port = spec.rpartition(":")
@@ -137,7 +137,7 @@ class LiveServer:
     allowed is refused before the camera opens), serving from :meth:`start` in a
     daemon thread until :meth:`stop`."""
 
-    def __init__(self, host: str, port: int, state: ViewState, option: str = "--serve"):
+    def __init__(self, host: str, port: int, state: ViewState, option: str = "address"):
         try:
             self.httpd = _Server((host, port), _Handler, state, _load_assets())
         except OSError as e:
