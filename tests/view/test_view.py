@@ -36,8 +36,10 @@ def test_parse_address():
     assert parse_address("0.0.0.0:80") == ("0.0.0.0", 80)
     assert parse_address("[::1]:0") == ("::1", 0)
     for bad in ("http", "70000", "host:", "-1"):
-        with pytest.raises(ConfigError, match="--serve"):
+        with pytest.raises(ConfigError, match=f"^address '{bad}'"):
             parse_address(bad)
+        with pytest.raises(ConfigError, match=f"^--serve '{bad}'"):  # as the caller names it
+            parse_address(bad, "--serve")
 
 
 def recording(folder: Path) -> Path:
