@@ -90,6 +90,8 @@ def test_numbers_that_are_not_numbers_are_refused(tmp_path):
         (["calibrate", "camera", str(SAMPLE), "--pattern", "9y6", "--square-mm", "25"],
          b"--pattern '9y6': expected inner corners as COLSxROWS"),
         (["rate", "--budget", "--ifov-deg", "nan"], b"--ifov-deg"),
+        (["track", "--rig", str(RIG), "--camera", str(SAMPLE), "--serve", "70000"],
+         b"--serve '70000': the port must be 0-65535"),
         (["fuse", "--imu", "a.csv", "--fixes", "b.csv", "--gyro-noise-dps", "nan"],
          b"--gyro-noise-dps"),
     ]:  # fmt: skip
