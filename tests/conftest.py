@@ -100,3 +100,70 @@ def besides_the_zero_tilt_note(stderr: str) -> str:
             continue
         kept.append(x)
     return "".join(kept)
+
+
+def wait_until(condition, what: str, timeout: float = 30.0, poll_s: float = 0.02) -> None:
+    """Wait for ``condition()`` to hold, failing with ``what`` after ``timeout`` s: a
+    test waits for the event it needs, not a guessed time."""
+    import time
+
+    deadline = time.monotonic() + timeout
+    while not condition():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"{what}: not within {timeout:g} s")
+        time.sleep(poll_s)
+
+
+def data_rows(path: Path) -> int:
+    """Complete data rows in a CSV file being written (0 before it exists)."""
+    try:
+        text = path.read_text()
+    except FileNotFoundError:
+        return 0
+    return max(0, text.count("\n") - 1)
+
+
+class Stderr:
+    """A child process's stderr read line by line in a thread, so that a test can wait
+    for a message (the device opened, a file read to its end) and read all of it at
+    the end."""
+
+    def __init__(self, proc):
+        import threading
+
+        self.lines: list[str] = []
+        self._cond = threading.Condition()
+        self._closed = False
+        self._thread = threading.Thread(target=self._read, args=(proc.stderr,), daemon=True)
+        self._thread.start()
+
+    def _read(self, fh) -> None:
+        for line in fh:
+            with self._cond:
+                self.lines.append(line)
+                self._cond.notify_all()
+        with self._cond:
+            self._closed = True
+            self._cond.notify_all()
+
+    def count(self, text: str) -> int:
+        with self._cond:
+            return sum(text in line for line in self.lines)
+
+    def wait_for(self, text: str, times: int = 1, timeout: float = 30.0) -> None:
+        with self._cond:
+            self._cond.wait_for(
+                lambda: sum(text in x for x in self.lines) >= times or self._closed, timeout
+            )
+        if self.count(text) < times:
+            raise AssertionError(f"{text!r} not said {times}x on stderr:\n{self.text}")
+
+    @property
+    def text(self) -> str:
+        with self._cond:
+            return "".join(self.lines)
+
+    def rest(self, timeout: float = 20.0) -> str:
+        """All of it, once the process has closed its stderr."""
+        self._thread.join(timeout)
+        return self.text

@@ -8,7 +8,7 @@ import sys
 
 import pytest
 
-from conftest import ROOT
+from conftest import ROOT, data_rows, wait_until
 
 SAMPLE = ROOT / "data" / "sample_frames"
 RIG = ROOT / "configs" / "triangle.toml"
@@ -142,7 +142,6 @@ def test_outputs_never_destroy_inputs_or_each_other(tmp_path):
     scheme visvec does not speak, or a file another run is writing: refused (exit 2)
     before any work, the input untouched."""
     import shutil
-    import time
 
     rig = tmp_path / "rig.toml"
     shutil.copy(RIG, rig)
@@ -175,9 +174,7 @@ def test_outputs_never_destroy_inputs_or_each_other(tmp_path):
          "--realtime", "--out", str(out)], stderr=subprocess.PIPE,
     )  # fmt: skip
     try:
-        deadline = time.monotonic() + 30
-        while time.monotonic() < deadline and (not out.exists() or out.read_text().count("\n") < 2):
-            time.sleep(0.05)
+        wait_until(lambda: data_rows(out) >= 1, "the first run's first row")
         r = _run(["batch", str(rec), "--rig", str(rig), "--out", str(out)])
         assert r.returncode == 2 and b"another run is writing" in r.stderr, r.stderr
         first.terminate()
@@ -381,7 +378,6 @@ def test_a_full_disk_leaves_whole_rows_and_names_the_file(tmp_path):
 
 def test_ctrl_c_on_simulate_says_the_folder_is_incomplete(tmp_path):
     import signal
-    import time
 
     out = tmp_path / "sim"
     p = subprocess.Popen(
@@ -389,9 +385,7 @@ def test_ctrl_c_on_simulate_says_the_folder_is_incomplete(tmp_path):
          "--frames", "2000"], stderr=subprocess.PIPE,
     )  # fmt: skip
     try:
-        deadline = time.monotonic() + 60
-        while time.monotonic() < deadline and len(list(out.glob("*.png"))) < 2:
-            time.sleep(0.05)
+        wait_until(lambda: len(list(out.glob("*.png"))) >= 2, "two frames written", timeout=60)
         p.send_signal(signal.SIGINT)
         _, err = p.communicate(timeout=60)
     finally:
@@ -455,7 +449,6 @@ def test_track_ends_on_every_signal_with_its_rows_counted(tmp_path):
     output holds exactly N whole rows."""
     import re
     import signal
-    import time
 
     slow = _slow_recording(tmp_path, 0.3)
     for sig in ("SIGINT", "SIGTERM", "SIGHUP"):
@@ -465,11 +458,7 @@ def test_track_ends_on_every_signal_with_its_rows_counted(tmp_path):
              "--realtime", "--out", str(out)], stderr=subprocess.PIPE,
         )  # fmt: skip
         try:
-            deadline = time.monotonic() + 30
-            while time.monotonic() < deadline and (
-                not out.exists() or out.read_text().count("\n") < 3
-            ):
-                time.sleep(0.05)
+            wait_until(lambda out=out: data_rows(out) >= 2, "two rows written")
             p.send_signal(getattr(signal, sig))
             _, err = p.communicate(timeout=30)
         finally:

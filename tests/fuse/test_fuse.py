@@ -17,6 +17,8 @@ from visvec.output import PLANAR_COLUMNS
 from visvec.rotations import expmap, logmap
 from visvec.sim.lamps import ImuModel, PerimeterPath, simulate_imu
 
+from conftest import Stderr, data_rows, wait_until
+
 PATH = PerimeterPath(rest_s=3.0)
 
 
@@ -429,7 +431,6 @@ def test_fuse_live_from_stdin_matches_the_file_replay(tmp_path):
     fix until the IMU's clock reaches its exposure plus latency_ms."""
     import subprocess
     import sys
-    import time
 
     imu, _, fixes = planar_case(tmp_path, duration=6.0)
     ref = tmp_path / "ref.csv"
@@ -442,16 +443,13 @@ def test_fuse_live_from_stdin_matches_the_file_replay(tmp_path):
          "--out", str(live)], stdin=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )  # fmt: skip
     try:
-        while "following" not in proc.stderr.readline():
+        # said once the fixes file's rows are in: the IMU then comes as from a device
+        while "lines read, following" not in proc.stderr.readline():
             pass
-        time.sleep(0.2)  # the fixes file is read meanwhile
         lines = imu.read_text().splitlines(keepends=True)
-        proc.stdin.write(lines[0])
-        proc.stdin.flush()
-        for line in lines[1:]:
+        for line in lines:
             proc.stdin.write(line)
             proc.stdin.flush()
-            time.sleep(0.001)
         _, err = proc.communicate(timeout=30)
     finally:
         proc.kill()
@@ -610,7 +608,6 @@ def test_fuse_live_ends_on_a_signal_with_every_row_and_the_summary(tmp_path, sig
     import socket
     import subprocess
     import sys
-    import time
 
     imu, _, fixes = planar_case(tmp_path, duration=3.0)
     p_imu, p_fix = _free_udp_port(), _free_udp_port()
@@ -620,21 +617,20 @@ def test_fuse_live_ends_on_a_signal_with_every_row_and_the_summary(tmp_path, sig
          "--fixes", f"udp://127.0.0.1:{p_fix}", "--out", str(out)],
         stderr=subprocess.PIPE, text=True,
     )  # fmt: skip
+    err = Stderr(proc)
     try:
-        seen = 0
-        while seen < 2:
-            seen += "listening" in proc.stderr.readline()
+        err.wait_for("listening", times=2)
         lines = imu.read_text().splitlines()
         with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
             s.sendto(lines[0].encode(), ("127.0.0.1", p_imu))
             for line in [*lines[1:101], lines[50]]:  # the last one steps back in time
                 s.sendto(line.encode(), ("127.0.0.1", p_imu))
-                time.sleep(0.002)
-        time.sleep(0.5)
+        wait_until(lambda: data_rows(out) >= 101, "the 101 rows written")
         proc.send_signal(getattr(signal, sig))
-        _, err = proc.communicate(timeout=20)
+        proc.wait(timeout=20)
     finally:
         proc.kill()
+    err = err.rest()
     assert proc.returncode == 0, err
     assert "stopped early (Ctrl-C or a signal)" in err and "101 inertial samples" in err
     text = out.read_text()
@@ -667,19 +663,19 @@ def test_fuse_live_from_a_serial_device(tmp_path):
     """IMU rows on a serial line (a pseudo-terminal standing in for /dev/ttyUSB0),
     read through pyserial: fused as they come."""
     import os
-    import time
 
     proc, imu, master, slave, out = _serial_fuse(tmp_path, "--max-samples", "150")
+    err = Stderr(proc)
     try:
-        time.sleep(1.5)  # the device opened
+        err.wait_for("open at 115200 baud")
         for line in imu.read_text().splitlines()[:160]:
             os.write(master, (line + "\n").encode())
-            time.sleep(0.002)
-        _, err = proc.communicate(timeout=20)
+        proc.wait(timeout=20)
     finally:
         proc.kill()
         os.close(master)
         os.close(slave)
+    err = err.rest()
     assert proc.returncode == 0, err
     with open(out) as fh:
         rows = list(csv.DictReader(fh))
@@ -691,26 +687,26 @@ def test_a_serial_device_that_disappears_is_retried(tmp_path):
     run goes on (and ends on a signal with its rows)."""
     import os
     import signal
-    import time
 
     proc, imu, master, slave, out = _serial_fuse(tmp_path)
+    err = Stderr(proc)
     try:
-        time.sleep(1.5)
-        for line in imu.read_text().splitlines()[:40]:
+        err.wait_for("open at 115200 baud")
+        for line in imu.read_text().splitlines()[:40]:  # the header and 39 samples
             os.write(master, (line + "\n").encode())
-            time.sleep(0.002)
-        time.sleep(0.5)
+        wait_until(lambda: data_rows(out) >= 39, "the 39 rows written")
         os.close(master)
         os.close(slave)
-        time.sleep(2.5)
+        err.wait_for("retrying every 1 s", times=2)  # lost, then not there: tried again
         assert proc.poll() is None  # still running, retrying
         proc.send_signal(signal.SIGTERM)
-        _, err = proc.communicate(timeout=20)
+        proc.wait(timeout=20)
     finally:
         proc.kill()
+    err = err.rest()
     assert proc.returncode == 0, err
-    assert "retrying every 1 s" in err
-    assert len(list(csv.DictReader(open(out)))) >= 30
+    assert "lost (" in err
+    assert len(list(csv.DictReader(open(out)))) == 39
 
 
 def test_fuse_3d_through_the_cli(tmp_path):

@@ -16,7 +16,7 @@ from pathlib import Path
 import cv2
 import pytest
 
-from conftest import ROOT
+from conftest import ROOT, wait_until
 
 RIG = ROOT / "configs" / "triangle.toml"
 SAMPLES = sorted((ROOT / "data" / "sample_frames").glob("*.png"))
@@ -145,9 +145,7 @@ def test_stream_that_stalls_for_good_ends_with_exit_3_and_its_rows_written(tmp_p
              "--out", str(out), "--retry-s", "1"],
             stderr=subprocess.PIPE, text=True,
         )  # fmt: skip
-        deadline = time.monotonic() + 20
-        while srv.connections < 1 and time.monotonic() < deadline:
-            time.sleep(0.05)
+        wait_until(lambda: srv.connections >= 1, "track connecting", timeout=20)
         srv.httpd.shutdown()
         srv.httpd.server_close()
         err = proc.communicate(timeout=30)[1]

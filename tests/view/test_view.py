@@ -24,7 +24,7 @@ from visvec.errors import ConfigError
 from visvec.view import parse_address
 from visvec.view.words import in_words
 
-from conftest import ROOT
+from conftest import ROOT, wait_until
 
 RIG = ROOT / "configs" / "triangle.toml"
 SAMPLES = sorted((ROOT / "data" / "sample_frames").glob("*.png"))
@@ -258,7 +258,17 @@ def test_page_in_a_real_browser(tmp_path):
             ended = got["runstate"] == "run ended"
             time.sleep(0.1)
         assert ended
-        time.sleep(1.5)  # the last poll and plot after the end
+        # the page's last poll after the end: every row plotted, the last frame shown
+        n_rows = len(rows_of(out))
+
+        def caught_up() -> bool:
+            body = browser.find_element(By.TAG_NAME, "body")
+            last_frame = browser.execute_script(READ_PAGE)["frame"]
+            return body.get_attribute("data-points") == str(n_rows) and last_frame == str(
+                len(SAMPLES)
+            )
+
+        wait_until(caught_up, "the page showing the last frame and every row", timeout=15)
         seen_frames.add(browser.execute_script(READ_PAGE)["frame"])
         # the frame updated as the replay went on, up to the last one
         assert len(seen_frames) >= 2, seen_frames

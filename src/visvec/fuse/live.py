@@ -90,14 +90,13 @@ def _lines_file(path: str, follow: bool, stop: threading.Event, notes) -> Iterat
     except OSError as exc:
         raise InputFileError(f"{path}: cannot read ({exc.strerror})") from None
     with fh:
-        if follow:
-            notes.put(f"{path}: following")
-        buf = ""
+        buf, n, told = "", 0, not follow
         while not stop.is_set():
             chunk = fh.readline()
             if chunk:
                 buf += chunk
                 if buf.endswith("\n"):
+                    n += 1
                     yield buf
                     buf = ""
                 continue
@@ -105,6 +104,9 @@ def _lines_file(path: str, follow: bool, stop: threading.Event, notes) -> Iterat
                 if buf:
                     yield buf
                 return
+            if not told:  # said once what was there, after its rows: now it is followed
+                notes.put(f"{path}: {n} lines read, following")
+                told = True
             time.sleep(0.005)
 
 
@@ -168,6 +170,7 @@ def _lines_serial(url: str, stop: threading.Event, notes: queue.Queue) -> Iterat
             notes.put(f"{device}: cannot open ({exc}); retrying every {SERIAL_RETRY_S:g} s")
             stop.wait(SERIAL_RETRY_S)
             continue
+        notes.put(f"{device}: open at {baud} baud")
         with port:
             buf = b""
             try:
