@@ -12,6 +12,7 @@ is rejected with a reason.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -133,6 +134,38 @@ def _masked_mean(image: np.ndarray, mask255: np.ndarray) -> float:
     as a masked sum: 5x faster than cv2.mean's masked path."""
     n = cv2.countNonZero(mask255)
     return cv2.sumElems(image & mask255)[0] / n if n else 0.0
+
+
+@dataclass(frozen=True)
+class _Measured:
+    """A candidate's measured vertices: undistorted (xy, px at fx) and in the image
+    (pts_px), their covariance (6x6), the edges' weakest contrast and largest outlier
+    share, the largest gap between an edge's end and its vertex (px), the level
+    halfway between the triangle and its surround, and the shutter gain (or None)."""
+
+    xy: np.ndarray
+    pts_px: np.ndarray
+    cov: np.ndarray
+    contrast: float
+    outliers: float
+    vertex_gap: float
+    level_mid: float
+    gain: np.ndarray | None
+
+
+def _saturated_share(image: np.ndarray, pts_px: np.ndarray) -> float:
+    """The share of saturated pixels (>= 254) inside the triangle shrunk by 20 %."""
+    c = pts_px.mean(axis=0)
+    inner = np.rint(c + (pts_px - c) * 0.8).astype(np.int32)
+    x0, y0 = np.maximum(inner.min(axis=0), 0)
+    x1, y1 = inner.max(axis=0) + 1
+    roi = image[y0:y1, x0:x1]
+    m = np.zeros(roi.shape, np.uint8)
+    cv2.fillPoly(m, [inner - [x0, y0]], 1)
+    n_in = cv2.countNonZero(m)
+    # saturated pixels inside: (roi >= 254) as a 0/1 image, counted under the mask
+    n_sat = cv2.countNonZero(cv2.threshold(roi, 253, 1, cv2.THRESH_BINARY)[1] & m)
+    return n_sat / n_in if n_in else 0.0
 
 
 class TriangleDetector:
@@ -398,7 +431,42 @@ class TriangleDetector:
     ) -> Detection:
         """The candidate's vertices and covariance, or the reason it is refused
         (``rate_c``: the camera's rate, rad/s, camera axes, for a rolling-shutter rig;
-        see fit_edges)."""
+        see fit_edges). Steps: 1. measure the vertices; 2. name them (the most acute
+        first, then the rig's handedness); 3. check the shape against the known
+        triangle; 4. check that the image can be trusted there; 5. add what a rolling
+        shutter leaves in the vertices."""
+        cam, s = self.rig.camera, self.rig.detect
+        m = self._measure(image, cand, rate_c)
+        if isinstance(m, str):
+            return self._reject(m, warnings, mean, cand)
+        if not np.all(np.isfinite(m.xy)) or not side_lengths(m.xy).min() > 0.0:
+            return self._reject("degenerate_triangle", warnings, mean, cand)
+        m, seen_angles = self._named(m)
+        reason = self._shape_reason(m, seen_angles) or self._usability_reason(image, cand, m)
+        if reason:
+            return self._reject(reason, warnings, mean, cand, m.pts_px)
+        w = list(warnings)
+        if not np.all(cam.in_image(m.pts_px, BORDER_MARGIN_PX + 0.02 * cam.width)):
+            w.append("near_fov_edge")
+        consider, gain = self._shutter_consider(m, rate_c)
+        return Detection(
+            Status.OK,
+            points_px=m.pts_px,
+            points_n=m.xy / cam.fx,
+            # sigma_scale: measured by `calibrate zero-tilt` where the frames' noise is
+            # wider than the edge model's (a codec's block errors)
+            cov_n=m.cov * (s.sigma_scale / cam.fx) ** 2,
+            consider_n=consider,
+            shutter_gain_n=gain,
+            warnings=tuple(w),
+            mean_brightness=mean,
+            contour_px=cand.contour_px,
+        )
+
+    def _measure(
+        self, image: np.ndarray, cand: Candidate, rate_c: np.ndarray | None
+    ) -> _Measured | str:
+        """Step 1: the vertices from the edge lines (or the corners), or a reason."""
         cam, s = self.rig.camera, self.rig.detect
         # beyond the fold of a strong distortion's polynomial the model has no rays (a
         # calibration's fit extrapolated past the photos' corners): a triangle there
@@ -407,109 +475,104 @@ class TriangleDetector:
         if self._folds and not np.all(cam.in_field(cand.corners_px, FIELD_MARGIN_PX + self.scale)):
             seen_deg = np.sort(np.degrees(corner_angles(cand.corners_px)))
             if np.abs(seen_deg - np.sort(self.expected_angles_deg)).max() > FOLD_ANGLE_TOL_DEG:
-                return self._reject("shape_mismatch", warnings, mean, cand)
-            return self._reject("beyond_lens_model", warnings, mean, cand)
+                return "shape_mismatch"
+            return "beyond_lens_model"
         if s.refine == "corners":
             mask = np.zeros(image.shape, np.uint8)
             cv2.fillPoly(mask, [np.rint(cand.contour_px).astype(np.int32)], 1)
             pts_px, cov, fit_contrast, outliers, level_mid = self._corners(image, cand, mask)
             if pts_px is None:
-                return self._reject("corners_not_found", warnings, mean, cand)
+                return "corners_not_found"
             xy = cam.undistort(pts_px) * cam.fx
-            vertex_gap = 0.0
-            gain = None
-        else:
-            fit = fit_edges(
-                image,
-                cand.corners_px,
-                cam,
-                sigma_floor=s.pixel_sigma_floor,
-                # the first pass's window, 4 px or a shrunk pixel's width: a coarse
-                # corner from the shrunk image may be half a shrunk pixel or more off
-                # the edge (with 4 px at a scale of 8, two 1920x1080 cold frames in three
-                # needed a third pass)
-                half=max(4.0, float(self.scale)),
-                width=self._last_width if cand.tracked else None,
-                shutter=RollingShutter(self.readout_ms, self.lever_c) if self.readout_ms else None,
-                rate_c=rate_c,
-                # the shutter gain, for the covariance of a rate not known yet or of the
-                # readout's error (not computed when neither is there)
-                gain=bool(self.readout_ms) and (rate_c is None or self.readout_sigma_ms > 0),
-            )
-            self._fit_width = fit.width
-            if not fit.ok:
-                return self._reject("edge_fit_failed", warnings, mean, cand)
-            xy, cov = intersect(fit)
-            pts_px = cam.distort(xy / cam.fx)
-            fit_contrast, outliers = fit.contrast.min(), fit.outlier_fraction.max()
-            vertex_gap = float(fit.vertex_gaps().max())
-            level_mid = float(np.mean(fit.mid_level))
-            gain = fit.shutter_gain
-        if not np.all(np.isfinite(xy)) or not side_lengths(xy).min() > 0.0:
-            return self._reject("degenerate_triangle", warnings, mean, cand)
-        # the shape as a camera turned to face the triangle would see it: its image
-        # position then changes neither its angles nor its area (see facing)
-        seen = facing(xy / cam.fx) * cam.fx
-        sides = side_lengths(seen)
+            return _Measured(xy, pts_px, cov, fit_contrast, outliers, 0.0, level_mid, None)
+        fit = fit_edges(
+            image,
+            cand.corners_px,
+            cam,
+            sigma_floor=s.pixel_sigma_floor,
+            # the first pass's window, 4 px or a shrunk pixel's width: a coarse corner
+            # from the shrunk image may be half a shrunk pixel or more off the edge
+            # (with 4 px at a scale of 8, two 1920x1080 cold frames in three needed a
+            # third pass)
+            half=max(4.0, float(self.scale)),
+            width=self._last_width if cand.tracked else None,
+            shutter=RollingShutter(self.readout_ms, self.lever_c) if self.readout_ms else None,
+            rate_c=rate_c,
+            # the shutter gain, for the covariance of a rate not known yet or of the
+            # readout's error (not computed when neither is there)
+            gain=bool(self.readout_ms) and (rate_c is None or self.readout_sigma_ms > 0),
+        )
+        self._fit_width = fit.width
+        if not fit.ok:
+            return "edge_fit_failed"
+        xy, cov = intersect(fit)
+        return _Measured(
+            xy, cam.distort(xy / cam.fx), cov, fit.contrast.min(), fit.outlier_fraction.max(),
+            float(fit.vertex_gaps().max()), float(np.mean(fit.mid_level)), fit.shutter_gain,
+        )  # fmt: skip
 
-        # identification: the most acute vertex first, then the rig's handedness
-        ang = np.degrees(corner_angles(seen, sides))
+    def _named(self, m: _Measured) -> tuple[_Measured, np.ndarray]:
+        """Step 2: the vertices in the rig's order (the most acute first, then the
+        rig's handedness), and the corner angles (deg) of the shape as a camera turned
+        to face the triangle would see it: its image position then changes neither
+        its angles nor its area (see facing)."""
+        cam = self.rig.camera
+        seen = facing(m.xy / cam.fx) * cam.fx
+        ang = np.degrees(corner_angles(seen, side_lengths(seen)))
         apex = int(np.argmin(ang))
         perm = (apex, (apex + 1) % 3, (apex + 2) % 3)
-        if np.sign(_signed_area(xy[list(perm)])) != self.expected_sign:
+        if np.sign(_signed_area(m.xy[list(perm)])) != self.expected_sign:
             perm = (apex, perm[2], perm[1])
-        p = list(perm)
-        xy, pts_px, sides = xy[p], pts_px[p], sides[p]
-        idx = _PERM_INDEX[perm]
-        cov = cov[idx][:, idx]
-        if gain is not None:
-            gain = gain[idx]
-        # sigma_scale: measured by `calibrate zero-tilt` where the frames' noise is wider
-        # than the edge model's (a codec's block errors)
-        cov_n = cov * (s.sigma_scale / cam.fx) ** 2
+        p, idx = list(perm), _PERM_INDEX[perm]
+        gain = m.gain[idx] if m.gain is not None else None
+        named = replace(m, xy=m.xy[p], pts_px=m.pts_px[p], cov=m.cov[idx][:, idx], gain=gain)
+        return named, ang[p]
 
-        # shape checks against the known triangle
-        area = abs(_signed_area(xy))
+    def _shape_reason(self, m: _Measured, angles_deg: np.ndarray) -> str | None:
+        """Step 3: area, side ratios and apex angle against the known triangle, as a
+        camera facing it would see them."""
+        seen = facing(m.xy / self.rig.camera.fx) * self.rig.camera.fx
+        sides = side_lengths(seen)
         if abs(abs(_signed_area(seen)) / self.expected_area - 1.0) > AREA_TOL:
-            return self._reject("area_mismatch", warnings, mean, cand, pts_px)
+            return "area_mismatch"
         if np.max(np.abs(sides / sides.sum() - self.expected_side_ratio)) > SIDE_RATIO_TOL:
-            return self._reject("shape_mismatch", warnings, mean, cand, pts_px)
-        if abs(ang[apex] - self.expected_apex_deg) > APEX_ANGLE_TOL_DEG:
-            return self._reject("angle_mismatch", warnings, mean, cand, pts_px)
-        # it is the triangle's shape; now, is it usable?
-        if cand.touches_border or not np.all(cam.in_image(pts_px, 1.0)):
-            return self._reject("partly_out_of_view", warnings, mean, cand, pts_px)
-        if fit_contrast < s.min_contrast:
-            return self._reject("low_contrast", warnings, mean, cand, pts_px)
-        if outliers > EDGE_OUTLIER_MAX:
-            return self._reject("edge_obstructed", warnings, mean, cand, pts_px)
+            return "shape_mismatch"
+        if abs(angles_deg[0] - self.expected_apex_deg) > APEX_ANGLE_TOL_DEG:
+            return "angle_mismatch"
+        return None
+
+    def _usability_reason(self, image: np.ndarray, cand: Candidate, m: _Measured) -> str | None:
+        """Step 4: it is the triangle's shape; can its image be trusted? In view,
+        contrasted, unobstructed, not saturated, the whole region, a dark surround."""
+        cam, s = self.rig.camera, self.rig.detect
+        if cand.touches_border or not np.all(cam.in_image(m.pts_px, 1.0)):
+            return "partly_out_of_view"
+        if m.contrast < s.min_contrast:
+            return "low_contrast"
+        if m.outliers > EDGE_OUTLIER_MAX:
+            return "edge_obstructed"
         # a vertex whose edges stop short of it is extrapolated: something covers it
-        if vertex_gap > max(VERTEX_GAP_MIN_PX, VERTEX_GAP_FRACTION * np.sqrt(area)):
-            return self._reject("obstructed", warnings, mean, cand, pts_px)
+        area = abs(_signed_area(m.xy))
+        if m.vertex_gap > max(VERTEX_GAP_MIN_PX, VERTEX_GAP_FRACTION * np.sqrt(area)):
+            return "obstructed"
         # saturation inside: the edges are clipped and their positions biased
-        c = pts_px.mean(axis=0)
-        inner = np.rint(c + (pts_px - c) * 0.8).astype(np.int32)
-        x0, y0 = np.maximum(inner.min(axis=0), 0)
-        x1, y1 = inner.max(axis=0) + 1
-        roi = image[y0:y1, x0:x1]
-        m = np.zeros(roi.shape, np.uint8)
-        cv2.fillPoly(m, [inner - [x0, y0]], 1)
-        n_in = cv2.countNonZero(m)
-        # saturated pixels inside: (roi >= 254) as a 0/1 image, counted under the mask
-        n_sat = cv2.countNonZero(cv2.threshold(roi, 253, 1, cv2.THRESH_BINARY)[1] & m)
-        if n_in and n_sat / n_in > SATURATED_MAX:
-            return self._reject("overexposed", warnings, mean, cand, pts_px)
+        if _saturated_share(image, m.pts_px) > SATURATED_MAX:
+            return "overexposed"
         # the region found must be the whole triangle: an occluder or a light touching
         # it changes the region's area against the fitted vertices'
-        if not self._region_matches(image, pts_px, level_mid):
-            return self._reject("obstructed", warnings, mean, cand, pts_px)
+        if not self._region_matches(image, m.pts_px, m.level_mid):
+            return "obstructed"
         # the surround must be the dark board
-        if not self._dark_surround(image, pts_px, s.min_contrast):
-            return self._reject("no_dark_surround", warnings, mean, cand, pts_px)
-        w = list(warnings)
-        if not np.all(cam.in_image(pts_px, BORDER_MARGIN_PX + 0.02 * cam.width)):
-            w.append("near_fov_edge")
-        consider = None
+        if not self._dark_surround(image, m.pts_px, s.min_contrast):
+            return "no_dark_surround"
+        return None
+
+    def _shutter_consider(
+        self, m: _Measured, rate_c: np.ndarray | None
+    ) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """Step 5: the covariance a rolling shutter leaves in the vertices (a consider
+        term) and the shutter gain, for a rig with a readout time."""
+        cam, gain = self.rig.camera, m.gain
         if rate_c is None and self.readout_ms != 0:
             # a rolling shutter whose rate is not known yet (first frame): the rows'
             # exposure times stay in the vertices, by up to the platform's fastest turn
@@ -517,30 +580,22 @@ class TriangleDetector:
             # sensitivity of their fit (the edges curve under a turn about the
             # boresight); with corners, the vertices' own
             if gain is None:
-                gain = shutter_matrix(xy / cam.fx, pts_px[:, 1], cam, self.readout_ms, self.lever_c)
+                gain = shutter_matrix(m.xy / cam.fx, m.pts_px[:, 1], cam, self.readout_ms,
+                                      self.lever_c)  # fmt: skip
             consider = (gain @ self._cov_omega @ gain.T) * (
                 1.0 + (self.readout_sigma_ms / self.readout_ms) ** 2
             )
-        elif rate_c is not None and self.readout_sigma_ms > 0:
+            return consider, gain
+        if rate_c is not None and self.readout_sigma_ms > 0:
             # taken out with a measured or estimated readout: what its sigma s leaves,
             # the shift of a readout error s at the rate omega (linear in the readout)
             if gain is None:
-                g = shutter_shift(xy / cam.fx, pts_px[:, 1], cam, self.readout_sigma_ms, rate_c,
-                                  self.lever_c)  # fmt: skip
+                g = shutter_shift(m.xy / cam.fx, m.pts_px[:, 1], cam, self.readout_sigma_ms,
+                                  rate_c, self.lever_c)  # fmt: skip
             else:
                 g = gain @ rate_c * (self.readout_sigma_ms / self.readout_ms)
-            consider = np.outer(g, g)
-        return Detection(
-            Status.OK,
-            points_px=pts_px,
-            points_n=xy / cam.fx,
-            cov_n=cov_n,
-            consider_n=consider,
-            shutter_gain_n=gain,
-            warnings=tuple(w),
-            mean_brightness=mean,
-            contour_px=cand.contour_px,
-        )
+            return np.outer(g, g), gain
+        return None, gain
 
     def _partial_reason(self, image: np.ndarray) -> tuple[str, np.ndarray]:
         """Why no region had the triangle's shape, when one shows a corner of it (see
