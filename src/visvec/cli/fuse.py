@@ -117,58 +117,14 @@ def fuse(imu_path, fixes_path, follow, max_samples, silent_s, gyro_range_dps, ou
         return
     fixes = read_fixes(fixes_path)
     imu = read_imu(imu_path, planar=fixes.planar)
-    for k in imu.gaps:
-        click.echo(
-            f"visvec: {imu_path}: line {imu.lines[k]}: gap of {imu.t[k] - imu.t[k - 1]:.3f} s "
-            f"after t = {imu.t[k - 1]:.3f} s (period {imu.period_s:.4f} s): not integrated "
-            "over; fusion restarts at the next fix",
-            err=True,
-        )
-    if not fixes.fixes:
-        click.echo(f"visvec: {fixes_path}: no ok fixes among {fixes.n_rows} rows", err=True)
-    else:
-        ft = [f.time_s for f in fixes.fixes]
-        inside = sum(imu.t[0] <= x <= imu.t[-1] for x in ft)
-        if inside == 0:
-            raise InputFileError(
-                f"{fixes_path}: none of the {len(ft)} ok fixes lies within the IMU's time span "
-                f"({imu.t[0]:.3f} to {imu.t[-1]:.3f} s; the fixes' time_s run from "
-                f"{min(ft):.3f} to {max(ft):.3f} s): both must be on one clock"
-            )
-        if inside < len(ft):
-            click.echo(
-                f"visvec: {fixes_path}: {len(ft) - inside} of {len(ft)} ok fixes lie outside "
-                f"the IMU's time span ({imu.t[0]:.3f} to {imu.t[-1]:.3f} s) and are not used",
-                err=True,
-            )
+    _check_files(imu, fixes, imu_path, fixes_path)
     model, limits = fusion_model(fixes.planar, imu.period_s, method, gyro_noise_dps,
                            accel_noise_mps2, fix_sigma_deg, no_misalignment, max_rate_dps,
                            max_accel_mps2, clock_jitter_ms)  # fmt: skip
     if fix_sigma_deg is not None:
         fixes = replace(fixes, fixes=tuple(replace(f, cov=None) for f in fixes.fixes))
     if rest_s > 0:
-        try:
-            rb = rest_biases(imu, rest_s, limits)
-        except ValueError as exc:
-            raise click.UsageError(f"--rest-s {rest_s:g}: {exc}") from None
-        if fixes.planar:
-            model = replace(
-                model,
-                gyro_bias0=float(rb.gyro[2]),
-                accel_bias0=tuple(float(x) * 1000.0 for x in rb.accel),
-                gyro_bias_sigma=math.radians(0.02),
-                accel_bias_sigma=2.0,
-            )
-        else:
-            model = replace(model, gyro_bias0=tuple(float(x) for x in rb.gyro),
-                            gyro_bias_sigma=math.radians(0.05))  # fmt: skip
-        click.echo(
-            f"visvec: biases from {rb.n} samples at rest: gyro "
-            f"{[round(math.degrees(x), 4) for x in rb.gyro]} deg/s"
-            + (f", accel {[round(float(x), 5) for x in rb.accel]} m/s^2" if rb.accel is not None
-               else ""),
-            err=True,
-        )  # fmt: skip
+        model = _with_rest_biases(model, imu, rest_s, limits, fixes.planar)
     engine = Fusion(model, limits=limits, history_s=history_s, gyro_range_dps=gyro_range_dps)
     samples = run_fusion(imu, fixes.fixes, model, engine=engine)
     nis: list[float] = []
@@ -198,23 +154,7 @@ def fuse(imu_path, fixes_path, follow, max_samples, silent_s, gyro_range_dps, ou
         err=True,
     )
     if len(nis) >= 5:
-        mean = sum(nis) / len(nis)
-        advice = ""
-        if mean > 6.0 and not fixes.planar:
-            advice = ("; the fixes disagree with the gyro beyond its learned noise: glitches in "
-                      "the fixes, or a gyro beyond its range")  # fmt: skip
-        elif mean > 6.0:
-            advice = "; the filter is overconfident: raise --gyro-noise-dps (or --accel-noise-mps2)"
-        elif mean < 1.0 and not fixes.planar:
-            advice = ("; the fixes agree better than the noise learned so far says (it starts "
-                      "from a cautious prior: a short run)")  # fmt: skip
-        elif mean < 1.0:
-            advice = "; the filter is too cautious: the noise settings can be lowered"
-        click.echo(
-            f"visvec: fix innovations: mean NIS {mean:.2f} over {len(nis)} fixes (3 expected "
-            f"for a consistent filter){advice}",
-            err=True,
-        )
+        click.echo(nis_line(nis, fixes.planar), err=True)
     if not fixes.planar and last[0] is not None:
         click.echo(learned_line(engine, last[0]), err=True)
     if rows and n_ok == 0:
@@ -227,6 +167,82 @@ def fuse(imu_path, fixes_path, follow, max_samples, silent_s, gyro_range_dps, ou
         for line in stats.lines() if stats is not None else ():
             click.echo(line, err=out is None)
         write_results(errors, summary, rows, truth_rows, stats, names)
+
+
+def _check_files(imu, fixes, imu_path: str, fixes_path: str) -> None:
+    """Said before fusing: the IMU's gaps, and fixes outside its time span (refused
+    when none is inside: the two are not on one clock)."""
+    for k in imu.gaps:
+        click.echo(
+            f"visvec: {imu_path}: line {imu.lines[k]}: gap of {imu.t[k] - imu.t[k - 1]:.3f} s "
+            f"after t = {imu.t[k - 1]:.3f} s (period {imu.period_s:.4f} s): not integrated "
+            "over; fusion restarts at the next fix",
+            err=True,
+        )
+    if not fixes.fixes:
+        click.echo(f"visvec: {fixes_path}: no ok fixes among {fixes.n_rows} rows", err=True)
+        return
+    ft = [f.time_s for f in fixes.fixes]
+    inside = sum(imu.t[0] <= x <= imu.t[-1] for x in ft)
+    if inside == 0:
+        raise InputFileError(
+            f"{fixes_path}: none of the {len(ft)} ok fixes lies within the IMU's time span "
+            f"({imu.t[0]:.3f} to {imu.t[-1]:.3f} s; the fixes' time_s run from "
+            f"{min(ft):.3f} to {max(ft):.3f} s): both must be on one clock"
+        )
+    if inside < len(ft):
+        click.echo(
+            f"visvec: {fixes_path}: {len(ft) - inside} of {len(ft)} ok fixes lie outside "
+            f"the IMU's time span ({imu.t[0]:.3f} to {imu.t[-1]:.3f} s) and are not used",
+            err=True,
+        )
+
+
+def _with_rest_biases(model, imu, rest_s: float, limits, planar: bool):
+    """The model with its biases started from the first ``rest_s`` seconds (--rest-s),
+    said on stderr."""
+    try:
+        rb = rest_biases(imu, rest_s, limits)
+    except ValueError as exc:
+        raise click.UsageError(f"--rest-s {rest_s:g}: {exc}") from None
+    if planar:
+        model = replace(
+            model,
+            gyro_bias0=float(rb.gyro[2]),
+            accel_bias0=tuple(float(x) * 1000.0 for x in rb.accel),
+            gyro_bias_sigma=math.radians(0.02),
+            accel_bias_sigma=2.0,
+        )
+    else:
+        model = replace(model, gyro_bias0=tuple(float(x) for x in rb.gyro),
+                        gyro_bias_sigma=math.radians(0.05))  # fmt: skip
+    click.echo(
+        f"visvec: biases from {rb.n} samples at rest: gyro "
+        f"{[round(math.degrees(x), 4) for x in rb.gyro]} deg/s"
+        + (f", accel {[round(float(x), 5) for x in rb.accel]} m/s^2" if rb.accel is not None
+           else ""),
+        err=True,
+    )  # fmt: skip
+    return model
+
+
+def nis_line(nis: list[float], planar: bool) -> str:
+    """The fixes' mean normalised innovation squared against the 3 a consistent filter
+    gives, and what a mean far from it says."""
+    mean = sum(nis) / len(nis)
+    advice = ""
+    if mean > 6.0 and not planar:
+        advice = ("; the fixes disagree with the gyro beyond its learned noise: glitches in "
+                  "the fixes, or a gyro beyond its range")  # fmt: skip
+    elif mean > 6.0:
+        advice = "; the filter is overconfident: raise --gyro-noise-dps (or --accel-noise-mps2)"
+    elif mean < 1.0 and not planar:
+        advice = ("; the fixes agree better than the noise learned so far says (it starts "
+                  "from a cautious prior: a short run)")  # fmt: skip
+    elif mean < 1.0:
+        advice = "; the filter is too cautious: the noise settings can be lowered"
+    return (f"visvec: fix innovations: mean NIS {mean:.2f} over {len(nis)} fixes (3 expected "
+            f"for a consistent filter){advice}")  # fmt: skip
 
 
 def fusion_model(planar, period_s, method, gyro_noise_dps, accel_noise_mps2, fix_sigma_deg,
