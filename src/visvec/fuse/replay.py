@@ -281,25 +281,62 @@ class Fusion:
     def step(self, t: float, g: np.ndarray, a: np.ndarray | None, *, gap: bool = False,
              index: int | None = None) -> FusedSample:  # fmt: skip
         """Take the inertial sample at ``t`` (gyro rad/s (3,), accel m/s^2 (2,) or
-        None) and return the fused state after it."""
+        None) and return the fused state after it. Steps: 1. the sample checked and
+        buffered (a fault replaced by the last good one, a saturated reading
+        reconstructed); 2. the fixes that came since, in exposure order; 3. a replay
+        from the earliest sample they (or a rewritten reading) touch; 4. a restart on
+        the fixes after too many refused in a row; 5. the history beyond its window
+        forgotten."""
         k = self._index if index is None else index
         self._index = k + 1
-        ts, gyro, acc, states, known = self._ts, self._gyro, self._acc, self._states, self._known
-        if ts and not gap and t <= ts[-1]:
+        if self._ts and not gap and t <= self._ts[-1]:
             # a clock that steps back: this sample is refused, the state stands
-            return FusedSample(k, t, states[-1], self.n_applied, ("imu_time_back",))
+            return FusedSample(k, t, self._states[-1], self.n_applied, ("imu_time_back",))
         warnings: list[str] = []
         if gap:
             warnings.append("imu_gap")
             self.gap()
+        clipped, dirty = self._take_sample(t, *self._checked(g, a, warnings))
+        new = self._take_fixes(t, warnings)
+        # replay from the first sample at or after the earliest new fix (else the newest
+        # sample, or the first one whose reading was rewritten)
+        start = dirty
+        if new:
+            start = min(start, bisect.bisect_left(self._ts, min(f.time_s for f in new)))
+        nis_new: list[float] = []
+        if not self._replay(start, new, warnings, nis_new):
+            return FusedSample(k, t, None, self.n_applied, (*warnings, "no_fix_yet"))
+        if self._rejected_streak >= MAX_REJECTED_IN_A_ROW:
+            # the filter has disagreed with several fixes in a row: trust the fixes again,
+            # keeping what it learned of the sensor where the model can
+            self._restart_on(max(new, key=lambda f: f.time_s))
+            warnings.append("filter_restarted")
+        self._forget(t)
+        st = self._states[-1]
+        if getattr(st, "saturated", False) or clipped.any():
+            warnings.append("gyro_saturated")
+        if getattr(st, "disputed", False):
+            warnings.append("fix_disputed")
+        if not getattr(st, "confirmed", True):
+            warnings.append("fix_unconfirmed")
+        return FusedSample(k, t, st, self.n_applied, tuple(warnings), tuple(nis_new))
+
+    def _checked(self, g: np.ndarray, a: np.ndarray | None, warnings: list[str]):
+        """Step 1a: a faulty sample (beyond the limits) is replaced by the last good
+        one (or zeros) and flagged."""
         if is_faulty(g, a, self.limits):
             warnings.append("imu_fault")
             if self._last_good is not None:
-                g, a = self._last_good
-            else:
-                g, a = np.zeros(3), (np.zeros(2) if a is not None else None)
-        else:
-            self._last_good = (g, a)
+                return self._last_good
+            return np.zeros(3), (np.zeros(2) if a is not None else None)
+        self._last_good = (g, a)
+        return g, a
+
+    def _take_sample(self, t: float, g: np.ndarray, a: np.ndarray | None):
+        """Step 1b: buffer the sample; reconstruct the readings of a flat top (from
+        before it while it lasts, from both sides three samples after it ends). The
+        reading's clipped axes and the first buffered sample whose reading changed."""
+        ts, acc = self._ts, self._acc
         ts.append(t)
         self._raw.append(np.asarray(g, float))
         self._clip.append(np.zeros(3, bool))
@@ -308,9 +345,9 @@ class Fusion:
         acc.append(0.5 * (a + self._prev_a) if a is not None and self._prev_a is not None
                    else a)  # fmt: skip
         self._prev_a = a
-        states.append(None)
+        self._states.append(None)
         j_new = len(ts) - 1
-        gyro.append(self._make_reading(j_new, np.zeros(3)))
+        self._gyro.append(self._make_reading(j_new, np.zeros(3)))
         dirty = j_new
         if clipped.any():
             self.n_saturated += 1
@@ -327,21 +364,27 @@ class Fusion:
                 if first is not None:
                     dirty = min(dirty, first)
                 self._burst_end = None
-        # fixes that reached us by now
-        new: list[Fix] = []
-        nis_new: list[float] = []
+        return clipped, dirty
+
+    def _take_fixes(self, t: float, warnings: list[str]) -> list[Fix]:
+        """Step 2: the fixes that reached us since the last sample, known from now on
+        in exposure order; one older than the history or from the future is flagged
+        and dropped."""
+        ts, new = self._ts, []
         pending, self._pending = self._pending, []
         for f in pending:
             if f.time_s < ts[0] or f.time_s > t:
                 warnings.append("fix_too_old" if f.time_s < ts[0] else "fix_from_future")
                 continue
-            bisect.insort(known, (f.time_s, id(f), f))
+            bisect.insort(self._known, (f.time_s, id(f), f))
             new.append(f)
-        # replay from the first sample at or after the earliest new fix (else the newest
-        # sample, or the first one whose reading was rewritten)
-        start = dirty
-        if new:
-            start = min(start, bisect.bisect_left(ts, min(f.time_s for f in new)))
+        return new
+
+    def _replay(self, start: int, new: list[Fix], warnings: list[str],
+                nis_new: list[float]) -> bool:  # fmt: skip
+        """Step 3: the states from sample ``start`` on, each known fix applied at its
+        own exposure time; False while no fix has started the filter."""
+        ts, gyro, acc, states, known = self._ts, self._gyro, self._acc, self._states, self._known
         s = states[start - 1] if start > 0 else None
         if s is not None:
             t_s = ts[start - 1]
@@ -349,10 +392,10 @@ class Fusion:
             # not initialised, or restarting: from the earliest known fix in the buffer
             init = known[0][2] if known else None
             if init is None:
-                return FusedSample(k, t, None, self.n_applied, (*warnings, "no_fix_yet"))
+                return False
             if not self._initialised:
                 self._initialised = True
-                self._find_rest(t)
+                self._find_rest(ts[-1])
             s, t_s = self.model.init(init), init.time_s
             if any(init is f for f in new):
                 self.n_applied += 1
@@ -380,42 +423,37 @@ class Fusion:
                 s = model.propagate(s, gyro[j], acc[j], ts[j] - t_s)
                 t_s = ts[j]
             states[j] = s
-        if self._rejected_streak >= MAX_REJECTED_IN_A_ROW:
-            # the filter has disagreed with several fixes in a row: trust the fixes again,
-            # keeping what it learned of the sensor where the model can
-            latest = max(new, key=lambda f: f.time_s)
-            j0 = bisect.bisect_left(ts, latest.time_s)
-            prior = states[j0 - 1] if j0 > 0 else None
-            if prior is not None and hasattr(model, "reinit"):
-                s = model.reinit(prior, latest)
-            else:
-                s = model.init(latest)
-            t_s = latest.time_s
-            for i in range(j0):
-                states[i] = None
-            for j in range(j0, len(ts)):
-                if ts[j] > t_s:
-                    s = model.propagate(s, gyro[j], acc[j], ts[j] - t_s)
-                    t_s = ts[j]
-                states[j] = s
-            known[:] = [x for x in known if x[0] >= latest.time_s]
-            self._rejected_streak = 0
-            warnings.append("filter_restarted")
-        # forget what is older than the history window
+        return True
+
+    def _restart_on(self, latest: Fix) -> None:
+        """Step 4: start again from ``latest`` (keeping what the model learned of the
+        sensor, where it can) and replay the samples after it."""
+        ts, gyro, acc, states, model = self._ts, self._gyro, self._acc, self._states, self.model
+        j0 = bisect.bisect_left(ts, latest.time_s)
+        prior = states[j0 - 1] if j0 > 0 else None
+        if prior is not None and hasattr(model, "reinit"):
+            s = model.reinit(prior, latest)
+        else:
+            s = model.init(latest)
+        t_s = latest.time_s
+        for i in range(j0):
+            states[i] = None
+        for j in range(j0, len(ts)):
+            if ts[j] > t_s:
+                s = model.propagate(s, gyro[j], acc[j], ts[j] - t_s)
+                t_s = ts[j]
+            states[j] = s
+        self._known[:] = [x for x in self._known if x[0] >= latest.time_s]
+        self._rejected_streak = 0
+
+    def _forget(self, t: float) -> None:
+        """Step 5: what is older than the history window goes."""
+        ts = self._ts
         cut = bisect.bisect_left(ts, t - self.history_s)
         if cut > 0:
-            for buf in (ts, self._raw, self._clip, gyro, acc, states):
+            for buf in (ts, self._raw, self._clip, self._gyro, self._acc, self._states):
                 del buf[:cut]
-            known[:] = [x for x in known if x[0] >= ts[0]]
-        st = states[-1]
-        if getattr(st, "saturated", False) or clipped.any():
-            warnings.append("gyro_saturated")
-        if getattr(st, "disputed", False):
-            warnings.append("fix_disputed")
-        if not getattr(st, "confirmed", True):
-            warnings.append("fix_unconfirmed")
-        return FusedSample(k, t, st, self.n_applied, tuple(warnings), tuple(nis_new))
-
+            self._known[:] = [x for x in self._known if x[0] >= ts[0]]
 
 def fuse(
     imu: ImuData,
