@@ -616,6 +616,64 @@ def _pass_window(npass: int, corners: np.ndarray, w_mid: float, half0: float, st
     return half, ext, trims, spacing
 
 
+@dataclass(frozen=True)
+class _Profiles:
+    """One pass's profiles across the edges: where each starts (bases, px) and its
+    direction (normals), its edge (gid) and place along it (index, along; lengths per
+    edge), its samples (t, vals); the step's position on it (e, px from the base), height
+    (h) and mid level; per edge the levels' scatter (level_sd), the median height
+    (h_mid) and the mid level; whether the profile has a clear step (clear)."""
+
+    bases: np.ndarray
+    normals: np.ndarray
+    gid: np.ndarray
+    index: np.ndarray
+    along: np.ndarray
+    lengths: np.ndarray
+    vals: np.ndarray
+    e: np.ndarray
+    mid: np.ndarray
+    level_sd: np.ndarray
+    h_mid: np.ndarray
+    clear: np.ndarray
+
+
+def _profiles(roi, corners, off, half, ext, step, trims, spacing, width) -> _Profiles:
+    """Sample the profiles of one pass and place the step on each (``width``: the blur
+    widths the step model takes, or None for the first pass's area estimate)."""
+    bases, normals, gid, index, t, along, vals, lengths = _sample(
+        roi, corners, off, half + ext, step, trims, spacing
+    )
+    e, h, mid, level_sd, level_ok = _positions(vals, t, gid, half, step, width, ext)
+    # per edge, the median step height; a profile has a clear step if its position is
+    # inside the window and its height at least 0.4x that median
+    h_mid = _group_median(h, gid, index, np.ones(len(h), dtype=bool))
+    clear = (np.abs(e) < half - 1.0) & (h > 0.4 * np.maximum(h_mid, 1e-6)[gid]) & level_ok
+    return _Profiles(bases, normals, gid, index, along, lengths, vals, e, mid, level_sd, h_mid,
+                     clear)  # fmt: skip
+
+
+def _lines(raw, pts_px, pr: _Profiles, camera, shutter, rate_c, sigma_floor, rounds):
+    """The three edge lines through the profiles' step positions, in ideal pixels
+    (taken back to the centre row's exposure under a rolling shutter with a known
+    rate), their normals pointing into the triangle: (normals, offsets, centres,
+    spreads, sigmas, keep) as _robust_lines gives them."""
+    f = camera.fx
+    ideal = raw * f
+    if shutter is not None and rate_c is not None:
+        ideal = unroll(raw, pts_px[:, 1], camera, rate_c, shutter.readout_ms, shutter.lever) * f
+    # an edge's points with a clear step; all of them if fewer than 5 are clear
+    gid, clear = pr.gid, pr.clear
+    use = clear | (np.bincount(gid, clear, 3) < 5)[gid]
+    normals_l, offsets, centres, spreads, sigmas, keep = _robust_lines(
+        ideal[:, 0], ideal[:, 1], gid, pr.index, use, sigma_floor, rounds
+    )
+    # normals into the triangle: towards the mean of the three edges' centres (a point
+    # on each side: inside; compared as sums, n . sum < 3 offset)
+    flip = np.where(normals_l @ centres.sum(axis=0) < 3.0 * offsets, -1.0, 1.0)
+    return normals_l * flip[:, None], offsets * flip, centres, spreads, sigmas, keep
+
+
 def fit_edges(
     image: np.ndarray,
     corners_px: np.ndarray,
@@ -674,50 +732,30 @@ def fit_edges(
         w_mid = sorted(width)[1]  # median blur width of the three edges
         half, ext, trims, spacing = _pass_window(npass, corners, w_mid, half0, step, trim)
         sides = side_lengths(corners)
-        bases, normals, gid, index, t, along, vals, lengths = _sample(
-            roi, corners, off, half + ext, step, trims, spacing
-        )
-        e, h, mid, level_sd, level_ok = _positions(
-            vals, t, gid, half, step, width if npass >= 1 else None, ext
-        )
-        # the levels' share of each edge point's error (fine passes: the first pass's
-        # area estimate is only used for its lines, never for a covariance)
-        level_px = _level_gain(width, half, step) * level_sd if npass >= 1 else np.zeros(3)
-        # per edge, the median step height; a profile has a clear step if its position
-        # is inside the window and its height at least 0.4x that median
-        h_mid = _group_median(h, gid, index, np.ones(len(h), dtype=bool))
-        clear = (np.abs(e) < half - 1.0) & (h > 0.4 * np.maximum(h_mid, 1e-6)[gid]) & level_ok
+        pr = _profiles(roi, corners, off, half, ext, step, trims, spacing,
+                       width if npass >= 1 else None)  # fmt: skip
+        gid, e, clear = pr.gid, pr.e, pr.clear
         if tracked and k == 1:
             # a tracked frame keeps the widths of the last cold one: check them on this
             # pass's profiles (a lens refocusing mid-run), and measure them afresh from
             # these corners if they are off
             n_ext = int(round(ext / step))
-            seen = _widths(vals[:, n_ext : vals.shape[1] - n_ext], e, clear, gid, half, step)
+            seen = _widths(pr.vals[:, n_ext : pr.vals.shape[1] - n_ext], e, clear, gid, half, step)
             if abs(np.log(sorted(seen)[1] / w_mid)) > np.log(WIDTH_CHANGE):
                 passes.extend([0, 1])
         if npass == 0:
-            width = _widths(vals, e, clear, gid, half, step)
+            width = _widths(pr.vals, e, clear, gid, half, step)
             # a blur this wide was cut short by the window: measure it again on a
             # window that holds it (once), from the corners of this pass
             need = 3.0 * sorted(width)[1] + 0.75
             if need > half0 and half0 < MAX_HALF_PX and passes.count(0) == 1:
                 half0 = min(step * np.ceil(need / step), MAX_HALF_PX)
                 passes.insert(k, 0)
-        pts_px = bases + e[:, None] * normals
+        pts_px = pr.bases + e[:, None] * pr.normals
         raw = camera.undistort(pts_px)
-        ideal = raw * f
-        if shutter is not None and rate_c is not None:
-            ideal = unroll(raw, pts_px[:, 1], camera, rate_c, shutter.readout_ms,
-                           shutter.lever) * f  # fmt: skip
-        # an edge's points with a clear step; all of them if fewer than 5 are clear
-        use = clear | (np.bincount(gid, clear, 3) < 5)[gid]
-        normals_l, offsets, centres, spreads, sigmas, keep = _robust_lines(
-            ideal[:, 0], ideal[:, 1], gid, index, use, sigma_floor, 3 if npass == 1 else 1
+        normals_l, offsets, centres, spreads, sigmas, keep = _lines(
+            raw, pts_px, pr, camera, shutter, rate_c, sigma_floor, 3 if npass == 1 else 1
         )
-        # normals into the triangle: towards the mean of the three edges' centres (a
-        # point on each side: inside; compared as sums, n . sum < 3 offset)
-        flip = np.where(normals_l @ centres.sum(axis=0) < 3.0 * offsets, -1.0, 1.0)
-        normals_l, offsets = normals_l * flip[:, None], offsets * flip
         new = camera.distort(_vertices(normals_l, offsets)[0] / f)
         size = float(sides.max())
         failed = not np.all(np.isfinite(new)) or np.abs(new - corners).max() > 0.25 * size + 3.0
@@ -726,8 +764,11 @@ def fit_edges(
             # needed
             corners = new
             continue
-        fit = _edge_fit(normals_l, offsets, centres, spreads, sigmas, level_px, h_mid, mid,
-                        width, gid, keep, along, trims, lengths)  # fmt: skip
+        # the levels' share of each edge point's error (fine passes: the first pass's
+        # area estimate is only used for its lines, never for a covariance)
+        level_px = _level_gain(width, half, step) * pr.level_sd if npass >= 1 else np.zeros(3)
+        fit = _edge_fit(normals_l, offsets, centres, spreads, sigmas, level_px, pr.h_mid,
+                        pr.mid, width, gid, keep, pr.along, trims, pr.lengths)  # fmt: skip
         if gain and shutter is not None and not failed:
             omega = np.zeros(3) if rate_c is None else np.asarray(rate_c, float)
             fit = replace(
