@@ -28,7 +28,7 @@ import sys
 import threading
 import time
 from collections.abc import Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from urllib.parse import parse_qs, urlsplit
 
 import numpy as np
@@ -36,6 +36,7 @@ import numpy as np
 from visvec.errors import ConfigError, InputFileError
 from visvec.fuse.inputs import ATTITUDE_FIX, ATTITUDE_IMU, PLANAR_FIX, PLANAR_IMU, STATUSES, Fix
 from visvec.fuse.inputs import _fix_cov as fix_cov
+from visvec.fuse.run import fused_rows
 from visvec.rotations import quat_to_matrix
 
 SERIAL_RETRY_S = 1.0
@@ -322,122 +323,146 @@ def run_live(imu: Reader, fixes, setup, open_rows, *, max_samples: int | None = 
     ``fixes_silent``), and again when it is back. ``end_with_fixes`` (a camera in this
     process): the run also ends once the fixes' source has ended and the IMU has
     been quiet for QUIET_END_S."""
-    from dataclasses import replace
-
-    from visvec.fuse.run import fused_rows
-
-    events: queue.Queue = imu.events
-    summary = LiveSummary()
-    engine = model = sink = planar = None
-    waiting: list[dict] = []  # fixes that came before the first inertial row
-    held: list = []  # fixes that arrived before the IMU's clock reached their latency
-    clock = [math.inf]  # host time (time.monotonic) minus IMU time
-    fixes_ended = False
-    last = {"imu": time.monotonic(), "fix": time.monotonic()}
-    silent = {"imu": False, "fix": False}
+    run = _LiveRun(imu, fixes, setup, open_rows, silent_s, echo, kind, end_with_fixes)
     for r in (imu, fixes):
         r.start()
+    try:
+        while True:
+            try:
+                ev = imu.events.get(timeout=0.1)
+            except queue.Empty:
+                ev = None
+            if not run.take(ev):
+                break
+            if max_samples is not None and run.summary.samples >= max_samples:
+                break
+    except KeyboardInterrupt:
+        run.summary.interrupted = True
+    finally:
+        imu.stop.set()
+        fixes.stop.set()
+    return run.summary
 
-    def bad(source: str, text: str) -> None:
-        summary.bad[source] = summary.bad.get(source, 0) + 1
-        if summary.bad[source] <= 3:
-            echo(f"visvec: {source_of[source]}: malformed row skipped ({text})")
 
-    source_of = {"imu": imu.source, "fix": getattr(fixes, "source", "camera")}
+class _LiveRun:
+    """The state of a live fusion and what each event does to it (run_live)."""
 
-    def add_fix(row: dict, arrival: float) -> None:
+    def __init__(self, imu, fixes, setup, open_rows, silent_s, echo, kind, end_with_fixes):
+        self.imu, self.setup, self.open_rows = imu, setup, open_rows
+        self.silent_s, self.echo, self.kind = silent_s, echo, kind
+        self.end_with_fixes = end_with_fixes
+        self.summary = LiveSummary()
+        self.engine = self.model = self.sink = self.planar = None
+        self.waiting: list = []  # fixes that came before the first inertial row
+        self.held: list = []  # fixes that arrived before the IMU's clock reached their latency
+        self.clock = math.inf  # host time (time.monotonic) minus IMU time
+        self.fixes_ended = False
+        now = time.monotonic()
+        self.last = {"imu": now, "fix": now}
+        self.silent = {"imu": False, "fix": False}
+        self.source_of = {"imu": imu.source, "fix": getattr(fixes, "source", "camera")}
+
+    def take(self, ev: Event | None) -> bool:
+        """Handle one event (None: nothing came for 0.1 s); False ends the run."""
+        now = time.monotonic()
+        for src in ("imu", "fix"):
+            if not self.silent[src] and now - self.last[src] > self.silent_s:
+                self.silent[src] = True
+                self.echo(f"visvec: {self.source_of[src]}: nothing for {self.silent_s:g} s")
+        if ev is None:
+            return not (self.fixes_ended and now - self.last["imu"] > QUIET_END_S)
+        if ev.kind == "end":
+            if ev.source == "imu":
+                return False
+            self.fixes_ended = self.end_with_fixes
+        elif ev.kind == "note":
+            self.echo(f"visvec: {ev.text}")
+        elif ev.kind == "bad":
+            self.bad(ev.source, ev.text)
+        else:
+            self.last[ev.kind] = ev.arrival
+            if self.silent[ev.kind]:
+                self.silent[ev.kind] = False
+                self.echo(f"visvec: {self.source_of[ev.kind]}: back")
+            if ev.kind == "fix":
+                if self.engine is None:
+                    self.waiting.append((ev.row, ev.arrival))
+                else:
+                    self.add_fix(ev.row, ev.arrival)
+                return True
+            return self.sample(ev)
+        return True
+
+    def bad(self, source: str, text: str) -> None:
+        """A malformed row: counted, and said for the first three of each source."""
+        self.summary.bad[source] = self.summary.bad.get(source, 0) + 1
+        if self.summary.bad[source] <= 3:
+            self.echo(f"visvec: {self.source_of[source]}: malformed row skipped ({text})")
+
+    def add_fix(self, row: dict, arrival: float) -> None:
+        """A fix held until the IMU's clock reaches the time it became available."""
         try:
-            f = parse_fix(row, planar)
+            f = parse_fix(row, self.planar)
         except ValueError as exc:
-            bad("fix", str(exc))
+            self.bad("fix", str(exc))
             return
         if f is not None and "_host_exposure" in row:
             # a fix of this process's camera: its exposure and arrival, on the host's
             # clock, taken onto the IMU's by the learned offset
-            f = replace(f, time_s=float(row["_host_exposure"]) - clock[0],
-                        available_s=arrival - clock[0])  # fmt: skip
+            f = replace(f, time_s=float(row["_host_exposure"]) - self.clock,
+                        available_s=arrival - self.clock)  # fmt: skip
         if f is not None:
-            summary.fixes += 1
-            heapq.heappush(held, (f.available_s, id(f), f))
+            self.summary.fixes += 1
+            heapq.heappush(self.held, (f.available_s, id(f), f))
 
-    try:
-        while True:
-            try:
-                ev = events.get(timeout=0.1)
-            except queue.Empty:
-                ev = None
-            now = time.monotonic()
-            for src in ("imu", "fix"):
-                if not silent[src] and now - last[src] > silent_s:
-                    silent[src] = True
-                    echo(f"visvec: {source_of[src]}: nothing for {silent_s:g} s")
-            if ev is None:
-                if fixes_ended and now - last["imu"] > QUIET_END_S:
-                    break
-                continue
-            if ev.kind == "end":
-                if ev.source == "imu":
-                    break
-                fixes_ended = end_with_fixes
-                continue
-            if ev.kind == "note":
-                echo(f"visvec: {ev.text}")
-                continue
-            if ev.kind == "bad":
-                bad(ev.source, ev.text)
-                continue
-            last[ev.kind] = ev.arrival
-            if silent[ev.kind]:
-                silent[ev.kind] = False
-                echo(f"visvec: {source_of[ev.kind]}: back")
-            if ev.kind == "fix":
-                if engine is None:
-                    waiting.append((ev.row, ev.arrival))
-                else:
-                    add_fix(ev.row, ev.arrival)
-                continue
-            if planar is None:
-                planar = imu_kind(ev.row)
-                if planar is None:
-                    bad("imu", "no gyro columns")
-                    continue
-                if kind is not None and planar != kind:
-                    echo(f"visvec: {imu.source}: a {'planar' if planar else '3-D'} IMU's rows; "
-                         f"this rig's fixes need a {'planar' if kind else '3-D'} IMU "
-                         f"({','.join(PLANAR_IMU if kind else ATTITUDE_IMU)})")  # fmt: skip
-                    summary.refused = True
-                    break
-                engine, model = setup(planar)
-                sink = open_rows(planar)
-            try:
-                t, g, a = parse_imu(ev.row, planar)
-            except ValueError as exc:
-                bad("imu", str(exc))
-                continue
-            # the IMU's clock against the host's: the lower envelope of arrival - time
-            # (the sample that took the least time to arrive sets it)
-            clock[0] = min(clock[0], ev.arrival - t)
-            if waiting:  # fixes that came before the IMU's first sample: its clock is known
-                for row, arrival in waiting:
-                    add_fix(row, arrival)
-                waiting.clear()
-            while held and held[0][0] <= t:
-                engine.add_fix(heapq.heappop(held)[2])
-            fs = engine.step(t, g, a)
-            if silent["fix"]:
-                fs = replace(fs, warnings=(*fs.warnings, "fixes_silent"))
-            row = next(fused_rows(iter([fs]), model))
-            latency = (time.monotonic() - ev.arrival) * 1000.0
-            row = replace(row, latency_ms=latency)
-            sink.write(row.as_dict())
-            summary.samples += 1
-            summary.ok += int(row.ok)
-            summary.latencies_ms.append(latency)
-            if max_samples is not None and summary.samples >= max_samples:
-                break
-    except KeyboardInterrupt:
-        summary.interrupted = True
-    finally:
-        imu.stop.set()
-        fixes.stop.set()
-    return summary
+    def _start(self, row: dict) -> bool:
+        """The first inertial row tells the kind: the engine and the sink are made;
+        False when the rig's fixes need the other kind."""
+        planar = imu_kind(row)
+        if planar is None:
+            self.bad("imu", "no gyro columns")
+            return True
+        if self.kind is not None and planar != self.kind:
+            self.echo(f"visvec: {self.imu.source}: a {'planar' if planar else '3-D'} IMU's "
+                      f"rows; this rig's fixes need a {'planar' if self.kind else '3-D'} IMU "
+                      f"({','.join(PLANAR_IMU if self.kind else ATTITUDE_IMU)})")  # fmt: skip
+            self.summary.refused = True
+            return False
+        self.planar = planar
+        self.engine, self.model = self.setup(planar)
+        self.sink = self.open_rows(planar)
+        return True
+
+    def sample(self, ev: Event) -> bool:
+        """An inertial sample: fused with the fixes available by its time, its row
+        written at once."""
+        if self.planar is None:
+            if not self._start(ev.row):
+                return False
+            if self.planar is None:
+                return True
+        try:
+            t, g, a = parse_imu(ev.row, self.planar)
+        except ValueError as exc:
+            self.bad("imu", str(exc))
+            return True
+        # the IMU's clock against the host's: the lower envelope of arrival - time (the
+        # sample that took the least time to arrive sets it)
+        self.clock = min(self.clock, ev.arrival - t)
+        if self.waiting:  # fixes that came before the IMU's first sample: its clock is known
+            for row, arrival in self.waiting:
+                self.add_fix(row, arrival)
+            self.waiting.clear()
+        while self.held and self.held[0][0] <= t:
+            self.engine.add_fix(heapq.heappop(self.held)[2])
+        fs = self.engine.step(t, g, a)
+        if self.silent["fix"]:
+            fs = replace(fs, warnings=(*fs.warnings, "fixes_silent"))
+        row = next(fused_rows(iter([fs]), self.model))
+        latency = (time.monotonic() - ev.arrival) * 1000.0
+        row = replace(row, latency_ms=latency)
+        self.sink.write(row.as_dict())
+        self.summary.samples += 1
+        self.summary.ok += int(row.ok)
+        self.summary.latencies_ms.append(latency)
+        return True
