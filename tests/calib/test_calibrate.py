@@ -434,3 +434,21 @@ def test_calibrate_readout_refuses_a_platform_at_rest(tmp_path):
     r = _invoke("calibrate", "readout", rec, "--rig", rig_p, "--calibration", zero, "--out", cal)
     assert r.exit_code == 1 and "record it turning" in r.output and "nothing written" in r.output
     assert not cal.exists() and "zero-tilt" not in r.stderr
+
+
+def test_calibrate_readout_says_when_the_readout_is_poorly_determined(tmp_path):
+    """A 320x240 camera turning one way at 10 deg/s for 40 frames: the readout is found
+    too loosely once the principal point is estimated beside it (sigma over a quarter of
+    the frame interval). Refused, exit 1, no file; the library says what would help and
+    the command line names its option for it."""
+    rig_p = CONFIGS / "triangle-320.toml"
+    rec = tmp_path / "sweep"
+    sim = ["simulate", "--rig", rig_p, "--out", rec, "--frames", 40, "--seed", 3]
+    r = _invoke(*sim, "--motion", "sweep", "--yaw-rate-dps", 10, "--readout-ms", 25)
+    assert r.exit_code == 0, r.output
+    cal = tmp_path / "readout.toml"
+    r = _invoke("calibrate", "readout", rec, "--rig", rig_p, "--out", cal)
+    assert r.exit_code == 1 and not cal.exists(), r.output
+    assert "the readout is poorly determined" in r.output
+    advice = "a prior on the principal point from a camera calibration (--principal-point-sigma)"
+    assert advice in r.output

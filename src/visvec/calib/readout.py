@@ -82,7 +82,9 @@ class ReadoutCalibration:
     n_frames : frames in the recording; n_used : frames ok and corrected at the estimate
     chi2_per_dof : at the estimate, and ``chi2_per_dof_global`` with no correction
     trials_ms, costs : every trial readout and its capped total chi-square
-    converged : False with ``reason`` when the readout could not be determined
+    converged : False with ``reason`` when the readout could not be determined;
+        ``poorly_determined`` when it was found but too loosely (a prior on the
+        principal point, ``principal_point_px``, may help)
     """
 
     readout_ms: float
@@ -98,6 +100,7 @@ class ReadoutCalibration:
     reason: str = ""
     grid_ms: float = float("nan")
     grid_sigma_ms: float = float("nan")
+    poorly_determined: bool = False
 
 
 @dataclass(frozen=True)
@@ -229,28 +232,10 @@ def calibrate_readout(
     # triangle): the frames found and the rate are judged again at the estimate
     if len(attitudes) >= MIN_FRAMES and rate < MIN_RATE_DPS:
         return too_slow()
-    for r in np.arange(-span, span + 1e-9, COARSE_STEP_MS):
-        if abs(r) > ZERO_MS:
-            trials[float(r)] = _cost(frames, rig, float(r)).total
-    best = min(trials, key=trials.get)
-    for r in best + FINE_STEP_MS * np.arange(-3, 4):
-        if abs(r) <= span and float(r) not in trials:
-            trials[float(r)] = _cost(frames, rig, float(r)).total
-    # a parabola over the trials within +-half of the best, the window set to +-2.5
-    # sigma of the last fit: wide enough that a shallow minimum's curvature (a small
-    # image, a slow turn: sigma of several ms) is not the cost's own roughness over a few
-    # ms, narrow enough that a sharp one's is not flattened by frames reaching the cap
-    half = 4.0 * COARSE_STEP_MS
-    for _ in range(4):
-        near = np.array([r for r in trials if abs(r - best) <= half + 1e-9])
-        a2, a1, _ = np.polyfit(near, np.array([trials[r] for r in near]), 2)
-        if a2 <= 0:
-            return fail("the total chi-square has no minimum near its best trial")
-        new_half = float(np.clip(2.5 / np.sqrt(a2), 3.0 * FINE_STEP_MS, span))
-        if abs(new_half - half) < FINE_STEP_MS:
-            break
-        half = new_half
-    readout = float(-a1 / (2 * a2))
+    best = _grid_search(trials, span, lambda r: _cost(frames, rig, r).total)
+    readout, a2 = _parabola(trials, best, span)
+    if not a2 > 0:
+        return fail("the total chi-square has no minimum near its best trial")
     if abs(readout) > span - FINE_STEP_MS:
         return fail(f"the best readout ({readout:.1f} ms) is at the end of the search", readout)
     final = _cost(frames, rig, readout)
@@ -264,35 +249,78 @@ def calibrate_readout(
     # the curvature of the total chi-square gives the 1-sigma (delta chi2 = 1 at sigma)
     grid_readout = readout
     grid_sigma = float(np.sqrt(1.0 / a2) * np.sqrt(max(1.0, chi2_dof)))
-    for _ in range(MODEL_ERROR_STEPS):
-        ev = _evidence(frames, rig, readout, principal_point_px)
-        readout, sigma = ev.readout_ms()
-        if not np.isfinite(readout):
-            return fail("no frame with its rate known to measure the readout on")
-        fit = ev.fit_chi2_per_dof()
-        if fit > MAX_FIT_CHI2_DOF:
-            return fail(
-                f"the residuals are {fit:.1f}x the vertices' noise with the readout and the "
-                f"camera's model errors taken out: not a rolling shutter's shear (is the "
-                f"[camera] model calibrated?)",
-                readout,
-            )
-        sigma = float(sigma * np.sqrt(max(1.0, fit)))
+    readout, sigma, reason = _with_model_errors(frames, rig, readout, principal_point_px)
+    if reason:
+        return fail(reason, readout)
     if sigma > MAX_SIGMA_FRACTION * span:
-        return fail(
+        why = (
             f"the readout is poorly determined ({readout:.1f} +- {sigma:.1f} ms with the "
             f"camera's principal point and aspect estimated beside it; {grid_readout:.1f} +- "
             f"{grid_sigma:.1f} ms taking them as exact): record longer, or swinging out and "
             "back rather than turning one way, or give a prior on the principal point "
-            "(principal_point_sigma) from a camera calibration",
-            readout,
+            "from a camera calibration"
         )
+        return replace(fail(why, readout), poorly_determined=True)
     final = _cost(frames, rig, readout)
     grid = np.array(sorted(trials))
     return ReadoutCalibration(
         readout, sigma, rate, len(frames), final.used, final.per_dof(), base_dof, grid,
         np.array([trials[g] for g in grid]), True, "", grid_readout, grid_sigma,
     )  # fmt: skip
+
+
+def _grid_search(trials: dict[float, float], span: float, cost) -> float:
+    """Step 1: ``cost(readout)`` on a coarse grid over +-``span`` ms, then in 1 ms steps
+    around its best; every trial goes into ``trials``. The best trial."""
+    for r in np.arange(-span, span + 1e-9, COARSE_STEP_MS):
+        if abs(r) > ZERO_MS:
+            trials[float(r)] = cost(float(r))
+    best = min(trials, key=trials.get)
+    for r in best + FINE_STEP_MS * np.arange(-3, 4):
+        if abs(r) <= span and float(r) not in trials:
+            trials[float(r)] = cost(float(r))
+    return best
+
+
+def _parabola(trials: dict[float, float], best: float, span: float) -> tuple[float, float]:
+    """Step 2: the vertex and curvature (a2; <= 0: no minimum) of a parabola over the
+    trials within +-half of the best, the window set to +-2.5 sigma of the last fit:
+    wide enough that a shallow minimum's curvature (a small image, a slow turn: sigma of
+    several ms) is not the cost's own roughness over a few ms, narrow enough that a
+    sharp one's is not flattened by frames reaching the cap."""
+    half = 4.0 * COARSE_STEP_MS
+    for _ in range(4):
+        near = np.array([r for r in trials if abs(r - best) <= half + 1e-9])
+        a2, a1, _ = np.polyfit(near, np.array([trials[r] for r in near]), 2)
+        if a2 <= 0:
+            return float("nan"), float(a2)
+        new_half = float(np.clip(2.5 / np.sqrt(a2), 3.0 * FINE_STEP_MS, span))
+        if abs(new_half - half) < FINE_STEP_MS:
+            break
+        half = new_half
+    return float(-a1 / (2 * a2)), float(a2)
+
+
+def _with_model_errors(frames, rig: Rig, readout: float,
+                       principal_point_px: float | None) -> tuple[float, float, str]:  # fmt: skip
+    """Step 3: the readout and its 1-sigma with the camera's principal point and aspect
+    estimated beside it (MODEL_ERROR_STEPS rounds), or the reason it cannot be."""
+    sigma = float("nan")
+    for _ in range(MODEL_ERROR_STEPS):
+        ev = _evidence(frames, rig, readout, principal_point_px)
+        readout, sigma = ev.readout_ms()
+        if not np.isfinite(readout):
+            return readout, sigma, "no frame with its rate known to measure the readout on"
+        fit = ev.fit_chi2_per_dof()
+        if fit > MAX_FIT_CHI2_DOF:
+            why = (
+                f"the residuals are {fit:.1f}x the vertices' noise with the readout and the "
+                f"camera's model errors taken out: not a rolling shutter's shear (is the "
+                f"[camera] model calibrated?)"
+            )
+            return readout, sigma, why
+        sigma = float(sigma * np.sqrt(max(1.0, fit)))
+    return readout, sigma, ""
 
 
 def readout_sections(res: ReadoutCalibration) -> dict[str, dict[str, object]]:

@@ -368,7 +368,8 @@ def readout(frames, rig_path, calibration, out, max_frames, principal_point_sigm
         f"{res.rate_dps:.1f} deg/s, median)"
     )
     if not res.converged:
-        click.echo(f"visvec: error: {res.reason}; nothing written", err=True)
+        hint = " (--principal-point-sigma)" if res.poorly_determined else ""
+        click.echo(f"visvec: error: {res.reason}{hint}; nothing written", err=True)
         raise SystemExit(1)
     click.echo(
         f"  readout (first to last row): {res.readout_ms:+.2f} +- {res.sigma_ms:.2f} ms"
