@@ -259,36 +259,10 @@ def calibrate_zero_tilt(dets: list[Detection], rig: Rig) -> ZeroTiltResult:
         target offset cannot be told from the camera tilt).
     """
     n = len(dets)
-    if n < MIN_FRAMES:
-        raise InputFileError(
-            f"zero-tilt calibration needs at least {MIN_FRAMES} frames with "
-            f"the triangle found; got {n}"
-        )
-    yaw0 = np.array([_initial_yaw(d, rig) for d in dets])
-    spread = _yaw_spread_deg(yaw0)
-    if spread < MIN_YAW_SPREAD_DEG:
-        raise InputFileError(
-            f"zero-tilt calibration needs frames at yaws spread over at least "
-            f"{MIN_YAW_SPREAD_DEG:.0f} deg (turn the level platform between frames); "
-            f"these span {spread:.1f} deg"
-        )
+    yaw0 = _initial_yaws(dets, rig)
     own = rig.detect.sigma_scale**2  # the detections' covariance over the detector's own
-    keep = np.ones(n, dtype=bool)
-    limit = chi2_dist.ppf(OUTLIER_QUANTILE, 5)
-    while True:
-        idx = np.flatnonzero(keep)
-        sol = _fit([dets[i] for i in idx], rig, yaw0[idx])
-        frame_chi2 = (sol.fun.reshape(len(idx), 6) ** 2).sum(axis=1) * own
-        s2 = max(1.0, float(np.median(frame_chi2)) / chi2_dist.median(5))
-        worst = int(np.argmax(frame_chi2))
-        rest = np.delete(idx, worst)
-        if (
-            frame_chi2[worst] / s2 <= limit
-            or len(rest) < max(MIN_FRAMES, np.ceil(0.8 * n))
-            or _yaw_spread_deg(yaw0[rest]) < MIN_YAW_SPREAD_DEG
-        ):
-            break
-        keep[idx[worst]] = False
+    sol, keep = _fit_leaving_out(dets, rig, yaw0, own)
+    idx = np.flatnonzero(keep)
     m = len(idx)
     J = sol.jac
     dof = max(5 * m - N_COMMON, 1)
@@ -303,19 +277,7 @@ def calibrate_zero_tilt(dets: list[Detection], rig: Rig) -> ZeroTiltResult:
     sig = np.sqrt(np.diag(cov))
     sigma_yaw = np.full(n, np.nan)
     sigma_yaw[idx] = np.degrees(sig[N_COMMON:])
-    # the camera check: the same frames with the camera's aspect and principal point free
-    check = _fit([dets[i] for i in idx], rig, sol.x[N_COMMON:], sol.x[:N_COMMON], camera=True)
-    check_chi2 = float(check.fun @ check.fun)
-    check_s2 = max(1.0, check_chi2 / max(dof - N_CAMERA, 1))
-    cam = slice(N_COMMON, N_COMMON + N_CAMERA)
-    check_x, check_sig = (
-        check.x[cam],
-        np.sqrt(np.diag(np.linalg.pinv(check.jac.T @ check.jac))[cam] * check_s2),
-    )
-    significant = (chi2 - check_chi2) / check_s2 > chi2_dist.ppf(CAMERA_CHECK_QUANTILE, N_CAMERA)
-    large = abs(check_x[0]) >= ASPECT_MIN or np.max(np.abs(check_x[1:])) >= (
-        PRINCIPAL_POINT_MIN * rig.camera.width
-    )
+    check_x, check_sig, camera_off = _camera_check([dets[i] for i in idx], rig, sol, chi2, dof)
     # every frame's yaw: the fit's, or for a frame left out its own with the offsets fixed
     yaw = np.empty(n)
     yaw[idx] = sol.x[N_COMMON:]
@@ -348,9 +310,68 @@ def calibrate_zero_tilt(dets: list[Detection], rig: Rig) -> ZeroTiltResult:
         sigma_aspect=float(check_sig[0]),
         principal_point_px=check_x[1:].copy(),
         sigma_principal_point_px=check_sig[1:].copy(),
-        camera_off=bool(significant and large),
+        camera_off=camera_off,
         sigma_yaw_deg=sigma_yaw,
     )
+
+
+def _initial_yaws(dets: list[Detection], rig: Rig) -> np.ndarray:
+    """Each frame's yaw to start from (rad); refused when too few frames, or their yaws
+    too close together, to tell the target offset from the camera tilt."""
+    if len(dets) < MIN_FRAMES:
+        raise InputFileError(
+            f"zero-tilt calibration needs at least {MIN_FRAMES} frames with "
+            f"the triangle found; got {len(dets)}"
+        )
+    yaw0 = np.array([_initial_yaw(d, rig) for d in dets])
+    spread = _yaw_spread_deg(yaw0)
+    if spread < MIN_YAW_SPREAD_DEG:
+        raise InputFileError(
+            f"zero-tilt calibration needs frames at yaws spread over at least "
+            f"{MIN_YAW_SPREAD_DEG:.0f} deg (turn the level platform between frames); "
+            f"these span {spread:.1f} deg"
+        )
+    return yaw0
+
+
+def _fit_leaving_out(dets: list[Detection], rig: Rig, yaw0: np.ndarray, own: float):
+    """The fit over the frames, the worst left out one at a time while it is beyond
+    OUTLIER_QUANTILE of its chi-square (scaled by the frames' median), at most a fifth of
+    them and while the rest still spread over MIN_YAW_SPREAD_DEG: (solution, kept)."""
+    n = len(dets)
+    keep = np.ones(n, dtype=bool)
+    limit = chi2_dist.ppf(OUTLIER_QUANTILE, 5)
+    while True:
+        idx = np.flatnonzero(keep)
+        sol = _fit([dets[i] for i in idx], rig, yaw0[idx])
+        frame_chi2 = (sol.fun.reshape(len(idx), 6) ** 2).sum(axis=1) * own
+        s2 = max(1.0, float(np.median(frame_chi2)) / chi2_dist.median(5))
+        worst = int(np.argmax(frame_chi2))
+        rest = np.delete(idx, worst)
+        if (
+            frame_chi2[worst] / s2 <= limit
+            or len(rest) < max(MIN_FRAMES, np.ceil(0.8 * n))
+            or _yaw_spread_deg(yaw0[rest]) < MIN_YAW_SPREAD_DEG
+        ):
+            return sol, keep
+        keep[idx[worst]] = False
+
+
+def _camera_check(dets: list[Detection], rig: Rig, sol, chi2: float, dof: int):
+    """The same frames with the camera's aspect and principal point free: their
+    estimates (aspect, cx, cy), 1-sigmas, and whether they are off both significantly
+    and by more than ASPECT_MIN / PRINCIPAL_POINT_MIN."""
+    check = _fit(dets, rig, sol.x[N_COMMON:], sol.x[:N_COMMON], camera=True)
+    check_chi2 = float(check.fun @ check.fun)
+    check_s2 = max(1.0, check_chi2 / max(dof - N_CAMERA, 1))
+    cam = slice(N_COMMON, N_COMMON + N_CAMERA)
+    check_x = check.x[cam]
+    check_sig = np.sqrt(np.diag(np.linalg.pinv(check.jac.T @ check.jac))[cam] * check_s2)
+    significant = (chi2 - check_chi2) / check_s2 > chi2_dist.ppf(CAMERA_CHECK_QUANTILE, N_CAMERA)
+    large = abs(check_x[0]) >= ASPECT_MIN or np.max(np.abs(check_x[1:])) >= (
+        PRINCIPAL_POINT_MIN * rig.camera.width
+    )
+    return check_x, check_sig, bool(significant and large)
 
 
 def yaw_reference(
