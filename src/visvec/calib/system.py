@@ -441,56 +441,15 @@ def calibrate_system(
             f"system calibration needs at least 10 frames and more measurements than "
             f"unknowns: {model.F} frames, {2 * model.L} coordinates, {n_par} unknowns"
         )
-    x, r, J, it, converged, message = _levenberg_marquardt(model, model.x0(), max_iterations)
-    # the prior weighs offsets against pixels through the centroid noise: if the rig's
-    # value is off, take it from the residuals and solve again (variance components;
-    # the offsets use up about one measurement each)
-    for _ in range(3):
-        if not (converged and model.n_off):
-            break
-        pix = r[: 2 * model.L]
-        s_px = float(np.sqrt(pix @ pix / max(2 * model.L - n_par - model.n_off, 1)))
-        if abs(s_px / model.sigma_px - 1.0) < 0.05:
-            break
-        model.set_sigma_px(s_px)
-        x, r, J, it2, converged, message = _levenberg_marquardt(model, x, max_iterations - it)
-        it += it2
+    x, r, J, it, converged, message = _solve(model, n_par, max_iterations)
     dof = max(2 * model.L - n_par, 1)
     s2 = float(r @ r) / dof  # Eq. (24), the prior's rows included
     JtJ = (J.T @ J).toarray()
     cov = np.linalg.pinv(JtJ) * s2  # Eqs. (22)-(23)
     sig = np.sqrt(np.clip(np.diag(cov), 0.0, None))
-    (fx, fy, cx, cy, k1, k2, k3), t_n, pos, rot, att = model.unpack(x)
-    cam = CameraModel(
-        rig.camera.width,
-        rig.camera.height,
-        fx,
-        fy,
-        cx,
-        cy,
-        np.array([k1, k2, rig.camera.dist[2], rig.camera.dist[3], k3]),
-    )
-    # each marker's calibrated position goes back into its board's frame
-    X = model.points_b(pos, rot, model.offsets(x))
-    pats = tuple(
-        Pattern(pos[j], rot[j], (X[model.pat_of == j] - pos[j]) @ rot[j])
-        for j in range(len(model.pats))
-    )
-    cal = replace(
-        rig,
-        camera=cam,
-        mount=Mount("lab", t_n, rig.R_nc),
-        target=replace(rig.target, patterns=pats),
-    )
+    cal, att = _calibrated_rig(rig, model, x)
     res = r[: 2 * model.L].reshape(-1, 2)
     att_sig = np.degrees(sig[model.att0 :].reshape(-1, 3))
-    # the part of the attitude errors every frame shares: the mean covariance between
-    # two different frames' (body-axis) attitude errors; B's orientation is fixed only
-    # through the calibrated geometry (and, with placement errors, the offsets' prior),
-    # so its error is common to all attitudes, those measured later included
-    C = cov[model.att0 :, model.att0 :].reshape(model.F, 3, model.F, 3)
-    common = (C.sum(axis=(0, 2)) - np.einsum("fifj->ij", C)) / (model.F * (model.F - 1))
-    b_sig = np.degrees(np.sqrt(np.clip(np.diag(common), 0.0, None))) * 3600.0
     off_sig = (
         sig[model.n_global : model.att0].reshape(-1, 3)
         if model.n_off
@@ -512,8 +471,57 @@ def calibrate_system(
         marker_offsets_mm=model.offsets(x).copy(),
         marker_offset_sigma_mm=off_sig,
         prior_sigma_px=model.sigma_px,
-        b_orientation_sigma_arcsec=b_sig,
+        b_orientation_sigma_arcsec=_common_attitude_sigma_arcsec(cov, model),
     )
+
+
+def _solve(model: _Model, n_par: int, max_iterations: int):
+    """Levenberg-Marquardt on the model; the prior weighs offsets against pixels
+    through the centroid noise: if the rig's value is off, it is taken from the
+    residuals and the solve repeated (variance components; the offsets use up about one
+    measurement each). (x, r, J, iterations, converged, message)."""
+    x, r, J, it, converged, message = _levenberg_marquardt(model, model.x0(), max_iterations)
+    for _ in range(3):
+        if not (converged and model.n_off):
+            break
+        pix = r[: 2 * model.L]
+        s_px = float(np.sqrt(pix @ pix / max(2 * model.L - n_par - model.n_off, 1)))
+        if abs(s_px / model.sigma_px - 1.0) < 0.05:
+            break
+        model.set_sigma_px(s_px)
+        x, r, J, it2, converged, message = _levenberg_marquardt(model, x, max_iterations - it)
+        it += it2
+    return x, r, J, it, converged, message
+
+
+def _calibrated_rig(rig: Rig, model: _Model, x: np.ndarray) -> tuple[Rig, np.ndarray]:
+    """The rig with the calibrated camera, mount and marker positions (each back in its
+    board's frame), and the frames' attitudes."""
+    (fx, fy, cx, cy, k1, k2, k3), t_n, pos, rot, att = model.unpack(x)
+    dist = np.array([k1, k2, rig.camera.dist[2], rig.camera.dist[3], k3])
+    cam = CameraModel(rig.camera.width, rig.camera.height, fx, fy, cx, cy, dist)
+    X = model.points_b(pos, rot, model.offsets(x))
+    pats = tuple(
+        Pattern(pos[j], rot[j], (X[model.pat_of == j] - pos[j]) @ rot[j])
+        for j in range(len(model.pats))
+    )
+    cal = replace(
+        rig,
+        camera=cam,
+        mount=Mount("lab", t_n, rig.R_nc),
+        target=replace(rig.target, patterns=pats),
+    )
+    return cal, att
+
+
+def _common_attitude_sigma_arcsec(cov: np.ndarray, model: _Model) -> np.ndarray:
+    """The part of the attitude errors every frame shares (arcsec, body axes): the mean
+    covariance between two different frames' attitude errors. B's orientation is fixed
+    only through the calibrated geometry (and, with placement errors, the offsets'
+    prior), so its error is common to all attitudes, those measured later included."""
+    C = cov[model.att0 :, model.att0 :].reshape(model.F, 3, model.F, 3)
+    common = (C.sum(axis=(0, 2)) - np.einsum("fifj->ij", C)) / (model.F * (model.F - 1))
+    return np.degrees(np.sqrt(np.clip(np.diag(common), 0.0, None))) * 3600.0
 
 
 def calibration_sections(cal: SystemCalibration) -> dict[str, dict[str, object]]:
