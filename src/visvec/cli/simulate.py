@@ -228,6 +228,35 @@ def simulate(
         sys.exit(130)
 
 
+def _check_timing(rig, motion, triangle_only, readout_ms, exposure_ms, yaw_rate_dps) -> None:
+    """Refuse, before any frame is made, the triangle scene's options on another kind
+    of rig and a readout, exposure or turn the rig's frame rate cannot hold."""
+    if rig.kind != "triangle" and (
+        triangle_only
+        or readout_ms is not None
+        or exposure_ms is not None
+        or yaw_rate_dps is not None
+    ):
+        raise click.UsageError(
+            "--lights, --occluder, --no-triangle, --target-offset-mm, --target-height-mm, "
+            "--camera-askew-deg, --camera-turn-deg, --readout-ms, --exposure-ms and "
+            "--yaw-rate-dps apply to triangle rigs only"
+        )
+    if exposure_ms is not None and exposure_ms > 1000.0 / rig.fps:
+        raise click.BadParameter(
+            f"{exposure_ms:g} ms: expected at most a frame interval ({1000.0 / rig.fps:g} ms)",
+            param_hint="--exposure-ms",
+        )
+    if yaw_rate_dps is not None and motion not in ("sweep", "swing"):
+        raise click.UsageError("--yaw-rate-dps sets the rate of --motion sweep or swing")
+    if readout_ms is not None and abs(readout_ms) > 1000.0 / rig.fps:
+        raise click.BadParameter(
+            f"{readout_ms:g} ms: expected at most a frame interval ({1000.0 / rig.fps:g} ms; "
+            "negative: the last row read first)",
+            param_hint="--readout-ms",
+        )
+
+
 def _simulate(rig_path, calibration, out_dir, n_frames, seed, motion, max_tilt_deg, noise,
               contrast, blur, exposure, lights, occluder, no_triangle, reflections,
               target_offset_mm, target_height_mm, camera_askew_deg, case, rate_dps, spurious,
@@ -255,35 +284,9 @@ def _simulate(rig_path, calibration, out_dir, n_frames, seed, motion, max_tilt_d
         return
     if case is not None or rate_dps is not None:
         raise click.UsageError("--case and --rate-dps apply to starfield rigs only")
-    if rig.kind != "triangle" and (
-        lights
-        or occluder
-        or no_triangle
-        or any(target_offset_mm)
-        or target_height_mm
-        or any(camera_askew_deg)
-        or readout_ms is not None
-        or exposure_ms is not None
-        or yaw_rate_dps is not None
-    ):
-        raise click.UsageError(
-            "--lights, --occluder, --no-triangle, --target-offset-mm, --target-height-mm, "
-            "--camera-askew-deg, --camera-turn-deg, --readout-ms, --exposure-ms and "
-            "--yaw-rate-dps apply to triangle rigs only"
-        )
-    if exposure_ms is not None and exposure_ms > 1000.0 / rig.fps:
-        raise click.BadParameter(
-            f"{exposure_ms:g} ms: expected at most a frame interval ({1000.0 / rig.fps:g} ms)",
-            param_hint="--exposure-ms",
-        )
-    if yaw_rate_dps is not None and motion not in ("sweep", "swing"):
-        raise click.UsageError("--yaw-rate-dps sets the rate of --motion sweep or swing")
-    if readout_ms is not None and abs(readout_ms) > 1000.0 / rig.fps:
-        raise click.BadParameter(
-            f"{readout_ms:g} ms: expected at most a frame interval ({1000.0 / rig.fps:g} ms; "
-            "negative: the last row read first)",
-            param_hint="--readout-ms",
-        )
+    triangle_only = (lights or occluder or no_triangle or any(target_offset_mm)
+                     or target_height_mm or any(camera_askew_deg))  # fmt: skip
+    _check_timing(rig, motion, bool(triangle_only), readout_ms, exposure_ms, yaw_rate_dps)
     spots = SpotScene(noise_sigma=noise, reflections=reflections)
     scene = replace(
         Scene(),
