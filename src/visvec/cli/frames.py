@@ -176,6 +176,20 @@ class Progress:
         return text
 
 
+def _say_errors(frame, row: Row, pipe) -> None:
+    """A frame that could not be read, or that the pipeline failed on, said on stderr
+    beside its row."""
+    if row.status == "read_error":
+        click.echo(f"visvec: frame {frame.index}: {frame.error or pipe.check_frame(frame)}",
+                   err=True)  # fmt: skip
+    if pipe.last_error:
+        click.echo(
+            f"visvec: frame {frame.index}: internal error, frame refused "
+            f"({pipe.last_error}); please report it",
+            err=True,
+        )
+
+
 def run_frames(
     rig: Rig,
     frames,
@@ -242,17 +256,7 @@ def run_frames(
                 n_ok += int(row.ok)
                 if keep_rows:
                     rows.append(row)
-                if row.status == "read_error":
-                    click.echo(
-                        f"visvec: frame {frame.index}: {frame.error or pipe.check_frame(frame)}",
-                        err=True,
-                    )
-                if pipe.last_error:
-                    click.echo(
-                        f"visvec: frame {frame.index}: internal error, frame refused "
-                        f"({pipe.last_error}); please report it",
-                        err=True,
-                    )
+                _say_errors(frame, row, pipe)
                 # after the row is out: nothing a watcher does adds to its latency
                 for w in seen:
                     w.see(frame, row, pipe)
