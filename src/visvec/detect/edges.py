@@ -24,9 +24,9 @@ from visvec.shutter import RollingShutter, unroll
 # each resolution, seed 7, not the benchmarks') so that vertex errors divided by their
 # predicted sigma have unit RMS at the default blur and at a defocus of 2 px (vertex z
 # RMS 0.95 / 0.96 and 1.00 / 1.01 at 320x240 / 640x480). The levels' error, common to
-# an edge and so not in its residuals, is modelled apart (_level_gain). Before it was,
-# one inflation of 1.8 held at the default blur but under-reported defocused edges by
-# 20-30 %: a longer window carries more level error.
+# an edge and so not in its residuals, is modelled apart (_level_gain): a longer window
+# carries more level error, so no single inflation holds both at the default blur and
+# on defocused edges.
 EDGE_VARIANCE_INFLATION = 1.3
 # spacing of the edge profiles along the edge in the fine pass (px)
 PROFILE_SPACING_PX = 1.5
@@ -42,12 +42,10 @@ TRACK_RECENTRE_PX = 0.75
 # The fine profiles reach this far (px) beyond the step window on both sides, and the
 # board and triangle levels are measured over the outer 1 px + this: an error in a level
 # is common to every profile of the edge (the level lines are fitted along it) and moves
-# the whole line, so it is not averaged away by more profiles. With 1 px levels, the
-# window length (which follows the measured blur, so the start of the fit) gave one
-# frame tilts 1.5 or 4 sigma off; now its results from different starts spread by
-# 0.2 sigma. Measuring the levels over 2 px cut the attitude errors by 3-8 % and the
-# vertex error tail (640x480 frames with vertices beyond the 99 % chi-square point:
-# 1.7 % -> 0.7 %, EDGE_VARIANCE_INFLATION re-calibrated).
+# the whole line, so it is not averaged away by more profiles. Measured over 2 px, a
+# frame's result does not depend on the window length (which follows the measured blur,
+# so the start of the fit): results from different starts spread by 0.2 sigma, where
+# over 1 px one frame's tilts moved by 1.5 to 4 sigma.
 LEVEL_EXTENT_PX = 1.0
 # The fine profiles reach 3 blur widths + 0.75 px each side of the edge, at most this
 # far (px). A cap of 4 px (the sparse pass's window) would cut a defocused edge (blur
@@ -64,8 +62,8 @@ WIDTH_REACH_MIN_PX = 4.0
 # than TRACK_RECENTRE_PX), on a cold frame and on a tracked one, before a fit that still
 # moves is given up (ok False). A tracked frame gets one: its prediction from the last
 # frames was off (the platform jerked, or frames were skipped), and the full search
-# starts afresh. With one re-centring and no check, a prediction 30 px off (a 640x480
-# frame defocused to 2 px) was reported ok, tracked, with a vertex 0.56 px (3.7 sigma)
+# starts afresh: a single re-centring without this limit would report a prediction 30 px
+# off (a 640x480 frame defocused to 2 px) ok, tracked, with a vertex 0.56 px (3.7 sigma)
 # off.
 MAX_RECENTRES = {False: 2, True: 1}
 # A tracked frame measures the blur width on its own profiles; when the median of the
@@ -75,10 +73,10 @@ WIDTH_CHANGE = 1.35
 # A profile's own board or triangle level further than this many robust sigmas (and
 # LEVEL_OUTLIER_MIN grey levels) from its edge's level line has something else in its
 # window: a head darker than the board next to the edge, a light, a smudge. Such a
-# profile is left out of the level lines and the edge line. Before it was, a head (grey
-# 39 against a board of 70) in a quarter of one edge's windows pulled that edge's
+# profile is left out of the level lines and the edge line: kept in, a head (grey 39
+# against a board of 70) in a quarter of one edge's windows pulls that edge's
 # least-squares board level line down by 8 grey levels along its whole length, and the
-# line moved 0.55 px (attitude 2-4 sigma off on every noise draw).
+# line moves 0.55 px (attitude 2-4 sigma off on every noise draw).
 LEVEL_OUTLIER_SIGMAS = 3.5
 LEVEL_OUTLIER_MIN = 1.0
 # The robust search for such profiles (about 0.1 ms a pass) runs only on an edge whose

@@ -41,8 +41,8 @@ within about 70-90 frames; a steady one-way turn cannot tell it from a principal
 Each frame's residuals are judged with its height free (:meth:`VertexResidual.
 unconstrained`): the height the pipeline carries from frame to frame lags the frame's
 own, and its pull on the fit, which a principal point error makes turn with the yaw,
-read as a -8 ms shutter on an 8 s one-way turn (principal point 4 px off, before
-zero-tilt) and hid the principal point itself (1.0 px read for 4). The price: the part
+would read as a -8 ms shutter on an 8 s one-way turn (principal point 4 px off, before
+zero-tilt) and hide the principal point itself (1.0 px read for 4). The price: the part
 of a shear that looks like a change of height (a stretch along the columns) no longer
 counts.
 

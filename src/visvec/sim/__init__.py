@@ -1,1 +1,3 @@
-"""Synthetic scenes: rendering of the rig's target at known attitudes."""
+"""Synthetic scenes at known poses: the triangle (scene, render), the markers, star
+fields and ceiling lamps (with an IMU), motion sequences, and the recordings
+`visvec simulate` writes (simulate)."""

@@ -1,4 +1,5 @@
-"""Where rows go: CSV or JSON lines, flushed row by row, to a file, stdout or UDP."""
+"""Where rows go: CSV or JSON lines, flushed row by row, to a file, stdout or UDP
+(writers), or ROS 2 messages in an MCAP file (ros)."""
 
 from visvec.sinks.writers import CsvSink, JsonlSink, UdpStream, open_sink
 
