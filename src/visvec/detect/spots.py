@@ -47,7 +47,7 @@ def auto_threshold(image: np.ndarray) -> float:
     sub = image[::step, ::step]
     if sub.dtype == np.uint8:
         # medians from the histogram: the same values, without sorting
-        hist = np.bincount(sub.ravel(), minlength=256)
+        hist = cv2.calcHist([np.ascontiguousarray(sub)], [0], None, [256], [0, 256]).ravel()
         med = _hist_median(hist)
         # |x - med| doubled is an integer (med is a whole or half level)
         dev2 = np.abs(2 * np.arange(256) - int(round(2 * med)))
@@ -73,6 +73,11 @@ def _hist_median(hist: np.ndarray) -> float:
 POOLED_MIN_PX = 100_000
 
 
+# the four pixels of a 2x2 block, from its top left one
+_BLOCK_DX = np.array([0, 1, 0, 1])
+_BLOCK_DY = np.array([0, 0, 1, 1])
+
+
 def _max_pool2(binary: np.ndarray) -> np.ndarray:
     """Non-zero where any pixel of a 2x2 block of the 0/255 mask is (an odd last row or
     column kept as its own): the blocks' mean (cv2.resize INTER_AREA), which is at
@@ -90,13 +95,13 @@ def _spots_in(roi: np.ndarray, T: float, top: int, min_area: int, max_area: int,
     the labelled pixels)."""
     _, binary = cv2.threshold(roi, T, 255, cv2.THRESH_BINARY)
     binary = binary.astype(np.uint8, copy=False)
-    nz = cv2.findNonZero(binary)  # far faster than np.nonzero(labels)
-    if nz is None:
-        return []
-    nz = nz.reshape(-1, 2)
-    xs, ys = nz[:, 0], nz[:, 1]
     h, w = roi.shape
     if windowed or h * w < POOLED_MIN_PX:
+        nz = cv2.findNonZero(binary)  # far faster than np.nonzero(labels)
+        if nz is None:
+            return []
+        nz = nz.reshape(-1, 2)
+        xs, ys = nz[:, 0], nz[:, 1]
         n, labels, stats, _ = cv2.connectedComponentsWithStatsWithAlgorithm(
             binary, 8, cv2.CV_32S, cv2.CCL_GRANA
         )
@@ -104,12 +109,21 @@ def _spots_in(roi: np.ndarray, T: float, top: int, min_area: int, max_area: int,
         bx, by, bw, bh, area = stats.T
     else:
         # a whole frame: the components of its 2x2 max-pooled mask (a quarter of the
-        # pixels to label: 0.6 ms less per 640x480 frame; a spot stays one, spots 3 px
-        # or more apart stay apart), each full-resolution pixel labelled by its block
+        # pixels to scan and label; a spot stays one, spots 3 px or more apart stay
+        # apart), each full-resolution pixel above T found in its block and labelled
+        # by it (benchmarks/lamps.py, speed)
         pooled = _max_pool2(binary)
-        n, labels, _, _ = cv2.connectedComponentsWithStatsWithAlgorithm(
-            pooled, 8, cv2.CV_32S, cv2.CCL_GRANA
-        )
+        nzp = cv2.findNonZero(pooled)
+        if nzp is None:
+            return []
+        n, labels = cv2.connectedComponentsWithAlgorithm(pooled, 8, cv2.CV_32S, cv2.CCL_GRANA)
+        nzp = nzp.reshape(-1, 2)
+        xs = ((nzp[:, 0:1] << 1) + _BLOCK_DX).ravel()
+        ys = ((nzp[:, 1:2] << 1) + _BLOCK_DY).ravel()
+        inside = (xs < w) & (ys < h)  # an odd last row or column's padding
+        xs, ys = xs[inside], ys[inside]
+        on = binary[ys, xs] != 0
+        xs, ys = xs[on], ys[on]
         lab = labels[ys >> 1, xs >> 1]
         area = np.bincount(lab, minlength=n)
     keep = (area >= min_area) & (area <= max_area)
