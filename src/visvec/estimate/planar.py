@@ -11,6 +11,7 @@ Jacobian and the covariance sigma^2 (J^T J)^-1.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -59,25 +60,32 @@ def project_lamps(rig: Rig, pose: np.ndarray, lamps_n: np.ndarray) -> np.ndarray
     return p[:, :2] / z[:, None]
 
 
+# -e3 x P = S P: the heading's derivative of P_B = Rz(psi)^T (P_N - (x, y, 0))
+_E3_CROSS = np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
+
+
 def _residual_jacobian(rig: Rig, pose: np.ndarray, lamps_n: np.ndarray, xy_n: np.ndarray):
-    c, s = np.cos(pose[2]), np.sin(pose[2])
-    d = lamps_n - np.array([pose[0], pose[1], 0.0])
-    p_b = np.column_stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1], d[:, 2]])
+    """Residuals (2K,: projected minus seen, normalised) and their Jacobian (2K, 3) in
+    (x, y, heading). P_B = Rz(psi)^T (P_N - (x, y, 0)), P_C = R_CB (P_B - t_B);
+    dP_C/dx = -R_CB Rz^T e1, dP_C/dy = -R_CB Rz^T e2, dP_C/dpsi = R_CB (-e3 x P_B);
+    through the projection u = X/Z: du = (dX - u dZ) / Z. As K x 3 products, a few
+    numpy calls for all lamps."""
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    Rz = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
     R_cb = rig.R_bc.T
+    p_b = (lamps_n - (pose[0], pose[1], 0.0)) @ Rz  # rows Rz^T (P_N - p)
     p_c = (p_b - rig.t_b) @ R_cb.T
-    X, Y, Z = p_c.T
-    r = np.column_stack([X / Z, Y / Z]) - xy_n
-    # dP_B/dx = -Rz^T e1, dP_B/dy = -Rz^T e2, dP_B/dpsi = -e3 x P_B
-    K = len(lamps_n)
-    dpb = np.zeros((K, 3, 3))
-    dpb[:, :, 0] = [-c, s, 0.0]
-    dpb[:, :, 1] = [-s, -c, 0.0]
-    dpb[:, 0, 2] = p_b[:, 1]
-    dpb[:, 1, 2] = -p_b[:, 0]
-    dpc = R_cb @ dpb  # (K, 3, 3): d P_C / d (x, y, psi)
-    J = np.empty((K, 2, 3))
-    J[:, 0] = (dpc[:, 0] - (X / Z)[:, None] * dpc[:, 2]) / Z[:, None]
-    J[:, 1] = (dpc[:, 1] - (Y / Z)[:, None] * dpc[:, 2]) / Z[:, None]
+    iz = 1.0 / p_c[:, 2]
+    uv = p_c[:, :2] * iz[:, None]
+    r = uv - xy_n
+    # dP_C / d(x, y, psi), K x 3 (parameters) x 3 (camera axes)
+    M = R_cb @ Rz.T
+    d = np.empty((len(lamps_n), 3, 3))
+    d[:, 0] = -M[:, 0]
+    d[:, 1] = -M[:, 1]
+    d[:, 2] = p_b @ (R_cb @ _E3_CROSS).T
+    # (K, 2, 3): d(u, v)/d(x, y, psi)
+    J = (d[:, :, :2] - d[:, :, 2:3] * uv[:, None, :]).transpose(0, 2, 1) * iz[:, None, None]
     return r.reshape(-1), J.reshape(-1, 3)
 
 
@@ -129,14 +137,16 @@ def solve_planar(
             return PlanarSolution(
                 Status.NOT_CONVERGED, n_points=len(P), warnings=("not_converged",)
             )
-        r_all, _ = _residual_jacobian(rig, pose, lamps_n, xy_n)
+        r_all, J_all = _residual_jacobian(rig, pose, lamps_n, xy_n)
         e = np.hypot(*r_all.reshape(-1, 2).T) * f
         scale = np.median(e[keep]) / np.sqrt(np.log(4.0))  # Rayleigh median -> sigma
         bad = e > max(OUTLIER_SIGMAS * max(scale, sigma_px), OUTLIER_FLOOR_PX)
         if rnd == 1 or not np.any(bad & keep):
             break
         keep &= ~bad
-    r, J = _residual_jacobian(rig, pose, lamps_n[keep], xy_n[keep])
+    # the last round's residuals and Jacobian are at the final pose: the kept lamps' rows
+    r = r_all.reshape(-1, 2)[keep].reshape(-1)
+    J = J_all.reshape(-1, 2, 3)[keep].reshape(-1, 3)
     n = int(keep.sum())
     rms_px = float(np.sqrt(np.mean(r**2)) * f)
     dof = max(2 * n - 3, 1)
