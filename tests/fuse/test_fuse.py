@@ -824,3 +824,33 @@ def test_3d_a_fix_after_a_dispute_is_unconfirmed_until_the_next_agrees():
     assert after and not any(x.warnings for x in after)
     e = [np.degrees(np.linalg.norm(logmap(R[x.index].T @ x.state.R))) for x in after]
     assert max(e) < 1.0
+
+
+def test_3d_a_burst_moves_the_attitude_not_the_gyro_calibration():
+    """A fix taken though far off (NIS between the burst level and the gate): the
+    attitude goes to the fix, and the gyro's scale factors, bias, misalignment and time
+    offset take much less than a plain Kalman gain would give them, since the model has
+    no account of a burst (a swing beyond the gyro's linear range)."""
+    from visvec.fuse.models import BURST_NIS, NIS_LIMIT
+
+    model = AttitudeModel(sample_s=0.01, jitter_sigma=0.0)
+    fix0 = Fix(0.0, 0.0, np.eye(3), np.eye(3) * np.radians(0.1) ** 2, 0)
+    s = model.init(fix0)
+    w = np.radians([120.0, -80.0, 300.0])  # a fast turn correlates attitude and calibration
+    reading = np.array([w, np.radians([500.0, -300.0, 800.0]), np.zeros(3)])  # rate, its change
+    for _ in range(50):
+        s = model.propagate(s, reading, None, 0.01)
+    S = s.P[0:3, 0:3] + fix0.cov
+    # an innovation of NIS 20 along the attitude's largest-sigma axis
+    ev, V = np.linalg.eigh(S)
+    r = V[:, -1] * np.sqrt(20.0 * ev[-1])
+    fix = Fix(0.5, 0.5, s.R @ expmap(r), fix0.cov, 1)
+    new, taken, nis = model.update(s, fix)
+    assert taken and BURST_NIS < nis < NIS_LIMIT
+    assert np.degrees(np.linalg.norm(logmap(new.R.T @ fix.value))) < 3 * 0.1  # at the fix
+    K = np.linalg.solve(S, s.P[0:3, :]).T  # the plain gain
+    plain = K @ r
+    for sl, got in ((slice(9, 12), new.k - s.k), (slice(3, 6), new.b - s.b),
+                    (slice(12, 13), np.array([new.tau - s.tau]))):  # fmt: skip
+        assert np.linalg.norm(plain[sl]) > 0.0
+        assert np.linalg.norm(got) < 0.5 * np.linalg.norm(plain[sl]), (sl, got, plain[sl])

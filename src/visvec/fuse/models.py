@@ -53,6 +53,9 @@ from visvec.fuse.inputs import Fix
 from visvec.rotations import expmap, logmap, skew
 
 NIS_LIMIT = float(chi2.ppf(1.0 - 1e-6, 3))
+# a fix taken with an innovation beyond this (p = 0.01) found a burst the model does not
+# hold (see AttitudeModel.update)
+BURST_NIS = float(chi2.ppf(0.99, 3))
 
 
 @dataclass(frozen=True)
@@ -356,12 +359,24 @@ class AttitudeModel:
             acc = (s.acc[0], s.acc[1], s.acc[2] + float(r @ r))
             return AttitudeState(s.R, s.b, s.Rm, s.k, s.tau, P, noise, acc, s.saturated,
                                  True, fade, s.confirmed), False, nis  # fmt: skip
-        K = np.linalg.solve(S, s.P[0:3, :]).T
+        P0 = s.P
+        if nis > BURST_NIS:
+            # taken, but far off: the gyro erred in a burst the model does not hold (a
+            # swing beyond its linear range, a bump), or the fix did. The excess is
+            # attitude noise of this interval (isotropic, its variance what the
+            # innovation's square exceeds the expected by, per axis), so that the
+            # attitude takes the fix and the sensor's calibration (bias, misalignment,
+            # scale, time offset) is not pulled by one disagreement it did not cause.
+            q = max(0.0, (float(r @ r) - float(np.trace(S))) / 3.0)
+            P0 = s.P.copy()
+            P0[0:3, 0:3] += q * np.eye(3)
+            S = P0[0:3, 0:3] + R
+        K = np.linalg.solve(S, P0[0:3, :]).T
         K[13] = 0.0  # the jitter is considered, never estimated (Schmidt)
         dx = K @ r
         IKH = np.eye(14)
         IKH[:, 0:3] -= K
-        P = IKH @ s.P @ IKH.T + K @ R @ K.T
+        P = IKH @ P0 @ IKH.T + K @ R @ K.T
         Rn = s.R @ expmap(dx[0:3])
         Rm = expmap(dx[6:9]) @ s.Rm
         tau = float(np.clip(s.tau + dx[12], -0.1, 0.1))
