@@ -12,7 +12,7 @@ is rejected with a reason.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -441,8 +441,8 @@ class TriangleDetector:
             return self._reject(m, warnings, mean, cand)
         if not np.all(np.isfinite(m.xy)) or not side_lengths(m.xy).min() > 0.0:
             return self._reject("degenerate_triangle", warnings, mean, cand)
-        m, seen_angles = self._named(m)
-        reason = self._shape_reason(m, seen_angles) or self._usability_reason(image, cand, m)
+        m, seen, seen_angles = self._named(m)
+        reason = self._shape_reason(m, seen, seen_angles) or self._usability_reason(image, cand, m)
         if reason:
             return self._reject(reason, warnings, mean, cand, m.pts_px)
         w = list(warnings)
@@ -511,11 +511,11 @@ class TriangleDetector:
             float(fit.vertex_gaps().max()), float(np.mean(fit.mid_level)), fit.shutter_gain,
         )  # fmt: skip
 
-    def _named(self, m: _Measured) -> tuple[_Measured, np.ndarray]:
+    def _named(self, m: _Measured) -> tuple[_Measured, np.ndarray, np.ndarray]:
         """Step 2: the vertices in the rig's order (the most acute first, then the
         rig's handedness), and the corner angles (deg) of the shape as a camera turned
         to face the triangle would see it: its image position then changes neither
-        its angles nor its area (see facing)."""
+        its angles nor its area (see facing), in the same order."""
         cam = self.rig.camera
         seen = facing(m.xy / cam.fx) * cam.fx
         ang = np.degrees(corner_angles(seen, side_lengths(seen)))
@@ -525,13 +525,13 @@ class TriangleDetector:
             perm = (apex, perm[2], perm[1])
         p, idx = list(perm), _PERM_INDEX[perm]
         gain = m.gain[idx] if m.gain is not None else None
-        named = replace(m, xy=m.xy[p], pts_px=m.pts_px[p], cov=m.cov[idx][:, idx], gain=gain)
-        return named, ang[p]
+        named = _Measured(m.xy[p], m.pts_px[p], m.cov[idx][:, idx], m.contrast, m.outliers,
+                          m.vertex_gap, m.level_mid, gain)  # fmt: skip
+        return named, seen[p], ang[p]
 
-    def _shape_reason(self, m: _Measured, angles_deg: np.ndarray) -> str | None:
+    def _shape_reason(self, m: _Measured, seen: np.ndarray, angles_deg: np.ndarray) -> str | None:
         """Step 3: area, side ratios and apex angle against the known triangle, as a
-        camera facing it would see them."""
-        seen = facing(m.xy / self.rig.camera.fx) * self.rig.camera.fx
+        camera facing it would see them (``seen``, ``angles_deg``)."""
         sides = side_lengths(seen)
         if abs(abs(_signed_area(seen)) / self.expected_area - 1.0) > AREA_TOL:
             return "area_mismatch"
