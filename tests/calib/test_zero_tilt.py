@@ -1,24 +1,21 @@
-"""Zero-tilt and camera calibration."""
+"""`calibrate_zero_tilt` and `visvec calibrate zero-tilt`: target offset, height and
+camera tilt from level frames; the checks of the camera model and of the sigma."""
 
 import re
-import tomllib
 
 import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from visvec.calib.camera import calibrate_camera
 from visvec.calib.zero_tilt import calibrate_zero_tilt, circle_centre
-from visvec.camera import CameraModel
 from visvec.cli.main import cli
 from visvec.data import Detection, Status
 from visvec.errors import InputFileError
 from visvec.geometry import lab_to_camera
-from visvec.rig import load_rig
 from visvec.rotations import euler_to_matrix
 from visvec.sim.simulate import true_rig
 
-from conftest import CONFIGS, rig_variant, shared
+from conftest import CONFIGS, rig_variant, run
 
 
 def _level_detections(rig, world, yaws, sigma_px=0.03, rng=None):
@@ -275,14 +272,14 @@ def test_calibrate_zero_tilt_takes_one_recording_per_yaw(tmp_path):
     rig_p = CONFIGS / "triangle-320.toml"
     frames = tmp_path / "level"
     sim = ["simulate", "--rig", rig_p, "--out", frames, "--frames", 6, "--motion", "level"]
-    assert _invoke(*sim, "--target-offset-mm", 10, 5).exit_code == 0
+    assert run(*sim, "--target-offset-mm", 10, 5).exit_code == 0
     stops = [tmp_path / "yaw-a", tmp_path / "yaw-b", tmp_path / "yaw-c"]
     for k, png in enumerate(sorted(frames.glob("frame_*.png"))):
         stops[k // 2].mkdir(exist_ok=True)
         shutil.copy(png, stops[k // 2])
-    one = _invoke("calibrate", "zero-tilt", frames, "--rig", rig_p, "--out", tmp_path / "1.toml")
+    one = run("calibrate", "zero-tilt", frames, "--rig", rig_p, "--out", tmp_path / "1.toml")
     assert one.exit_code == 0, one.output
-    many = _invoke("calibrate", "zero-tilt", *stops, "--rig", rig_p, "--out", tmp_path / "3.toml")
+    many = run("calibrate", "zero-tilt", *stops, "--rig", rig_p, "--out", tmp_path / "3.toml")
     assert many.exit_code == 0, many.output
     # the same offsets within a fifth of their sigma and the printed 0.01 mm (each
     # recording starts its region search afresh, one folder carries its threshold from
@@ -295,160 +292,7 @@ def test_calibrate_zero_tilt_takes_one_recording_per_yaw(tmp_path):
     assert a[1] == b[1] and a[3] == b[3]
     assert f"{stops[2]}: frame_0005.png: yaw" in many.output
     assert f"frames {stops[0]} {stops[1]} {stops[2]} (6 used)" in (tmp_path / "3.toml").read_text()
-    gone = _invoke(
+    gone = run(
         "calibrate", "zero-tilt", *stops, tmp_path / "nope", "--rig", rig_p, "--out", tmp_path / "x"
     )
     assert gone.exit_code == 3 and "nope" in gone.output and "yaw-a" not in gone.output
-
-
-def test_camera_calibration_reproduces_opencv_reference():
-    d = shared("opencv_chessboard")
-    files = [d / f"left{i:02d}.jpg" for i in (1, 2, 3, 4, 5, 6, 7, 8, 9, 11, 12, 13, 14)]
-    cal = calibrate_camera(files, (9, 6), 1.0, recipe="opencv-test")
-    # reference_values.json, reference A: fx 532.80992189, rms 0.196334638 (tol 0.01)
-    assert abs(cal.K[0, 0] - 532.80992189) < 0.5
-    assert abs(cal.rms_px - 0.196334638) < 0.01
-    ref = np.array([[532.80992189, 0.0, 342.4952186], [0.0, 532.93346422, 233.8879292], [0, 0, 1]])
-    assert np.abs(cal.K - ref).sum() < 10.0
-    # OpenCV's standard deviations of fx, fy, cx, cy: 0.44-0.51 px on these 13 views
-    # (what --principal-point-sigma of `calibrate readout` takes)
-    assert np.all((0.2 < cal.sigma_px) & (cal.sigma_px < 1.0)), cal.sigma_px
-
-
-def test_camera_calibration_cli_names_outlier_view(tmp_path):
-    d = shared("opencv_chessboard")
-    out = tmp_path / "cam.toml"
-    r = CliRunner().invoke(
-        cli,
-        [
-            "calibrate",
-            "camera",
-            str(d / "left*.jpg"),
-            "--pattern",
-            "9x6",
-            "--square-mm",
-            "25",
-            "--out",
-            str(out),
-        ],
-    )
-    assert r.exit_code == 0, r.output
-    assert "left02.jpg" in r.output and "outlier" in r.output
-    assert "  cx 342." in r.output and " +- 0." in r.output.split("  cx 342.")[1][:12]
-    # the focal length written: OpenCV's own reference for these photos (532.81 px,
-    # reference_values.json) to 1 %, as the outlier view left out and the default
-    # recipe's distortion model allow
-    written = tomllib.loads(out.read_text())["camera"]
-    assert abs(written["fx"] - 532.80992189) < 0.01 * 532.8
-    # how far the photos reached (the left views: 278 px of the 421 px to the corners)
-    reach = float(r.output.split("the photos' corners reach ")[1].split(" px")[0])
-    assert 250.0 < reach < 421.0
-    cam = load_rig(CONFIGS / "triangle.toml", calibration=out).camera
-    corners = f"the image's corners {cam.corner_radius_px:.0f} px"
-    assert f"{corners}; the lens model holds to the image's corners" in r.output
-    r = CliRunner().invoke(
-        cli, ["calibrate", "camera", str(d), "--pattern", "nine", "--square-mm", "25"]
-    )
-    assert r.exit_code == 2 and "COLSxROWS" in r.output
-
-
-def test_camera_calibration_warns_when_its_lens_model_folds_short_of_the_corners():
-    from visvec.cli.calibrate import _coverage
-
-    # a barrel lens fitted from photos that stayed 300 px from the centre, whose k3
-    # turns the polynomial back 345 px out, short of the 400 px corners
-    cam = CameraModel(640, 480, 340.0, 340.0, 319.5, 239.5, np.array([-0.32, 0.12, 0, 0, -0.02]))
-    text = _coverage(cam, 300.0)
-    assert "reach 300 px from the principal point, the image's corners 400 px" in text
-    assert "warning: the lens model folds over 345 px out" in text
-    assert "chessboard in the corners" in text
-
-
-def _invoke(*args):
-    return CliRunner().invoke(cli, [str(a) for a in args])
-
-
-def test_calibrate_readout_measures_a_rolling_shutter_from_a_turning_recording(tmp_path):
-    """A 640x480 webcam reading its rows over 25 ms, recorded while the platform swings
-    out and back at up to 15 deg/s (the recording the README asks for): the readout
-    whose correction leaves the triangle rigid, the camera's principal point and aspect
-    estimated beside it, is found within 3 sigma (about 2 ms), written as [camera]
-    readout_ms, and the rig takes it."""
-    from visvec.rig import load_rig
-
-    rig_p = CONFIGS / "triangle.toml"
-    rec = tmp_path / "turn"
-    sim = ["simulate", "--rig", rig_p, "--out", rec, "--frames", 40, "--seed", 3]
-    r = _invoke(*sim, "--motion", "swing", "--yaw-rate-dps", 15, "--readout-ms", 25)
-    assert r.exit_code == 0, r.output
-    cal = tmp_path / "readout.toml"
-    r = _invoke("calibrate", "readout", rec, "--rig", rig_p, "--out", cal)
-    assert r.exit_code == 0, r.output
-    rig = load_rig(rig_p, cal)
-    sigma = float(r.output.split("+- ")[1].split(" ms")[0])
-    assert 0.2 < sigma < 3.0
-    assert abs(rig.readout_ms - 25.0) < 3.0 * sigma, r.output
-    # with its sigma, which the rows' sigma then carries
-    assert abs(rig.readout_sigma_ms - sigma) <= 0.006
-    assert "put readout_ms = " in r.output and " and readout_sigma_ms = " in r.output
-    assert "no zero-tilt calibration given" in r.stderr  # the order the README gives
-
-
-def test_calibrate_readout_is_not_fooled_by_a_principal_point_off(tmp_path):
-    """A global-shutter camera whose principal point is 4 px right of the rig file's,
-    swinging at up to 20 deg/s: the keystone that error leaves turns with the yaw as a
-    shear does, and taking the camera model as exact reads a readout more than 2 sigma
-    from 0 on this recording (+4.9 +- 1.9 ms); estimated beside the principal point and
-    the aspect, the readout is within 2 sigma of 0 and 0 is written."""
-    rig_p = CONFIGS / "triangle.toml"
-    true_rig = rig_variant(rig_p, "cx", "319.5", "323.5", tmp_path / "true.toml")
-    rec = tmp_path / "swing"
-    sim = ["simulate", "--rig", true_rig, "--out", rec, "--frames", 40, "--seed", 3]
-    assert _invoke(*sim, "--motion", "swing", "--yaw-rate-dps", 20).exit_code == 0
-    cal = tmp_path / "readout.toml"
-    r = _invoke("calibrate", "readout", rec, "--rig", rig_p, "--out", cal)
-    assert r.exit_code == 0, r.output
-    exact = r.output.split("taking them as exact: ")[1]
-    k, sigma = (float(x) for x in exact.split(" ms")[0].split(" +- "))
-    assert abs(k) > 2.0 * sigma, r.output  # the confusion is there to be undone
-    k, sigma = (float(x) for x in r.output.split("row): ")[1].split(" ms")[0].split(" +- "))
-    assert abs(k) < 2.0 * sigma and sigma < 3.0, r.output
-    assert "readout_ms = 0 written" in r.output
-    # a global shutter: no readout, so no readout sigma either
-    from visvec.rig import load_rig
-
-    rig = load_rig(rig_p, cal)
-    assert rig.readout_ms == 0.0 and rig.readout_sigma_ms == 0.0
-
-
-def test_calibrate_readout_refuses_a_platform_at_rest(tmp_path):
-    """Nothing to see without motion: the reason, exit 1, no file."""
-    rig_p = CONFIGS / "triangle-320.toml"
-    rec = tmp_path / "rest"
-    r = _invoke("simulate", "--rig", rig_p, "--out", rec, "--frames", 12, "--motion", "sweep",
-                "--yaw-rate-dps", 0.5)  # fmt: skip
-    assert r.exit_code == 0, r.output
-    cal = tmp_path / "readout.toml"
-    zero = tmp_path / "zero.toml"  # given a zero-tilt calibration: no note about it
-    zero.write_text("[zero_tilt]\ncentroid_px = [159.5, 119.5]\n")
-    r = _invoke("calibrate", "readout", rec, "--rig", rig_p, "--calibration", zero, "--out", cal)
-    assert r.exit_code == 1 and "record it turning" in r.output and "nothing written" in r.output
-    assert not cal.exists() and "zero-tilt" not in r.stderr
-
-
-def test_calibrate_readout_says_when_the_readout_is_poorly_determined(tmp_path):
-    """A 320x240 camera turning one way at 10 deg/s for 40 frames: the readout is found
-    too loosely once the principal point is estimated beside it (sigma over a quarter of
-    the frame interval). Refused, exit 1, no file; the library says what would help and
-    the command line names its option for it."""
-    rig_p = CONFIGS / "triangle-320.toml"
-    rec = tmp_path / "sweep"
-    sim = ["simulate", "--rig", rig_p, "--out", rec, "--frames", 40, "--seed", 3]
-    r = _invoke(*sim, "--motion", "sweep", "--yaw-rate-dps", 10, "--readout-ms", 25)
-    assert r.exit_code == 0, r.output
-    cal = tmp_path / "readout.toml"
-    r = _invoke("calibrate", "readout", rec, "--rig", rig_p, "--out", cal)
-    assert r.exit_code == 1 and not cal.exists(), r.output
-    assert "the readout is poorly determined" in r.output
-    advice = "a prior on the principal point from a camera calibration (--principal-point-sigma)"
-    assert advice in r.output
