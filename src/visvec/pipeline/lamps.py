@@ -30,7 +30,8 @@ class LampDetection:
 
 
 # the learned centroid noise: old frames forgotten by this factor per frame (about the
-# last 100), the rig's value worth this many degrees of freedom, and never below this
+# last 100), the rig's value worth this many degrees of freedom at the start (forgotten
+# as a frame is), and never below this
 NOISE_FORGET = 0.99
 NOISE_PRIOR_DOF = 20.0
 NOISE_FLOOR_PX = 0.005
@@ -80,6 +81,7 @@ class LampPipeline(Pipeline["LampDetection", PlanarSolution]):
         # rig's [detect] centroid_sigma_px is its prior
         self.noise_r2 = 0.0  # forgetting sums of the squared residuals (px^2) ...
         self.noise_dof = 0.0  # ... and of their degrees of freedom
+        self.prior_dof = NOISE_PRIOR_DOF  # the rig's value's weight, forgotten alike
         self.sigma_px = rig.detect.centroid_sigma_px
         self.track_state: tuple[float, np.ndarray, np.ndarray | None] | None = None
 
@@ -132,7 +134,12 @@ class LampPipeline(Pipeline["LampDetection", PlanarSolution]):
         variance of the fits so far (sum of squared residuals over their degrees of
         freedom, 2n - 3 per frame; the a-posteriori variance factor of least squares),
         forgetting old frames (NOISE_FORGET) and with the rig's centroid_sigma_px as
-        a prior worth NOISE_PRIOR_DOF degrees of freedom. A frame scattering more than
+        a prior worth NOISE_PRIOR_DOF degrees of freedom at the start, forgotten as the
+        frames are: the rig's value is a guess (0.1 px where simulated lamps scatter
+        0.02 px), and frames of three to five lamps bring only 3 to 7 degrees of freedom
+        each, so a prior that never faded would keep their sigma half again too wide
+        (error/sigma RMS 0.56 at 90 % of the lamps dark; benchmarks/lamps_few_lit.py).
+        A frame scattering more than
         NOISE_CAP times the noise so far counts as if at that cap (a stray spot taken
         for a lamp, a smeared frame: the pooled variance is not an outlier's), so the
         learned sigma follows the lamps' own scatter: 0.02 px for simulated lamps
@@ -145,8 +152,9 @@ class LampPipeline(Pipeline["LampDetection", PlanarSolution]):
         r2 = min(2 * n * sol.rms_px**2, dof * (NOISE_CAP * self.sigma_px) ** 2)
         self.noise_r2 = NOISE_FORGET * self.noise_r2 + r2
         self.noise_dof = NOISE_FORGET * self.noise_dof + dof
+        self.prior_dof *= NOISE_FORGET
         s0 = self.rig.detect.centroid_sigma_px
-        var = (NOISE_PRIOR_DOF * s0**2 + self.noise_r2) / (NOISE_PRIOR_DOF + self.noise_dof)
+        var = (self.prior_dof * s0**2 + self.noise_r2) / (self.prior_dof + self.noise_dof)
         self.sigma_px = max(float(np.sqrt(var)), NOISE_FLOOR_PX)
 
     def _consistent(self, sol: PlanarSolution) -> bool:
