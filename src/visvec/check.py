@@ -216,8 +216,7 @@ def simulated_accuracy(
     parts = (pool or TaskPool(workers=1)).map(_accuracy_task, tasks, done)
     out = Outcome()
     for part in parts:
-        for name in ("status", "warnings", "err_deg", "sigma_deg"):
-            getattr(out, name).extend(getattr(part, name))
+        out.extend(part)
     return out
 
 

@@ -31,7 +31,7 @@ class RollingShutter:
     lever: np.ndarray | None = None
 
 
-def _row_times(rows: np.ndarray, camera: CameraModel, readout_ms: float) -> np.ndarray:
+def row_times(rows: np.ndarray, camera: CameraModel, readout_ms: float) -> np.ndarray:
     """Seconds from the centre row's exposure to each row's."""
     return (np.asarray(rows, float) - camera.cy) / camera.height * (readout_ms / 1000.0)
 
@@ -54,7 +54,7 @@ def unroll(
     P = Z d, d = (x, y, 1): d0 = d + t omega_c x (d + ``lever``), ``lever`` = b / Z for
     the target's depth Z (None: a camera on the axis), t = (v - cy) / H * readout.
     """
-    t = _row_times(rows, camera, readout_ms)
+    t = row_times(rows, camera, readout_ms)
     d = np.column_stack([xy, np.ones(len(xy))])
     arm = d if lever is None else d + lever
     d0 = d + t[:, None] * np.cross(np.asarray(omega_c, float), arm)
@@ -79,7 +79,7 @@ def shutter_matrix(
     intersection of fitted lines whose points have their own rows; its own row's shift
     is the first-order value.)
     """
-    t = _row_times(rows, camera, readout_ms)
+    t = row_times(rows, camera, readout_ms)
     x, y = xy[:, 0], xy[:, 1]
     lx, ly, lz = (0.0, 0.0, 0.0) if lever is None else np.asarray(lever, float)
     ex, ey, ez = x + lx, y + ly, 1.0 + lz
@@ -100,7 +100,7 @@ def shutter_shift(
     """(6,) A omega of :func:`shutter_matrix` for one rate, written for speed: with
     c = omega x e (e = d + lever), the projection's linearisation gives
     t (c_x - x c_z, c_y - y c_z) per vertex."""
-    t = _row_times(rows, camera, readout_ms)
+    t = row_times(rows, camera, readout_ms)
     x, y = xy[:, 0], xy[:, 1]
     lx, ly, lz = (0.0, 0.0, 0.0) if lever is None else lever
     ex, ey, ez = x + lx, y + ly, 1.0 + lz

@@ -5,7 +5,7 @@ from __future__ import annotations
 import os
 import platform
 import subprocess
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field, replace
 
@@ -38,18 +38,11 @@ def render_cases(
     world: Rig,
     cases: Sequence[Case],
     workers: int | None = None,
-    progress: Callable[[int], None] | None = None,
 ) -> list[np.ndarray]:
-    """Render every case with the true rig ``world``, in parallel; ``progress(1)``
-    after each."""
+    """Render every case with the true rig ``world``, in parallel."""
     workers = workers or os.cpu_count() or 1
-    out = []
     with ProcessPoolExecutor(workers) as ex:
-        for img in ex.map(_render, [(world, c) for c in cases], chunksize=4):
-            out.append(img)
-            if progress is not None:
-                progress(1)
-    return out
+        return list(ex.map(_render, [(world, c) for c in cases], chunksize=4))
 
 
 @dataclass
@@ -64,6 +57,13 @@ class Outcome:
     @property
     def n(self) -> int:
         return len(self.status)
+
+    def extend(self, other: Outcome) -> None:
+        """Append another set of frames' rows (a study's tasks, in task order)."""
+        self.status.extend(other.status)
+        self.warnings.extend(other.warnings)
+        self.err_deg.extend(other.err_deg)
+        self.sigma_deg.extend(other.sigma_deg)
 
     @property
     def n_ok(self) -> int:
@@ -135,7 +135,6 @@ def evaluate(
     method: str,
     track: bool = False,
     shear: bool = True,
-    progress: Callable[[int], None] | None = None,
 ) -> Outcome:
     """Run the pipeline (estimation rig ``rig``) on ``images`` and compare with the truth
     (``shear`` False: no readout estimated from the frames of a rig that declares none,
@@ -156,8 +155,6 @@ def evaluate(
             e[0] = (e[0] + 180.0) % 360.0 - 180.0
             out.err_deg.append(e)
             out.sigma_deg.append(row.sigma_deg)
-        if progress is not None:
-            progress(1)
     return out
 
 

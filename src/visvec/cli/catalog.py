@@ -58,9 +58,4 @@ def build(map_path, out, ceiling_z_mm, rig_path) -> None:
         u = LampIdentifier(seen, cat).uniqueness()
         click.echo(f"in the view of {rig_path}: {u.words()}")
         if u.too_few_unique:
-            click.echo(
-                f"visvec: warning: {map_path}: {100 * u.rival_share:.0f} % of the map's "
-                "triangles in view have a rival: frames with three lamps lit will mostly be "
-                "refused; light lamps that break the pattern",
-                err=True,
-            )
+            click.echo(f"visvec: warning: {map_path}: {u.warning()}", err=True)

@@ -74,12 +74,7 @@ def _lamp_map_lines(rig) -> None:
     u = LampIdentifier(rig).uniqueness()
     click.echo(f"  lamp map: {u.words()}")
     if u.too_few_unique:
-        click.echo(
-            f"visvec: warning: {rig.target.lamps.path}: {100 * u.rival_share:.0f} % of the "
-            "map's triangles in view have a rival: frames with three lamps lit will "
-            "mostly be refused; light lamps that break the pattern",
-            err=True,
-        )
+        click.echo(f"visvec: warning: {rig.target.lamps.path}: {u.warning()}", err=True)
 
 
 def geometry_lines(rig) -> list[tuple[str, bool]]:

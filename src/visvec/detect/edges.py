@@ -617,10 +617,10 @@ def _pass_window(npass: int, corners: np.ndarray, w_mid: float, half0: float, st
 @dataclass(frozen=True)
 class _Profiles:
     """One pass's profiles across the edges: where each starts (bases, px) and its
-    direction (normals), its edge (gid) and place along it (index, along; lengths per
-    edge), its samples (t, vals); the step's position on it (e, px from the base), height
-    (h) and mid level; per edge the levels' scatter (level_sd), the median height
-    (h_mid) and the mid level; whether the profile has a clear step (clear)."""
+    direction (normals), its edge (gid) and place along it (index, along; the edges'
+    lengths), its samples (vals); the step's position on it (e, px from the base); per
+    edge the mid level (mid), the levels' scatter (level_sd) and the median step height
+    (h_mid); whether the profile has a clear step (clear)."""
 
     bases: np.ndarray
     normals: np.ndarray

@@ -93,6 +93,12 @@ class TriangleUniqueness:
     def too_few_unique(self) -> bool:
         return self.rival_share > MAX_RIVAL_SHARE
 
+    def warning(self) -> str:
+        """What a map with too few unique triangles means for the lab."""
+        return (f"{100 * self.rival_share:.0f} % of the map's triangles in view have a "
+                "rival: frames with three lamps lit will mostly be refused; light lamps "
+                "that break the pattern")  # fmt: skip
+
 
 @dataclass(frozen=True)
 class Identification:

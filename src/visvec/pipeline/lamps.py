@@ -139,12 +139,10 @@ class LampPipeline(Pipeline["LampDetection", PlanarSolution]):
         0.02 px), and frames of three to five lamps bring only 3 to 7 degrees of freedom
         each, so a prior that never faded would keep their sigma half again too wide
         (error/sigma RMS 0.56 at 90 % of the lamps dark; benchmarks/lamps_few_lit.py).
-        A frame scattering more than
-        NOISE_CAP times the noise so far counts as if at that cap (a stray spot taken
-        for a lamp, a smeared frame: the pooled variance is not an outlier's), so the
-        learned sigma follows the lamps' own scatter: 0.02 px for simulated lamps
-        where the rig's guess is 0.1 (benchmarks/lamps_few_lit.py). A frame's own
-        chi-square still widens its covariance when it scatters more (solve_planar)."""
+        A frame scattering more than NOISE_CAP times the noise so far counts as if at
+        that cap (a stray spot taken for a lamp, a smeared frame: the pooled variance
+        is not an outlier's). A frame's own chi-square still widens its covariance
+        when it scatters more (solve_planar)."""
         n = sol.n_points
         dof = 2 * n - 3
         if dof <= 0:

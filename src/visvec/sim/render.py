@@ -16,6 +16,7 @@ import numpy as np
 from visvec.camera import CameraModel
 from visvec.rig import Rig
 from visvec.rotations import expmap
+from visvec.shutter import row_times
 from visvec.sim.scene import Scene
 
 # labels of what a ray hits
@@ -207,8 +208,8 @@ def render_clean(
     for r0 in bands:
         R = R_nb
         if rolling:
-            row = r0 + 0.5 * (min(band_h, cam.height - r0) - 1)
-            t = (row - cam.cy) / cam.height * (readout_ms / 1000.0)
+            row = r0 + 0.5 * (min(band_h, cam.height - r0) - 1)  # the band's middle row
+            t = float(row_times(np.array([row]), cam, readout_ms)[0])
             R = R_nb @ expmap(np.asarray(omega_b, float) * t)
         shaders.append(_Shader(rig, scene, R))
     centres = grid[1:-1, 1:-1]
