@@ -65,9 +65,10 @@ def write(tmp_path, name, text):
     return p
 
 
-def _sim3d(n=6000, dt=0.01, seed=4, amp=1.0, delay=0.0, rest_s=0.0, speed=1.0):
+def _sim3d(n=6000, dt=0.01, seed=4, amp=1.0, delay=0.0, rest_s=0.0, speed=1.0, drift=0.0):
     """A 3-D gyro (body rate w_b with a misalignment, bias and noise; the reading at t
-    is the rate at t - delay) and the true attitudes; still for rest_s seconds."""
+    is the rate at t - delay - drift t: a clock off by ``drift`` s/s) and the true
+    attitudes; still for rest_s seconds."""
     rng = np.random.default_rng(seed)
     t = np.arange(n) * dt
     on = (t >= rest_s).astype(float)[:, None]
@@ -78,7 +79,7 @@ def _sim3d(n=6000, dt=0.01, seed=4, amp=1.0, delay=0.0, rest_s=0.0, speed=1.0):
     for i in range(1, n):
         R.append(R[-1] @ expmap(0.5 * (w_b[i] + w_b[i - 1]) * dt))
     Rm = expmap(np.radians([2.0, -1.5, 1.8]))
-    w_late = np.column_stack([np.interp(t - delay, t, w_b[:, k]) for k in range(3)])
+    w_late = np.column_stack([np.interp(t - delay - drift * t, t, w_b[:, k]) for k in range(3)])
     gyro = w_late @ Rm + np.radians([0.4, -0.3, 0.2]) + rng.normal(0, np.radians(0.05), (n, 3))
     return t, R, gyro, rng
 

@@ -93,6 +93,56 @@ def test_3d_time_offset_and_rest_bias_are_learned():
     assert np.sqrt(np.mean(late**2)) < 0.15
 
 
+def test_3d_a_drifting_clock_is_followed():
+    """The gyro's clock runs 300 ppm slow against the fixes': its time offset grows from
+    0 to 18 ms over the minute. The filter learns the clocks' rate difference and ends
+    at the offset of the moment, not at the minute's mean."""
+    from visvec.fuse.replay import Fusion
+
+    t, R, gyro, rng = _sim3d(drift=3e-4, amp=2.0)
+    eng = Fusion(AttitudeModel(sample_s=0.01), limits=Limits(2000.0, None))
+    fx = sorted(_fixes(t, R, rng), key=lambda f: f.available_s)
+    out, j = [], 0
+    for k in range(len(t)):
+        while j < len(fx) and fx[j].available_s <= t[k]:
+            eng.add_fix(fx[j])
+            j += 1
+        out.append(eng.step(t[k], gyro[k], None))
+    end = out[-1].state
+    assert abs(end.drift - 3e-4) < 0.6e-4, end.drift
+    assert abs(end.tau - 3e-4 * t[-1]) < 0.003, end.tau
+    # without the clock's rate the offset lags behind (the minute's weighted mean)
+    eng0 = Fusion(AttitudeModel(sample_s=0.01, clock_drift_sigma=0.0), limits=Limits(2000.0, None))
+    out0 = list(fuse(ImuData(t, gyro, None, np.arange(len(t)), (), 0.01), fx,
+                     eng0.model, engine=eng0))  # fmt: skip
+    assert out0[-1].state.tau < end.tau - 0.003
+    late = _err(out, R, len(t) // 2)
+    assert np.sqrt(np.mean(late**2)) < np.sqrt(np.mean(_err(out0, R, len(t) // 2) ** 2))
+
+
+def test_3d_a_fix_after_a_saturated_reading_corrects_only_the_attitude():
+    """The interval before the fix held a reconstructed (clipped) reading: its error is
+    the reconstruction's, and the fix must not read it as bias, misalignment, scale or
+    clock."""
+    model = AttitudeModel(sample_s=0.01)
+    fix0 = Fix(0.0, 0.0, np.eye(3), np.eye(3) * np.radians(0.1) ** 2, 0)
+    s = model.init(fix0)
+    w = np.radians([450.0, -80.0, 300.0])
+    for i in range(50):
+        sat = np.radians([40.0, 0.0, 0.0]) if 20 <= i < 25 else np.zeros(3)
+        s = model.propagate(s, np.array([w, np.radians([500.0, -300.0, 800.0]), sat]), None,
+                            0.01)  # fmt: skip
+    assert s.saturated
+    fix = Fix(0.5, 0.5, s.R @ expmap(np.radians([2.0, -1.0, 0.5])), fix0.cov, 1)
+    new, taken, _ = model.update(s, fix)
+    assert taken
+    assert np.degrees(np.linalg.norm(logmap(new.R.T @ fix.value))) < 0.3
+    np.testing.assert_array_equal(new.b, s.b)
+    np.testing.assert_array_equal(new.k, s.k)
+    np.testing.assert_array_equal(new.Rm, s.Rm)
+    assert (new.tau, new.drift) == (s.tau, s.drift)
+
+
 def test_3d_clock_jitter_keeps_the_sigma_honest():
     """A gyro whose clock wanders against the fixes' (a Gauss-Markov time error of
     10 ms, 0.2 s) on a body that rests and swings in short bursts (a hand, a bump):

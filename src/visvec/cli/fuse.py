@@ -276,7 +276,7 @@ def learned_line(engine, s) -> str:
     per_sample = math.degrees(math.sqrt(qa / engine.model.sample_s))
     parts = [f"gyro noise {per_sample:.3g} deg/s per sample",
              f"rate error {100 * math.sqrt(qw):.2g} % (held between fixes)",
-             f"time offset {1000 * s.tau:+.1f} ms",
+             f"time offset {1000 * s.tau:+.1f} ms (clock drift {1e6 * s.drift:+.0f} ppm)",
              f"misalignment {math.degrees(float(np.linalg.norm(logmap(s.Rm)))):.2f} deg",
              f"scale factors {', '.join(f'{100 * k:+.2f}' for k in s.k)} %",
              f"bias {', '.join(f'{math.degrees(b):+.3f}' for b in s.b)} deg/s"]  # fmt: skip

@@ -25,8 +25,13 @@ order; dth' = -[w]x dth + (w_true - w^))
            + R_m^ (1 + k^) d(omega_g)/dt dtau,
     w = R_m^ (1 + k^) (omega_g + tau^ d(omega_g)/dt - b^),
 so misalignment, scale and time offset show whenever the body turns; they are
-estimated from the data. A zero prior sigma keeps a parameter fixed. The clock jitter
-between the gyro and the fixes is a fourteenth, considered state (AttitudeModel.jitter).
+estimated from the data. The time offset drifts, tau' = rho, as two free-running clocks
+do (their rate difference rho, a state too: the two-state clock model, Brown & Hwang,
+Introduction to Random Signals and Applied Kalman Filtering, 4th ed., 2012, Sec. 9.3).
+A zero prior sigma keeps a parameter fixed. The clock jitter between the gyro and the
+fixes is a considered state (AttitudeModel.jitter). After an interval whose reading was
+reconstructed from a clipped one, the calibration is considered for that fix: the
+reconstruction's error would otherwise be read as bias, scale or clock.
 
 The process noise is learned from the fixes' innovations (covariance matching, Mehra,
 "Approaches to adaptive filtering", IEEE TAC 17(5), 1972, Sec. IV; Myers & Tapley,
@@ -198,7 +203,8 @@ class AttitudeState:
     Rm: np.ndarray  # gyro axes -> body axes
     k: np.ndarray  # gyro scale factor errors (3,)
     tau: float  # gyro time offset, s (the gyro's reading at t + tau belongs to t)
-    P: np.ndarray  # (14, 14): dtheta (body), db, dphi (body), dk, dtau, jitter (consider)
+    # (15, 15): dtheta (body), db, dphi (body), dk, dtau, jitter (consider), ddrift
+    P: np.ndarray
     noise: NoiseFit
     # since the last fix: [seconds, integral of |w| dt (rad), trace of the attitude
     # noise added]; whether a saturated reading was integrated; whether the last fix was refused
@@ -211,6 +217,8 @@ class AttitudeState:
     # taken while the prediction was too wide to gate it (after a long saturation, a
     # restart) must first be confirmed by a later fix that passes a narrow gate
     confirmed: bool = True
+    # the gyro clock's rate against the fixes' clock, less one (s/s): tau drifts by it
+    drift: float = 0.0
 
 
 RATE_NOISE_FLOOR = 0.001
@@ -224,6 +232,14 @@ JITTER_TIME_S = 0.2
 FADE_NEW = 0.5
 NOISE_FORGET = 0.93  # per fix: the noise fit remembers about the last 15 fixes
 NOISE_PRIOR_FIXES = 3.0  # the prior counts as this many fixes
+N_STATE = 15
+# two free-running clocks (the gyro's, the fixes') differ in rate, quartz oscillators by
+# tens of ppm: RepoIMU's gyro against its Vicon by about 100 ppm (the time offset fitted
+# per 15 s in hindsight grows from 2 to 8 ms over Test06's 90 s and from 1.5 to 9 ms
+# over Test10's). The rate's prior, and its slow wander:
+CLOCK_DRIFT_SIGMA = 2e-4  # s/s, the prior: 200 ppm
+CLOCK_DRIFT_WALK = 0.01  # the rate's random walk, in prior sigmas per sqrt(s)
+MAX_CLOCK_DRIFT = 1e-3
 
 
 @dataclass(frozen=True)
@@ -241,6 +257,7 @@ class AttitudeModel:
     misalignment_sigma: float = math.radians(5.0)  # 0: not estimated
     scale_sigma: float = 0.02  # relative; 0: not estimated
     time_offset_sigma: float = 0.01  # s; 0: not estimated
+    clock_drift_sigma: float = CLOCK_DRIFT_SIGMA  # s/s; 0: not estimated
     jitter_sigma: float | None = None  # s; None: one IMU sample period (sample_s)
     jitter_time: float = JITTER_TIME_S
     fix_sigma: float = math.radians(0.1)
@@ -277,9 +294,10 @@ class AttitudeModel:
                        gyro_bias_sigma=sigma)  # fmt: skip
 
     def init(self, fix: Fix) -> AttitudeState:
-        P = np.zeros((14, 14))
+        P = np.zeros((N_STATE, N_STATE))
         P[0:3, 0:3] = self._fix_cov(fix)
         P[13, 13] = self.jitter**2
+        P[14, 14] = self.clock_drift_sigma**2
         P[3:6, 3:6] = np.eye(3) * self.gyro_bias_sigma**2
         P[6:9, 6:9] = np.eye(3) * self.misalignment_sigma**2
         P[9:12, 9:12] = np.eye(3) * self.scale_sigma**2
@@ -295,7 +313,7 @@ class AttitudeModel:
         P[:, 0:3] = 0.0
         P[0:3, 0:3] = self._fix_cov(fix)
         return AttitudeState(fix.value.copy(), s.b, s.Rm, s.k, s.tau, P, s.noise,
-                             confirmed=False)  # fmt: skip
+                             confirmed=False, drift=s.drift)  # fmt: skip
 
     def _fix_cov(self, fix: Fix) -> np.ndarray:
         if fix.cov is not None:
@@ -310,7 +328,7 @@ class AttitudeModel:
         wg = scale * (g + s.tau * gdot - s.b)  # scaled, in gyro axes
         w = s.Rm @ wg
         Rn = s.R @ expmap(w * dt)
-        F = np.eye(14)
+        F = np.eye(N_STATE)
         F[0:3, 0:3] = expmap(-w * dt)  # exact transition of -[w]x
         RmS = s.Rm * scale
         F[0:3, 3:6] = -RmS * dt
@@ -319,6 +337,7 @@ class AttitudeModel:
         F[0:3, 12] = F[0:3, 13] = RmS @ gdot * dt
         fade_j = math.exp(-dt / self.jitter_time)
         F[13, 13] = fade_j
+        F[12, 14] = dt  # the time offset drifts with the clocks' rate difference
         qa, qw = s.noise.theta() if self.learn_noise else self.prior_theta()
         # white: qa dt; rate-proportional, held since the last fix (an error of the
         # rate's size kappa |w|, the same through the interval): its variance
@@ -326,8 +345,9 @@ class AttitudeModel:
         A = s.acc[1]
         A1 = A + math.sqrt(float(w @ w)) * dt
         q = (qa * dt + qw * (A1 * A1 - A * A)) * s.fade
-        Q = np.zeros((14, 14))
+        Q = np.zeros((N_STATE, N_STATE))
         Q[13, 13] = self.jitter**2 * (1.0 - fade_j * fade_j)
+        Q[14, 14] = (CLOCK_DRIFT_WALK * self.clock_drift_sigma) ** 2 * dt
         Q[0:3, 0:3] = np.eye(3) * q
         sat = bool(np.any(gsat > 0))
         if sat:
@@ -338,8 +358,9 @@ class AttitudeModel:
         Q[3:6, 3:6] = np.eye(3) * self.gyro_bias_walk**2 * dt
         P = F @ s.P @ F.T + Q
         acc = (s.acc[0] + dt, A1, s.acc[2] + float(np.trace(Q[0:3, 0:3])))
-        return AttitudeState(Rn, s.b, s.Rm, s.k, s.tau, P, s.noise, acc, s.saturated or sat,
-                             s.disputed, s.fade, s.confirmed)  # fmt: skip
+        return AttitudeState(Rn, s.b, s.Rm, s.k, s.tau + s.drift * dt, P, s.noise, acc,
+                             s.saturated or sat, s.disputed, s.fade, s.confirmed,
+                             s.drift)  # fmt: skip
 
     def update(self, s: AttitudeState, fix: Fix) -> tuple[AttitudeState, bool, float]:
         R = self._fix_cov(fix)
@@ -357,8 +378,7 @@ class AttitudeModel:
             P = s.P.copy()
             P[0:3, 0:3] += np.outer(r, r)
             acc = (s.acc[0], s.acc[1], s.acc[2] + float(r @ r))
-            return AttitudeState(s.R, s.b, s.Rm, s.k, s.tau, P, noise, acc, s.saturated,
-                                 True, fade, s.confirmed), False, nis  # fmt: skip
+            return replace(s, P=P, noise=noise, acc=acc, disputed=True, fade=fade), False, nis
         P0 = s.P
         if nis > BURST_NIS:
             # taken, but far off: the gyro erred in a burst the model does not hold (a
@@ -373,16 +393,22 @@ class AttitudeModel:
             S = P0[0:3, 0:3] + R
         K = np.linalg.solve(S, P0[0:3, :]).T
         K[13] = 0.0  # the jitter is considered, never estimated (Schmidt)
+        if s.saturated:
+            # the interval held a reconstructed (clipped) reading, whose error is the
+            # reconstruction's: the fix corrects the attitude, and the gyro's
+            # calibration is, for this fix, considered (Schmidt), not estimated
+            K[3:] = 0.0
         dx = K @ r
-        IKH = np.eye(14)
+        IKH = np.eye(N_STATE)
         IKH[:, 0:3] -= K
         P = IKH @ P0 @ IKH.T + K @ R @ K.T
         Rn = s.R @ expmap(dx[0:3])
         Rm = expmap(dx[6:9]) @ s.Rm
         tau = float(np.clip(s.tau + dx[12], -0.1, 0.1))
         gated = bool(np.sqrt(np.diag(s.P[0:3, 0:3])).max() <= CONFIRM_SIGMA)
+        drift = float(np.clip(s.drift + dx[14], -MAX_CLOCK_DRIFT, MAX_CLOCK_DRIFT))
         return AttitudeState(Rn, s.b + dx[3:6], Rm, s.k + dx[9:12], tau, P, noise,
-                             acc0, fade=fade, confirmed=gated), True, nis  # fmt: skip
+                             acc0, fade=fade, confirmed=gated, drift=drift), True, nis  # fmt: skip
 
     @staticmethod
     def _fade(fade: float, nis: float) -> float:
