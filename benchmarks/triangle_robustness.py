@@ -6,6 +6,7 @@ triangle partly out of view.
 
     python benchmarks/triangle_robustness.py [--frames 150]
     python benchmarks/triangle_robustness.py --tracked --frames 300
+    python benchmarks/triangle_robustness.py --refine pixels   # the pixel fit
 
 ``--tracked``: each scenario's frames as one recording (a sweep: a yaw turn with the
 tilts wobbling within 4 deg) processed in order, each frame starting from the last
@@ -20,7 +21,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from visvec.bench.triangle import Case, evaluate, render_cases
+from visvec.bench.triangle import Case, evaluate, render_cases, with_refine
 from visvec.rig import load_rig
 from visvec.sim.scene import Light, Occluder, Scene
 from visvec.sim.simulate import random_attitudes, true_rig
@@ -70,6 +71,12 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--frames", type=int, default=150)
     ap.add_argument("--tracked", action="store_true", help="frames in order (see above)")
+    ap.add_argument(
+        "--refine",
+        choices=("lines", "pixels"),
+        default="lines",
+        help="the rig's [detect] refine (pixels: the edges fitted to the pixels)",
+    )
     args = ap.parse_args()
     results = run_record()
     for cfg in ("triangle-320.toml", "triangle.toml"):
@@ -90,13 +97,15 @@ def main() -> None:
                 sweep = random_attitudes(args.frames, 5.0, np.random.default_rng(s), "sweep")
                 cases = [Case(e, c.scene, c.seed) for e, c in zip(sweep, cases, strict=True)]
             images = render_cases(world, cases)
-            est_rig = world if kind == "partly_out_of_view" else rig
+            est_rig = with_refine(world if kind == "partly_out_of_view" else rig, args.refine)
             for method in ("full",) if args.tracked else ("full", "paper"):
                 out = evaluate(est_rig, images, cases, method, track=args.tracked)
                 res[f"{kind}/{method}"] = out.summary()
                 print(cfg, kind, method, res[f"{kind}/{method}"])
         results[cfg] = res
     name = "triangle_robustness_tracked" if args.tracked else "triangle_robustness"
+    if args.refine != "lines":
+        name += f"_{args.refine}"
     print(save_json(name, results))
 
 

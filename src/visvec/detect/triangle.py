@@ -16,6 +16,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from scipy.stats import chi2
 
 from visvec.data import Detection, Status
 from visvec.detect.candidates import Candidate, iter_candidates, partial_triangle
@@ -27,6 +28,7 @@ from visvec.detect.edges import (
     intersect,
     side_lengths,
 )
+from visvec.detect.photometric import refine
 from visvec.errors import ConfigError
 from visvec.geometry import project_target
 from visvec.rig import Rig
@@ -78,6 +80,8 @@ SATURATED_LEVEL = 250.0
 # per-coordinate noise of cornerSubPix vertices, measured on simulated frames (0.26 px
 # at the base vertices, 0.45 px at the blunted acute one; tests/benchmarks)
 CORNER_SIGMA_PX = 0.35
+# the pixel fit's vertices are taken when they agree with the edge lines' (see _pixel_fit)
+PIXEL_FIT_GATE = float(chi2.ppf(1.0 - 1e-4, 6))
 
 
 # the (6,) covariance index of each identification's vertex order (x0, y0, x1, ...)
@@ -166,6 +170,26 @@ def _saturated_share(image: np.ndarray, pts_px: np.ndarray) -> float:
     # saturated pixels inside: (roi >= 254) as a 0/1 image, counted under the mask
     n_sat = cv2.countNonZero(cv2.threshold(roi, 253, 1, cv2.THRESH_BINARY)[1] & m)
     return n_sat / n_in if n_in else 0.0
+
+
+def _pixel_fit(image, fit, xy, cov, camera):
+    """The vertices of the edge lines refined on the pixels (visvec.detect.photometric)
+    when the refinement agrees with them: the edge lines are robust (their profiles'
+    outliers left out, something in a window found), the pixel fit is not, so a pixel
+    fit that moved the vertices by more than the lines' own covariance allows (chi-square,
+    6 dof, p = 1e-4: a head in an edge's band, a light) is not taken, and the lines'
+    vertices and covariance stand."""
+    pf = refine(image, fit.normals, fit.offsets, fit.width, camera)
+    if not pf.ok or not np.all(np.isfinite(pf.cov)):
+        return xy, cov
+    dv = (pf.xy - xy).ravel()
+    try:
+        chi2_ = float(dv @ np.linalg.solve(cov + pf.cov, dv))
+    except np.linalg.LinAlgError:
+        return xy, cov
+    if not chi2_ < PIXEL_FIT_GATE:
+        return xy, cov
+    return pf.xy, pf.cov
 
 
 class TriangleDetector:
@@ -506,6 +530,8 @@ class TriangleDetector:
         if not fit.ok:
             return "edge_fit_failed"
         xy, cov = intersect(fit)
+        if s.refine == "pixels":
+            xy, cov = _pixel_fit(image, fit, xy, cov, cam)
         return _Measured(
             xy, cam.distort(xy / cam.fx), cov, fit.contrast.min(), fit.outlier_fraction.max(),
             float(fit.vertex_gaps().max()), float(np.mean(fit.mid_level)), fit.shutter_gain,
