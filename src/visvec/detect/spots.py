@@ -89,24 +89,47 @@ def _max_pool2(binary: np.ndarray) -> np.ndarray:
     return cv2.resize(binary, (w // 2, h // 2), interpolation=cv2.INTER_AREA)
 
 
-def _spots_in(roi: np.ndarray, T: float, top: int, min_area: int, max_area: int,
-              x0: int, y0: int, windowed: bool) -> list[tuple]:  # fmt: skip
-    """Spots of one region: weighted moments of every component at once (bincount over
-    the labelled pixels)."""
+def _moments(img_vals: np.ndarray, xs: np.ndarray, ys: np.ndarray, lab: np.ndarray, n: int,
+             keep: np.ndarray, T: float, top: int) -> list[tuple]:  # fmt: skip
+    """Each kept component's spot: weighted centroid (u, v; image px), weight, area,
+    elongation and whether it saturates, from its pixels (image coordinates ``xs``,
+    ``ys``, values ``img_vals``, component ``lab``): weighted moments of every component
+    at once (bincount)."""
+    v = img_vals.astype(np.float64)
+    wgt = v - T
+    xs = xs.astype(np.float64)
+    ys = ys.astype(np.float64)
+    sw = np.bincount(lab, wgt, n)
+    inv = 1.0 / np.where(sw > 0, sw, 1.0)
+    u = np.bincount(lab, wgt * xs, n) * inv
+    vv = np.bincount(lab, wgt * ys, n) * inv
+    dx, dy = xs - u[lab], ys - vv[lab]
+    cxx = np.bincount(lab, wgt * dx * dx, n) * inv
+    cyy = np.bincount(lab, wgt * dy * dy, n) * inv
+    cxy = np.bincount(lab, wgt * dx * dy, n) * inv
+    sat = np.bincount(lab, v >= top, n) > 0
+    area = np.bincount(lab, minlength=n)
+    tr, det = cxx + cyy, cxx * cyy - cxy * cxy
+    disc = np.sqrt(np.clip(tr * tr / 4 - det, 0.0, None))
+    l1, l2 = tr / 2 + disc, np.maximum(tr / 2 - disc, 1e-12)
+    el = np.sqrt(l1 / l2)
+    k = np.nonzero(keep)[0]
+    return list(zip(u[k], vv[k], sw[k], area[k].astype(float), el[k], sat[k], strict=True))
+
+
+def _spots_in(roi: np.ndarray, T: float, top: int, min_area: int, max_area: int) -> list[tuple]:
+    """Spots of a whole frame (or any one region at its origin)."""
     _, binary = cv2.threshold(roi, T, 255, cv2.THRESH_BINARY)
     binary = binary.astype(np.uint8, copy=False)
     h, w = roi.shape
-    if windowed or h * w < POOLED_MIN_PX:
+    if h * w < POOLED_MIN_PX:
         nz = cv2.findNonZero(binary)  # far faster than np.nonzero(labels)
         if nz is None:
             return []
         nz = nz.reshape(-1, 2)
         xs, ys = nz[:, 0], nz[:, 1]
-        n, labels, stats, _ = cv2.connectedComponentsWithStatsWithAlgorithm(
-            binary, 8, cv2.CV_32S, cv2.CCL_GRANA
-        )
+        n, labels = cv2.connectedComponentsWithAlgorithm(binary, 8, cv2.CV_32S, cv2.CCL_GRANA)
         lab = labels[ys, xs]
-        bx, by, bw, bh, area = stats.T
     else:
         # a whole frame: the components of its 2x2 max-pooled mask (a quarter of the
         # pixels to scan and label; a spot stays one, spots 3 px or more apart stay
@@ -125,31 +148,55 @@ def _spots_in(roi: np.ndarray, T: float, top: int, min_area: int, max_area: int,
         on = binary[ys, xs] != 0
         xs, ys = xs[on], ys[on]
         lab = labels[ys >> 1, xs >> 1]
-        area = np.bincount(lab, minlength=n)
+    area = np.bincount(lab, minlength=n)
     keep = (area >= min_area) & (area <= max_area)
     keep[0] = False
-    if windowed:  # spots touching a window's edge may be cut
-        keep &= (bx > 0) & (by > 0) & (bx + bw < w) & (by + bh < h)
     if not keep.any():
         return []
-    v = roi[ys, xs].astype(np.float64)
-    wgt = v - T
-    xs = xs.astype(np.float64) + x0
-    ys = ys.astype(np.float64) + y0
-    sw = np.bincount(lab, wgt, n)
-    u = np.bincount(lab, wgt * xs, n) / np.where(sw > 0, sw, 1.0)
-    vv = np.bincount(lab, wgt * ys, n) / np.where(sw > 0, sw, 1.0)
-    dx, dy = xs - u[lab], ys - vv[lab]
-    cxx = np.bincount(lab, wgt * dx * dx, n) / np.where(sw > 0, sw, 1.0)
-    cyy = np.bincount(lab, wgt * dy * dy, n) / np.where(sw > 0, sw, 1.0)
-    cxy = np.bincount(lab, wgt * dx * dy, n) / np.where(sw > 0, sw, 1.0)
-    sat = np.bincount(lab, v >= top, n) > 0
-    tr, det = cxx + cyy, cxx * cyy - cxy * cxy
-    disc = np.sqrt(np.clip(tr * tr / 4 - det, 0.0, None))
-    l1, l2 = tr / 2 + disc, np.maximum(tr / 2 - disc, 1e-12)
-    el = np.sqrt(l1 / l2)
-    k = np.nonzero(keep)[0]
-    return list(zip(u[k], vv[k], sw[k], area[k].astype(float), el[k], sat[k], strict=True))
+    return _moments(roi[ys, xs], xs, ys, lab, n, keep, T, top)
+
+
+def _spots_in_windows(image: np.ndarray, regions: list[tuple[int, int, int, int]], T: float,
+                      top: int, min_area: int, max_area: int) -> list[tuple]:  # fmt: skip
+    """Spots of several windows (x0, y0, x1, y1; clipped, non-empty) at once: the
+    windows side by side on one canvas, a column of zeros between two, thresholded and
+    labelled in one pass (one call per frame instead of one per window: a tracked
+    markers frame has a window per LED). A spot touching its window's edge is left out
+    (it may be cut)."""
+    widths = [x1 - x0 for x0, _, x1, _ in regions]
+    heights = [y1 - y0 for _, y0, _, y1 in regions]
+    ox = np.cumsum([0] + [wd + 1 for wd in widths])  # each window's column on the canvas
+    canvas = np.zeros((max(heights), int(ox[-1])), image.dtype)
+    for (x0, y0, x1, y1), o in zip(regions, ox[:-1].tolist(), strict=False):
+        canvas[: y1 - y0, o : o + x1 - x0] = image[y0:y1, x0:x1]
+    _, binary = cv2.threshold(canvas, T, 255, cv2.THRESH_BINARY)
+    binary = binary.astype(np.uint8, copy=False)
+    nz = cv2.findNonZero(binary)
+    if nz is None:
+        return []
+    nz = nz.reshape(-1, 2)
+    cx, cy = nz[:, 0], nz[:, 1]
+    n, labels, stats, _ = cv2.connectedComponentsWithStatsWithAlgorithm(
+        binary, 8, cv2.CV_32S, cv2.CCL_GRANA
+    )
+    lab = labels[cy, cx]
+    bx, by, bw, bh, area = stats.T
+    win = np.searchsorted(ox, bx, side="right") - 1  # each component's window
+    win = np.clip(win, 0, len(regions) - 1)
+    wx = ox[win]
+    wd = np.array(widths)[win]
+    ht = np.array(heights)[win]
+    keep = (area >= min_area) & (area <= max_area)
+    keep &= (bx > wx) & (by > 0) & (bx + bw < wx + wd) & (by + bh < ht)
+    keep[0] = False
+    if not keep.any():
+        return []
+    k = win[lab]
+    x0s = np.array([r[0] for r in regions])
+    y0s = np.array([r[1] for r in regions])
+    xs = cx - ox[k] + x0s[k]
+    ys = cy + y0s[k]
+    return _moments(canvas[cy, cx], xs, ys, lab, n, keep, T, top)
 
 
 def find_spots(
@@ -171,15 +218,16 @@ def find_spots(
     T = float(threshold) if threshold > 0 else auto_threshold(image)
     top = 255 if image.dtype == np.uint8 else 65535
     h, w = image.shape
-    regions = windows or [(0, 0, w, h)]
-    out = []
-    for x0, y0, x1, y1 in regions:
-        x0, y0 = max(int(x0), 0), max(int(y0), 0)
-        x1, y1 = min(int(x1), w), min(int(y1), h)
-        if x1 - x0 < 3 or y1 - y0 < 3:
-            continue
-        roi = image[y0:y1, x0:x1]
-        out += _spots_in(roi, T, top, min_area, max_area, x0, y0, windows is not None)
+    if windows is None:
+        out = _spots_in(image, T, top, min_area, max_area)
+    else:
+        regions = []
+        for x0, y0, x1, y1 in windows:
+            x0, y0 = max(int(x0), 0), max(int(y0), 0)
+            x1, y1 = min(int(x1), w), min(int(y1), h)
+            if x1 - x0 >= 3 and y1 - y0 >= 3:
+                regions.append((x0, y0, x1, y1))
+        out = _spots_in_windows(image, regions, T, top, min_area, max_area) if regions else []
     if not out:
         z = np.zeros(0)
         return Spots(np.zeros((0, 2)), z, z, z, np.zeros(0, bool), T)
