@@ -8,6 +8,7 @@ yaw with tilts wobbling within +-4 deg.
 
     python benchmarks/triangle_speed.py
     python benchmarks/triangle_speed.py --size 1920x1080   # an HD webcam, same field
+    python benchmarks/triangle_speed.py --refine pixels    # with the pixel fit
 
 ``--size WxH`` puts the rig's lens on a sensor of that size with the same horizontal
 field of view (fx scaled with the width, the principal point centred); ``--rig`` times
@@ -26,7 +27,7 @@ import _onecore  # noqa: F401, I001 - one thread each for BLAS and OpenMP, befor
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-from visvec.bench.triangle import Case, render_cases  # noqa: E402
+from visvec.bench.triangle import Case, render_cases, with_refine  # noqa: E402
 from visvec.data import Frame  # noqa: E402
 from visvec.pipeline import TrianglePipeline  # noqa: E402
 from visvec.rig import load_rig  # noqa: E402
@@ -43,10 +44,16 @@ def main() -> None:
     ap.add_argument("--rig", default=str(CONFIGS / "triangle.toml"))
     ap.add_argument("--size", help="WxH: the same lens on a sensor of this size")
     ap.add_argument("--profile", action="store_true", help="the time of each step")
+    ap.add_argument(
+        "--refine",
+        choices=("lines", "pixels"),
+        default="lines",
+        help="the rig's [detect] refine (pixels: the edges fitted to the pixels)",
+    )
     args = ap.parse_args()
     _onecore.one_core()
-    rig = load_rig(args.rig)
-    name = "triangle_speed"
+    rig = with_refine(load_rig(args.rig), args.refine)
+    name = "triangle_speed" if args.refine == "lines" else f"triangle_speed_{args.refine}"
     if args.size:
         w, h = (int(v) for v in args.size.lower().split("x"))
         k = w / rig.camera.width

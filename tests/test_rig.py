@@ -118,6 +118,15 @@ def test_bad_rig_is_refused_with_file_key_and_expectation(tmp_path, old, new, wo
     assert isinstance(exc.value, VisvecError) and isinstance(exc.value, ValueError)
 
 
+def test_the_pixel_fit_is_refused_with_a_rolling_shutter(tmp_path):
+    pixels = GOOD.replace('refine = "lines"', 'refine = "pixels"')
+    assert load_rig(write(tmp_path, pixels)).detect.refine == "pixels"
+    with pytest.raises(ConfigError) as e:
+        load_rig(write(tmp_path, pixels.replace("readout_ms = 0.0", "readout_ms = 20.0")))
+    for w in ("[detect] refine = 'pixels'", "readout_ms = 20.0", "rolling shutter"):
+        assert w in str(e.value)
+
+
 def test_missing_file_and_bad_toml(tmp_path):
     with pytest.raises(ConfigError, match="not found"):
         load_rig(tmp_path / "nope.toml")
