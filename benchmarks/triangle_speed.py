@@ -111,11 +111,50 @@ def main() -> None:
         res[k]["ok_fraction"] = round(v / (args.frames * args.repeats), 4)
     if args.profile:
         res["profile_ms_per_frame"] = {m: profile(rig, images, m == "cold") for m in n_ok}
+    if not args.size and args.refine == "lines":
+        res["batch"] = batch_end_to_end(args.rig, pngs, args.repeats)
     dec = res["png_decode"]["median_ms"]
     for k in ("tracking", "cold"):
         res[k]["ratio_to_png_decode"] = round(res[k]["median_ms"] / dec, 2)
     print(res)
     print(save_json(name, res))
+
+
+def batch_end_to_end(rig_path: str, pngs, repeats: int) -> dict:
+    """`visvec batch FOLDER --rig RIG --out CSV` in this process (the interpreter's and
+    the imports' start left out) on the recording written as PNG files, against reading
+    and decoding the same files (cv2.imread, grey), each timed over the whole folder:
+    the best of ``repeats`` runs."""
+    import tempfile
+    from pathlib import Path
+
+    from click.testing import CliRunner
+
+    from visvec.cli.main import cli
+
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = Path(tmp) / "frames"
+        folder.mkdir()
+        for i, p in enumerate(pngs):
+            (folder / f"frame_{i:05d}.png").write_bytes(p.tobytes())
+        files = sorted(folder.glob("*.png"))
+        runner = CliRunner()
+        best_batch = best_decode = float("inf")
+        for _ in range(repeats):
+            t = time.perf_counter()
+            for f in files:
+                cv2.imread(str(f), cv2.IMREAD_GRAYSCALE)
+            best_decode = min(best_decode, time.perf_counter() - t)
+            t = time.perf_counter()
+            r = runner.invoke(cli, ["batch", str(folder), "--rig", rig_path, "--out",
+                                    str(Path(tmp) / "rows.csv")])  # fmt: skip
+            best_batch = min(best_batch, time.perf_counter() - t)
+            if r.exit_code != 0:
+                raise RuntimeError(r.output)
+    n = len(pngs)
+    return {"frames": n, "batch_ms_per_frame": round(best_batch / n * 1000, 3),
+            "read_decode_ms_per_frame": round(best_decode / n * 1000, 3),
+            "ratio": round(best_batch / best_decode, 2)}  # fmt: skip
 
 
 # the steps timed by --profile: (module, class or None, function, label)

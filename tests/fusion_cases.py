@@ -84,6 +84,18 @@ def _sim3d(n=6000, dt=0.01, seed=4, amp=1.0, delay=0.0, rest_s=0.0, speed=1.0, d
     return t, R, gyro, rng
 
 
+def _run_engine(eng, t, gyro, fixes):
+    """Every sample through a fusion engine, each fix given to it once available."""
+    fx = sorted(fixes, key=lambda f: f.available_s)
+    out, j = [], 0
+    for k in range(len(t)):
+        while j < len(fx) and fx[j].available_s <= t[k]:
+            eng.add_fix(fx[j])
+            j += 1
+        out.append(eng.step(t[k], gyro[k], None))
+    return out
+
+
 def _fixes(t, R, rng, every=50, sigma_deg=0.1, latency=0.6):
     s = np.radians(sigma_deg)
     return [Fix(t[i], t[i] + latency, R[i] @ expmap(s * rng.standard_normal(3)),

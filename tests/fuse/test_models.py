@@ -8,6 +8,7 @@ import numpy as np
 from fusion_cases import (
     _err,
     _fixes,
+    _run_engine,
     _sim3d,
     planar_case,
     run,
@@ -79,13 +80,7 @@ def test_3d_time_offset_and_rest_bias_are_learned():
     from visvec.fuse.replay import Fusion
 
     eng = Fusion(AttitudeModel(sample_s=0.01), limits=Limits(2000.0, None))
-    fx = sorted(_fixes(t, R, rng), key=lambda f: f.available_s)
-    out, j = [], 0
-    for k in range(len(t)):
-        while j < len(fx) and fx[j].available_s <= t[k]:
-            eng.add_fix(fx[j])
-            j += 1
-        out.append(eng.step(t[k], gyro[k], None))
+    out = _run_engine(eng, t, gyro, _fixes(t, R, rng))
     assert eng.rest is not None and eng.rest[2] >= 50  # the still start, to the first fix
     np.testing.assert_allclose(np.degrees(eng.rest[0]), [0.4, -0.3, 0.2], atol=0.02)
     assert abs(out[-1].state.tau - 0.02) < 0.003
@@ -101,20 +96,14 @@ def test_3d_a_drifting_clock_is_followed():
 
     t, R, gyro, rng = _sim3d(drift=3e-4, amp=2.0)
     eng = Fusion(AttitudeModel(sample_s=0.01), limits=Limits(2000.0, None))
-    fx = sorted(_fixes(t, R, rng), key=lambda f: f.available_s)
-    out, j = [], 0
-    for k in range(len(t)):
-        while j < len(fx) and fx[j].available_s <= t[k]:
-            eng.add_fix(fx[j])
-            j += 1
-        out.append(eng.step(t[k], gyro[k], None))
+    fx = _fixes(t, R, rng)
+    out = _run_engine(eng, t, gyro, fx)
     end = out[-1].state
     assert abs(end.drift - 3e-4) < 0.6e-4, end.drift
     assert abs(end.tau - 3e-4 * t[-1]) < 0.003, end.tau
     # without the clock's rate the offset lags behind (the minute's weighted mean)
     eng0 = Fusion(AttitudeModel(sample_s=0.01, clock_drift_sigma=0.0), limits=Limits(2000.0, None))
-    out0 = list(fuse(ImuData(t, gyro, None, np.arange(len(t)), (), 0.01), fx,
-                     eng0.model, engine=eng0))  # fmt: skip
+    out0 = _run_engine(eng0, t, gyro, fx)
     assert out0[-1].state.tau < end.tau - 0.003
     late = _err(out, R, len(t) // 2)
     assert np.sqrt(np.mean(late**2)) < np.sqrt(np.mean(_err(out0, R, len(t) // 2) ** 2))

@@ -33,6 +33,7 @@ import numpy as np
 from scipy.special import ndtr
 
 from visvec.camera import CameraModel
+from visvec.detect.edges import _vertices
 
 GN_STEPS = 2
 # pixels within this many blur widths + REACH_PX of an edge are fitted to it
@@ -80,20 +81,10 @@ class _IdealGrid:
         return grid
 
 
-def _intersections(n: np.ndarray, c: np.ndarray) -> tuple[np.ndarray, list]:
+def _intersections(n: np.ndarray, c: np.ndarray) -> tuple[np.ndarray, list | None]:
     """Vertices (3, 2) of the lines n_i . (x - c_i) = 0 (vertex i on lines i+1, i+2),
-    and per vertex the inverse of its lines' 2x2 normal matrix (Cramer's rule)."""
-    nn, o = n.tolist(), np.einsum("ij,ij->i", n, c).tolist()
-    V = np.empty((3, 2))
-    invs = []
-    for i in range(3):
-        j, k = (i + 1) % 3, (i + 2) % 3
-        (a, b), (cc, d) = nn[j], nn[k]
-        det = a * d - b * cc
-        inv = ((d / det, -b / det), (-cc / det, a / det))
-        V[i] = (inv[0][0] * o[j] + inv[0][1] * o[k], inv[1][0] * o[j] + inv[1][1] * o[k])
-        invs.append(inv)
-    return V, invs
+    and per vertex the inverse of its lines' 2x2 normal matrix (edges._vertices)."""
+    return _vertices(n, np.einsum("ij,ij->i", n, c))
 
 
 def _vertex_gain(n: np.ndarray, c: np.ndarray, V: np.ndarray, invs: list) -> np.ndarray:
@@ -244,5 +235,7 @@ def refine(image: np.ndarray, normals: np.ndarray, offsets: np.ndarray, width: n
     except np.linalg.LinAlgError:
         return PhotometricFit(V, np.full((6, 6), np.nan), w, math.nan, m, ok=False)
     V, invs = _intersections(n, c)
+    if invs is None:
+        return PhotometricFit(V, np.full((6, 6), np.nan), w, math.nan, m, ok=False)
     G = _vertex_gain(n, c, V, invs)
     return PhotometricFit(V, G @ cov_p @ G.T, w, math.sqrt(s2), m)
