@@ -59,8 +59,12 @@ def have_dask() -> bool:
 class TaskPool:
     """Where a study's tasks run (module docstring); a context manager."""
 
-    def __init__(self, scheduler: str | None = None, workers: int | None = None):
+    def __init__(self, scheduler: str | None = None, workers: int | None = None,
+                 local_dask: bool = True):  # fmt: skip
+        """``local_dask`` False: without a scheduler, local processes even where Dask is
+        installed (a short job, which a local cluster's 2 s start would outlast)."""
         self.scheduler = scheduler
+        self.local_dask = local_dask
         self.workers = workers or os.cpu_count() or 1
         self._client = None
         self._cluster = None
@@ -86,7 +90,7 @@ class TaskPool:
     def __enter__(self) -> TaskPool:
         if self.scheduler is not None:
             self._connect()
-        elif have_dask() and self.workers > 1:
+        elif self.local_dask and have_dask() and self.workers > 1:
             import dask
             from distributed import Client, LocalCluster
 

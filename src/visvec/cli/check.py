@@ -169,7 +169,10 @@ def _accuracy(rig, n_frames: int, seed: int, scheduler: str | None, workers: int
         f"  simulated: {n_frames} frames at random yaws and tilts within "
         f"{rig.max_tilt_deg:g} deg, each cold (the simulator's default scene: {scene})"
     )
-    with TaskPool(scheduler, workers) as pool, Work("check", 2 * n_frames, unit="step") as bar:
+    # forty frames: local processes unless a scheduler is named (a local Dask cluster
+    # takes longer to start than the frames take)
+    pool = TaskPool(scheduler, workers, local_dask=False)
+    with pool, Work("check", 2 * n_frames, unit="step") as bar:
         out = simulated_accuracy(rig, n_frames, seed, pool, progress=bar.update)
     line = f"    ok {out.n_ok} of {out.n}"
     if out.n_ok:
