@@ -184,11 +184,8 @@ def refine(image: np.ndarray, normals: np.ndarray, offsets: np.ndarray, width: n
     idx = [[2 * i, 2 * i + 1, 6 + i, 9, 10, 11, 12, 13, 14] for i in range(3)]
     level = None
     H = np.zeros((N_PARAMS, N_PARAMS))
-    for it in range(GN_STEPS + 1):
-        # the last pass only measures the residuals; the covariance takes the normal
-        # matrix of the pass before it
-        if it < GN_STEPS:
-            H = np.zeros((N_PARAMS, N_PARAMS))
+    for _ in range(GN_STEPS):
+        H = np.zeros((N_PARAMS, N_PARAMS))
         b = np.zeros(N_PARAMS)
         rss = 0.0
         steps = []
@@ -208,16 +205,12 @@ def refine(image: np.ndarray, normals: np.ndarray, offsets: np.ndarray, width: n
             C = Je[:, 3:6] @ level[3:]
             r = y - Je[:, 3:9] @ level
             rss += float(r @ r)
-            if it == GN_STEPS:
-                continue
             g = C * np.exp(-0.5 * u * u) / (_SQRT_2PI * w[i])  # dI / d(distance)
             Je[:, 0] = g * perp
             Je[:, 1] = -g
             Je[:, 2] = -g * u
             H[np.ix_(idx[i], idx[i])] += Je.T @ Je
             b[idx[i]] += Je.T @ r
-        if it == GN_STEPS:
-            break
         try:
             step = np.linalg.solve(H, b)
         except np.linalg.LinAlgError:
@@ -229,7 +222,10 @@ def refine(image: np.ndarray, normals: np.ndarray, offsets: np.ndarray, width: n
             c[i] = c[i] + oo * n[i]
         w = np.maximum(w + step[6:9], 0.2)
         level = level + step[9:15]
-    s2 = rss / max(m - N_PARAMS, 1)
+        # the residuals after the step, as Gauss-Newton predicts them (the last step is
+        # a small one: no pass of its own is needed to measure them)
+        rss -= float(step @ b)
+    s2 = max(rss, 0.0) / max(m - N_PARAMS, 1)
     try:
         cov_p = s2 * np.linalg.inv(H)[:6, :6]
     except np.linalg.LinAlgError:
