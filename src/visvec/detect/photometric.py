@@ -143,16 +143,17 @@ def _band(image, n, c, reach, clear, camera):
     if pts is None:
         return None
     pts = pts.reshape(-1, 2)
-    cc = pts[:, 0] + lo[0]
-    rr = pts[:, 1] + lo[1]
-    x = _IdealGrid.of(camera)[rr, cc]
+    # flat indices into the frame (one take is cheaper than a gather by row and column)
+    flat = (pts[:, 1] + lo[1]) * camera.width + (pts[:, 0] + lo[0])
+    x = np.take(_IdealGrid.of(camera).reshape(-1, 2), flat, axis=0)
+    grey = np.take(image.reshape(-1), flat)
     d = x @ n.T - np.array(o)  # (P, 3)
     out = []
     for i in range(3):
         j, k = (i + 1) % 3, (i + 2) % 3
         # a pixel is the nearest edge's: within its reach and clear of the other two
         keep = (np.abs(d[:, i]) < reach[i]) & (d[:, j] > clear[j]) & (d[:, k] > clear[k])
-        out.append((x[keep], image[rr[keep], cc[keep]].astype(float)))
+        out.append((x[keep], grey[keep].astype(float)))
     return out
 
 
