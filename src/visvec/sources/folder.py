@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import math
+import os
 import re
 from collections import deque
 from collections.abc import Iterator
@@ -22,6 +23,14 @@ IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".pp
 # `visvec simulate` has them too
 SIDECARS = ("times.csv", "truth.csv")
 PREFETCH = 2  # files read ahead of the frame being processed
+
+
+def _cpus() -> int:
+    """The CPUs this process may run on."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not Linux
+        return os.cpu_count() or 1
 
 
 def natural_key(name: str) -> list:
@@ -149,7 +158,12 @@ class FolderSource:
         thread while the caller works on the current frame (OpenCV's decoding lets go
         of the GIL): on two cores a recording is processed in about the time of the
         slower of the two, not their sum. A caller that stops early waits only for the
-        files already being read."""
+        files already being read. On one CPU the thread only adds its switching: the
+        files are read in turn there."""
+        if _cpus() < 2:
+            for i, f in enumerate(self.files):
+                yield self._frame(i, f)
+            return
         with ThreadPoolExecutor(1, thread_name_prefix="visvec-read") as ex:
             files = iter(enumerate(self.files))
             pending: deque[Future] = deque()
@@ -159,7 +173,7 @@ class FolderSource:
                 if nxt is not None:
                     pending.append(ex.submit(self._frame, *nxt))
 
-            for _ in range(PREFETCH):
+            for _ in range(max(PREFETCH, 1)):
                 ahead()
             while pending:
                 frame = pending.popleft().result()
