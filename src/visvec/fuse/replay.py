@@ -455,6 +455,7 @@ class Fusion:
                 del buf[:cut]
             self._known[:] = [x for x in self._known if x[0] >= ts[0]]
 
+
 def fuse(
     imu: ImuData,
     fixes: list[Fix] | tuple[Fix, ...],
