@@ -152,32 +152,41 @@ def run_fuse(tmp: Path) -> tuple[list[dict], str, float]:
         return list(csv.DictReader(fh)), res.stderr, time.perf_counter() - t0
 
 
-def baselines(t, gyro, R_true, idx, fixes_R, first):
-    """Errors from `first` on of re-anchor, gyro alone and fixes alone."""
-    n = len(t)
-    bias = gyro[t < t[0] + REST_S].mean(axis=0)
+def reanchor(t, D, anchors, idx, R_true, first) -> np.ndarray:
+    """Errors (deg), from sample `first` on, of the re-anchor rule: the latest fix
+    available (attitude anchors[j], exposed at sample idx[j], available DELAY_S later)
+    carried forward by each sample's rotation D (see _steps) from its exposure to now."""
     avail = t[idx] + DELAY_S
-    e_re, e_gy, e_fx = [], [], []
-    R_g = fixes_R[0].copy()
-    j_cur, R_re, i_re = -1, None, None
-    for i in range(n):
-        if i > 0:
-            w = 0.5 * (gyro[i] + gyro[i - 1]) - bias
-            R_g = R_g @ expmap(w * (t[i] - t[i - 1]))
+    e, j_cur, Rc = [], -1, None
+    for i in range(len(t)):
         j = int(np.searchsorted(avail, t[i], side="right")) - 1
         if j >= 0 and j != j_cur:
             # a new fix: start again from its exposure and integrate up to now
-            j_cur, R_re, i_re = j, fixes_R[j].copy(), idx[j]
-        if R_re is not None:
-            while i_re < i:
-                i_re += 1
-                w = 0.5 * (gyro[i_re] + gyro[i_re - 1]) - bias
-                R_re = R_re @ expmap(w * (t[i_re] - t[i_re - 1]))
+            j_cur, Rc = j, anchors[j].copy()
+            for m in range(idx[j] + 1, i + 1):
+                Rc = Rc @ D[m]
+        elif Rc is not None:
+            Rc = Rc @ D[i]
         if i >= first:
-            e_re.append(angle_deg(R_true[i], R_re))
+            e.append(angle_deg(R_true[i], Rc))
+    return np.array(e)
+
+
+def baselines(t, gyro, R_true, idx, fixes_R, first):
+    """Errors from `first` on of re-anchor, gyro alone and fixes alone."""
+    bias = gyro[t < t[0] + REST_S].mean(axis=0)
+    D = _steps(gyro - bias, t)
+    avail = t[idx] + DELAY_S
+    e_gy, e_fx = [], []
+    R_g = fixes_R[0].copy()
+    for i in range(len(t)):
+        if i > 0:
+            R_g = R_g @ D[i]
+        if i >= first:
+            j = int(np.searchsorted(avail, t[i], side="right")) - 1
             e_gy.append(angle_deg(R_true[i], R_g))
             e_fx.append(angle_deg(R_true[i], fixes_R[j]))
-    return np.array(e_re), np.array(e_gy), np.array(e_fx)
+    return reanchor(t, D, fixes_R, idx, R_true, first), np.array(e_gy), np.array(e_fx)
 
 
 def _steps(w: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -189,7 +198,7 @@ def _steps(w: np.ndarray, t: np.ndarray) -> np.ndarray:
     return Rotation.from_rotvec(rv).as_matrix()
 
 
-def hindsight_floor(t, R_true, gyro, valid, idx) -> dict:
+def hindsight_floor(t, R_true, gyro, valid, idx, first) -> dict:
     """What the data allow, beyond any causal filter: the re-anchor rule with perfect
     fixes (2 Hz, 0.6 s late) and the gyro calibrated in hindsight: bias, misalignment,
     scale factors and time offset fitted by least squares over the whole trial to the
@@ -228,24 +237,10 @@ def hindsight_floor(t, R_true, gyro, valid, idx) -> dict:
     w_ref = np.zeros_like(w)
     for i in range(1, n - 1):
         w_ref[i] = logmap(R_true[i - 1].T @ R_true[i + 1]) / (t[i + 1] - t[i - 1])
-    first = int(idx[0] + round(DELAY_S / np.median(np.diff(t))))
-    avail = t[idx] + DELAY_S
     out = {"window_residual_deg": float(np.degrees(np.sqrt(np.mean(residual(p) ** 2) * 3))),
            "time_offset_ms": 1000 * float(p[3])}  # fmt: skip
     for key, ww in (("as_read", w), ("reference_in_clipped", np.where(clip[:, None], w_ref, w))):
-        D = _steps(ww, t)
-        e, j_cur, Rc = [], -1, None
-        for i in range(n):
-            j = int(np.searchsorted(avail, t[i], side="right")) - 1
-            if j >= 0 and j != j_cur:
-                j_cur, Rc = j, R_true[idx[j]].copy()
-                for m in range(idx[j] + 1, i + 1):
-                    Rc = Rc @ D[m]
-            elif Rc is not None:
-                Rc = Rc @ D[i]
-            if i >= first:
-                e.append(angle_deg(R_true[i], Rc))
-        e = np.array(e)
+        e = reanchor(t, _steps(ww, t), R_true[idx], idx, R_true, first)
         out[key + "_rms_deg"] = float(np.sqrt(np.mean(e[valid[first:]] ** 2)))
     return out
 
@@ -260,7 +255,8 @@ def trial(name: str, rng) -> dict:
         rows, stderr, wall = run_fuse(tmp)
     first = int(idx[0] + round(DELAY_S / np.median(np.diff(t))))
     e_re, e_gy, e_fx = baselines(t, gyro, R_true, idx, fixes_R, first)
-    valid = reference_valid(t, R_true, gyro)[first:]
+    valid_all = reference_valid(t, R_true, gyro)
+    valid = valid_all[first:]
     ts = t[first:]
     e, z, ok, warn = [], [], [], []
     for r in rows[first:]:
@@ -305,8 +301,7 @@ def trial(name: str, rng) -> dict:
         "reanchor": stats(e_re, ts, valid),
         "gyro_alone": stats(e_gy, ts, valid),
         "fixes_alone": stats(e_fx, ts, valid),
-        "hindsight_floor": hindsight_floor(t, R_true, gyro, reference_valid(t, R_true, gyro),
-                                           idx),  # fmt: skip
+        "hindsight_floor": hindsight_floor(t, R_true, gyro, valid_all, idx, first),
         "_plot": (ts, e, e_re),
     }
 
