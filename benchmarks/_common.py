@@ -33,6 +33,16 @@ def command() -> str:
     )
 
 
+def add_refine_option(ap) -> None:
+    """--refine: the triangle rig's [detect] refine for the run."""
+    ap.add_argument(
+        "--refine",
+        choices=("lines", "pixels"),
+        default="lines",
+        help="the rig's [detect] refine (pixels: the edges fitted to the pixels)",
+    )
+
+
 def run_record() -> dict:
     """What every result file starts with: the command, the machine and the date."""
     from visvec.bench.triangle import machine

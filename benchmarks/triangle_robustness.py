@@ -26,7 +26,7 @@ from visvec.rig import load_rig
 from visvec.sim.scene import Light, Occluder, Scene
 from visvec.sim.simulate import random_attitudes, true_rig
 
-from _common import CONFIGS, run_record, save_json
+from _common import CONFIGS, add_refine_option, run_record, save_json
 
 
 def scenario_cases(kind: str, n: int, rig, seed: int) -> tuple[list[Case], object]:
@@ -71,12 +71,7 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--frames", type=int, default=150)
     ap.add_argument("--tracked", action="store_true", help="frames in order (see above)")
-    ap.add_argument(
-        "--refine",
-        choices=("lines", "pixels"),
-        default="lines",
-        help="the rig's [detect] refine (pixels: the edges fitted to the pixels)",
-    )
+    add_refine_option(ap)
     args = ap.parse_args()
     results = run_record()
     for cfg in ("triangle-320.toml", "triangle.toml"):

@@ -34,7 +34,7 @@ from visvec.rig import load_rig  # noqa: E402
 from visvec.sim.scene import Scene  # noqa: E402
 from visvec.sim.simulate import random_attitudes  # noqa: E402
 
-from _common import CONFIGS, run_record, save_json  # noqa: E402
+from _common import CONFIGS, add_refine_option, run_record, save_json  # noqa: E402
 
 
 def main() -> None:
@@ -44,12 +44,7 @@ def main() -> None:
     ap.add_argument("--rig", default=str(CONFIGS / "triangle.toml"))
     ap.add_argument("--size", help="WxH: the same lens on a sensor of this size")
     ap.add_argument("--profile", action="store_true", help="the time of each step")
-    ap.add_argument(
-        "--refine",
-        choices=("lines", "pixels"),
-        default="lines",
-        help="the rig's [detect] refine (pixels: the edges fitted to the pixels)",
-    )
+    add_refine_option(ap)
     args = ap.parse_args()
     _onecore.one_core()
     rig = with_refine(load_rig(args.rig), args.refine)

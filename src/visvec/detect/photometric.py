@@ -184,7 +184,6 @@ def refine(image: np.ndarray, normals: np.ndarray, offsets: np.ndarray, width: n
         jac.append(Je)
     idx = [[2 * i, 2 * i + 1, 6 + i, 9, 10, 11, 12, 13, 14] for i in range(3)]
     level = None
-    H = np.zeros((N_PARAMS, N_PARAMS))
     for _ in range(GN_STEPS):
         H = np.zeros((N_PARAMS, N_PARAMS))
         b = np.zeros(N_PARAMS)
