@@ -67,56 +67,61 @@ def _gradient(scene: Scene, dg: np.ndarray) -> Scene:
     return replace(scene, gradient_per_m=n, gradient_dir=tuple(g / max(n, 1e-12)))
 
 
-def derivatives(rig: Rig, euler: np.ndarray, scene: Scene, step_px: float) -> tuple:
-    """(pixels, 8) derivative images over the triangle's edge band: yaw, pitch, roll (per
+def derivatives(rig: Rig, euler: np.ndarray, scene: Scene, steps_px) -> tuple:
+    """(pixels, 8) derivative images over the triangle's edge band, one for each
+    attitude difference step in ``steps_px`` (px the edges move): yaw, pitch, roll (per
     rad), board level, contrast (per grey level), gradient x, y (per 1/m), blur (per
-    px); the band's mask."""
+    px), the nuisance's columns shared; and the band's mask."""
     f = rig.camera.fx
     part = _edge_part(rig, euler, scene)
     inside = (np.abs(part) > 0.05 * scene.contrast).astype(np.uint8)
-    # the triangle's size (px) sets the yaw step: its vertices move r d(yaw)
-    ys, xs = np.nonzero(inside)
-    r = max(float(np.hypot(xs - xs.mean(), ys - ys.mean()).max()), 10.0)
-    steps = (step_px / r, step_px / f, step_px / f)
-    cols = []
-    for k, d in enumerate(steps):
-        e1, e0 = euler.copy(), euler.copy()
-        e1[k] += d
-        e0[k] -= d
-        cols.append((_edge_part(rig, e1, scene) - _edge_part(rig, e0, scene)) / (2 * d))
-    for name, d in (("board_level", 1.0), ("contrast", 1.0)):
-        s1 = replace(scene, **{name: getattr(scene, name) + d})
-        s0 = replace(scene, **{name: getattr(scene, name) - d})
-        cols.append((mean_image(rig, euler, s1) - mean_image(rig, euler, s0)) / (2 * d))
-    for k in range(2):
-        dg = np.zeros(2)
-        dg[k] = 0.01
-        cols.append((mean_image(rig, euler, _gradient(scene, dg))
-                     - mean_image(rig, euler, _gradient(scene, -dg))) / 0.02)  # fmt: skip
-    clean = render_clean(rig, euler_to_matrix(*euler), scene)
-    b, db = scene.blur_sigma_px, 0.02
-    cols.append((cv2.GaussianBlur(clean, (0, 0), b + db) - cv2.GaussianBlur(clean, (0, 0), b - db))
-                / (2 * db))  # fmt: skip
     w = np.hypot(scene.blur_sigma_px, np.sqrt(1.0 / 12.0))
     reach = int(np.ceil(3.0 * w + 1.75))
     k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * reach + 1, 2 * reach + 1))
     band = (cv2.dilate(inside, k) - cv2.erode(inside, k)) > 0
-    return np.stack([c[band] for c in cols], axis=1), band
+    nuisance = []
+    for name, d in (("board_level", 1.0), ("contrast", 1.0)):
+        s1 = replace(scene, **{name: getattr(scene, name) + d})
+        s0 = replace(scene, **{name: getattr(scene, name) - d})
+        nuisance.append((mean_image(rig, euler, s1) - mean_image(rig, euler, s0)) / (2 * d))
+    for i in range(2):
+        dg = np.zeros(2)
+        dg[i] = 0.01
+        nuisance.append((mean_image(rig, euler, _gradient(scene, dg))
+                         - mean_image(rig, euler, _gradient(scene, -dg))) / 0.02)  # fmt: skip
+    clean = render_clean(rig, euler_to_matrix(*euler), scene)
+    b, db = scene.blur_sigma_px, 0.02
+    nuisance.append((cv2.GaussianBlur(clean, (0, 0), b + db)
+                     - cv2.GaussianBlur(clean, (0, 0), b - db)) / (2 * db))  # fmt: skip
+    nuisance = [c[band] for c in nuisance]
+    # the triangle's size (px) sets the yaw step: its vertices move r d(yaw)
+    ys, xs = np.nonzero(inside)
+    r = max(float(np.hypot(xs - xs.mean(), ys - ys.mean()).max()), 10.0)
+    out = []
+    for step_px in steps_px:
+        cols = []
+        for i, d in enumerate((step_px / r, step_px / f, step_px / f)):
+            e1, e0 = euler.copy(), euler.copy()
+            e1[i] += d
+            e0[i] -= d
+            cols.append(((_edge_part(rig, e1, scene) - _edge_part(rig, e0, scene)) / (2 * d))[band])
+        out.append(np.stack(cols + nuisance, axis=1))
+    return out, band
 
 
 def bound(args) -> dict:
     """One scene's bounds (deg^2 variances, per axis), with and without the nuisance, at
-    the derivative step and at twice it."""
+    the derivative step and (``check``) at twice it."""
     rig, euler, scene, check = args
-    out = {}
     var_n = scene.noise_sigma**2 + 1.0 / 12.0
-    for tag, step in (("", DERIV_PX), ("_2x", 2 * DERIV_PX))[: 2 if check else 1]:
-        J, band = derivatives(rig, euler, scene, step)
+    tags = ("", "_2x")[: 2 if check else 1]
+    Js, band = derivatives(rig, euler, scene, (DERIV_PX, 2 * DERIV_PX)[: len(tags)])
+    out = {"pixels": int(band.sum())}
+    for tag, J in zip(tags, Js, strict=True):
         F = J.T @ J / var_n
         cov = np.linalg.inv(F)[:3, :3]
         out["crb" + tag] = np.degrees(np.sqrt(np.diag(cov))) ** 2
         out["crb_known" + tag] = np.degrees(np.sqrt(np.diag(np.linalg.inv(F[:3, :3])))) ** 2
-        out["pixels"] = int(band.sum())
     return out
 
 
