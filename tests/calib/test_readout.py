@@ -5,6 +5,13 @@ from visvec.rig import load_rig
 from conftest import CONFIGS, rig_variant, run
 
 
+def _turning(rig_p, rec, motion, rate_dps, *more):
+    """A 40-frame recording (seed 3) of the platform turning, ``more`` options added."""
+    r = run("simulate", "--rig", rig_p, "--out", rec, "--frames", 40, "--seed", 3, "--motion",
+            motion, "--yaw-rate-dps", rate_dps, *more)  # fmt: skip
+    assert r.exit_code == 0, r.output
+
+
 def test_calibrate_readout_measures_a_rolling_shutter_from_a_turning_recording(tmp_path):
     """A 640x480 webcam reading its rows over 25 ms, recorded while the platform swings
     out and back at up to 15 deg/s (the recording the README asks for): the readout
@@ -13,9 +20,7 @@ def test_calibrate_readout_measures_a_rolling_shutter_from_a_turning_recording(t
     readout_ms, and the rig takes it."""
     rig_p = CONFIGS / "triangle.toml"
     rec = tmp_path / "turn"
-    sim = ["simulate", "--rig", rig_p, "--out", rec, "--frames", 40, "--seed", 3]
-    r = run(*sim, "--motion", "swing", "--yaw-rate-dps", 15, "--readout-ms", 25)
-    assert r.exit_code == 0, r.output
+    _turning(rig_p, rec, "swing", 15, "--readout-ms", 25)
     cal = tmp_path / "readout.toml"
     r = run("calibrate", "readout", rec, "--rig", rig_p, "--out", cal)
     assert r.exit_code == 0, r.output
@@ -38,8 +43,7 @@ def test_calibrate_readout_is_not_fooled_by_a_principal_point_off(tmp_path):
     rig_p = CONFIGS / "triangle.toml"
     true_rig = rig_variant(rig_p, "cx", "319.5", "323.5", tmp_path / "true.toml")
     rec = tmp_path / "swing"
-    sim = ["simulate", "--rig", true_rig, "--out", rec, "--frames", 40, "--seed", 3]
-    assert run(*sim, "--motion", "swing", "--yaw-rate-dps", 20).exit_code == 0
+    _turning(true_rig, rec, "swing", 20)
     cal = tmp_path / "readout.toml"
     r = run("calibrate", "readout", rec, "--rig", rig_p, "--out", cal)
     assert r.exit_code == 0, r.output
@@ -77,9 +81,7 @@ def test_calibrate_readout_says_when_the_readout_is_poorly_determined(tmp_path):
     the command line names its option for it."""
     rig_p = CONFIGS / "triangle-320.toml"
     rec = tmp_path / "sweep"
-    sim = ["simulate", "--rig", rig_p, "--out", rec, "--frames", 40, "--seed", 3]
-    r = run(*sim, "--motion", "sweep", "--yaw-rate-dps", 10, "--readout-ms", 25)
-    assert r.exit_code == 0, r.output
+    _turning(rig_p, rec, "sweep", 10, "--readout-ms", 25)
     cal = tmp_path / "readout.toml"
     r = run("calibrate", "readout", rec, "--rig", rig_p, "--out", cal)
     assert r.exit_code == 1 and not cal.exists(), r.output
