@@ -90,11 +90,11 @@ def _max_pool2(binary: np.ndarray) -> np.ndarray:
 
 
 def _moments(img_vals: np.ndarray, xs: np.ndarray, ys: np.ndarray, lab: np.ndarray, n: int,
-             keep: np.ndarray, T: float, top: int) -> list[tuple]:  # fmt: skip
+             area: np.ndarray, keep: np.ndarray, T: float, top: int) -> list[tuple]:  # fmt: skip
     """Each kept component's spot: weighted centroid (u, v; image px), weight, area,
     elongation and whether it saturates, from its pixels (image coordinates ``xs``,
-    ``ys``, values ``img_vals``, component ``lab``): weighted moments of every component
-    at once (bincount)."""
+    ``ys``, values ``img_vals``, component ``lab``; ``area`` its pixel count): weighted
+    moments of every component at once (bincount)."""
     v = img_vals.astype(np.float64)
     wgt = v - T
     xs = xs.astype(np.float64)
@@ -108,7 +108,6 @@ def _moments(img_vals: np.ndarray, xs: np.ndarray, ys: np.ndarray, lab: np.ndarr
     cyy = np.bincount(lab, wgt * dy * dy, n) * inv
     cxy = np.bincount(lab, wgt * dx * dy, n) * inv
     sat = np.bincount(lab, v >= top, n) > 0
-    area = np.bincount(lab, minlength=n)
     tr, det = cxx + cyy, cxx * cyy - cxy * cxy
     disc = np.sqrt(np.clip(tr * tr / 4 - det, 0.0, None))
     l1, l2 = tr / 2 + disc, np.maximum(tr / 2 - disc, 1e-12)
@@ -118,7 +117,7 @@ def _moments(img_vals: np.ndarray, xs: np.ndarray, ys: np.ndarray, lab: np.ndarr
 
 
 def _spots_in(roi: np.ndarray, T: float, top: int, min_area: int, max_area: int) -> list[tuple]:
-    """Spots of a whole frame (or any one region at its origin)."""
+    """Spots of a whole frame."""
     _, binary = cv2.threshold(roi, T, 255, cv2.THRESH_BINARY)
     binary = binary.astype(np.uint8, copy=False)
     h, w = roi.shape
@@ -153,7 +152,7 @@ def _spots_in(roi: np.ndarray, T: float, top: int, min_area: int, max_area: int)
     keep[0] = False
     if not keep.any():
         return []
-    return _moments(roi[ys, xs], xs, ys, lab, n, keep, T, top)
+    return _moments(roi[ys, xs], xs, ys, lab, n, area, keep, T, top)
 
 
 def _spots_in_windows(image: np.ndarray, regions: list[tuple[int, int, int, int]], T: float,
@@ -196,7 +195,7 @@ def _spots_in_windows(image: np.ndarray, regions: list[tuple[int, int, int, int]
     y0s = np.array([r[1] for r in regions])
     xs = cx - ox[k] + x0s[k]
     ys = cy + y0s[k]
-    return _moments(canvas[cy, cx], xs, ys, lab, n, keep, T, top)
+    return _moments(canvas[cy, cx], xs, ys, lab, n, area, keep, T, top)
 
 
 def find_spots(
