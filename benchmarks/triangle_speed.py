@@ -5,6 +5,9 @@ A 30 fps recording: 300 frames (10 s) of a smooth motion turning at about 10 deg
 yaw with tilts wobbling within +-4 deg.
 "tracking" processes them in order (each frame starts from the last one's vertices);
 "cold" forgets the previous frame every time (lost-in-space on every frame).
+"aruco": the fiducial-tag baseline (benchmarks/_fiducial.py: an ArUco tag in the
+triangle's place, cv2.aruco + solvePnP IPPE_SQUARE) on every 5th attitude of the same
+recording, timed in the same repeats; its accuracy beside it.
 
     python benchmarks/triangle_speed.py
     python benchmarks/triangle_speed.py --size 1920x1080   # an HD webcam, same field
@@ -44,9 +47,17 @@ def main() -> None:
     ap.add_argument("--rig", default=str(CONFIGS / "triangle.toml"))
     ap.add_argument("--size", help="WxH: the same lens on a sensor of this size")
     ap.add_argument("--profile", action="store_true", help="the time of each step")
+    ap.add_argument(
+        "--tag-every",
+        type=int,
+        default=5,
+        help="the tag baseline on every n-th attitude (its frames render slowly)",
+    )
     add_refine_option(ap)
     args = ap.parse_args()
     _onecore.one_core()
+    import _fiducial  # after _onecore: it imports numpy
+
     rig = with_refine(load_rig(args.rig), args.refine)
     name = "triangle_speed" if args.refine == "lines" else f"triangle_speed_{args.refine}"
     if args.size:
@@ -69,15 +80,18 @@ def main() -> None:
     cases = [Case(e, Scene(), k) for k, e in enumerate(eul)]
     images = render_cases(rig, cases)
     pngs = [cv2.imencode(".png", im)[1] for im in images]
+    tag_eul = eul[:: args.tag_every]
+    tags = _fiducial.render_tags(rig, tag_eul, Scene())
+    bases = {"aruco": _fiducial.ArucoBaseline(rig, Scene()),
+             "aruco_subpix": _fiducial.ArucoBaseline(rig, Scene(), subpixel=True)}  # fmt: skip
     res = {
         **run_record(),
         "image": f"{rig.camera.width}x{rig.camera.height}, fx {rig.camera.fx:g} px",
         "frames": args.frames,
         "repeats": args.repeats,
     }
-    times = {"tracking": [], "cold": [], "png_decode": []}
+    times = {"tracking": [], "cold": [], "png_decode": [], "aruco": [], "aruco_subpix": []}
     n_ok = {"tracking": 0, "cold": 0}
-    n = len(images)
     for _ in range(args.repeats):
         for mode in ("tracking", "cold"):
             pipe = TrianglePipeline(rig)
@@ -94,16 +108,26 @@ def main() -> None:
             t = time.perf_counter()
             cv2.imdecode(p, cv2.IMREAD_GRAYSCALE)
             times["png_decode"].append(time.perf_counter() - t)
+        for k, base in bases.items():
+            for im in tags:
+                t = time.perf_counter()
+                base.attitude(im)
+                times[k].append(time.perf_counter() - t)
     for k, v in times.items():
         v = np.array(v) * 1000
         res[k] = {
             "median_ms": round(float(np.median(v)), 3),
             "p90_ms": round(float(np.percentile(v, 90)), 3),
             # each repeat's own median: how much the machine drifted during the run
-            "repeat_medians_ms": np.round(np.median(v.reshape(-1, n), axis=1), 3).tolist(),
+            "repeat_medians_ms": np.round(
+                np.median(v.reshape(args.repeats, -1), axis=1), 3
+            ).tolist(),  # fmt: skip
         }
     for k, v in n_ok.items():
         res[k]["ok_fraction"] = round(v / (args.frames * args.repeats), 4)
+    for k, base in bases.items():
+        res[k].update(_fiducial.accuracy(base, tags, tag_eul), frames=len(tags))
+    res["cold_to_aruco"] = round(res["cold"]["median_ms"] / res["aruco"]["median_ms"], 2)
     if args.profile:
         res["profile_ms_per_frame"] = {m: profile(rig, images, m == "cold") for m in n_ok}
     if not args.size and args.refine == "lines":
