@@ -9,6 +9,7 @@ decoding them with cv2.imdecode (and cv2.imencode for writing) works for any nam
 from __future__ import annotations
 
 import os
+import stat
 from pathlib import Path
 
 import cv2
@@ -28,7 +29,7 @@ def read_image_why(path: str | Path, flags: int = cv2.IMREAD_UNCHANGED):
     that names no file."""
     try:
         with open(path, "rb") as fh:
-            data = fh.read(MAX_IMAGE_BYTES + 1)
+            data = _read_at_most(fh, MAX_IMAGE_BYTES + 1)
     except OSError as exc:
         return None, f"cannot read ({exc.strerror})"
     if not data:
@@ -41,6 +42,20 @@ def read_image_why(path: str | Path, flags: int = cv2.IMREAD_UNCHANGED):
     if img is None or img.size == 0:
         return None, "cannot decode the image"
     return img, ""
+
+
+def _read_at_most(fh, limit: int) -> bytes:
+    """Up to ``limit`` bytes of the open file ``fh``. A regular file is read at its own
+    size (and on, should it have grown): asking for ``limit`` bytes at once allocates
+    them (0.1 ms a frame for a 512 MiB limit, on a 140 kB PNG that reads in 0.016 ms).
+    A device or pipe, whose size is not known, is read up to the limit."""
+    st = os.fstat(fh.fileno())
+    if not stat.S_ISREG(st.st_mode):
+        return fh.read(limit)
+    data = fh.read(min(st.st_size + 1, limit))
+    if len(data) > st.st_size and len(data) < limit:  # grown since: the rest too
+        data += fh.read(limit - len(data))
+    return data
 
 
 def write_image(path: str | Path, img: np.ndarray) -> bool:
