@@ -17,6 +17,7 @@ import cv2
 import numpy as np
 
 from visvec.camera import CameraModel
+from visvec.detect import _compiled
 from visvec.shutter import RollingShutter, unroll
 
 # Variance inflation of the edge-point residuals for correlated neighbouring profiles
@@ -34,6 +35,10 @@ PROFILE_SPACING_PX = 1.5
 SPARSE_SPACING_PX = 2.0
 # Gauss-Newton steps of the matched (erf) edge refinement
 GN_STEPS = 1
+# the edge fit's inner functions run compiled where Numba is installed (the `fast` extra;
+# visvec.detect._compiled), else on numpy
+COMPILED = _compiled.AVAILABLE
+_NO_WIDTH = np.zeros(0)
 # cv2.remap takes at most 32767 rows; no real edge needs more than this many profiles
 MAX_PROFILES_PER_EDGE = 4000
 # profiles are re-centred once if a fine pass moves the vertices more than this (px):
@@ -243,6 +248,9 @@ def _robust_lines(
     Returns per edge the normal (3, 2), offset (3,), centre (3, 2), spread (3,), sigma
     (3,), and the inlier mask (M,).
     """
+    if COMPILED:
+        return _compiled.robust_lines(x, y, gid, use, float(floor), int(rounds),
+                                      EDGE_VARIANCE_INFLATION)  # fmt: skip
     keep = use.copy()
     k, c, d, n, dx, dy = _group_tls(x, y, gid, keep)
     active = np.ones(3, dtype=bool)
@@ -381,6 +389,13 @@ def _sample(
     edge t in [-1, 1] (M,), distance from the edge's first end (M,), values (M, S), and
     each edge's length (3,).
     """
+    if COMPILED and np.all(np.isfinite(corners)) and np.all(np.isfinite(trims)):
+        offs = np.arange(-half, half + 1e-9, step)
+        bases, normals, gid, k, tt, along, map_x, map_y, length = _compiled.sample_geometry(
+            corners, off, offs, trims, float(spacing), MAX_PROFILES_PER_EDGE
+        )
+        vals = cv2.remap(roi, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        return bases, normals, gid, k, tt, along, vals, length
     A = corners[[1, 2, 0]]  # edge i runs from vertex i+1 to vertex i+2
     D = corners[[2, 0, 1]] - A
     length = np.sqrt(np.einsum("ij,ij->i", D, D))
@@ -464,6 +479,11 @@ def _positions(
     """
     n_ext = int(round(ext / step))
     ends = max(2, int(1.0 / step)) + n_ext
+    if COMPILED:
+        w = _NO_WIDTH if width is None else np.asarray(width, float)
+        return _compiled.positions(vals, t, gid, float(half), float(step), w, n_ext, ends,
+                                   GN_STEPS, LEVEL_OUTLIER_SIGMAS, LEVEL_OUTLIER_MIN,
+                                   LEVEL_SUSPECT_RMS, LEVEL_SUSPECT_MAX)  # fmt: skip
     # the means of the first and last ``ends`` samples (np.add.reduce: mean without
     # its wrapper's overhead, the same value)
     lo_raw = np.add.reduce(vals[:, :ends], axis=1) / ends
@@ -529,6 +549,9 @@ def _widths(
     second moment (10-90 % of a 1920x1080 webcam's cold widths 0.54-1.06 px over 8 px,
     0.77-0.89 within 4 widths).
     """
+    if COMPILED:
+        return _compiled.widths(vals, 0, e, clear, gid, float(half), float(step),
+                                WIDTH_REACH_MIN_PX)  # fmt: skip
     d = np.diff(vals, axis=1)
     n_bins = d.shape[1]
     good = clear
@@ -791,6 +814,27 @@ def fit_edges(
             recentres += 1
             passes.append(1)
     return fit
+
+
+_warm = False
+
+
+def warm_up() -> None:
+    """Load (or, the first time on a machine, compile) the compiled kernels now, not on
+    a camera's first frame: an edge fit, cold and tracked, of a triangle drawn on a small
+    image, which calls each kernel with each kind of argument a frame gives it. A few
+    milliseconds once they are loaded; without Numba, nothing."""
+    global _warm
+    if _warm or not COMPILED:
+        return
+    img = np.full((96, 96), 60, np.uint8)
+    corners = np.array([[80.0, 48.0], [20.0, 20.0], [20.0, 76.0]])
+    cv2.fillPoly(img, [np.rint(corners).astype(np.int32)], 120)
+    img = cv2.GaussianBlur(img, (0, 0), 0.8)
+    cam = CameraModel(96, 96, 80.0, 80.0, 47.5, 47.5, np.zeros(5))
+    fit = fit_edges(img, corners, cam)
+    fit_edges(img, corners, cam, width=fit.width)
+    _warm = True
 
 
 # the rate step (rad/s) of the edge fit's shutter gain: 0.6 deg/s, a few hundredths of a

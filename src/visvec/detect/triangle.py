@@ -27,6 +27,7 @@ from visvec.detect.edges import (
     fit_edges,
     intersect,
     side_lengths,
+    warm_up,
 )
 from visvec.detect.photometric import refine
 from visvec.errors import ConfigError
@@ -209,6 +210,8 @@ class TriangleDetector:
     def __init__(self, rig: Rig):
         self.rig = rig
         cam = rig.camera
+        # the compiled kernels loaded before the first frame, not on it
+        warm_up()
         self.expected_px = project_target(rig, np.eye(3))
         if not np.all(np.isfinite(self.expected_px)):
             # (a rig file is refused for it when loaded; this is one made in code)

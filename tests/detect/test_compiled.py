@@ -1,0 +1,210 @@
+"""The edge fit's compiled kernels (visvec.detect._compiled, the `fast` extra) against
+the numpy functions they replace: the same results to rounding, on the inputs frames
+of every kind give them (sharp and defocused, both resolutions, a lens with distortion,
+a lighting gradient, a light and a head over the triangle, tracked and cold)."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from visvec.data import Frame
+from visvec.detect import _compiled
+from visvec.detect import edges as E
+from visvec.pipeline import TrianglePipeline
+from visvec.rig import load_rig
+from visvec.rotations import euler_to_matrix
+from visvec.sim.render import render_frame
+from visvec.sim.scene import Light, Occluder, Scene
+
+from conftest import CONFIGS, attitudes
+
+pytestmark = pytest.mark.skipif(not _compiled.AVAILABLE, reason="Numba (the fast extra)")
+
+KERNELS = ("_sample", "_positions", "_widths", "_robust_lines")
+
+
+def _frames():
+    """(rig, frame) of each kind, the clean ones at two attitudes."""
+    rig640 = load_rig(CONFIGS / "triangle.toml")
+    rig320 = load_rig(CONFIGS / "triangle-320.toml")
+    cam = rig640.camera
+    barrel = replace(rig640, camera=replace(cam, dist=np.array([-0.12, 0.03, 0.0, 0.0, 0.0])))
+    out = []
+    for k, (rig, scene) in enumerate([
+        (rig640, Scene()),
+        (rig320, Scene(blur_sigma_px=2.0)),
+        (barrel, Scene(gradient_per_m=0.6)),
+        (rig640, Scene(lights=(Light(380.0, 120.0, 120.0),))),
+    ]):  # fmt: skip
+        for j, R in enumerate(attitudes(2, 40 + k)):
+            out.append((rig, render_frame(rig, R, scene, rng=100 * k + j)))
+    # heads over the triangle (tests/detect/test_triangle.py): a dark one just off the
+    # long edge, a dark one over the acute vertex, a bright one over a base edge
+    R = euler_to_matrix(-0.2784127, 0.06476841, -0.06955626)
+    head = Scene(occluder=Occluder(76.67, -134.70, 1123.48, 85.23, 39.21))
+    out += [(rig320, render_frame(rig320, R, head, rng=seed)) for seed in (1, 2)]
+    R = euler_to_matrix(0.3, 0.02, -0.01)
+    for occ in (
+        Occluder(214.0, 0.0, 1300.0, 40.0, 50.0),
+        Occluder(-107.0, 0.0, 1300.0, 45.0, 200.0),
+    ):
+        out.append((rig640, render_frame(rig640, R, Scene(occluder=occ), rng=3)))
+    return out
+
+
+@pytest.fixture(scope="module")
+def calls():
+    """Every call the pipeline makes to the kernels' numpy functions on _frames()."""
+    got = {n: [] for n in KERNELS}
+    saved = {n: getattr(E, n) for n in KERNELS}
+
+    def spy(n):
+        def f(*a, **k):
+            got[n].append((a, k))
+            return saved[n](*a, **k)
+
+        return f
+
+    mp = pytest.MonkeyPatch()
+    try:
+        mp.setattr(E, "COMPILED", False)
+        for n in KERNELS:
+            mp.setattr(E, n, spy(n))
+        for rig, img in _frames():
+            pipe = TrianglePipeline(rig)
+            pipe.process(Frame(0, 0.0, img))
+            pipe.process(Frame(1, 1 / 30, img))  # tracked from the first
+    finally:
+        mp.undo()
+    return {n: (saved[n], got[n]) for n in KERNELS}
+
+
+def _diff(a, b) -> float:
+    """The largest difference between two outputs (tuples of arrays; a boolean's count
+    of disagreements)."""
+    if isinstance(a, tuple):
+        return max(_diff(x, y) for x, y in zip(a, b, strict=True))
+    a, b = np.asarray(a), np.asarray(b)
+    assert a.shape == b.shape and a.dtype == b.dtype, (a.shape, b.shape, a.dtype, b.dtype)
+    if a.dtype == bool:
+        return float(np.sum(a != b))
+    same_nan = np.isnan(a) == np.isnan(b)
+    assert same_nan.all()
+    return float(np.max(np.abs(np.nan_to_num(a) - np.nan_to_num(b)), initial=0.0))
+
+
+@pytest.mark.parametrize("name", KERNELS)
+def test_each_kernel_gives_what_numpy_gives(calls, name, monkeypatch):
+    """Every output of every call: the same shape and type, the same decisions (inlier
+    and level masks), the values within 1e-9 (px, grey levels; the lines' ideal pixels
+    are a few hundred)."""
+    f, args = calls[name]
+    assert len(args) >= 10, len(args)
+    worst = 0.0
+    for a, k in args:
+        monkeypatch.setattr(E, "COMPILED", False)
+        pure = f(*a, **k)
+        monkeypatch.setattr(E, "COMPILED", True)
+        fast = f(*a, **k)
+        worst = max(worst, _diff(pure, fast))
+    assert worst < 1e-9, worst
+
+
+def test_the_frames_reach_the_kernels_robust_branches(calls):
+    """The light and the head put profiles whose levels disagree into the level lines
+    and points off the line into the robust lines: the comparisons above cover the
+    branches that leave them out."""
+    f, args = calls["_positions"]
+    assert sum(not f(*a, **k)[4].all() for a, k in args) >= 3
+    f, args = calls["_robust_lines"]
+    assert sum(not f(*a, **k)[5][a[4]].all() for a, k in args) >= 3
+
+
+def test_the_kernels_run_as_python_give_what_compiled_gives(calls):
+    """Each kernel's Python source (Numba's py_func, which coverage can follow) gives
+    the compiled kernel's result: what the tests above check is the code here."""
+    kernels = {
+        "_positions": (_compiled.positions, lambda a, k: _positions_args(*a, **k)),
+        "_widths": (_compiled.widths, lambda a, k: _widths_args(*a, **k)),
+        "_robust_lines": (_compiled.robust_lines, lambda a, k: _lines_args(*a, **k)),
+        "_sample": (_compiled.sample_geometry, lambda a, k: _sample_args(*a, **k)),
+    }
+    for name, (kernel, to_args) in kernels.items():
+        for a, k in calls[name][1][:2]:
+            args = to_args(a, k)
+            assert _diff(kernel(*args), _as_python(kernel)(*args)) == 0.0, name
+
+
+def _as_python(kernel):
+    """The kernel and the kernels it calls as plain Python."""
+    inner = {n: getattr(_compiled, n) for n in ("_group_linear", "_levels_suspect", "_median",
+                                                 "_level_lines", "_group_tls")}  # fmt: skip
+
+    def run(*args):
+        mp = pytest.MonkeyPatch()
+        try:
+            for n, f in inner.items():
+                mp.setattr(_compiled, n, f.py_func)
+            return kernel.py_func(*args)
+        finally:
+            mp.undo()
+
+    return run
+
+
+def _positions_args(vals, t, gid, half, step, width, ext=0.0):
+    n_ext = int(round(ext / step))
+    w = E._NO_WIDTH if width is None else np.asarray(width, float)
+    return (vals, t, gid, float(half), float(step), w, n_ext, max(2, int(1.0 / step)) + n_ext,
+            E.GN_STEPS, E.LEVEL_OUTLIER_SIGMAS, E.LEVEL_OUTLIER_MIN, E.LEVEL_SUSPECT_RMS,
+            E.LEVEL_SUSPECT_MAX)  # fmt: skip
+
+
+def _widths_args(vals, e, clear, gid, half, step):
+    return vals, 0, e, clear, gid, float(half), float(step), E.WIDTH_REACH_MIN_PX
+
+
+def _lines_args(x, y, gid, index, use, floor, rounds):
+    return x, y, gid, use, float(floor), int(rounds), E.EDGE_VARIANCE_INFLATION
+
+
+def _sample_args(roi, corners, off, half, step, trims, spacing):
+    offs = np.arange(-half, half + 1e-9, step)
+    return corners, off, offs, trims, float(spacing), E.MAX_PROFILES_PER_EDGE
+
+
+def test_a_cold_frame_gives_the_same_vertices_compiled_or_not(monkeypatch):
+    """End to end, a cold frame's vertices and covariance agree to 1e-9 px (tracked
+    frames start from the frames before, where the two paths' last digits part: they
+    agree to the estimator's own 1e-5 px)."""
+    got = {}
+    for flag in (False, True):
+        monkeypatch.setattr(E, "COMPILED", flag)
+        out = []
+        for rig, img in _frames():
+            pipe = TrianglePipeline(rig)
+            pipe.process(Frame(0, 0.0, img))
+            d = pipe.last_detection
+            out.append((d.status, d.points_px, d.cov_n))
+        got[flag] = out
+    for (s0, p0, c0), (s1, p1, c1) in zip(got[False], got[True], strict=True):
+        assert s0 is s1
+        if p0 is not None and np.all(np.isfinite(p0)):
+            assert np.abs(p0 - p1).max() < 1e-9
+            assert np.abs(c0 - c1).max() <= 1e-9 * np.abs(c0).max()
+
+
+def test_visvec_pure_turns_the_kernels_off():
+    """VISVEC_PURE=1 runs the numpy functions (a lab can compare, or rule Numba out)."""
+    code = "from visvec.detect import edges; print(edges.COMPILED)"
+    for value, expected in (("1", "False"), ("0", "True")):
+        env = {**os.environ, "VISVEC_PURE": value}
+        out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
+                             text=True, check=True).stdout.strip()  # fmt: skip
+        assert out == expected
