@@ -28,6 +28,8 @@ UNDISTORT_TOL_PX = 1e-9
 UNDISTORT_STEPS = 4
 UNDISTORT_RETRY_PX = 1e-6
 UNDISTORT_FAIL_PX = 1e-3
+# distort() takes this many points or fewer one by one, in Python's floats
+SMALL_N = 4
 
 
 @dataclass(frozen=True)
@@ -57,7 +59,7 @@ class CameraModel:
         """(3, 3) camera matrix."""
         return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
 
-    @property
+    @cached_property
     def has_distortion(self) -> bool:
         return bool(np.any(self.dist != 0.0))
 
@@ -115,9 +117,26 @@ class CameraModel:
             dist=self.dist.copy(),
         )
 
+    @cached_property
+    def _dist_floats(self) -> tuple[float, ...]:
+        return tuple(float(k) for k in self.dist)
+
     def distort(self, xy_n: np.ndarray) -> np.ndarray:
         """Normalised undistorted coordinates (N, 2) to pixels (N, 2): the polynomial as
         it is, also outside the model's field (see :meth:`project`)."""
+        if len(xy_n) <= SMALL_N and getattr(xy_n, "dtype", None) == np.float64:
+            # a triangle's vertices: Python's floats, the same operations in the same
+            # order (numpy's start-up on three points costs more than the arithmetic)
+            k1, k2, p1, p2, k3 = self._dist_floats
+            fx, fy, cx, cy = self.fx, self.fy, self.cx, self.cy
+            out = []
+            for x, y in xy_n.tolist():
+                r2 = x * x + y * y
+                radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+                xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+                yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+                out.append((fx * xd + cx, fy * yd + cy))
+            return np.array(out, dtype=np.float64).reshape(-1, 2)
         x, y = xy_n[:, 0], xy_n[:, 1]
         k1, k2, p1, p2, k3 = self.dist
         r2 = x * x + y * y

@@ -26,7 +26,7 @@ from conftest import CONFIGS, attitudes
 
 pytestmark = pytest.mark.skipif(not _compiled.AVAILABLE, reason="Numba (the fast extra)")
 
-KERNELS = ("_sample", "_positions", "_widths", "_robust_lines")
+KERNELS = ("_sample", "_positions", "_widths", "_robust_lines", "_group_median")
 
 
 def _frames():
@@ -134,6 +134,10 @@ def test_the_kernels_run_as_python_give_what_compiled_gives(calls):
         "_widths": (_compiled.widths, lambda a, k: _widths_args(*a, **k)),
         "_robust_lines": (_compiled.robust_lines, lambda a, k: _lines_args(*a, **k)),
         "_sample": (_compiled.sample_geometry, lambda a, k: _sample_args(*a, **k)),
+        "_group_median": (
+            _compiled.group_median,
+            lambda a, k: (np.asarray(a[0], float), a[1], a[3]),
+        ),
     }
     for name, (kernel, to_args) in kernels.items():
         for a, k in calls[name][1][:2]:
@@ -144,7 +148,8 @@ def test_the_kernels_run_as_python_give_what_compiled_gives(calls):
 def _as_python(kernel):
     """The kernel and the kernels it calls as plain Python."""
     inner = {n: getattr(_compiled, n) for n in ("_group_linear", "_levels_suspect", "_median",
-                                                 "_level_lines", "_group_tls")}  # fmt: skip
+                                                 "_level_lines", "_group_tls",
+                                                 "_group_median")}  # fmt: skip
 
     def run(*args):
         mp = pytest.MonkeyPatch()

@@ -388,6 +388,26 @@ def _widths(vals, n_ext, e, clear, gid, half, step, reach_min):
     return w
 
 
+def _group_median(a, gid, keep):
+    """edges._group_median: (3,) the median of ``a`` over each edge's kept points, 0
+    where an edge keeps none."""
+    out = np.zeros(3)
+    for g in range(3):
+        cnt = 0
+        for p in range(len(a)):
+            if gid[p] == g and keep[p]:
+                cnt += 1
+        if cnt:
+            v = np.empty(cnt)
+            q = 0
+            for p in range(len(a)):
+                if gid[p] == g and keep[p]:
+                    v[q] = a[p]
+                    q += 1
+            out[g] = _median(v)
+    return out
+
+
 # ------------------------------------------------------------------- robust lines
 def _group_tls(x, y, gid, keep):
     """edges._group_tls."""
@@ -442,21 +462,9 @@ def _robust_lines(x, y, gid, use, floor, rounds, inflation):
         for p in range(m_all):
             g = gid[p]
             a[p] = abs(dx[p] * n[g, 0] + dy[p] * n[g, 1])
+        med = _group_median(a, gid, keep)
         for g in range(3):
-            cnt = 0
-            for p in range(m_all):
-                if gid[p] == g and keep[p]:
-                    cnt += 1
-            med = 0.0
-            if cnt > 0:
-                vals = np.empty(cnt)
-                q = 0
-                for p in range(m_all):
-                    if gid[p] == g and keep[p]:
-                        vals[q] = a[p]
-                        q += 1
-                med = _median(vals)
-            sigma[g] = max(1.4826 * med, floor)
+            sigma[g] = max(1.4826 * med[g], floor)
         changed = np.zeros(3, np.bool_)
         n_new = np.zeros(3)
         for p in range(m_all):
@@ -501,4 +509,6 @@ _level_lines = _jit(_level_lines)
 positions = _jit(_positions)
 widths = _jit(_widths)
 _group_tls = _jit(_group_tls)
+group_median = _jit(_group_median)
+_group_median = group_median
 robust_lines = _jit(_robust_lines)

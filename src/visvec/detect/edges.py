@@ -224,6 +224,8 @@ def _sorted_medians(table: np.ndarray, k: np.ndarray) -> np.ndarray:
 def _group_median(a: np.ndarray, gid: np.ndarray, index: np.ndarray, keep: np.ndarray):
     """(3,) median of ``a`` over each edge's kept points (index: position along the edge),
     the same value as np.median: one sort of a (3, longest edge) table padded with inf."""
+    if COMPILED:
+        return _compiled.group_median(np.asarray(a, float), gid, keep)
     table = np.full((3, int(index.max()) + 1), np.inf)
     table[gid[keep], index[keep]] = a[keep]
     table.sort(axis=1)
