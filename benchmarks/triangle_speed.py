@@ -12,6 +12,7 @@ recording, timed in the same repeats; its accuracy beside it.
     python benchmarks/triangle_speed.py
     python benchmarks/triangle_speed.py --size 1920x1080   # an HD webcam, same field
     python benchmarks/triangle_speed.py --refine pixels    # with the pixel fit
+    VISVEC_PURE=1 python benchmarks/triangle_speed.py     # without the compiled kernels
 
 ``--size WxH`` puts the rig's lens on a sensor of that size with the same horizontal
 field of view (fx scaled with the width, the principal point centred); ``--rig`` times
@@ -32,6 +33,7 @@ import numpy as np  # noqa: E402
 
 from visvec.bench.triangle import Case, render_cases, with_refine  # noqa: E402
 from visvec.data import Frame  # noqa: E402
+from visvec.detect import edges  # noqa: E402
 from visvec.pipeline import TrianglePipeline  # noqa: E402
 from visvec.rig import load_rig  # noqa: E402
 from visvec.sim.scene import Scene  # noqa: E402
@@ -60,6 +62,8 @@ def main() -> None:
 
     rig = with_refine(load_rig(args.rig), args.refine)
     name = "triangle_speed" if args.refine == "lines" else f"triangle_speed_{args.refine}"
+    if not edges.COMPILED:
+        name += "_pure"
     if args.size:
         w, h = (int(v) for v in args.size.lower().split("x"))
         k = w / rig.camera.width
@@ -89,6 +93,8 @@ def main() -> None:
         "image": f"{rig.camera.width}x{rig.camera.height}, fx {rig.camera.fx:g} px",
         "frames": args.frames,
         "repeats": args.repeats,
+        # the edge fit's compiled kernels (the fast extra; VISVEC_PURE=1 turns them off)
+        "compiled_kernels": edges.COMPILED,
     }
     times = {"tracking": [], "cold": [], "png_decode": [], "aruco": [], "aruco_subpix": []}
     n_ok = {"tracking": 0, "cold": 0}
