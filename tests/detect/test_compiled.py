@@ -213,3 +213,22 @@ def test_visvec_pure_turns_the_kernels_off():
         out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
                              text=True, check=True).stdout.strip()  # fmt: skip
         assert out == expected
+
+
+def test_kernels_that_do_not_load_leave_the_numpy_path_on(monkeypatch, capsys):
+    """A Numba that cannot compile or cache here: the detector is made, says so once on
+    stderr, and runs on numpy."""
+
+    def broken(*a, **k):
+        raise RuntimeError("cannot cache function: no locator available")
+
+    monkeypatch.setattr(E, "_warm", False)
+    monkeypatch.setattr(E, "COMPILED", True)
+    monkeypatch.setattr(_compiled, "sample_geometry", broken)
+    rig = load_rig(CONFIGS / "triangle.toml")
+    pipe = TrianglePipeline(rig)
+    assert E.COMPILED is False
+    err = capsys.readouterr().err
+    assert "compiled edge fit did not load" in err and "no locator" in err
+    rig_img = _frames()[0][1]
+    assert pipe.process(Frame(0, 0.0, rig_img)).ok

@@ -11,6 +11,7 @@ are the intersections of the lines, with a covariance from the fit residuals.
 from __future__ import annotations
 
 import math
+import sys
 from dataclasses import dataclass, replace
 
 import cv2
@@ -825,18 +826,25 @@ def warm_up() -> None:
     """Load (or, the first time on a machine, compile) the compiled kernels now, not on
     a camera's first frame: an edge fit, cold and tracked, of a triangle drawn on a small
     image, which calls each kernel with each kind of argument a frame gives it. A few
-    milliseconds once they are loaded; without Numba, nothing."""
-    global _warm
+    milliseconds once they are loaded; without Numba, nothing. Kernels that do not load
+    (a Numba that cannot compile here, no writable place for its cache: NUMBA_CACHE_DIR
+    names one) leave the numpy path on, with a line on stderr."""
+    global _warm, COMPILED
     if _warm or not COMPILED:
         return
+    _warm = True
     img = np.full((96, 96), 60, np.uint8)
     corners = np.array([[80.0, 48.0], [20.0, 20.0], [20.0, 76.0]])
     cv2.fillPoly(img, [np.rint(corners).astype(np.int32)], 120)
     img = cv2.GaussianBlur(img, (0, 0), 0.8)
     cam = CameraModel(96, 96, 80.0, 80.0, 47.5, 47.5, np.zeros(5))
-    fit = fit_edges(img, corners, cam)
-    fit_edges(img, corners, cam, width=fit.width)
-    _warm = True
+    try:
+        fit = fit_edges(img, corners, cam)
+        fit_edges(img, corners, cam, width=fit.width)
+    except Exception as exc:  # noqa: BLE001 - any failure of Numba's: numpy instead
+        COMPILED = False
+        print(f"visvec: the compiled edge fit did not load ({type(exc).__name__}: {exc}); "
+              "the numpy one runs (VISVEC_PURE=1 skips the attempt)", file=sys.stderr)  # fmt: skip
 
 
 # the rate step (rad/s) of the edge fit's shutter gain: 0.6 deg/s, a few hundredths of a
