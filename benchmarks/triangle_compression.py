@@ -12,7 +12,7 @@ Then the remedy a lab has: `calibrate zero-tilt` on level frames recorded throug
 same codec (12 yaws, 10 frames each) measures how much wider the vertices scatter than
 their sigma; the sweep is scored again with that ratio as `[detect] sigma_scale`.
 
-    python benchmarks/triangle_compression.py [--frames 300]
+    python benchmarks/triangle_compression.py [--frames 300] [--refine pixels]
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from visvec.bench.triangle import Case, evaluate, render_cases
+from visvec.bench.triangle import Case, evaluate, render_cases, with_refine
 from visvec.calib.zero_tilt import calibrate_zero_tilt
 from visvec.data import Frame, Status
 from visvec.pipeline import TrianglePipeline
@@ -33,7 +33,7 @@ from visvec.rig import load_rig
 from visvec.sim.scene import Scene
 from visvec.sim.simulate import random_attitudes
 
-from _common import CONFIGS, run_record, save_json, summarise
+from _common import CONFIGS, add_refine_option, run_record, save_json, summarise
 
 
 def jpeg(images: list[np.ndarray], quality: int) -> list[np.ndarray]:
@@ -102,10 +102,11 @@ def codecs(images: list[np.ndarray]) -> dict[str, list[np.ndarray]]:
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--frames", type=int, default=300)
+    add_refine_option(ap)
     args = ap.parse_args()
     results = run_record()
     for cfg in ("triangle-320.toml", "triangle.toml"):
-        rig = load_rig(CONFIGS / cfg)
+        rig = with_refine(load_rig(CONFIGS / cfg), args.refine)
         eul = random_attitudes(args.frames, 5.0, np.random.default_rng(31), "sweep")
         cases = [Case(e, Scene(), 3100 + k) for k, e in enumerate(eul)]
         frames = render_cases(rig, cases)
@@ -125,7 +126,8 @@ def main() -> None:
             res[name] = s
             print(cfg, name, s)
         results[cfg] = res
-    print(save_json("triangle_compression", results))
+    name = "triangle_compression" + ("" if args.refine == "lines" else f"_{args.refine}")
+    print(save_json(name, results))
 
 
 if __name__ == "__main__":

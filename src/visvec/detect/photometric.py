@@ -42,6 +42,22 @@ REACH_PX = 2.0
 # and when they lie this many blur widths inside the other two edges (where those add
 # under 0.14 % of the contrast)
 CLEAR_WIDTHS = 3.0
+# the residuals' correlation is taken over lags up to this (px, each way: 12 lags in a
+# half-plane); 5 px changed no figure of benchmarks/triangle_compression.py
+NOISE_LAG_PX = 2
+NOISE_MIN_PAIRS = 50
+# a band whose residual RMS is this many times the median band's is not fitted by the
+# model (clean frames: at most 1.08; through a video codec at most 1.41)
+EDGE_RMS_RATIO = 2.0
+
+
+def _half_plane(L: int) -> np.ndarray:
+    """(lags, 2) the lags (dx, dy) up to L each way in a half-plane (the other half are
+    their negatives)."""
+    return np.array([(dx, dy) for dy in range(L + 1) for dx in range(-L if dy else 1, L + 1)])
+
+
+_LAGS = _half_plane(NOISE_LAG_PX)
 N_PARAMS = 15  # 3 lines x (rotation, offset), 3 widths, 6 level coefficients
 _SQRT_2PI = math.sqrt(2.0 * math.pi)
 
@@ -49,7 +65,8 @@ _SQRT_2PI = math.sqrt(2.0 * math.pi)
 @dataclass(frozen=True)
 class PhotometricFit:
     """Vertices (3, 2) ideal px (vertex i opposite line i), their covariance (6, 6), the
-    edges' blur widths (3,), the residual RMS (grey levels) and the pixels used."""
+    edges' blur widths (3,), the residual RMS (grey levels), the pixels used and the
+    covariance's inflation for the noise's correlation (_noise_inflation)."""
 
     xy: np.ndarray
     cov: np.ndarray
@@ -57,6 +74,7 @@ class PhotometricFit:
     rms: float
     n_pixels: int
     ok: bool = True
+    inflation: float = 1.0
 
 
 class _IdealGrid:
@@ -116,7 +134,8 @@ def _band(image, n, c, reach, clear, camera):
     edges. The band of each edge is drawn as a quadrilateral in the image (its corners
     taken through the lens, 1.5 px wider against the curvature a distortion gives it),
     then checked exactly on the pixels' ideal coordinates. Returns per edge the
-    pixels' ideal coordinates (m_e, 2) and grey levels (m_e,), or None."""
+    pixels' ideal coordinates (m_e, 2), grey levels (m_e,) and their places in the
+    frame (column, row) (m_e, 2), or None."""
     nn = n.tolist()
     o = np.einsum("ij,ij->i", n, c).tolist()
     quads = []
@@ -153,8 +172,57 @@ def _band(image, n, c, reach, clear, camera):
         j, k = (i + 1) % 3, (i + 2) % 3
         # a pixel is the nearest edge's: within its reach and clear of the other two
         keep = (np.abs(d[:, i]) < reach[i]) & (d[:, j] > clear[j]) & (d[:, k] > clear[k])
-        out.append((x[keep], grey[keep].astype(float)))
+        out.append((x[keep], grey[keep].astype(float), pts[keep] + lo))
     return out
+
+
+def _noise_inflation(uvs: list, last: list) -> float:
+    """How much wider the lines' errors are than white noise of the residuals' variance
+    makes them, from the correlation of the residuals between neighbouring pixels.
+
+    A video codec's errors are not white: JPEG's and MPEG's come in 8 x 8 blocks, and
+    neighbouring pixels share them. A line's offset is estimated by sum_k w_k r_k with
+    w the pixels' derivatives g (the fit's Jacobian column); its variance is
+    sum_jk w_j w_k C(j - k), which for white noise is s^2 sum_k w_k^2. With C(lag) =
+    s^2 rho(lag) the correlation of the residuals at that lag (estimated from the band's
+    pixel pairs), the ratio of the two is
+
+        1 + 2 sum_(lags in a half-plane) rho(lag) sum_k w_k w_(k + lag) / sum_k w_k^2,
+
+    the 2-D form of a HAC (heteroskedasticity- and autocorrelation-consistent)
+    covariance's long-run variance (Newey & West, Econometrica 55 (1987), Eq. 2, the
+    lags truncated at NOISE_LAG_PX without their taper). It multiplies the fit's
+    covariance. Only the part of the sum beyond twice its own sampling scatter counts,
+    and never below 1: sensor noise gives 1 (1.00-1.01 on average), Motion-JPEG at
+    quality 75 about 2.5."""
+    uv = np.concatenate(uvs)
+    r = np.concatenate([a for a, _ in last])
+    w = np.concatenate([g for _, g in last])
+    var = float(r @ r) / len(r)
+    den = float(w @ w)
+    if not (var > 0 and den > 0):
+        return 1.0
+    L, n = NOISE_LAG_PX, len(uv)
+    # each pixel's index in the band on a raster padded by L, n (a zero appended to r
+    # and w) where no band pixel is; a pixel in two bands: its last place
+    width = int(uv[:, 0].max()) + 2 * L + 1
+    flat = (uv[:, 1].astype(np.int64) + L) * width + (uv[:, 0] + L)
+    index = np.full(int(flat.max()) + L * width + L + 1, n, np.int64)
+    index[flat] = np.arange(n)
+    # the lags of a half-plane, all in one gather: (n, lags) neighbours' indices
+    j = np.take(index, flat[:, None] + (_LAGS[:, 1] * width + _LAGS[:, 0]))
+    rw1 = np.zeros((n + 1, 3))
+    rw1[:n, 0], rw1[:n, 1], rw1[:n, 2] = r, w, 1.0
+    nb = np.take(rw1, j, axis=0)  # (n, lags, 3): the neighbours' r, w and presence
+    pairs = nb[:, :, 2].sum(axis=0)
+    use = pairs >= NOISE_MIN_PAIRS
+    rho = np.where(use, (r @ nb[:, :, 0]) / np.maximum(pairs, 1.0) / var, 0.0)
+    share = (w @ nb[:, :, 1]) / den  # the weights' overlap at each lag
+    excess = 2.0 * float(rho @ share)
+    # rho's estimates scatter by 1 / sqrt(pairs) each: only an excess beyond twice its
+    # own scatter is taken (white noise would otherwise read as 1.04-1.08 on average)
+    scatter = 2.0 * math.sqrt(float(np.sum(np.where(use, share**2 / np.maximum(pairs, 1.0), 0.0))))
+    return 1.0 + max(excess - 2.0 * scatter, 0.0)
 
 
 def refine(image: np.ndarray, normals: np.ndarray, offsets: np.ndarray, width: np.ndarray,
@@ -177,7 +245,7 @@ def refine(image: np.ndarray, normals: np.ndarray, offsets: np.ndarray, width: n
     # n_perp . (x - c)), offset, width, then the six level coefficients, whose first
     # three (the board's plane: 1, x, y) never change
     jac = []
-    for x, _ in bands:
+    for x, *_ in bands:
         Je = np.empty((len(x), 9), order="F")
         Je[:, 3] = 1.0
         Je[:, 4:6] = (x - centroid) / scale
@@ -189,7 +257,7 @@ def refine(image: np.ndarray, normals: np.ndarray, offsets: np.ndarray, width: n
         b = np.zeros(N_PARAMS)
         rss = 0.0
         steps = []
-        for i, ((x, _), Je) in enumerate(zip(bands, jac, strict=True)):
+        for i, ((x, *_), Je) in enumerate(zip(bands, jac, strict=True)):
             nx, ny = n[i]
             rx, ry = x[:, 0] - c[i, 0], x[:, 1] - c[i, 1]
             u = (rx * nx + ry * ny) / w[i]
@@ -199,8 +267,9 @@ def refine(image: np.ndarray, normals: np.ndarray, offsets: np.ndarray, width: n
         if level is None:
             # the levels from the starting lines, by linear least squares
             A = np.concatenate([Je[:, 3:9] for Je in jac])
-            level = np.linalg.solve(A.T @ A, A.T @ np.concatenate([y for _, y in bands]))
-        for i, ((_, y), Je) in enumerate(zip(bands, jac, strict=True)):
+            level = np.linalg.solve(A.T @ A, A.T @ np.concatenate([e[1] for e in bands]))
+        last = []  # each edge's residuals and offset derivatives, for _noise_inflation
+        for i, ((_, y, _), Je) in enumerate(zip(bands, jac, strict=True)):
             u, perp = steps[i]
             C = Je[:, 3:6] @ level[3:]
             r = y - Je[:, 3:9] @ level
@@ -211,6 +280,7 @@ def refine(image: np.ndarray, normals: np.ndarray, offsets: np.ndarray, width: n
             Je[:, 2] = -g * u
             H[np.ix_(idx[i], idx[i])] += Je.T @ Je
             b[idx[i]] += Je.T @ r
+            last.append((r, g))
         try:
             step = np.linalg.solve(H, b)
         except np.linalg.LinAlgError:
@@ -226,12 +296,20 @@ def refine(image: np.ndarray, normals: np.ndarray, offsets: np.ndarray, width: n
         # a small one: no pass of its own is needed to measure them)
         rss -= float(step @ b)
     s2 = max(rss, 0.0) / max(m - N_PARAMS, 1)
+    # the residuals of a band the model fits are the pixels' noise, alike in the three
+    # bands (the same board and triangle): one band's twice the others' has something
+    # else in it (a head just off an edge, which the lines' robust fit may carry as a
+    # wider scatter without an outlier), and the fit, not robust, is not taken
+    rms = [math.sqrt(float(r @ r) / len(r)) for r, _ in last]
+    if max(rms) > EDGE_RMS_RATIO * sorted(rms)[1]:
+        return PhotometricFit(V, np.full((6, 6), np.nan), w, math.nan, m, ok=False)
+    inflation = _noise_inflation([e[2] for e in bands], last)
     try:
-        cov_p = s2 * np.linalg.inv(H)[:6, :6]
+        cov_p = inflation * s2 * np.linalg.inv(H)[:6, :6]
     except np.linalg.LinAlgError:
         return PhotometricFit(V, np.full((6, 6), np.nan), w, math.nan, m, ok=False)
     V, invs = _intersections(n, c)
     if invs is None:
         return PhotometricFit(V, np.full((6, 6), np.nan), w, math.nan, m, ok=False)
     G = _vertex_gain(n, c, V, invs)
-    return PhotometricFit(V, G @ cov_p @ G.T, w, math.sqrt(s2), m)
+    return PhotometricFit(V, G @ cov_p @ G.T, w, math.sqrt(s2), m, inflation=inflation)

@@ -184,8 +184,8 @@ def _pixel_fit(image, fit, xy, cov, camera):
     when the refinement agrees with them: the edge lines are robust (their profiles'
     outliers left out, something in a window found), the pixel fit is not, so a pixel
     fit that moved the vertices by more than the lines' own covariance allows (chi-square,
-    6 dof, p = 1e-4: a head in an edge's band, a light) is not taken, and the lines'
-    vertices and covariance stand."""
+    6 dof, p = 1e-4: a head in an edge's band, a light), or whose covariance is the wider
+    of the two, is not taken, and the lines' vertices and covariance stand."""
     pf = refine(image, fit.normals, fit.offsets, fit.width, camera)
     if not pf.ok or not np.all(np.isfinite(pf.cov)):
         return xy, cov
@@ -195,6 +195,11 @@ def _pixel_fit(image, fit, xy, cov, camera):
     except np.linalg.LinAlgError:
         return xy, cov
     if not chi2_ < PIXEL_FIT_GATE:
+        return xy, cov
+    # and when it is the more precise: residuals with a structure of their own (a head
+    # in a band) widen its covariance through their correlation (photometric's
+    # _noise_inflation) beyond the lines'
+    if not np.trace(pf.cov) < np.trace(cov):
         return xy, cov
     return pf.xy, pf.cov
 
