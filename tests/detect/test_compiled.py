@@ -232,3 +232,35 @@ def test_kernels_that_do_not_load_leave_the_numpy_path_on(monkeypatch, capsys):
     assert "compiled edge fit did not load" in err and "no locator" in err
     rig_img = _frames()[0][1]
     assert pipe.process(Frame(0, 0.0, rig_img)).ok
+
+
+def test_the_pixel_fits_noise_correlation_compiled_or_not(monkeypatch):
+    """The pixel fit's noise inflation (photometric._noise_inflation) from the compiled
+    sums over pixel pairs and from numpy's: the same, on white and on correlated noise;
+    and the kernel run as Python gives the compiled sums."""
+    import cv2
+
+    from visvec.detect import photometric
+
+    rng = np.random.default_rng(2)
+    rows, cols = np.mgrid[0:200, 0:7]
+    uv = np.column_stack([cols.ravel() + 3, rows.ravel() + 4]).astype(np.int32)
+    w = np.exp(-0.5 * ((cols.ravel() - 3.0) / 1.1) ** 2)
+    k = np.array([0.25, 0.5, 0.25])
+    for noise in (
+        rng.normal(size=(210, 14)),
+        cv2.sepFilter2D(rng.normal(size=(210, 14)), -1, k, k),
+    ):
+        last = [(noise[uv[:, 1], uv[:, 0]], w)]
+        got = {}
+        for flag in (False, True):
+            monkeypatch.setattr(photometric, "COMPILED", flag)
+            got[flag] = photometric._noise_inflation([uv], last)
+        assert got[True] == pytest.approx(got[False], rel=1e-12, abs=1e-12)
+    index = np.full(40, 3, np.int32)
+    index[[5, 6, 12]] = [0, 1, 2]
+    args = (index, np.array([5, 6, 12]), np.array([1, 7]), np.array([1.0, 2.0, 3.0]),
+            np.array([0.5, 1.0, 2.0]))  # fmt: skip
+    pairs, rr, ww = _compiled.lag_sums(*args)
+    assert pairs.tolist() == [1.0, 1.0] and rr.tolist() == [2.0, 3.0]
+    assert _diff((pairs, rr, ww), _compiled.lag_sums.py_func(*args)) == 0.0

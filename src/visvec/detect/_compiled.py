@@ -501,7 +501,28 @@ def _robust_lines(x, y, gid, use, floor, rounds, inflation):
     return n, offset, c, spread, sigmas, keep
 
 
+# ------------------------------------------------- the pixel fit's noise correlation
+def _lag_sums(index, flat, offsets, r, w):
+    """photometric._noise_inflation's sums: per lag (offset in the padded raster), the
+    band's pixel pairs at that lag and the sums of r r' and w w' over them (``index``:
+    each raster cell's pixel, len(r) where none is; ``flat``: each pixel's cell)."""
+    n = len(r)
+    lags = len(offsets)
+    pairs = np.zeros(lags)
+    rr = np.zeros(lags)
+    ww = np.zeros(lags)
+    for k in range(n):
+        for q in range(lags):
+            j = index[flat[k] + offsets[q]]
+            if j < n:
+                pairs[q] += 1.0
+                rr[q] += r[k] * r[j]
+                ww[q] += w[k] * w[j]
+    return pairs, rr, ww
+
+
 sample_geometry = _jit(_sample_geometry)
+lag_sums = _jit(_lag_sums)
 _group_linear = _jit(_group_linear)
 _levels_suspect = _jit(_levels_suspect)
 _median = _jit(_median)

@@ -33,6 +33,7 @@ import numpy as np
 from scipy.special import ndtr
 
 from visvec.camera import CameraModel
+from visvec.detect import _compiled
 from visvec.detect.edges import _vertices
 
 GN_STEPS = 2
@@ -46,6 +47,8 @@ CLEAR_WIDTHS = 3.0
 # half-plane); 5 px changed no figure of benchmarks/triangle_compression.py
 NOISE_LAG_PX = 2
 NOISE_MIN_PAIRS = 50
+# the noise correlation's sums over pixel pairs run compiled with the fast extra
+COMPILED = _compiled.AVAILABLE
 # a band whose residual RMS is this many times the median band's is not fitted by the
 # model (clean frames: at most 1.08; through a video codec at most 1.41)
 EDGE_RMS_RATIO = 2.0
@@ -207,17 +210,21 @@ def _noise_inflation(uvs: list, last: list) -> float:
     # and w) where no band pixel is; a pixel in two bands: its last place
     width = int(uv[:, 0].max()) + 2 * L + 1
     flat = (uv[:, 1].astype(np.int64) + L) * width + (uv[:, 0] + L)
-    index = np.full(int(flat.max()) + L * width + L + 1, n, np.int64)
-    index[flat] = np.arange(n)
-    # the lags of a half-plane, all in one gather: (n, lags) neighbours' indices
-    j = np.take(index, flat[:, None] + (_LAGS[:, 1] * width + _LAGS[:, 0]))
-    rw1 = np.zeros((n + 1, 3))
-    rw1[:n, 0], rw1[:n, 1], rw1[:n, 2] = r, w, 1.0
-    nb = np.take(rw1, j, axis=0)  # (n, lags, 3): the neighbours' r, w and presence
-    pairs = nb[:, :, 2].sum(axis=0)
+    index = np.full(int(flat.max()) + L * width + L + 1, n, np.int32)
+    index[flat] = np.arange(n, dtype=np.int32)
+    # the lags of a half-plane, all in one gather: (n, lags) neighbours' indices; per
+    # lag the pixel pairs, and the sums of r r' and w w' over them
+    offsets = _LAGS[:, 1] * width + _LAGS[:, 0]
+    if COMPILED:
+        pairs, rr, ww = _compiled.lag_sums(index, flat, offsets, r, w)
+    else:
+        j = np.take(index, flat[:, None] + offsets)
+        pairs = np.count_nonzero(j < n, axis=0).astype(float)
+        rr = r @ np.take(np.append(r, 0.0), j)
+        ww = w @ np.take(np.append(w, 0.0), j)
     use = pairs >= NOISE_MIN_PAIRS
-    rho = np.where(use, (r @ nb[:, :, 0]) / np.maximum(pairs, 1.0) / var, 0.0)
-    share = (w @ nb[:, :, 1]) / den  # the weights' overlap at each lag
+    rho = np.where(use, rr / np.maximum(pairs, 1.0) / var, 0.0)
+    share = ww / den  # the weights' overlap at each lag
     excess = 2.0 * float(rho @ share)
     # rho's estimates scatter by 1 / sqrt(pairs) each: only an excess beyond twice its
     # own scatter is taken (white noise would otherwise read as 1.04-1.08 on average)
