@@ -4,7 +4,7 @@ tilted towards it. Cold frames at random attitudes (yaw anywhere, tilts within 5
 how many are ok of those whose triangle is wholly in view, their accuracy and whether
 their sigma holds.
 
-    python benchmarks/triangle_geometries.py [--frames 100]
+    python benchmarks/triangle_geometries.py [--frames 100] [--refine pixels]
 """
 
 from __future__ import annotations
@@ -14,13 +14,13 @@ from dataclasses import replace
 
 import numpy as np
 
-from visvec.bench.triangle import evaluate, random_cases, render_cases
+from visvec.bench.triangle import evaluate, random_cases, render_cases, with_refine
 from visvec.geometry import project_target
 from visvec.rig import Rig, load_rig
 from visvec.rotations import euler_to_matrix
 from visvec.sim.scene import Scene
 
-from _common import CONFIGS, run_record, save_json, summarise
+from _common import CONFIGS, add_refine_option, run_record, save_json, summarise
 
 
 def _about_b2(deg: float) -> np.ndarray:
@@ -83,6 +83,7 @@ def geometries(rig: Rig) -> dict[str, Rig]:
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--frames", type=int, default=100)
+    add_refine_option(ap)
     args = ap.parse_args()
     results = {**run_record()}
     for name, rig in geometries(load_rig(CONFIGS / "triangle.toml")).items():
@@ -92,7 +93,7 @@ def main() -> None:
             for c in cases
         ]
         imgs = render_cases(rig, cases)
-        out = evaluate(rig, imgs, cases, "full")
+        out = evaluate(with_refine(rig, args.refine), imgs, cases, "full")
         res = summarise(out)
         res["whole_in_view"] = int(sum(whole))
         res["ok_of_whole_in_view"] = int(
@@ -100,7 +101,8 @@ def main() -> None:
         )
         results[name] = res
         print(name, res)
-    print(save_json("triangle_geometries", results))
+    print(save_json("triangle_geometries" + ("" if args.refine == "lines" else f"_{args.refine}"),
+                    results))  # fmt: skip
 
 
 if __name__ == "__main__":
