@@ -33,7 +33,7 @@ import numpy as np  # noqa: E402
 
 from visvec.bench.triangle import Case, render_cases, with_refine  # noqa: E402
 from visvec.data import Frame  # noqa: E402
-from visvec.detect import edges  # noqa: E402
+from visvec.detect import _compiled  # noqa: E402
 from visvec.pipeline import TrianglePipeline  # noqa: E402
 from visvec.rig import load_rig  # noqa: E402
 from visvec.sim.scene import Scene  # noqa: E402
@@ -62,7 +62,7 @@ def main() -> None:
 
     rig = with_refine(load_rig(args.rig), args.refine)
     name = "triangle_speed" if args.refine == "lines" else f"triangle_speed_{args.refine}"
-    if not edges.COMPILED:
+    if not _compiled.ON:
         name += "_pure"
     if args.size:
         w, h = (int(v) for v in args.size.lower().split("x"))
@@ -94,7 +94,7 @@ def main() -> None:
         "frames": args.frames,
         "repeats": args.repeats,
         # the edge fit's compiled kernels (the fast extra; VISVEC_PURE=1 turns them off)
-        "compiled_kernels": edges.COMPILED,
+        "compiled_kernels": _compiled.ON,
     }
     times = {"tracking": [], "cold": [], "png_decode": [], "aruco": [], "aruco_subpix": []}
     n_ok = {"tracking": 0, "cold": 0}

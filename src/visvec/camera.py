@@ -32,6 +32,15 @@ UNDISTORT_FAIL_PX = 1e-3
 SMALL_N = 4
 
 
+def _distorted(x, y, k1, k2, p1, p2, k3):
+    """OpenCV's distortion polynomial of normalised (x, y): arrays or floats alike."""
+    r2 = x * x + y * y
+    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+    yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+    return xd, yd
+
+
 @dataclass(frozen=True)
 class CameraModel:
     """Intrinsics of one camera.
@@ -125,24 +134,15 @@ class CameraModel:
         """Normalised undistorted coordinates (N, 2) to pixels (N, 2): the polynomial as
         it is, also outside the model's field (see :meth:`project`)."""
         if len(xy_n) <= SMALL_N and getattr(xy_n, "dtype", None) == np.float64:
-            # a triangle's vertices: Python's floats, the same operations in the same
-            # order (numpy's start-up on three points costs more than the arithmetic)
-            k1, k2, p1, p2, k3 = self._dist_floats
-            fx, fy, cx, cy = self.fx, self.fy, self.cx, self.cy
-            out = []
-            for x, y in xy_n.tolist():
-                r2 = x * x + y * y
-                radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-                xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-                yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
-                out.append((fx * xd + cx, fy * yd + cy))
-            return np.array(out, dtype=np.float64).reshape(-1, 2)
-        x, y = xy_n[:, 0], xy_n[:, 1]
-        k1, k2, p1, p2, k3 = self.dist
-        r2 = x * x + y * y
-        radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-        xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-        yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+            # a triangle's vertices: point by point in Python's floats (numpy's start-up
+            # on three points costs more than the arithmetic), the same operations
+            k = self._dist_floats
+            out = [_distorted(x, y, *k) for x, y in xy_n.tolist()]
+            uv = np.array(out, dtype=np.float64).reshape(-1, 2)
+            uv[:, 0] = self.fx * uv[:, 0] + self.cx
+            uv[:, 1] = self.fy * uv[:, 1] + self.cy
+            return uv
+        xd, yd = _distorted(xy_n[:, 0], xy_n[:, 1], *self.dist)
         return np.column_stack([self.fx * xd + self.cx, self.fy * yd + self.cy])
 
     def project(self, p_c: np.ndarray) -> np.ndarray:

@@ -73,7 +73,7 @@ def calls():
 
     mp = pytest.MonkeyPatch()
     try:
-        mp.setattr(E, "COMPILED", False)
+        mp.setattr(_compiled, "ON", False)
         for n in KERNELS:
             mp.setattr(E, n, spy(n))
         for rig, img in _frames():
@@ -108,9 +108,9 @@ def test_each_kernel_gives_what_numpy_gives(calls, name, monkeypatch):
     assert len(args) >= 10, len(args)
     worst = 0.0
     for a, k in args:
-        monkeypatch.setattr(E, "COMPILED", False)
+        monkeypatch.setattr(_compiled, "ON", False)
         pure = f(*a, **k)
-        monkeypatch.setattr(E, "COMPILED", True)
+        monkeypatch.setattr(_compiled, "ON", True)
         fast = f(*a, **k)
         worst = max(worst, _diff(pure, fast))
     assert worst < 1e-9, worst
@@ -147,7 +147,7 @@ def test_the_kernels_run_as_python_give_what_compiled_gives(calls):
 
 def _as_python(kernel):
     """The kernel and the kernels it calls as plain Python."""
-    inner = {n: getattr(_compiled, n) for n in ("_group_linear", "_levels_suspect", "_median",
+    inner = {n: getattr(_compiled, n) for n in ("_group_linear", "_levels_suspect",
                                                  "_level_lines", "_group_tls",
                                                  "_group_median")}  # fmt: skip
 
@@ -190,7 +190,7 @@ def test_a_cold_frame_gives_the_same_vertices_compiled_or_not(monkeypatch):
     agree to the estimator's own 1e-5 px)."""
     got = {}
     for flag in (False, True):
-        monkeypatch.setattr(E, "COMPILED", flag)
+        monkeypatch.setattr(_compiled, "ON", flag)
         out = []
         for rig, img in _frames():
             pipe = TrianglePipeline(rig)
@@ -207,7 +207,7 @@ def test_a_cold_frame_gives_the_same_vertices_compiled_or_not(monkeypatch):
 
 def test_visvec_pure_turns_the_kernels_off():
     """VISVEC_PURE=1 runs the numpy functions (a lab can compare, or rule Numba out)."""
-    code = "from visvec.detect import edges; print(edges.COMPILED)"
+    code = "from visvec.detect import _compiled; print(_compiled.ON)"
     for value, expected in (("1", "False"), ("0", "True")):
         env = {**os.environ, "VISVEC_PURE": value}
         out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
@@ -223,11 +223,11 @@ def test_kernels_that_do_not_load_leave_the_numpy_path_on(monkeypatch, capsys):
         raise RuntimeError("cannot cache function: no locator available")
 
     monkeypatch.setattr(E, "_warm", False)
-    monkeypatch.setattr(E, "COMPILED", True)
+    monkeypatch.setattr(_compiled, "ON", True)
     monkeypatch.setattr(_compiled, "sample_geometry", broken)
     rig = load_rig(CONFIGS / "triangle.toml")
     pipe = TrianglePipeline(rig)
-    assert E.COMPILED is False
+    assert _compiled.ON is False
     err = capsys.readouterr().err
     assert "compiled edge fit did not load" in err and "no locator" in err
     rig_img = _frames()[0][1]
@@ -254,7 +254,7 @@ def test_the_pixel_fits_noise_correlation_compiled_or_not(monkeypatch):
         last = [(noise[uv[:, 1], uv[:, 0]], w)]
         got = {}
         for flag in (False, True):
-            monkeypatch.setattr(photometric, "COMPILED", flag)
+            monkeypatch.setattr(_compiled, "ON", flag)
             got[flag] = photometric._noise_inflation([uv], last)
         assert got[True] == pytest.approx(got[False], rel=1e-12, abs=1e-12)
     index = np.full(40, 3, np.int32)

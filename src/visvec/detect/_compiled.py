@@ -1,4 +1,5 @@
-"""Compiled kernels of the edge fit (visvec.detect.edges), through Numba.
+"""Compiled kernels of the edge fit (visvec.detect.edges) and of the pixel fit's noise
+correlation (visvec.detect.photometric), through Numba.
 
 A frame's edge fit works on a few hundred profiles of a dozen samples each: numpy spends
 most of its time there starting its array operations, not doing them. Each kernel here
@@ -28,6 +29,9 @@ except ImportError:  # the pure path
     numba = None
 
 AVAILABLE = numba is not None
+# whether the kernels run: edges and photometric look here on every call; edges.warm_up
+# turns it off when they do not load
+ON = AVAILABLE
 
 # Abramowitz & Stegun, Handbook of Mathematical Functions (1964), Eq. 7.1.26, as
 # edges.erf_with_bell evaluates it (Horner, a5 first)
@@ -174,13 +178,6 @@ def _levels_suspect(r_lo, r_hi, lo_raw, hi_raw, starts, suspect_rms, suspect_max
     return False
 
 
-def _median(v):
-    """The median as np.median takes it (the mean of the middle two of an even count)."""
-    s = np.sort(v)
-    n = len(s)
-    return 0.5 * (s[(n - 1) // 2] + s[n // 2])
-
-
 def _level_lines(t, lo_raw, hi_raw, gid, starts, outlier_sigmas, outlier_min,
                  suspect_rms, suspect_max):  # fmt: skip
     """edges._level_lines: lo, hi on the final lines and the profiles whose levels
@@ -202,10 +199,10 @@ def _level_lines(t, lo_raw, hi_raw, gid, starts, outlier_sigmas, outlier_min,
         n0 = c // 2
         # resistant lines through the medians of each half's levels, at the halves'
         # middle t (t ascends along the edge)
-        m_lo0 = _median(lo_raw[a : a + n0].astype(np.float64))
-        m_lo1 = _median(lo_raw[a + n0 : a + c].astype(np.float64))
-        m_hi0 = _median(hi_raw[a : a + n0].astype(np.float64))
-        m_hi1 = _median(hi_raw[a + n0 : a + c].astype(np.float64))
+        m_lo0 = np.median(lo_raw[a : a + n0].astype(np.float64))
+        m_lo1 = np.median(lo_raw[a + n0 : a + c].astype(np.float64))
+        m_hi0 = np.median(hi_raw[a : a + n0].astype(np.float64))
+        m_hi1 = np.median(hi_raw[a + n0 : a + c].astype(np.float64))
         t0 = 0.5 * (t[a + (n0 - 1) // 2] + t[a + n0 // 2])
         t1 = 0.5 * (t[a + n0 + (c - n0 - 1) // 2] + t[a + n0 + (c - n0) // 2])
         dt = t1 - t0 if abs(t1 - t0) > 1e-9 else 1.0
@@ -215,8 +212,8 @@ def _level_lines(t, lo_raw, hi_raw, gid, starts, outlier_sigmas, outlier_min,
             u = t[p] - t0
             res_lo[p] = abs(lo_raw[p] - m_lo0 - s_lo * u)
             res_hi[p] = abs(hi_raw[p] - m_hi0 - s_hi * u)
-        lim_lo[g] = max(outlier_sigmas * 1.4826 * _median(res_lo[a : a + c]), outlier_min)
-        lim_hi[g] = max(outlier_sigmas * 1.4826 * _median(res_hi[a : a + c]), outlier_min)
+        lim_lo[g] = max(outlier_sigmas * 1.4826 * np.median(res_lo[a : a + c]), outlier_min)
+        lim_hi[g] = max(outlier_sigmas * 1.4826 * np.median(res_hi[a : a + c]), outlier_min)
     have = False
     new = np.empty(m_all, np.bool_)
     for _ in range(2):
@@ -404,7 +401,7 @@ def _group_median(a, gid, keep):
                 if gid[p] == g and keep[p]:
                     v[q] = a[p]
                     q += 1
-            out[g] = _median(v)
+            out[g] = np.median(v)
     return out
 
 
@@ -525,7 +522,6 @@ sample_geometry = _jit(_sample_geometry)
 lag_sums = _jit(_lag_sums)
 _group_linear = _jit(_group_linear)
 _levels_suspect = _jit(_levels_suspect)
-_median = _jit(_median)
 _level_lines = _jit(_level_lines)
 positions = _jit(_positions)
 widths = _jit(_widths)

@@ -36,9 +36,6 @@ PROFILE_SPACING_PX = 1.5
 SPARSE_SPACING_PX = 2.0
 # Gauss-Newton steps of the matched (erf) edge refinement
 GN_STEPS = 1
-# the edge fit's inner functions run compiled where Numba is installed (the `fast` extra;
-# visvec.detect._compiled), else on numpy
-COMPILED = _compiled.AVAILABLE
 _NO_WIDTH = np.zeros(0)
 # cv2.remap takes at most 32767 rows; no real edge needs more than this many profiles
 MAX_PROFILES_PER_EDGE = 4000
@@ -225,7 +222,7 @@ def _sorted_medians(table: np.ndarray, k: np.ndarray) -> np.ndarray:
 def _group_median(a: np.ndarray, gid: np.ndarray, index: np.ndarray, keep: np.ndarray):
     """(3,) median of ``a`` over each edge's kept points (index: position along the edge),
     the same value as np.median: one sort of a (3, longest edge) table padded with inf."""
-    if COMPILED:
+    if _compiled.ON:
         return _compiled.group_median(np.asarray(a, float), gid, keep)
     table = np.full((3, int(index.max()) + 1), np.inf)
     table[gid[keep], index[keep]] = a[keep]
@@ -251,7 +248,7 @@ def _robust_lines(
     Returns per edge the normal (3, 2), offset (3,), centre (3, 2), spread (3,), sigma
     (3,), and the inlier mask (M,).
     """
-    if COMPILED:
+    if _compiled.ON:
         return _compiled.robust_lines(x, y, gid, use, float(floor), int(rounds),
                                       EDGE_VARIANCE_INFLATION)  # fmt: skip
     keep = use.copy()
@@ -392,7 +389,7 @@ def _sample(
     edge t in [-1, 1] (M,), distance from the edge's first end (M,), values (M, S), and
     each edge's length (3,).
     """
-    if COMPILED and np.all(np.isfinite(corners)) and np.all(np.isfinite(trims)):
+    if _compiled.ON and np.all(np.isfinite(corners)) and np.all(np.isfinite(trims)):
         offs = np.arange(-half, half + 1e-9, step)
         bases, normals, gid, k, tt, along, map_x, map_y, length = _compiled.sample_geometry(
             corners, off, offs, trims, float(spacing), MAX_PROFILES_PER_EDGE
@@ -482,7 +479,7 @@ def _positions(
     """
     n_ext = int(round(ext / step))
     ends = max(2, int(1.0 / step)) + n_ext
-    if COMPILED:
+    if _compiled.ON:
         w = _NO_WIDTH if width is None else np.asarray(width, float)
         return _compiled.positions(vals, t, gid, float(half), float(step), w, n_ext, ends,
                                    GN_STEPS, LEVEL_OUTLIER_SIGMAS, LEVEL_OUTLIER_MIN,
@@ -552,7 +549,7 @@ def _widths(
     second moment (10-90 % of a 1920x1080 webcam's cold widths 0.54-1.06 px over 8 px,
     0.77-0.89 within 4 widths).
     """
-    if COMPILED:
+    if _compiled.ON:
         return _compiled.widths(vals, 0, e, clear, gid, float(half), float(step),
                                 WIDTH_REACH_MIN_PX)  # fmt: skip
     d = np.diff(vals, axis=1)
@@ -829,8 +826,8 @@ def warm_up() -> None:
     milliseconds once they are loaded; without Numba, nothing. Kernels that do not load
     (a Numba that cannot compile here, no writable place for its cache: NUMBA_CACHE_DIR
     names one) leave the numpy path on, with a line on stderr."""
-    global _warm, COMPILED
-    if _warm or not COMPILED:
+    global _warm
+    if _warm or not _compiled.ON:
         return
     _warm = True
     img = np.full((96, 96), 60, np.uint8)
@@ -841,8 +838,11 @@ def warm_up() -> None:
     try:
         fit = fit_edges(img, corners, cam)
         fit_edges(img, corners, cam, width=fit.width)
+        # the pixel fit's kernel, with the types photometric._noise_inflation gives it
+        _compiled.lag_sums(np.ones(3, np.int32), np.zeros(1, np.int64), np.ones(1, np.int64),
+                           np.zeros(1), np.zeros(1))  # fmt: skip
     except Exception as exc:  # noqa: BLE001 - any failure of Numba's: numpy instead
-        COMPILED = False
+        _compiled.ON = False
         print(f"visvec: the compiled edge fit did not load ({type(exc).__name__}: {exc}); "
               "the numpy one runs (VISVEC_PURE=1 skips the attempt)", file=sys.stderr)  # fmt: skip
 

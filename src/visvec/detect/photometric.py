@@ -47,8 +47,6 @@ CLEAR_WIDTHS = 3.0
 # half-plane); 5 px changed no figure of benchmarks/triangle_compression.py
 NOISE_LAG_PX = 2
 NOISE_MIN_PAIRS = 50
-# the noise correlation's sums over pixel pairs run compiled with the fast extra
-COMPILED = _compiled.AVAILABLE
 # a band whose residual RMS is this many times the median band's is not fitted by the
 # model (clean frames: at most 1.08; through a video codec at most 1.41)
 EDGE_RMS_RATIO = 2.0
@@ -78,6 +76,12 @@ class PhotometricFit:
     n_pixels: int
     ok: bool = True
     inflation: float = 1.0
+
+
+def _refused(V: np.ndarray, w: np.ndarray, m: int) -> PhotometricFit:
+    """A fit that is not to be taken (too few pixels, a singular system, a band the
+    model does not fit): the starting vertices, no covariance."""
+    return PhotometricFit(V, np.full((6, 6), np.nan), w, math.nan, m, ok=False)
 
 
 class _IdealGrid:
@@ -155,8 +159,8 @@ def _band(image, n, c, reach, clear, camera):
                     [camera.width - 1, camera.height - 1])  # fmt: skip
     if np.any(hi <= lo):
         return None
-    # the three bands drawn on one mask; the exact check below gives each pixel to the
-    # edge it is near (near a vertex, where two bands overlap, to neither)
+    # the three bands drawn on one mask; the exact check below gives each pixel to each
+    # edge whose rule it meets (deep inside the triangle near a vertex, to both)
     mask = np.zeros((hi[1] - lo[1] + 1, hi[0] - lo[0] + 1), np.uint8)
     for i in range(3):
         poly = np.rint((q_px[4 * i : 4 * i + 4] - lo) * 16).astype(np.int32)
@@ -215,7 +219,7 @@ def _noise_inflation(uvs: list, last: list) -> float:
     # the lags of a half-plane, all in one gather: (n, lags) neighbours' indices; per
     # lag the pixel pairs, and the sums of r r' and w w' over them
     offsets = _LAGS[:, 1] * width + _LAGS[:, 0]
-    if COMPILED:
+    if _compiled.ON:  # the sums over pixel pairs, compiled (the fast extra)
         pairs, rr, ww = _compiled.lag_sums(index, flat, offsets, r, w)
     else:
         j = np.take(index, flat[:, None] + offsets)
@@ -245,7 +249,7 @@ def refine(image: np.ndarray, normals: np.ndarray, offsets: np.ndarray, width: n
     counts = [0, 0, 0] if bands is None else [len(b[1]) for b in bands]
     m = sum(counts)
     if m < 3 * N_PARAMS or min(counts) < 10:
-        return PhotometricFit(V, np.full((6, 6), np.nan), w, math.nan, m, ok=False)
+        return _refused(V, w, m)
     centroid = V.mean(axis=0)
     scale = max(float(np.abs(V - centroid).max()), 1.0)
     # per edge, its pixels' Jacobian (m_e, 9): rotation about c (d(d)/d(theta) =
@@ -291,7 +295,7 @@ def refine(image: np.ndarray, normals: np.ndarray, offsets: np.ndarray, width: n
         try:
             step = np.linalg.solve(H, b)
         except np.linalg.LinAlgError:
-            return PhotometricFit(V, np.full((6, 6), np.nan), w, math.nan, m, ok=False)
+            return _refused(V, w, m)
         for i in range(3):
             th, oo = step[2 * i], step[2 * i + 1]
             cs, sn = math.cos(th), math.sin(th)
@@ -309,14 +313,14 @@ def refine(image: np.ndarray, normals: np.ndarray, offsets: np.ndarray, width: n
     # wider scatter without an outlier), and the fit, not robust, is not taken
     rms = [math.sqrt(float(r @ r) / len(r)) for r, _ in last]
     if max(rms) > EDGE_RMS_RATIO * sorted(rms)[1]:
-        return PhotometricFit(V, np.full((6, 6), np.nan), w, math.nan, m, ok=False)
+        return _refused(V, w, m)
     inflation = _noise_inflation([e[2] for e in bands], last)
     try:
         cov_p = inflation * s2 * np.linalg.inv(H)[:6, :6]
     except np.linalg.LinAlgError:
-        return PhotometricFit(V, np.full((6, 6), np.nan), w, math.nan, m, ok=False)
+        return _refused(V, w, m)
     V, invs = _intersections(n, c)
     if invs is None:
-        return PhotometricFit(V, np.full((6, 6), np.nan), w, math.nan, m, ok=False)
+        return _refused(V, w, m)
     G = _vertex_gain(n, c, V, invs)
     return PhotometricFit(V, G @ cov_p @ G.T, w, math.sqrt(s2), m, inflation=inflation)
