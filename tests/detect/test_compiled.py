@@ -149,7 +149,8 @@ def _as_python(kernel):
     """The kernel and the kernels it calls as plain Python."""
     inner = {n: getattr(_compiled, n) for n in ("_group_linear", "_levels_suspect",
                                                  "_level_lines", "_group_tls",
-                                                 "_group_median")}  # fmt: skip
+                                                 "_group_median", "_lag_sums",
+                                                 "_ndtr_with_bell")}  # fmt: skip
 
     def run(*args):
         mp = pytest.MonkeyPatch()
@@ -235,28 +236,33 @@ def test_kernels_that_do_not_load_leave_the_numpy_path_on(monkeypatch, capsys):
 
 
 def test_the_pixel_fits_noise_correlation_compiled_or_not(monkeypatch):
-    """The pixel fit's noise inflation (photometric._noise_inflation) from the compiled
-    sums over pixel pairs and from numpy's: the same, on white and on correlated noise;
-    and the kernel run as Python gives the compiled sums."""
+    """The pixel fit's noise inflation (photometric._noise_inflation) compiled and from
+    numpy: the same, on white and on correlated noise, a pixel in two bands too; and the
+    kernels run as Python give the compiled results."""
     import cv2
 
     from visvec.detect import photometric
 
     rng = np.random.default_rng(2)
     rows, cols = np.mgrid[0:200, 0:7]
-    uv = np.column_stack([cols.ravel() + 3, rows.ravel() + 4]).astype(np.int32)
-    w = np.exp(-0.5 * ((cols.ravel() - 3.0) / 1.1) ** 2)
+    uv = np.column_stack([cols.ravel() + 3, rows.ravel() + 4]).astype(np.int64)
+    uv = np.vstack([uv, uv[:30]])  # the first 30 pixels in a second band
+    w = np.exp(-0.5 * ((uv[:, 0] - 6.0) / 1.1) ** 2)
     k = np.array([0.25, 0.5, 0.25])
     for noise in (
         rng.normal(size=(210, 14)),
         cv2.sepFilter2D(rng.normal(size=(210, 14)), -1, k, k),
     ):
-        last = [(noise[uv[:, 1], uv[:, 0]], w)]
+        r = noise[uv[:, 1], uv[:, 0]]
         got = {}
         for flag in (False, True):
             monkeypatch.setattr(_compiled, "ON", flag)
-            got[flag] = photometric._noise_inflation([uv], last)
+            got[flag] = photometric._noise_inflation(uv, r, w)
         assert got[True] == pytest.approx(got[False], rel=1e-12, abs=1e-12)
+        args = (uv, r, w, photometric._LAGS, photometric.NOISE_LAG_PX,
+                photometric.NOISE_MIN_PAIRS)  # fmt: skip
+        assert _as_python(_compiled.noise_inflation)(*args) == pytest.approx(got[True], rel=1e-12)
+    assert got[True] > 1.5  # the smoothed noise's
     index = np.full(40, 3, np.int32)
     index[[5, 6, 12]] = [0, 1, 2]
     args = (index, np.array([5, 6, 12]), np.array([1, 7]), np.array([1.0, 2.0, 3.0]),
@@ -264,3 +270,78 @@ def test_the_pixel_fits_noise_correlation_compiled_or_not(monkeypatch):
     pairs, rr, ww = _compiled.lag_sums(*args)
     assert pairs.tolist() == [1.0, 1.0] and rr.tolist() == [2.0, 3.0]
     assert _diff((pairs, rr, ww), _compiled.lag_sums.py_func(*args)) == 0.0
+
+
+@pytest.fixture(scope="module")
+def pixel_fits():
+    """Every call the pipeline makes to the pixel fit (photometric.refine) on _frames()
+    with refine = "pixels", cold and tracked (the numpy path's)."""
+    from visvec.detect import photometric
+    from visvec.detect import triangle as T
+
+    got = []
+
+    def spy(*a):
+        got.append(a)
+        return photometric.refine(*a)
+
+    mp = pytest.MonkeyPatch()
+    try:
+        mp.setattr(_compiled, "ON", False)
+        mp.setattr(T, "refine", spy)
+        for rig, img in _frames():
+            rig = replace(rig, detect=replace(rig.detect, refine="pixels"))
+            pipe = TrianglePipeline(rig)
+            pipe.process(Frame(0, 0.0, img))
+            pipe.process(Frame(1, 1 / 30, img))
+    finally:
+        mp.undo()
+    return got
+
+
+def test_the_pixel_fit_compiled_or_not(pixel_fits, monkeypatch):
+    """The pixel fit on every call the frames make, compiled and from numpy: the same
+    pixels, the same decisions, vertices within 1e-9 px, covariances within 1e-9 of
+    their size; and its kernels run as Python give the compiled results."""
+    from visvec.detect import photometric as P
+
+    assert len(pixel_fits) >= 10
+    taken = 0
+    for a in pixel_fits:
+        got = {}
+        for flag in (False, True):
+            monkeypatch.setattr(_compiled, "ON", flag)
+            got[flag] = P.refine(*a)
+        pure, fast = got[False], got[True]
+        assert pure.ok == fast.ok and pure.n_pixels == fast.n_pixels
+        assert np.abs(pure.xy - fast.xy).max() < 1e-9
+        if pure.ok:
+            taken += 1
+            assert np.abs(pure.cov - fast.cov).max() <= 1e-9 * np.abs(pure.cov).max()
+            assert fast.inflation == pytest.approx(pure.inflation, rel=1e-9)
+            assert fast.rms == pytest.approx(pure.rms, rel=1e-9)
+    assert taken >= 8
+    # the kernels as Python, on the first call's bands
+    image, normals, offsets, width, camera = pixel_fits[0]
+    n = np.asarray(normals, float)
+    V, _ = P._intersections(n, n * np.asarray(offsets, float)[:, None])
+    c = 0.5 * (V[[1, 2, 0]] + V[[2, 0, 1]])
+    w = np.maximum(np.asarray(width, float), 0.3)
+    reach, clear = P.REACH_WIDTHS * w + P.REACH_PX, P.CLEAR_WIDTHS * w
+    monkeypatch.setattr(_compiled, "ON", True)
+    bands = P._band(image, n, c, reach, clear, camera)
+    monkeypatch.setattr(_compiled, "ON", False)
+    assert _diff(bands, P._band(image, n, c, reach, clear, camera)) == 0.0
+    monkeypatch.setattr(_compiled, "band_pixels", _as_python(_compiled.band_pixels))
+    monkeypatch.setattr(_compiled, "ON", True)
+    assert _diff(bands, P._band(image, n, c, reach, clear, camera)) == 0.0
+    x, y, _, counts = bands
+    args = (x, y, counts, n, c, w, V.mean(axis=0), 50.0, P.GN_STEPS)
+    fast = _compiled.pixel_gn(*args)
+    assert bool(fast[-1])
+    for as_python, pure in zip(_as_python(_compiled.pixel_gn)(*args), P._gauss_newton(*args),
+                               strict=True):  # fmt: skip
+        size = max(np.abs(np.asarray(pure, float)).max(), 1.0)
+        assert np.abs(np.asarray(as_python, float) - np.asarray(pure, float)).max() <= 1e-9 * size
+
+

@@ -95,11 +95,11 @@ BAND_ROWS = 300  # a band of 300 x 6 px (an edge's band at 640x480 holds ~1300)
 
 def _band_of(noise: np.ndarray):
     """A 6 px wide band down a column of ``noise`` (the residuals), the offset
-    derivatives a blurred edge's across it: (uvs, last) as refine hands them on."""
+    derivatives a blurred edge's across it: (uv, r, w) as refine hands them on."""
     rows, cols = np.mgrid[0:BAND_ROWS, 0:6]
     uv = np.column_stack([cols.ravel() + 10, rows.ravel() + 5])
     w = np.exp(-0.5 * ((cols.ravel() - 2.5) / 0.9) ** 2)
-    return [uv], [(noise[uv[:, 1], uv[:, 0]], w)]
+    return uv, noise[uv[:, 1], uv[:, 0]], w
 
 
 def _smoothed(rng, shape):
@@ -123,7 +123,7 @@ def test_white_noise_leaves_the_covariance_and_correlated_noise_widens_it():
     # the true ratio: sum over lags of the noise's correlation times the weights'
     # overlap at that lag, over the weights' sum of squares
     rho = np.array([1, 4, 6, 4, 1]) / 6.0
-    w = _band_of(np.zeros(shape))[1][0][1].reshape(BAND_ROWS, 6)
+    w = _band_of(np.zeros(shape))[2].reshape(BAND_ROWS, 6)
     num = 0.0
     for dy in range(-2, 3):
         for dx in range(-2, 3):

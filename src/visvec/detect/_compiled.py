@@ -1,5 +1,6 @@
-"""Compiled kernels of the edge fit (visvec.detect.edges) and of the pixel fit's noise
-correlation (visvec.detect.photometric), through Numba.
+"""Compiled kernels of the edge fit (visvec.detect.edges) and of the pixel fit
+(visvec.detect.photometric: its pixels, Gauss-Newton steps and noise correlation),
+through Numba.
 
 A frame's edge fit works on a few hundred profiles of a dozen samples each: numpy spends
 most of its time there starting its array operations, not doing them. Each kernel here
@@ -11,7 +12,7 @@ frames of every kind the tests render).
 Numba is an optional extra (``pip install "visvec[fast]"``): it compiles these loops to
 machine code on first use (cached on disk after that) and has wheels for x86-64 and
 aarch64, the flight computers' two architectures. Without it, or with the environment
-variable ``VISVEC_PURE=1``, edges runs its numpy functions.
+variable ``VISVEC_PURE=1``, edges and photometric run their numpy functions.
 """
 
 from __future__ import annotations
@@ -43,6 +44,7 @@ _AS_A2 = -0.284496736
 _AS_A1 = 0.254829592
 _SQRT_PI = math.sqrt(math.pi)
 _SQRT_2 = math.sqrt(2.0)
+_SQRT_2PI = math.sqrt(2.0 * math.pi)
 
 
 def _jit(f):
@@ -518,8 +520,194 @@ def _lag_sums(index, flat, offsets, r, w):
     return pairs, rr, ww
 
 
+def _noise_inflation(uv, r, w, lags, L, min_pairs):
+    """photometric._noise_inflation compiled: the raster of the band's pixels, the sums
+    over their pairs at each lag (_lag_sums), the inflation from them."""
+    n = len(r)
+    var = 0.0
+    den = 0.0
+    for k in range(n):
+        var += r[k] * r[k]
+        den += w[k] * w[k]
+    var /= n
+    if not (var > 0 and den > 0):
+        return 1.0
+    u0, v0 = uv[0, 0], uv[0, 1]
+    u1, v1 = u0, v0
+    for k in range(n):
+        u0, u1 = min(u0, uv[k, 0]), max(u1, uv[k, 0])
+        v0, v1 = min(v0, uv[k, 1]), max(v1, uv[k, 1])
+    width = u1 - u0 + 2 * L + 1
+    flat = np.empty(n, np.int64)
+    index = np.full((v1 - v0 + 2 * L + 1) * width, n, np.int32)
+    for k in range(n):
+        flat[k] = (uv[k, 1] - v0 + L) * width + (uv[k, 0] - u0 + L)
+        index[flat[k]] = k
+    offsets = lags[:, 1] * width + lags[:, 0]
+    pairs, rr, ww = _lag_sums(index, flat, offsets, r, w)
+    excess = 0.0
+    scatter2 = 0.0
+    for q in range(len(offsets)):
+        if pairs[q] >= min_pairs:
+            share = ww[q] / den
+            excess += rr[q] / pairs[q] / var * share
+            scatter2 += share * share / pairs[q]
+    return 1.0 + max(2.0 * excess - 4.0 * math.sqrt(scatter2), 0.0)
+
+
+# ------------------------------------------------------------------- the pixel fit
+def _band_pixels(pts, grid, image, n, o, reach, clear):
+    """photometric._band's pixels: of the pixels its drawn bands cover (``pts``, (P, 2)
+    column and row, in raster order) those each edge's exact rule takes, edge after
+    edge: their ideal coordinates (M, 2) (``grid``, the frame's (H, W, 2)), grey levels
+    (M,), places in the frame (M, 2) and each edge's count (3,)."""
+    total = len(pts)
+    rule = np.zeros((3, total), np.bool_)
+    counts = np.zeros(3, np.int64)
+    for p in range(total):
+        col, row = pts[p, 0], pts[p, 1]
+        x0, x1 = grid[row, col, 0], grid[row, col, 1]
+        d0 = x0 * n[0, 0] + x1 * n[0, 1] - o[0]
+        d1 = x0 * n[1, 0] + x1 * n[1, 1] - o[1]
+        d2 = x0 * n[2, 0] + x1 * n[2, 1] - o[2]
+        # a pixel is an edge's when within its reach and clear of the other two
+        if abs(d0) < reach[0] and d1 > clear[1] and d2 > clear[2]:
+            rule[0, p] = True
+            counts[0] += 1
+        if abs(d1) < reach[1] and d2 > clear[2] and d0 > clear[0]:
+            rule[1, p] = True
+            counts[1] += 1
+        if abs(d2) < reach[2] and d0 > clear[0] and d1 > clear[1]:
+            rule[2, p] = True
+            counts[2] += 1
+    m = counts[0] + counts[1] + counts[2]
+    xs = np.empty((m, 2))
+    ys = np.empty(m)
+    uv = np.empty((m, 2), np.int64)
+    k = 0
+    for i in range(3):
+        for p in range(total):
+            if rule[i, p]:
+                col, row = pts[p, 0], pts[p, 1]
+                xs[k, 0] = grid[row, col, 0]
+                xs[k, 1] = grid[row, col, 1]
+                ys[k] = image[row, col]
+                uv[k, 0] = col
+                uv[k, 1] = row
+                k += 1
+    return xs, ys, uv, counts
+
+
+def _ndtr_with_bell(u, bell):
+    """The standard normal CDF at u to 1e-7 (Abramowitz & Stegun 7.1.26 at u / sqrt 2)
+    given ``bell`` = exp(-u^2 / 2), as photometric._ndtr_with_bell evaluates it."""
+    z = u / _SQRT_2
+    q = 1.0 / (abs(z) * _AS_P + 1.0)
+    y = 1.0 - ((((_AS_A5 * q + _AS_A4) * q + _AS_A3) * q + _AS_A2) * q + _AS_A1) * q * bell
+    return 0.5 * (1.0 + (y if z >= 0.0 else -y))
+
+
+def _pixel_gn(x, y, counts, n, c, w, centroid, scale, steps):
+    """photometric._gauss_newton compiled: the same model, parameters and steps; each
+    edge's Jacobian (9, m_e) filled pixel by pixel, its normal equations by BLAS."""
+    m = len(y)
+    n = n.copy()
+    c = c.copy()
+    w = w.copy()
+    H = np.zeros((15, 15))
+    b = np.zeros(15)
+    level = np.zeros(6)
+    r_all = np.empty(m)
+    g_all = np.empty(m)
+    u_all = np.empty(m)
+    perp_all = np.empty(m)
+    bell_all = np.empty(m)
+    # the board's plane's columns (1, x, y about the centroid, scaled), then T times them
+    JT = np.empty((9, m))
+    for p in range(m):
+        JT[3, p] = 1.0
+        JT[4, p] = (x[p, 0] - centroid[0]) / scale
+        JT[5, p] = (x[p, 1] - centroid[1]) / scale
+    idx = np.empty(9, np.int64)
+    rss = 0.0
+    for it in range(steps):
+        start = 0
+        for e in range(3):
+            nx, ny, cx, cy, we = n[e, 0], n[e, 1], c[e, 0], c[e, 1], w[e]
+            for p in range(start, start + counts[e]):
+                rx, ry = x[p, 0] - cx, x[p, 1] - cy
+                u = (rx * nx + ry * ny) / we
+                bell = math.exp(-0.5 * u * u)
+                T = _ndtr_with_bell(u, bell)
+                u_all[p] = u
+                perp_all[p] = rx * -ny + ry * nx
+                bell_all[p] = bell
+                JT[6, p] = T
+                JT[7, p] = T * JT[4, p]
+                JT[8, p] = T * JT[5, p]
+            start += counts[e]
+        if it == 0:
+            # the levels from the starting lines, by linear least squares
+            A = JT[3:9]
+            try:
+                level = np.linalg.solve(A @ A.T, A @ y)
+            except Exception:  # noqa: BLE001 - Numba catches no narrower class
+                return n, c, w, level, H, b, rss, r_all, g_all, False
+        H[:, :] = 0.0
+        b[:] = 0.0
+        rss = 0.0
+        start = 0
+        for e in range(3):
+            we = w[e]
+            stop = start + counts[e]
+            for p in range(start, stop):
+                X, Y, T = JT[4, p], JT[5, p], JT[6, p]
+                C = level[3] + level[4] * X + level[5] * Y
+                r = y[p] - (level[0] + level[1] * X + level[2] * Y + T * C)
+                g = C * bell_all[p] / (_SQRT_2PI * we)
+                rss += r * r
+                r_all[p] = r
+                g_all[p] = g
+                JT[0, p] = g * perp_all[p]
+                JT[1, p] = -g
+                JT[2, p] = -g * u_all[p]
+            Je = np.ascontiguousarray(JT[:, start:stop])
+            He = Je @ Je.T
+            be = Je @ r_all[start:stop]
+            idx[0], idx[1], idx[2] = 2 * e, 2 * e + 1, 6 + e
+            for q in range(6):
+                idx[3 + q] = 9 + q
+            for q in range(9):
+                b[idx[q]] += be[q]
+                for s in range(9):
+                    H[idx[q], idx[s]] += He[q, s]
+            start = stop
+        try:
+            step = np.linalg.solve(H, b)
+        except Exception:  # noqa: BLE001
+            return n, c, w, level, H, b, rss, r_all, g_all, False
+        for e in range(3):
+            th, oo = step[2 * e], step[2 * e + 1]
+            cs, sn = math.cos(th), math.sin(th)
+            n0 = cs * n[e, 0] - sn * n[e, 1]
+            n1 = sn * n[e, 0] + cs * n[e, 1]
+            n[e, 0], n[e, 1] = n0, n1
+            c[e, 0] += oo * n0
+            c[e, 1] += oo * n1
+            w[e] = max(w[e] + step[6 + e], 0.2)
+        for q in range(6):
+            level[q] += step[9 + q]
+        rss -= step @ b
+    return n, c, w, level, H, b, rss, r_all, g_all, True
+
+
 sample_geometry = _jit(_sample_geometry)
-lag_sums = _jit(_lag_sums)
+_lag_sums = _jit(_lag_sums)
+lag_sums = _lag_sums
+noise_inflation = _jit(_noise_inflation)
+band_pixels = _jit(_band_pixels)
+_ndtr_with_bell = _jit(_ndtr_with_bell)
+pixel_gn = _jit(_pixel_gn)
 _group_linear = _jit(_group_linear)
 _levels_suspect = _jit(_levels_suspect)
 _level_lines = _jit(_level_lines)

@@ -838,9 +838,11 @@ def warm_up() -> None:
     try:
         fit = fit_edges(img, corners, cam)
         fit_edges(img, corners, cam, width=fit.width)
-        # the pixel fit's kernel, with the types photometric._noise_inflation gives it
-        _compiled.lag_sums(np.ones(3, np.int32), np.zeros(1, np.int64), np.ones(1, np.int64),
-                           np.zeros(1), np.zeros(1))  # fmt: skip
+        # and the pixel fit's (visvec.detect.photometric imports this module)
+        from visvec.detect.photometric import refine
+
+        if not refine(img, fit.normals, fit.offsets, fit.width, cam).ok:
+            raise RuntimeError("the pixel fit's kernels gave no fit on the warm-up image")
     except Exception as exc:  # noqa: BLE001 - any failure of Numba's: numpy instead
         _compiled.ON = False
         print(f"visvec: the compiled edge fit did not load ({type(exc).__name__}: {exc}); "

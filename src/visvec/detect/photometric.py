@@ -21,20 +21,25 @@ left out. The parameters: each line's rotation about its centre and its offset, 
 three widths, the six level coefficients; the lines give the vertices, whose covariance
 follows from the fit's (the residuals' variance times (J^T J)^-1), so that the lines'
 errors through the shared levels are correlated as they are.
+
+Phi is evaluated through erf by Abramowitz & Stegun's 7.1.26 (to 1e-7 of the contrast,
+with the exp(-u^2 / 2) the derivatives need anyway). With the fast extra the pixels'
+selection, the Gauss-Newton steps and the noise correlation's sums run compiled
+(visvec.detect._compiled, tested equal to the numpy functions here).
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from itertools import pairwise
 
 import cv2
 import numpy as np
-from scipy.special import ndtr
 
 from visvec.camera import CameraModel
 from visvec.detect import _compiled
-from visvec.detect.edges import _vertices
+from visvec.detect.edges import _vertices, erf_with_bell
 
 GN_STEPS = 2
 # pixels within this many blur widths + REACH_PX of an edge are fitted to it
@@ -61,6 +66,7 @@ def _half_plane(L: int) -> np.ndarray:
 _LAGS = _half_plane(NOISE_LAG_PX)
 N_PARAMS = 15  # 3 lines x (rotation, offset), 3 widths, 6 level coefficients
 _SQRT_2PI = math.sqrt(2.0 * math.pi)
+_SQRT_2 = math.sqrt(2.0)
 
 
 @dataclass(frozen=True)
@@ -140,17 +146,19 @@ def _band(image, n, c, reach, clear, camera):
     """The pixels fitted to each edge: within its reach, and clear inside the other two
     edges. The band of each edge is drawn as a quadrilateral in the image (its corners
     taken through the lens, 1.5 px wider against the curvature a distortion gives it),
-    then checked exactly on the pixels' ideal coordinates. Returns per edge the
-    pixels' ideal coordinates (m_e, 2), grey levels (m_e,) and their places in the
-    frame (column, row) (m_e, 2), or None."""
+    then checked exactly on the pixels' ideal coordinates. Returns the pixels edge after
+    edge (a pixel may be two edges', deep inside the triangle near a vertex), each
+    edge's in raster order: their ideal coordinates (M, 2), grey levels (M,), places in
+    the frame (column, row) (M, 2), and each edge's count (3,); or None."""
     nn = n.tolist()
-    o = np.einsum("ij,ij->i", n, c).tolist()
+    o = np.einsum("ij,ij->i", n, c)
+    ol = o.tolist()
     quads = []
     for i in range(3):
         j, k = (i + 1) % 3, (i + 2) % 3
         for sgn, other in ((-1.0, j), (-1.0, k), (1.0, k), (1.0, j)):
-            oi = o[i] + sgn * (reach[i] + 1.5)
-            quads.append(_meet(nn[i], oi, nn[other], o[other] + clear[other]))
+            oi = ol[i] + sgn * (reach[i] + 1.5)
+            quads.append(_meet(nn[i], oi, nn[other], ol[other] + clear[other]))
     q_px = camera.distort(np.array(quads) / camera.fx)
     if not np.all(np.isfinite(q_px)):
         return None
@@ -160,30 +168,115 @@ def _band(image, n, c, reach, clear, camera):
     if np.any(hi <= lo):
         return None
     # the three bands drawn on one mask; the exact check below gives each pixel to each
-    # edge whose rule it meets (deep inside the triangle near a vertex, to both)
+    # edge whose rule it meets
     mask = np.zeros((hi[1] - lo[1] + 1, hi[0] - lo[0] + 1), np.uint8)
     for i in range(3):
         poly = np.rint((q_px[4 * i : 4 * i + 4] - lo) * 16).astype(np.int32)
         cv2.fillPoly(mask, [poly], i + 1, cv2.LINE_8, 4)
+    grid = _IdealGrid.of(camera)
     pts = cv2.findNonZero(mask)
     if pts is None:
         return None
-    pts = pts.reshape(-1, 2)
+    pts = pts.reshape(-1, 2).astype(np.int64) + lo
+    if _compiled.ON:  # the same pixels in the same order, compiled (the fast extra)
+        reach, clear = np.asarray(reach, float), np.asarray(clear, float)
+        return _compiled.band_pixels(pts, grid, image, n, o, reach, clear)
     # flat indices into the frame (one take is cheaper than a gather by row and column)
-    flat = (pts[:, 1] + lo[1]) * camera.width + (pts[:, 0] + lo[0])
-    x = np.take(_IdealGrid.of(camera).reshape(-1, 2), flat, axis=0)
+    flat = pts[:, 1] * camera.width + pts[:, 0]
+    x = np.take(grid.reshape(-1, 2), flat, axis=0)
     grey = np.take(image.reshape(-1), flat)
-    d = x @ n.T - np.array(o)  # (P, 3)
-    out = []
+    d = x @ n.T - o  # (P, 3)
+    keeps = []
     for i in range(3):
         j, k = (i + 1) % 3, (i + 2) % 3
         # a pixel is the nearest edge's: within its reach and clear of the other two
-        keep = (np.abs(d[:, i]) < reach[i]) & (d[:, j] > clear[j]) & (d[:, k] > clear[k])
-        out.append((x[keep], grey[keep].astype(float), pts[keep] + lo))
-    return out
+        keeps.append((np.abs(d[:, i]) < reach[i]) & (d[:, j] > clear[j]) & (d[:, k] > clear[k]))
+    counts = np.array([np.count_nonzero(k) for k in keeps], np.int64)
+    return (np.concatenate([x[k] for k in keeps]),
+            np.concatenate([grey[k] for k in keeps]).astype(float),
+            np.concatenate([pts[k] for k in keeps]), counts)  # fmt: skip
 
 
-def _noise_inflation(uvs: list, last: list) -> float:
+def _ndtr_with_bell(u: np.ndarray, bell: np.ndarray) -> np.ndarray:
+    """The standard normal CDF at u to 1e-7 given ``bell`` = exp(-u^2 / 2), which the
+    fit needs anyway (edges.erf_with_bell at u / sqrt 2; a step value off by 1e-7 of
+    the contrast is far below a grey level)."""
+    return 0.5 * (1.0 + erf_with_bell(u / _SQRT_2, bell))
+
+
+def _gauss_newton(x, y, counts, n, c, w, centroid, scale, steps):
+    """``steps`` Gauss-Newton steps of the model's 15 parameters from the lines (n, c)
+    and widths w, the levels first fitted to the starting lines by linear least squares.
+    Returns the lines, widths and levels after the steps; the last step's normal
+    equations H, b; the residual sum of squares after it, as Gauss-Newton predicts it
+    (the last step is a small one: no pass of its own is needed to measure it); the last
+    pass's residuals and offset derivatives dI / d(distance) (M,) each; and False where
+    a system was singular."""
+    n, c, w = n.copy(), c.copy(), w.copy()
+    bounds = np.concatenate([[0], np.cumsum(counts)])
+    xs = [x[bounds[i] : bounds[i + 1]] for i in range(3)]
+    # per edge, its pixels' Jacobian (m_e, 9): rotation about c (d(d)/d(theta) =
+    # n_perp . (x - c)), offset, width, then the six level coefficients, whose first
+    # three (the board's plane: 1, x, y) never change
+    jac = []
+    for xe in xs:
+        Je = np.empty((len(xe), 9), order="F")
+        Je[:, 3] = 1.0
+        Je[:, 4:6] = (xe - centroid) / scale
+        jac.append(Je)
+    idx = [[2 * i, 2 * i + 1, 6 + i, 9, 10, 11, 12, 13, 14] for i in range(3)]
+    level = np.zeros(6)
+    H, b, rss = np.zeros((N_PARAMS, N_PARAMS)), np.zeros(N_PARAMS), 0.0
+    r_all, g_all = np.empty(len(y)), np.empty(len(y))
+    for it in range(steps):
+        H = np.zeros((N_PARAMS, N_PARAMS))
+        b = np.zeros(N_PARAMS)
+        rss = 0.0
+        steps_ = []
+        for i, (xe, Je) in enumerate(zip(xs, jac, strict=True)):
+            nx, ny = n[i]
+            rx, ry = xe[:, 0] - c[i, 0], xe[:, 1] - c[i, 1]
+            u = (rx * nx + ry * ny) / w[i]
+            bell = np.exp(-0.5 * u * u)
+            T = _ndtr_with_bell(u, bell)
+            Je[:, 6:9] = Je[:, 3:6] * T[:, None]
+            steps_.append((u, rx * -ny + ry * nx, bell))
+        if it == 0:
+            A = np.concatenate([Je[:, 3:9] for Je in jac])
+            try:
+                level = np.linalg.solve(A.T @ A, A.T @ y)
+            except np.linalg.LinAlgError:
+                return n, c, w, level, H, b, rss, r_all, g_all, False
+        for i, Je in enumerate(jac):
+            u, perp, bell = steps_[i]
+            ye = y[bounds[i] : bounds[i + 1]]
+            C = Je[:, 3:6] @ level[3:]
+            r = ye - Je[:, 3:9] @ level
+            rss += float(r @ r)
+            g = C * bell / (_SQRT_2PI * w[i])  # dI / d(distance)
+            Je[:, 0] = g * perp
+            Je[:, 1] = -g
+            Je[:, 2] = -g * u
+            H[np.ix_(idx[i], idx[i])] += Je.T @ Je
+            b[idx[i]] += Je.T @ r
+            r_all[bounds[i] : bounds[i + 1]] = r
+            g_all[bounds[i] : bounds[i + 1]] = g
+        try:
+            step = np.linalg.solve(H, b)
+        except np.linalg.LinAlgError:
+            return n, c, w, level, H, b, rss, r_all, g_all, False
+        for i in range(3):
+            th, oo = step[2 * i], step[2 * i + 1]
+            cs, sn = math.cos(th), math.sin(th)
+            n[i] = [cs * n[i, 0] - sn * n[i, 1], sn * n[i, 0] + cs * n[i, 1]]
+            c[i] = c[i] + oo * n[i]
+        w = np.maximum(w + step[6:9], 0.2)
+        level = level + step[9:15]
+        rss -= float(step @ b)
+    return n, c, w, level, H, b, rss, r_all, g_all, True
+
+
+def _noise_inflation(uv: np.ndarray, r: np.ndarray, w: np.ndarray) -> float:
     """How much wider the lines' errors are than white noise of the residuals' variance
     makes them, from the correlation of the residuals between neighbouring pixels.
 
@@ -202,30 +295,28 @@ def _noise_inflation(uvs: list, last: list) -> float:
     covariance. Only the part of the sum beyond twice its own sampling scatter counts,
     and never below 1: sensor noise gives 1 (1.00-1.01 on average), Motion-JPEG at
     quality 75 about 2.5."""
-    uv = np.concatenate(uvs)
-    r = np.concatenate([a for a, _ in last])
-    w = np.concatenate([g for _, g in last])
+    if _compiled.ON:  # the same, compiled (the fast extra)
+        return _compiled.noise_inflation(uv, r, w, _LAGS, NOISE_LAG_PX, NOISE_MIN_PAIRS)
     var = float(r @ r) / len(r)
     den = float(w @ w)
     if not (var > 0 and den > 0):
         return 1.0
     L, n = NOISE_LAG_PX, len(uv)
-    # each pixel's index in the band on a raster padded by L, n (a zero appended to r
-    # and w) where no band pixel is; a pixel in two bands: its last place
+    # each pixel's index in the band on a raster of the bands' bounding box padded by
+    # L, n (a zero appended to r and w) where no band pixel is; a pixel in two bands:
+    # its last place
+    uv = uv.astype(np.int64) - uv.min(axis=0)
     width = int(uv[:, 0].max()) + 2 * L + 1
-    flat = (uv[:, 1].astype(np.int64) + L) * width + (uv[:, 0] + L)
+    flat = (uv[:, 1] + L) * width + (uv[:, 0] + L)
     index = np.full(int(flat.max()) + L * width + L + 1, n, np.int32)
     index[flat] = np.arange(n, dtype=np.int32)
     # the lags of a half-plane, all in one gather: (n, lags) neighbours' indices; per
     # lag the pixel pairs, and the sums of r r' and w w' over them
     offsets = _LAGS[:, 1] * width + _LAGS[:, 0]
-    if _compiled.ON:  # the sums over pixel pairs, compiled (the fast extra)
-        pairs, rr, ww = _compiled.lag_sums(index, flat, offsets, r, w)
-    else:
-        j = np.take(index, flat[:, None] + offsets)
-        pairs = np.count_nonzero(j < n, axis=0).astype(float)
-        rr = r @ np.take(np.append(r, 0.0), j)
-        ww = w @ np.take(np.append(w, 0.0), j)
+    j = np.take(index, flat[:, None] + offsets)
+    pairs = np.count_nonzero(j < n, axis=0).astype(float)
+    rr = r @ np.take(np.append(r, 0.0), j)
+    ww = w @ np.take(np.append(w, 0.0), j)
     use = pairs >= NOISE_MIN_PAIRS
     rho = np.where(use, rr / np.maximum(pairs, 1.0) / var, 0.0)
     share = ww / den  # the weights' overlap at each lag
@@ -246,75 +337,27 @@ def refine(image: np.ndarray, normals: np.ndarray, offsets: np.ndarray, width: n
     c = 0.5 * (V[[1, 2, 0]] + V[[2, 0, 1]])
     w = np.maximum(np.asarray(width, float), 0.3)
     bands = _band(image, n, c, REACH_WIDTHS * w + REACH_PX, CLEAR_WIDTHS * w, camera)
-    counts = [0, 0, 0] if bands is None else [len(b[1]) for b in bands]
-    m = sum(counts)
-    if m < 3 * N_PARAMS or min(counts) < 10:
+    counts = np.zeros(3, np.int64) if bands is None else bands[3]
+    m = int(counts.sum())
+    if m < 3 * N_PARAMS or counts.min() < 10:
         return _refused(V, w, m)
+    x, y, uv, _ = bands
     centroid = V.mean(axis=0)
     scale = max(float(np.abs(V - centroid).max()), 1.0)
-    # per edge, its pixels' Jacobian (m_e, 9): rotation about c (d(d)/d(theta) =
-    # n_perp . (x - c)), offset, width, then the six level coefficients, whose first
-    # three (the board's plane: 1, x, y) never change
-    jac = []
-    for x, *_ in bands:
-        Je = np.empty((len(x), 9), order="F")
-        Je[:, 3] = 1.0
-        Je[:, 4:6] = (x - centroid) / scale
-        jac.append(Je)
-    idx = [[2 * i, 2 * i + 1, 6 + i, 9, 10, 11, 12, 13, 14] for i in range(3)]
-    level = None
-    for _ in range(GN_STEPS):
-        H = np.zeros((N_PARAMS, N_PARAMS))
-        b = np.zeros(N_PARAMS)
-        rss = 0.0
-        steps = []
-        for i, ((x, *_), Je) in enumerate(zip(bands, jac, strict=True)):
-            nx, ny = n[i]
-            rx, ry = x[:, 0] - c[i, 0], x[:, 1] - c[i, 1]
-            u = (rx * nx + ry * ny) / w[i]
-            T = ndtr(u)
-            Je[:, 6:9] = Je[:, 3:6] * T[:, None]
-            steps.append((u, rx * -ny + ry * nx))
-        if level is None:
-            # the levels from the starting lines, by linear least squares
-            A = np.concatenate([Je[:, 3:9] for Je in jac])
-            level = np.linalg.solve(A.T @ A, A.T @ np.concatenate([e[1] for e in bands]))
-        last = []  # each edge's residuals and offset derivatives, for _noise_inflation
-        for i, ((_, y, _), Je) in enumerate(zip(bands, jac, strict=True)):
-            u, perp = steps[i]
-            C = Je[:, 3:6] @ level[3:]
-            r = y - Je[:, 3:9] @ level
-            rss += float(r @ r)
-            g = C * np.exp(-0.5 * u * u) / (_SQRT_2PI * w[i])  # dI / d(distance)
-            Je[:, 0] = g * perp
-            Je[:, 1] = -g
-            Je[:, 2] = -g * u
-            H[np.ix_(idx[i], idx[i])] += Je.T @ Je
-            b[idx[i]] += Je.T @ r
-            last.append((r, g))
-        try:
-            step = np.linalg.solve(H, b)
-        except np.linalg.LinAlgError:
-            return _refused(V, w, m)
-        for i in range(3):
-            th, oo = step[2 * i], step[2 * i + 1]
-            cs, sn = math.cos(th), math.sin(th)
-            n[i] = [cs * n[i, 0] - sn * n[i, 1], sn * n[i, 0] + cs * n[i, 1]]
-            c[i] = c[i] + oo * n[i]
-        w = np.maximum(w + step[6:9], 0.2)
-        level = level + step[9:15]
-        # the residuals after the step, as Gauss-Newton predicts them (the last step is
-        # a small one: no pass of its own is needed to measure them)
-        rss -= float(step @ b)
+    gn = _compiled.pixel_gn if _compiled.ON else _gauss_newton
+    n, c, w, _, H, _, rss, r, g, ok = gn(x, y, counts, n, c, w, centroid, scale, GN_STEPS)
+    if not ok:
+        return _refused(V, w, m)
     s2 = max(rss, 0.0) / max(m - N_PARAMS, 1)
     # the residuals of a band the model fits are the pixels' noise, alike in the three
     # bands (the same board and triangle): one band's twice the others' has something
     # else in it (a head just off an edge, which the lines' robust fit may carry as a
     # wider scatter without an outlier), and the fit, not robust, is not taken
-    rms = [math.sqrt(float(r @ r) / len(r)) for r, _ in last]
-    if max(rms) > EDGE_RMS_RATIO * sorted(rms)[1]:
+    bounds = np.concatenate([[0], np.cumsum(counts)])
+    rms = sorted(math.sqrt(float(r[a:b] @ r[a:b]) / (b - a)) for a, b in pairwise(bounds))
+    if rms[2] > EDGE_RMS_RATIO * rms[1]:
         return _refused(V, w, m)
-    inflation = _noise_inflation([e[2] for e in bands], last)
+    inflation = _noise_inflation(uv, r, g)
     try:
         cov_p = inflation * s2 * np.linalg.inv(H)[:6, :6]
     except np.linalg.LinAlgError:
