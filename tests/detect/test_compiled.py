@@ -343,5 +343,3 @@ def test_the_pixel_fit_compiled_or_not(pixel_fits, monkeypatch):
                                strict=True):  # fmt: skip
         size = max(np.abs(np.asarray(pure, float)).max(), 1.0)
         assert np.abs(np.asarray(as_python, float) - np.asarray(pure, float)).max() <= 1e-9 * size
-
-
