@@ -556,17 +556,23 @@ def _noise_inflation(uv, r, w, lags, L, min_pairs):
 
 
 # ------------------------------------------------------------------- the pixel fit
-def _band_pixels(pts, grid, image, n, o, reach, clear):
+def _band_pixels(pts, grid, cx, cy, aspect, lens, image, n, o, reach, clear):
     """photometric._band's pixels: of the pixels its drawn bands cover (``pts``, (P, 2)
     column and row, in raster order) those each edge's exact rule takes, edge after
-    edge: their ideal coordinates (M, 2) (``grid``, the frame's (H, W, 2)), grey levels
-    (M,), places in the frame (M, 2) and each edge's count (3,)."""
+    edge: their ideal coordinates (M, 2) (photometric._IdealGrid: the pinhole's, plus
+    with ``lens`` the correction in ``grid``), grey levels (M,), places in the frame
+    (M, 2) and each edge's count (3,)."""
     total = len(pts)
     rule = np.zeros((3, total), np.bool_)
     counts = np.zeros(3, np.int64)
+    xy = np.empty((total, 2))
     for p in range(total):
         col, row = pts[p, 0], pts[p, 1]
-        x0, x1 = grid[row, col, 0], grid[row, col, 1]
+        x0, x1 = col - cx, (row - cy) * aspect
+        if lens:
+            x0 += grid[row, col, 0]
+            x1 += grid[row, col, 1]
+        xy[p, 0], xy[p, 1] = x0, x1
         d0 = x0 * n[0, 0] + x1 * n[0, 1] - o[0]
         d1 = x0 * n[1, 0] + x1 * n[1, 1] - o[1]
         d2 = x0 * n[2, 0] + x1 * n[2, 1] - o[2]
@@ -589,8 +595,8 @@ def _band_pixels(pts, grid, image, n, o, reach, clear):
         for p in range(total):
             if rule[i, p]:
                 col, row = pts[p, 0], pts[p, 1]
-                xs[k, 0] = grid[row, col, 0]
-                xs[k, 1] = grid[row, col, 1]
+                xs[k, 0] = xy[p, 0]
+                xs[k, 1] = xy[p, 1]
                 ys[k] = image[row, col]
                 uv[k, 0] = col
                 uv[k, 1] = row
