@@ -88,8 +88,27 @@ def _route_library_warnings() -> None:
         log.propagate = False
 
 
+def _show_version(ctx: click.Context, _param: click.Parameter, value: bool) -> None:
+    """--version: the version, and whether the triangle's compiled kernels run."""
+    if not value or ctx.resilient_parsing:
+        return
+    from visvec.detect import _compiled
+
+    if _compiled.AVAILABLE:
+        numba_version = _compiled.numba.__version__
+        kernels = f"the triangle's edge and pixel fits compiled (Numba {numba_version})"
+    elif _compiled.PURE:
+        kernels = "the triangle's edge and pixel fits in numpy (VISVEC_PURE is set)"
+    else:
+        kernels = ("the triangle's edge and pixel fits in numpy (pip install \"visvec[fast]\" "
+                   "compiles them)")  # fmt: skip
+    click.echo(f"visvec, version {__version__}\n{kernels}")
+    ctx.exit()
+
+
 @click.group(cls=VisvecGroup, context_settings={"help_option_names": ["-h", "--help"]})
-@click.version_option(__version__, prog_name="visvec")
+@click.option("--version", is_flag=True, expose_value=False, is_eager=True,
+              callback=_show_version, help="Show the version and exit.")  # fmt: skip
 @click.option("--debug", is_flag=True, help="Show tracebacks of unexpected errors.")
 @click.option(
     "--status-every",

@@ -22,8 +22,9 @@ import os
 
 import numpy as np
 
+PURE = os.environ.get("VISVEC_PURE", "").strip() not in ("", "0")
 try:
-    if os.environ.get("VISVEC_PURE", "").strip() not in ("", "0"):
+    if PURE:
         raise ImportError("VISVEC_PURE is set")
     import numba
 except ImportError:  # the pure path
