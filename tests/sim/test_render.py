@@ -87,3 +87,25 @@ def test_tone_curve_keeps_the_output_levels_and_moves_the_edges_outwards(rig640)
     box = (slice(c[1] - 120, c[1] + 120), slice(c[0] - 120, c[0] + 120))
     grow = np.sum(bent[box] > 84.0) - np.sum(lin[box] > 84.0)
     assert 40 < grow < 250, grow
+
+
+def test_motion_blur_takes_the_exposure_in_ms_as_the_rig_does(rig640):
+    """exposure_ms (ms, as [camera] exposure_ms) averages the frame over the attitudes of
+    the exposure, centred on R_nb: a 20 ms exposure is the mean of frames spread over
+    -10 to +10 ms (to a tenth of its smear: the renderer takes fewer), and smears less
+    than the end frame departs; nothing at rest or with no exposure."""
+    from visvec.rotations import expmap
+    from visvec.sim.render import render_clean
+
+    R = euler_to_matrix(0.4, 0.03, -0.02)
+    w = np.radians([0.0, 0.0, 30.0])
+    sharp = render_clean(rig640, R, Scene())
+    np.testing.assert_array_equal(render_clean(rig640, R, Scene(), 0.0, w, 0.0), sharp)
+    np.testing.assert_array_equal(render_clean(rig640, R, Scene(), 0.0, np.zeros(3), 20.0), sharp)
+    blurred = render_clean(rig640, R, Scene(), 0.0, w, 20.0)
+    taus = ((np.arange(40) + 0.5) / 40 - 0.5) * 0.02  # s
+    spread = np.mean([render_clean(rig640, R @ expmap(w * t), Scene()) for t in taus], axis=0)
+    smear = np.abs(blurred - sharp).sum()
+    assert np.abs(blurred - spread).sum() < 0.1 * smear, (np.abs(blurred - spread).sum(), smear)
+    end = np.abs(render_clean(rig640, R @ expmap(w * 0.01), Scene()) - sharp).sum()
+    assert 0.05 * end < smear < 0.5 * end, (smear, end)

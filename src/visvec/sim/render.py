@@ -165,14 +165,15 @@ def render_clean(
     scene: Scene,
     readout_ms: float = 0.0,
     omega_b: np.ndarray | None = None,
-    exposure_s: float = 0.0,
+    exposure_ms: float = 0.0,
 ) -> np.ndarray:
     """Noise-free radiance image (H, W) float64 of the scene at attitude ``R_nb``.
 
-    Motion blur: with ``exposure_s`` > 0 and a body rate ``omega_b``, each row collects
-    light over its exposure, centred on its own time: the mean of sub-frames at
-    attitudes R_nb expm([omega_b] tau) over tau in [-exposure_s / 2, exposure_s / 2],
-    as many that the image moves at most MOTION_STEP_PX between two of them.
+    Motion blur: with ``exposure_ms`` > 0 (each row's exposure, ms, as the rig's
+    [camera] exposure_ms) and a body rate ``omega_b``, each row collects light over its
+    exposure, centred on its own time: the mean of sub-frames at attitudes
+    R_nb expm([omega_b] tau) over tau in [-exposure / 2, exposure / 2], as many that the
+    image moves at most MOTION_STEP_PX between two of them.
 
     Pixels whose 3x3 neighbourhood holds more than one surface are averaged over
     ``scene.supersample``^2 sub-pixel rays (box pixel response).
@@ -184,6 +185,7 @@ def render_clean(
     0.004 deg in a band).
     """
     cam = rig.camera
+    exposure_s = exposure_ms / 1000.0
     if exposure_s > 0 and omega_b is not None and np.any(omega_b):
         w = np.asarray(omega_b, float)
         # the image moves fastest at the corners: f (1 + (r/f)^2) per rad across the
@@ -264,7 +266,7 @@ def render_frame(
     rng: np.random.Generator | int | None = None,
     readout_ms: float = 0.0,
     omega_b: np.ndarray | None = None,
-    exposure_s: float = 0.0,
+    exposure_ms: float = 0.0,
 ) -> np.ndarray:
     """One 8-bit grey frame (H, W) of the scene at attitude ``R_nb``.
 
@@ -281,13 +283,14 @@ def render_frame(
     readout_ms, omega_b : float, (3,) ndarray
         A rolling shutter's readout time (ms) and the platform's body rate (rad/s): see
         :func:`render_clean` (R_nb is then the attitude when the centre row is exposed).
-    exposure_s : float
-        Each row's exposure time (s): motion blur while the platform turns.
+    exposure_ms : float
+        Each row's exposure time (ms, as the rig's [camera] exposure_ms): motion blur
+        while the platform turns.
     """
     rng = np.random.default_rng(rng)
     g = scene.tone_gamma
     linear = scene if g == 1.0 else _linear_scene(scene)
-    img = render_clean(rig, R_nb, linear, readout_ms, omega_b, exposure_s) * scene.exposure
+    img = render_clean(rig, R_nb, linear, readout_ms, omega_b, exposure_ms) * scene.exposure
     if scene.blur_sigma_px > 0:
         img = cv2.GaussianBlur(img, (0, 0), scene.blur_sigma_px)
     if g != 1.0:

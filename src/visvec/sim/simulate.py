@@ -286,7 +286,7 @@ def simulate(
                 img = render_markers(world, R, spot_scene or SpotScene(), rng)
             else:
                 sc = scene_for_frame(scene, clutter, world, rng)
-                img = render_frame(world, R, sc, rng, readout, rates[i], exposure_ms / 1000.0)
+                img = render_frame(world, R, sc, rng, readout, rates[i], exposure_ms)
             name = f"frame_{i:0{width}d}.png"
             write_image(out / name, img)
             e = np.degrees(matrix_to_euler(R))
