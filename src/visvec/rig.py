@@ -493,13 +493,6 @@ def rig_from_dict(
         path=Path(src.split(" (+")[0]) if base_dir is not None else None,
         **fields,
     )
-    if rig.detect.refine == "pixels" and rig.readout_ms:
-        # the pixel fit models a still image; the edge lines are taken back to one
-        # instant under a rolling shutter, the pixels are not
-        raise ConfigError(
-            f"{src}: [detect] refine = 'pixels' with [camera] readout_ms = {rig.readout_ms}: "
-            "the pixel fit does not model a rolling shutter; use refine = 'lines'"
-        )
     _check_visible(rig, src)
     return rig
 

@@ -321,8 +321,19 @@ def test_the_pixel_fit_compiled_or_not(pixel_fits, monkeypatch):
             assert fast.inflation == pytest.approx(pure.inflation, rel=1e-9)
             assert fast.rms == pytest.approx(pure.rms, rel=1e-9)
     assert taken >= 8
+    # under a rolling shutter (the pixels' coordinates unrolled, then the kernel's rule)
+    from visvec.shutter import RollingShutter
+
+    roll = (RollingShutter(25.0), np.radians([1.0, -2.0, 20.0]))
+    got = {}
+    for flag in (False, True):
+        monkeypatch.setattr(_compiled, "ON", flag)
+        got[flag] = P.refine(*pixel_fits[0][:5], *roll)
+    assert got[True].ok and got[True].n_pixels == got[False].n_pixels
+    assert np.abs(got[True].xy - got[False].xy).max() < 1e-9
+    assert np.abs(got[True].xy - P.refine(*pixel_fits[0][:5]).xy).max() > 0.01  # unrolled
     # the kernels as Python, on the first call's bands
-    image, normals, offsets, width, camera = pixel_fits[0]
+    image, normals, offsets, width, camera = pixel_fits[0][:5]
     n = np.asarray(normals, float)
     V, _ = P._intersections(n, n * np.asarray(offsets, float)[:, None])
     c = 0.5 * (V[[1, 2, 0]] + V[[2, 0, 1]])

@@ -150,6 +150,69 @@ def test_rolling_shutter_of_a_camera_off_the_axis_is_taken_out_while_tracking(ri
     assert abs(z[:, 0].mean()) < 0.5 and np.abs(z).max() < 3.0
 
 
+def test_the_pixel_fit_takes_a_rolling_shutter_out_too(rig640, monkeypatch):
+    """refine = "pixels" on a rolling-shutter webcam turning at 12-20 deg/s: the first
+    frame (no rate yet) keeps the lines; every tracked frame after it is the pixel
+    fit's, its pixels taken to the centre row's exposure with the rate: error over
+    sigma of unit RMS, the yaw unbiased, and more precise than the lines. Without
+    taking them there the rows are refused or off (the yaw's error over sigma RMS
+    above 1.5: the shear's bias, whose sign follows the turn's)."""
+    from visvec.data import Frame
+    from visvec.detect import photometric
+    from visvec.detect import triangle as T
+    from visvec.pipeline import TrianglePipeline
+
+    base = replace(rig640, readout_ms=25.0)
+    runs = []
+    for seed, dps in ((1, 20.0), (2, -16.0), (3, 12.0)):
+        w = np.radians(dps)
+        frames, truth = [], []
+        for k in range(12):
+            e = np.array([0.3 * seed + w * k / 30.0, np.radians(2.0), np.radians(-1.0)])
+            R = euler_to_matrix(*e)
+            img = render_frame(base, R, Scene(), 100 * seed + k, 25.0, R.T @ [0.0, 0.0, w])
+            frames.append(Frame(k, k / 30.0, img))
+            truth.append(np.degrees(e))
+        runs.append((frames, truth))
+    taken = []
+
+    def spy(*a):
+        pf = photometric.refine(*a)
+        taken.append(pf.ok and a[5] is not None and a[6] is not None)
+        return pf
+
+    def run(refine, all_ok=True):
+        err, sig = [], []
+        for frames, truth in runs:
+            pipe = TrianglePipeline(replace(base, detect=replace(base.detect, refine=refine)))
+            rows = [pipe.process(f) for f in frames]
+            assert all(r.ok for r in rows) or not all_ok
+            assert rows[0].warnings == ("rolling_shutter_uncorrected",)
+            for r, t in list(zip(rows, truth, strict=True))[1:]:
+                if r.ok:
+                    err.append(r.euler_deg - t)
+                    sig.append(r.sigma_deg)
+        err, sig = np.array(err), np.array(sig)
+        return err / sig, err, sig
+
+    monkeypatch.setattr(T, "refine", spy)
+    _, err_l, sig_l = run("lines")
+    assert not taken  # the lines never call it
+    z, err, sig = run("pixels")
+    assert len(taken) >= 33 and sum(taken) >= 33  # the tracked frames: fitted, with the rate
+    assert np.abs(z).max() < 4.0 and np.all(np.sqrt(np.mean(z**2, axis=0)) < 1.3)
+    assert abs(z[:, 0].mean()) < 0.5
+    assert np.all(np.median(sig / sig_l, axis=0) < 0.9)
+    assert np.all(np.sqrt(np.mean(err**2, axis=0)) < np.sqrt(np.mean(err_l**2, axis=0)))
+    # the pixels left where the rows see them: refused by the gate, or off
+    taken.clear()
+    monkeypatch.setattr(photometric, "_unrolled", lambda xy, rows, camera, roll: xy)
+    z_off, _, _ = run("pixels", all_ok=False)
+    refused = 33 - len(z_off)
+    yaw_rms = float(np.sqrt(np.mean(z_off[:, 0] ** 2)))
+    assert refused >= 10 or yaw_rms > 1.5, (refused, yaw_rms)
+
+
 def test_a_turn_faster_than_the_rate_bounds_is_acquired_at_once(rig640):
     """Turning at 20 deg/s with the apex along the image columns and tilting at 2.6 deg/s
     (the rig says 10 and 2 at most): the first frame, its vertices weighed with the shear

@@ -557,22 +557,26 @@ def _noise_inflation(uv, r, w, lags, L, min_pairs):
 
 
 # ------------------------------------------------------------------- the pixel fit
-def _band_pixels(pts, grid, cx, cy, aspect, lens, image, n, o, reach, clear):
+def _band_pixels(pts, given, grid, cx, cy, aspect, lens, image, n, o, reach, clear):
     """photometric._band's pixels: of the pixels its drawn bands cover (``pts``, (P, 2)
     column and row, in raster order) those each edge's exact rule takes, edge after
-    edge: their ideal coordinates (M, 2) (photometric._IdealGrid: the pinhole's, plus
-    with ``lens`` the correction in ``grid``), grey levels (M,), places in the frame
-    (M, 2) and each edge's count (3,)."""
+    edge: their ideal coordinates (M, 2) (``given`` (P, 2), or when that is empty
+    photometric._IdealGrid's: the pinhole's, plus with ``lens`` the correction in
+    ``grid``), grey levels (M,), places in the frame (M, 2) and each edge's count
+    (3,)."""
     total = len(pts)
     rule = np.zeros((3, total), np.bool_)
     counts = np.zeros(3, np.int64)
     xy = np.empty((total, 2))
     for p in range(total):
         col, row = pts[p, 0], pts[p, 1]
-        x0, x1 = col - cx, (row - cy) * aspect
-        if lens:
-            x0 += grid[row, col, 0]
-            x1 += grid[row, col, 1]
+        if len(given):
+            x0, x1 = given[p, 0], given[p, 1]
+        else:
+            x0, x1 = col - cx, (row - cy) * aspect
+            if lens:
+                x0 += grid[row, col, 0]
+                x1 += grid[row, col, 1]
         xy[p, 0], xy[p, 1] = x0, x1
         d0 = x0 * n[0, 0] + x1 * n[0, 1] - o[0]
         d1 = x0 * n[1, 0] + x1 * n[1, 1] - o[1]

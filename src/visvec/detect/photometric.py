@@ -40,6 +40,7 @@ import numpy as np
 from visvec.camera import CameraModel
 from visvec.detect import _compiled
 from visvec.detect.edges import _vertices, erf_with_bell
+from visvec.shutter import RollingShutter, unroll
 
 GN_STEPS = 2
 # pixels within this many blur widths + REACH_PX of an edge are fitted to it
@@ -127,6 +128,16 @@ class _IdealGrid:
         return (grid, *pinhole, True)
 
 
+_NO_XY = np.zeros((0, 2))
+
+
+def _unrolled(xy: np.ndarray, rows: np.ndarray, camera: CameraModel, roll) -> np.ndarray:
+    """Normalised points seen at image ``rows`` taken to the centre row's exposure, for
+    ``roll`` = (RollingShutter, the camera's rate (rad/s, camera axes))."""
+    shutter, rate_c = roll
+    return unroll(xy, rows, camera, rate_c, shutter.readout_ms, shutter.lever)
+
+
 def _pinhole(uv: np.ndarray, cx: float, cy: float, aspect: float) -> np.ndarray:
     """(M, 2) the ideal coordinates of pixels (column, row) (M, 2) through a pinhole."""
     out = np.empty((len(uv), 2))
@@ -165,14 +176,18 @@ def _meet(n1, o1, n2, o2) -> tuple[float, float]:
     return ((o1 * n2[1] - o2 * n1[1]) / det, (n1[0] * o2 - n2[0] * o1) / det)
 
 
-def _band(image, n, c, reach, clear, camera):
+def _band(image, n, c, reach, clear, camera, roll=None):
     """The pixels fitted to each edge: within its reach, and clear inside the other two
     edges. The band of each edge is drawn as a quadrilateral in the image (its corners
     taken through the lens, 1.5 px wider against the curvature a distortion gives it),
-    then checked exactly on the pixels' ideal coordinates. Returns the pixels edge after
-    edge (a pixel may be two edges', deep inside the triangle near a vertex), each
-    edge's in raster order: their ideal coordinates (M, 2), grey levels (M,), places in
-    the frame (column, row) (M, 2), and each edge's count (3,); or None."""
+    then checked exactly on the pixels' ideal coordinates. With ``roll`` (a rolling
+    shutter and the camera's rate, see :func:`refine`) the lines are the centre row's
+    exposure's: each pixel's coordinates are taken there (visvec.shutter.unroll) before
+    the check, and the quadrilaterals' corners back to where their rows see them.
+    Returns the pixels edge after edge (a pixel may be two edges', deep inside the
+    triangle near a vertex), each edge's in raster order: their ideal coordinates
+    (M, 2), grey levels (M,), places in the frame (column, row) (M, 2), and each edge's
+    count (3,); or None."""
     nn = n.tolist()
     o = np.einsum("ij,ij->i", n, c)
     ol = o.tolist()
@@ -182,7 +197,13 @@ def _band(image, n, c, reach, clear, camera):
         for sgn, other in ((-1.0, j), (-1.0, k), (1.0, k), (1.0, j)):
             oi = ol[i] + sgn * (reach[i] + 1.5)
             quads.append(_meet(nn[i], oi, nn[other], ol[other] + clear[other]))
-    q_px = camera.distort(np.array(quads) / camera.fx)
+    q = np.array(quads) / camera.fx
+    if roll is not None:
+        # where the rows see the corners: the centre row's point less its unroll shift
+        # (to first order; the 1.5 px margin holds the rest)
+        rows = camera.distort(q)[:, 1]
+        q = q - (_unrolled(q, rows, camera, roll) - q)
+    q_px = camera.distort(q)
     if not np.all(np.isfinite(q_px)):
         return None
     lo = np.maximum(np.floor(q_px.min(axis=0)).astype(int) - 1, 0)
@@ -201,14 +222,19 @@ def _band(image, n, c, reach, clear, camera):
     if pts is None:
         return None
     pts = pts.reshape(-1, 2).astype(np.int64) + lo
-    if _compiled.ON:  # the same pixels in the same order, compiled (the fast extra)
-        reach, clear = np.asarray(reach, float), np.asarray(clear, float)
-        return _compiled.band_pixels(pts, grid, cx, cy, aspect, lens, image, n, o, reach, clear)
     # flat indices into the frame (one take is cheaper than a gather by row and column)
     flat = pts[:, 1] * camera.width + pts[:, 0]
-    x = _pinhole(pts, cx, cy, aspect)
-    if lens:
-        x += np.take(grid.reshape(-1, 2), flat, axis=0)
+    x = _NO_XY
+    if roll is not None or not _compiled.ON:
+        x = _pinhole(pts, cx, cy, aspect)
+        if lens:
+            x += np.take(grid.reshape(-1, 2), flat, axis=0)
+        if roll is not None:
+            x = _unrolled(x / camera.fx, pts[:, 1], camera, roll) * camera.fx
+    if _compiled.ON:  # the same pixels in the same order, compiled (the fast extra)
+        reach, clear = np.asarray(reach, float), np.asarray(clear, float)
+        return _compiled.band_pixels(pts, x, grid, cx, cy, aspect, lens, image, n, o, reach,
+                                     clear)  # fmt: skip
     grey = np.take(image.reshape(-1), flat)
     d = x @ n.T - o  # (P, 3)
     keeps = []
@@ -353,15 +379,26 @@ def _noise_inflation(uv: np.ndarray, r: np.ndarray, w: np.ndarray) -> float:
 
 
 def refine(image: np.ndarray, normals: np.ndarray, offsets: np.ndarray, width: np.ndarray,
-           camera: CameraModel) -> PhotometricFit:  # fmt: skip
+           camera: CameraModel, shutter: RollingShutter | None = None,
+           rate_c: np.ndarray | None = None) -> PhotometricFit:  # fmt: skip
     """Refine the edge lines n_i . x = offset_i (ideal px, normals into the triangle)
-    on the pixels of ``image``; ``width`` (3,) the blur widths to start from."""
+    on the pixels of ``image``; ``width`` (3,) the blur widths to start from.
+
+    With a rolling ``shutter`` and the camera's rate ``rate_c`` (rad/s, camera axes),
+    the lines are those of the centre row's exposure (edges.fit_edges takes its edge
+    points there): each pixel is fitted at its coordinates taken there too
+    (visvec.shutter.unroll: the lab point a pixel sees at its row's time, where the
+    centre row's exposure would see it). The blurred step model then holds as for a
+    still image: the shift varies smoothly, a fraction of a pixel across a band."""
     n = np.asarray(normals, float).copy()
     # each line's centre: the middle between its two vertices
     V, _ = _intersections(n, n * np.asarray(offsets, float)[:, None])
     c = 0.5 * (V[[1, 2, 0]] + V[[2, 0, 1]])
     w = np.maximum(np.asarray(width, float), 0.3)
-    bands = _band(image, n, c, REACH_WIDTHS * w + REACH_PX, CLEAR_WIDTHS * w, camera)
+    roll = None
+    if shutter is not None and shutter.readout_ms and rate_c is not None:
+        roll = (shutter, np.asarray(rate_c, float))
+    bands = _band(image, n, c, REACH_WIDTHS * w + REACH_PX, CLEAR_WIDTHS * w, camera, roll)
     counts = np.zeros(3, np.int64) if bands is None else bands[3]
     m = int(counts.sum())
     if m < 3 * N_PARAMS or counts.min() < 10:

@@ -179,14 +179,19 @@ def _saturated_share(image: np.ndarray, pts_px: np.ndarray) -> float:
     return n_sat / n_in if n_in else 0.0
 
 
-def _pixel_fit(image, fit, xy, cov, camera):
+def _pixel_fit(image, fit, xy, cov, camera, shutter=None, rate_c=None):
     """The vertices of the edge lines refined on the pixels (visvec.detect.photometric)
     when the refinement agrees with them: the edge lines are robust (their profiles'
     outliers left out, something in a window found), the pixel fit is not, so a pixel
     fit that moved the vertices by more than the lines' own covariance allows (chi-square,
     6 dof, p = 1e-4: a head in an edge's band, a light), or whose covariance is the wider
-    of the two, is not taken, and the lines' vertices and covariance stand."""
-    pf = refine(image, fit.normals, fit.offsets, fit.width, camera)
+    of the two, is not taken, and the lines' vertices and covariance stand. Under a
+    rolling ``shutter`` the pixels are taken to the centre row's exposure with the rate
+    ``rate_c``; without a rate yet (a first frame) the lines stand, their covariance
+    widened for the rate they could not take out."""
+    if shutter is not None and rate_c is None:
+        return xy, cov
+    pf = refine(image, fit.normals, fit.offsets, fit.width, camera, shutter, rate_c)
     if not pf.ok or not np.all(np.isfinite(pf.cov)):
         return xy, cov
     dv = (pf.xy - xy).ravel()
@@ -523,6 +528,7 @@ class TriangleDetector:
                 return "corners_not_found"
             xy = cam.undistort(pts_px) * cam.fx
             return _Measured(xy, pts_px, cov, fit_contrast, outliers, 0.0, level_mid, None)
+        shutter = RollingShutter(self.readout_ms, self.lever_c) if self.readout_ms else None
         fit = fit_edges(
             image,
             cand.corners_px,
@@ -534,7 +540,7 @@ class TriangleDetector:
             # third pass)
             half=max(4.0, float(self.scale)),
             width=self._last_width if cand.tracked else None,
-            shutter=RollingShutter(self.readout_ms, self.lever_c) if self.readout_ms else None,
+            shutter=shutter,
             rate_c=rate_c,
             # the shutter gain, for the covariance of a rate not known yet or of the
             # readout's error (not computed when neither is there)
@@ -545,7 +551,7 @@ class TriangleDetector:
             return "edge_fit_failed"
         xy, cov = intersect(fit)
         if s.refine == "pixels":
-            xy, cov = _pixel_fit(image, fit, xy, cov, cam)
+            xy, cov = _pixel_fit(image, fit, xy, cov, cam, shutter, rate_c)
         return _Measured(
             xy, cam.distort(xy / cam.fx), cov, fit.contrast.min(), fit.outlier_fraction.max(),
             float(fit.vertex_gaps().max()), float(np.mean(fit.mid_level)), fit.shutter_gain,
