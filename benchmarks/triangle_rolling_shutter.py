@@ -23,6 +23,7 @@ principal point a few px off), and swinging out and back once (peak rates 10 and
 20 deg/s: the readout the frames suggest must not be taken out.
 
     python benchmarks/triangle_rolling_shutter.py [--frames 80] [--readout-ms 25]
+    python benchmarks/triangle_rolling_shutter.py --refine pixels   # the pixel fit
 """
 
 from __future__ import annotations
@@ -34,13 +35,13 @@ from dataclasses import replace
 
 import numpy as np
 
-from visvec.bench.triangle import Case, evaluate, level_calibration, random_cases
+from visvec.bench.triangle import Case, evaluate, level_calibration, random_cases, with_refine
 from visvec.rig import load_rig
 from visvec.rotations import euler_to_matrix
 from visvec.sim.render import render_frame
 from visvec.sim.scene import Scene
 
-from _common import CONFIGS, run_record, save_json, summarise
+from _common import CONFIGS, add_refine_option, run_record, save_json, summarise
 
 RATES_DPS = (0.0, 2.0, 5.0, 10.0, 20.0)
 OFF_AXIS_MM = (250.0, 0.0, 150.0)
@@ -67,6 +68,7 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--frames", type=int, default=80)
     ap.add_argument("--readout-ms", type=float, default=25.0)
+    add_refine_option(ap)
     args = ap.parse_args()
     readout = args.readout_ms
     results = {
@@ -87,7 +89,7 @@ def main() -> None:
             with ProcessPoolExecutor(os.cpu_count() or 1) as ex:
                 images = list(ex.map(_render, [(rig, c, readout, omega) for c in cases]))
             for label, r in (("", rig), ("readout_set_", rolling)):
-                out = evaluate(r, images, cases, "full")
+                out = evaluate(with_refine(r, args.refine), images, cases, "full")
                 s = summarise(out)
                 if out.n_ok:
                     e = np.array(out.err_deg)
@@ -133,7 +135,8 @@ def main() -> None:
             if readout_ms:
                 labels.append(("corrected", rolled, True))
             for label, r, shear in labels:
-                out = evaluate(r, images, cases, "full", track=True, shear=shear)
+                out = evaluate(with_refine(r, args.refine), images, cases, "full", track=True,
+                               shear=shear)  # fmt: skip
                 s = summarise(out)
                 estimated = [
                     i for i, w in enumerate(out.warnings) if "rolling_shutter_estimated" in w
@@ -143,7 +146,8 @@ def main() -> None:
                 res[f"tracked_{where}{label}_yaw_rate_{rate}"] = s
                 print(cfg, "tracked", where, label, rate, s)
         results[cfg] = res
-    print(save_json("triangle_rolling_shutter", results))
+    name = "triangle_rolling_shutter"
+    print(save_json(name if args.refine == "lines" else f"{name}_{args.refine}", results))
 
 
 if __name__ == "__main__":
