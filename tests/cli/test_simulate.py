@@ -84,3 +84,18 @@ def test_motion_blur_of_a_long_exposure_neither_loses_nor_biases_the_triangle(tm
     assert_within_3_sigma(rows, truth)
     bad = run(*sim, "--out", tmp_path / "x", "--exposure-ms", "50")
     assert bad.exit_code == 2 and "--exposure-ms" in bad.output
+
+
+def test_a_rolling_shutter_sweep_faster_than_the_rigs_bound_is_said(tmp_path):
+    """A sweep rendered with a rolling shutter turning faster than the rig's [platform]
+    max_rate_dps (what the sensor's sigma covers before it knows a frame's rate) is said
+    on stderr, with the option that sets the turn; one within it is not."""
+    rig = CONFIGS / "triangle-320.toml"
+    fast = run("simulate", "--rig", rig, "--out", tmp_path / "a", "--frames", "4",
+               "--motion", "sweep", "--readout-ms", "25")  # fmt: skip
+    assert fast.exit_code == 0
+    assert "beyond the rig's [platform] max_rate_dps = 10" in fast.output
+    assert "--yaw-rate-dps" in fast.output
+    slow = run("simulate", "--rig", rig, "--out", tmp_path / "b", "--frames", "4",
+               "--motion", "sweep", "--readout-ms", "25", "--yaw-rate-dps", "5")  # fmt: skip
+    assert slow.exit_code == 0 and "max_rate_dps" not in slow.output

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import logging
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -276,6 +277,17 @@ def simulate(
     # still frames)
     moving = motion in ("sweep", "swing")
     rates = body_rates(Rs, 1.0 / fps) if moving else np.zeros((n_frames, 3))
+    peak_dps = float(np.degrees(np.linalg.norm(rates, axis=1).max())) if len(rates) else 0.0
+    if readout and world.kind == "triangle" and peak_dps > rig.max_rate_dps:
+        # the sensor bounds a rolling shutter's shear by the rig's fastest turn while a
+        # frame's rate is not known yet (the first, or the first after a loss)
+        logging.getLogger("visvec").warning(
+            "the %s turns at up to %.0f deg/s, beyond the rig's [platform] max_rate_dps = "
+            "%g: with a rolling shutter, a frame whose rate is not known yet (the first, "
+            "or the first after a loss) gets a sigma that covers %g deg/s only. "
+            "--yaw-rate-dps sets the turn (a sweep over more --frames is slower)",
+            motion, peak_dps, rig.max_rate_dps, rig.max_rate_dps,
+        )  # fmt: skip
     truth = out / "truth.csv"
     width = max(4, len(str(n_frames - 1)))
     with open(truth, "w", newline="") as fh:
