@@ -7,10 +7,8 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from click.testing import CliRunner
 
 from visvec.check import envelope, field_of_view_deg, in_view, simulated_accuracy, tilted
-from visvec.cli.main import cli
 from visvec.data import Frame, Status
 from visvec.pipeline import TrianglePipeline
 from visvec.rig import load_rig
@@ -18,11 +16,7 @@ from visvec.rotations import euler_to_matrix, expmap
 from visvec.sim.render import render_frame
 from visvec.sim.scene import Scene
 
-from conftest import CONFIGS
-
-
-def run(*args):
-    return CliRunner().invoke(cli, [str(a) for a in args])
+from conftest import CONFIGS, run
 
 
 def test_tilted_is_a_yaw_then_a_tilt_about_a_horizontal_axis(rng):

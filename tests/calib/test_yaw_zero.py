@@ -9,19 +9,13 @@ import tomllib
 
 import numpy as np
 import pytest
-from click.testing import CliRunner
 
 from visvec.calib.zero_tilt import ZeroTiltResult, yaw_reference
-from visvec.cli.main import cli
 
-from conftest import ROOT
+from conftest import ROOT, run
 
 RIG = ROOT / "configs" / "triangle.toml"
 TURN = 0.3
-
-
-def run(*args):
-    return CliRunner().invoke(cli, [str(a) for a in args])
 
 
 @pytest.fixture(scope="module")

@@ -8,18 +8,11 @@ import math
 from pathlib import Path
 
 import pytest
-from click.testing import CliRunner
 
-from visvec.cli.main import cli
-
-from conftest import ROOT
+from conftest import ROOT, run
 
 RIG = ROOT / "configs" / "triangle.toml"
 SAMPLES = ROOT / "data" / "sample_frames"
-
-
-def run(*args):
-    return CliRunner().invoke(cli, [str(a) for a in args])
 
 
 def rows(path: Path) -> list[dict]:

@@ -10,21 +10,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from click.testing import CliRunner
-
-from visvec.cli.main import cli
 
 pytest.importorskip("mcap")
 pytest.importorskip("rosbags")
 
-from conftest import ROOT
+from conftest import ROOT, run
 
 RIG = ROOT / "configs" / "triangle.toml"
 SAMPLES = ROOT / "data" / "sample_frames"
-
-
-def run(*args):
-    return CliRunner().invoke(cli, [str(a) for a in args])
 
 
 def messages(path: Path) -> list[tuple[str, str, int, object]]:
