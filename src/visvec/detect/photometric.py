@@ -15,9 +15,10 @@ d_e(x) = n_e . (x - c_e) - o_e its signed distance to that edge's line (inward
 positive), w_e the edge's blur width, Phi the standard normal CDF (a Gaussian blur of a
 straight step; the pixel's box response is taken as part of the Gaussian,
 w^2 = sigma_blur^2 + 1/12), and L, C the board level and the triangle's contrast, each a
-plane across the image (a lighting gradient). Pixels within reach of two edges (the
-vertices' neighbourhoods, where a blurred corner is no longer a product of steps) are
-left out. The parameters: each line's rotation about its centre and its offset, the
+plane across the image (a lighting gradient). Pixels less than CLEAR_WIDTHS blur
+widths inside another edge (the vertices' neighbourhoods, where a blurred corner is no
+longer a step) are left out; under a rolling shutter each pixel is fitted where the
+centre row's exposure would have seen it (see refine). The parameters: each line's rotation about its centre and its offset, the
 three widths, the six level coefficients; the lines give the vertices, whose covariance
 follows from the fit's (the residuals' variance times (J^T J)^-1), so that the lines'
 errors through the shared levels are correlated as they are.
@@ -50,9 +51,9 @@ REACH_PX = 2.0
 # edges' steps are short of their full height by Phi(-2) = 2.3 % of the contrast, which
 # the model leaves out: on noise-free frames (40 scenes at each resolution and blur of
 # triangle_crb.py) the attitude errors stay 0.13-0.28x the Cramer-Rao bound at 3, 2 or
-# 1.5 widths alike. At 3 widths a defocused edge lost the
-# stretches near its ends that set its direction (yaw 1.21x the bound at 320x240 with
-# a blur of 2 px, 1.13x at 2 widths; benchmarks/triangle_crb.py)
+# 1.5 widths alike. At 3 widths a defocused edge lost the stretches near its ends that
+# set its direction (yaw 1.21x the bound at 320x240 with a blur of 2 px, 1.13x at 2
+# widths; benchmarks/triangle_crb.py)
 CLEAR_WIDTHS = 2.0
 # the residuals' correlation is taken over lags up to this (px, each way: 12 lags in a
 # half-plane); 5 px changed no figure of benchmarks/triangle_compression.py
