@@ -18,8 +18,9 @@ w^2 = sigma_blur^2 + 1/12), and L, C the board level and the triangle's contrast
 plane across the image (a lighting gradient). Pixels less than CLEAR_WIDTHS blur
 widths inside another edge (the vertices' neighbourhoods, where a blurred corner is no
 longer a step) are left out; under a rolling shutter each pixel is fitted where the
-centre row's exposure would have seen it (see refine). The parameters: each line's rotation about its centre and its offset, the
-three widths, the six level coefficients; the lines give the vertices, whose covariance
+centre row's exposure would have seen it (see refine). The parameters: each line's
+rotation about its centre and its offset, the three widths, the six level
+coefficients; the lines give the vertices, whose covariance
 follows from the fit's (the residuals' variance times (J^T J)^-1), so that the lines'
 errors through the shared levels are correlated as they are.
 
