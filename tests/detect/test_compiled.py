@@ -223,7 +223,7 @@ def test_kernels_that_do_not_load_leave_the_numpy_path_on(monkeypatch, capsys):
     def broken(*a, **k):
         raise RuntimeError("cannot cache function: no locator available")
 
-    monkeypatch.setattr(E, "_warm", False)
+    monkeypatch.setattr(E, "_warm", set())
     monkeypatch.setattr(_compiled, "ON", True)
     monkeypatch.setattr(_compiled, "sample_geometry", broken)
     rig = load_rig(CONFIGS / "triangle.toml")
@@ -233,6 +233,25 @@ def test_kernels_that_do_not_load_leave_the_numpy_path_on(monkeypatch, capsys):
     assert "compiled edge fit did not load" in err and "no locator" in err
     rig_img = _frames()[0][1]
     assert pipe.process(Frame(0, 0.0, rig_img)).ok
+
+
+def test_the_pixel_fits_kernels_load_with_a_rig_that_uses_it(monkeypatch, capsys):
+    """A rig on the edge lines loads the edge fit's kernels only (a first run does not
+    wait for the pixel fit's compilation); one with refine = "pixels" loads the pixel
+    fit's too, and when those do not load the numpy path runs, said once."""
+
+    def broken(*a, **k):
+        raise RuntimeError("cannot cache function: no locator available")
+
+    monkeypatch.setattr(E, "_warm", set())
+    monkeypatch.setattr(_compiled, "ON", True)
+    monkeypatch.setattr(_compiled, "band_pixels", broken)
+    rig = load_rig(CONFIGS / "triangle.toml")
+    TrianglePipeline(rig)
+    assert E._warm == {"edges"} and _compiled.ON is True
+    TrianglePipeline(replace(rig, detect=replace(rig.detect, refine="pixels")))
+    assert E._warm == {"edges", "pixels"} and _compiled.ON is False
+    assert "did not load" in capsys.readouterr().err
 
 
 def test_the_pixel_fits_noise_correlation_compiled_or_not(monkeypatch):

@@ -816,20 +816,25 @@ def fit_edges(
     return fit
 
 
-_warm = False
+# the kernels loaded so far: "edges" (the edge fit's), "pixels" (the pixel fit's)
+_warm: set[str] = set()
 
 
-def warm_up() -> None:
+def warm_up(pixel_fit: bool = False) -> None:
     """Load (or, the first time on a machine, compile) the compiled kernels now, not on
     a camera's first frame: an edge fit, cold and tracked, of a triangle drawn on a small
-    image, which calls each kernel with each kind of argument a frame gives it. A few
-    milliseconds once they are loaded; without Numba, nothing. Kernels that do not load
-    (a Numba that cannot compile here, no writable place for its cache: NUMBA_CACHE_DIR
-    names one) leave the numpy path on, with a line on stderr."""
-    global _warm
-    if _warm or not _compiled.ON:
+    image, which calls each kernel with each kind of argument a frame gives it; with
+    ``pixel_fit`` the pixel fit's too (visvec.detect.photometric: a rig with refine =
+    "pixels"; the edge lines' rigs do not wait for their compilation, about half the
+    first run's 20 s). A few milliseconds once they are loaded; without Numba, nothing.
+    Kernels that do not load (a Numba that cannot compile here, no writable place for
+    its cache: NUMBA_CACHE_DIR names one) leave the numpy path on, with a line on
+    stderr."""
+    todo = {"edges", "pixels"} if pixel_fit else {"edges"}
+    todo -= _warm
+    if not todo or not _compiled.ON:
         return
-    _warm = True
+    _warm.update(todo)
     img = np.full((96, 96), 60, np.uint8)
     corners = np.array([[80.0, 48.0], [20.0, 20.0], [20.0, 76.0]])
     cv2.fillPoly(img, [np.rint(corners).astype(np.int32)], 120)
@@ -838,11 +843,12 @@ def warm_up() -> None:
     try:
         fit = fit_edges(img, corners, cam)
         fit_edges(img, corners, cam, width=fit.width)
-        # and the pixel fit's (visvec.detect.photometric imports this module)
-        from visvec.detect.photometric import refine
+        if "pixels" in todo:
+            # visvec.detect.photometric imports this module
+            from visvec.detect.photometric import refine
 
-        if not refine(img, fit.normals, fit.offsets, fit.width, cam).ok:
-            raise RuntimeError("the pixel fit's kernels gave no fit on the warm-up image")
+            if not refine(img, fit.normals, fit.offsets, fit.width, cam).ok:
+                raise RuntimeError("the pixel fit's kernels gave no fit on the warm-up image")
     except Exception as exc:  # noqa: BLE001 - any failure of Numba's: numpy instead
         _compiled.ON = False
         print(f"visvec: the compiled edge fit did not load ({type(exc).__name__}: {exc}); "

@@ -227,7 +227,7 @@ class TriangleDetector:
         self.rig = rig
         cam = rig.camera
         # the compiled kernels loaded before the first frame, not on it
-        warm_up()
+        warm_up(pixel_fit=rig.detect.refine == "pixels")
         self.expected_px = project_target(rig, np.eye(3))
         if not np.all(np.isfinite(self.expected_px)):
             # (a rig file is refused for it when loaded; this is one made in code)
