@@ -319,6 +319,7 @@ def test_histogram_threshold_equals_the_sorted_median(rng):
         assert auto_threshold(img) == pytest.approx(max(med + 6 * max(mad, 0.5), 20.0))
 
 
+@pytest.mark.slow  # 8-13 s: three simulated recordings through the CLI
 def test_fix_sigma_follows_the_measured_scatter(tmp_path):
     """Lamps recordings at rest (three, 1,170 row-axes): the rows' sigma is learned from
     the fits' scatter, not the rig's 0.1 px guess, so that error / sigma follows N(0,
