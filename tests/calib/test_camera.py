@@ -3,14 +3,12 @@
 import tomllib
 
 import numpy as np
-from click.testing import CliRunner
 
 from visvec.calib.camera import calibrate_camera
 from visvec.camera import CameraModel
-from visvec.cli.main import cli
 from visvec.rig import load_rig
 
-from conftest import CONFIGS, shared
+from conftest import CONFIGS, run, shared
 
 
 def test_camera_calibration_reproduces_opencv_reference():
@@ -30,20 +28,8 @@ def test_camera_calibration_reproduces_opencv_reference():
 def test_camera_calibration_cli_names_outlier_view(tmp_path):
     d = shared("opencv_chessboard")
     out = tmp_path / "cam.toml"
-    r = CliRunner().invoke(
-        cli,
-        [
-            "calibrate",
-            "camera",
-            str(d / "left*.jpg"),
-            "--pattern",
-            "9x6",
-            "--square-mm",
-            "25",
-            "--out",
-            str(out),
-        ],
-    )
+    r = run("calibrate", "camera", d / "left*.jpg", "--pattern", "9x6", "--square-mm", "25",
+            "--out", out)  # fmt: skip
     assert r.exit_code == 0, r.output
     assert "left02.jpg" in r.output and "outlier" in r.output
     assert "  cx 342." in r.output and " +- 0." in r.output.split("  cx 342.")[1][:12]
@@ -58,9 +44,7 @@ def test_camera_calibration_cli_names_outlier_view(tmp_path):
     cam = load_rig(CONFIGS / "triangle.toml", calibration=out).camera
     corners = f"the image's corners {cam.corner_radius_px:.0f} px"
     assert f"{corners}; the lens model holds to the image's corners" in r.output
-    r = CliRunner().invoke(
-        cli, ["calibrate", "camera", str(d), "--pattern", "nine", "--square-mm", "25"]
-    )
+    r = run("calibrate", "camera", str(d), "--pattern", "nine", "--square-mm", "25")
     assert r.exit_code == 2 and "COLSxROWS" in r.output
 
 

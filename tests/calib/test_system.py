@@ -4,18 +4,16 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from click.testing import CliRunner
 
 from visvec.bench.markers import perturbed_lab
 from visvec.calib.system import Observations, calibrate_system, initial_attitudes
-from visvec.cli.main import cli
 from visvec.estimate.markers import solve_markers
 from visvec.geometry import markers_to_camera
 from visvec.rig import load_rig
 from visvec.rotations import euler_to_matrix, logmap, matrix_to_euler
 from visvec.sim.simulate import random_attitudes
 
-from conftest import CONFIGS
+from conftest import CONFIGS, run
 
 
 @pytest.fixture(scope="module")
@@ -191,36 +189,11 @@ def test_calibrate_system_cli(tmp_path, mrig):
     true_rig = tmp_path / "true.toml"
     true_rig.write_text(text)
     frames = tmp_path / "frames"
-    r = CliRunner().invoke(
-        cli,
-        [
-            "simulate",
-            "--rig",
-            str(true_rig),
-            "--out",
-            str(frames),
-            "--frames",
-            "16",
-            "--max-tilt-deg",
-            "20",
-            "--seed",
-            "3",
-        ],
-    )
+    r = run("simulate", "--rig", true_rig, "--out", frames, "--frames", "16",
+            "--max-tilt-deg", "20", "--seed", "3")  # fmt: skip
     assert r.exit_code == 0, r.output
     out = tmp_path / "cal.toml"
-    r = CliRunner().invoke(
-        cli,
-        [
-            "calibrate",
-            "system",
-            str(frames),
-            "--rig",
-            str(CONFIGS / "markers.toml"),
-            "--out",
-            str(out),
-        ],
-    )
+    r = run("calibrate", "system", frames, "--rig", CONFIGS / "markers.toml", "--out", out)
     assert r.exit_code == 0, r.output
     assert "residual std" in r.output and "fx" in r.output
     assert "B's orientation" in r.output
@@ -233,19 +206,8 @@ def test_calibrate_system_cli(tmp_path, mrig):
     cal = load_rig(CONFIGS / "markers.toml", out)
     assert abs(cal.camera.fx - true.camera.fx) < 5.0
     assert abs(cal.t_n[2] - true.t_n[2]) < 3.0
-    r = CliRunner().invoke(
-        cli,
-        [
-            "batch",
-            str(frames),
-            "--rig",
-            str(CONFIGS / "markers.toml"),
-            "--calibration",
-            str(out),
-            "--truth",
-            str(frames / "truth.csv"),
-        ],
-    )
+    r = run("batch", frames, "--rig", CONFIGS / "markers.toml", "--calibration", out,
+            "--truth", frames / "truth.csv")  # fmt: skip
     # the calibration file applies: frames are identified and solved with it (16 frames
     # calibrate the camera only roughly, so some fail the strict residual test)
     import re
@@ -260,27 +222,9 @@ def test_montecarlo_cli(tmp_path):
     import json
 
     out = tmp_path / "mc"
-    r = CliRunner().invoke(
-        cli,
-        [
-            "montecarlo",
-            "--rig",
-            str(CONFIGS / "markers.toml"),
-            "--runs",
-            "2",
-            "--centroid-noise",
-            "0.12",
-            "--marker-error",
-            "0",
-            "--poses",
-            "60",
-            "--no-calibration",
-            "--workers",
-            "1",
-            "--out",
-            str(out),
-        ],
-    )
+    r = run("montecarlo", "--rig", CONFIGS / "markers.toml", "--runs", "2",
+            "--centroid-noise", "0.12", "--marker-error", "0", "--poses", "60",
+            "--no-calibration", "--workers", "1", "--out", out)  # fmt: skip
     assert r.exit_code == 0, r.output
     data = json.loads((out / "montecarlo.json").read_text())
     point = data["summary"][0]
@@ -289,16 +233,6 @@ def test_montecarlo_cli(tmp_path):
     # PnP baselines worse in pitch and roll
     assert all(0.7 < e < 1.4 for e in point["efficiency"])
     assert min(point["ratio_to_full"]["pnp-sqpnp"][1:]) > 2.0
-    r = CliRunner().invoke(
-        cli,
-        [
-            "montecarlo",
-            "--rig",
-            str(CONFIGS / "markers.toml"),
-            "--centroid-noise",
-            "a,b",
-            "--out",
-            str(out),
-        ],
-    )
+    r = run("montecarlo", "--rig", CONFIGS / "markers.toml", "--centroid-noise", "a, b",
+            "--out", out)  # fmt: skip
     assert r.exit_code == 2 and "comma-separated" in r.output

@@ -5,10 +5,8 @@ import re
 
 import numpy as np
 import pytest
-from click.testing import CliRunner
 
 from visvec.calib.zero_tilt import calibrate_zero_tilt, circle_centre
-from visvec.cli.main import cli
 from visvec.data import Detection, Status
 from visvec.errors import InputFileError
 from visvec.geometry import lab_to_camera
@@ -93,10 +91,10 @@ def test_calibrate_zero_tilt_cli_refuses_a_wrong_camera_model(tmp_path):
     wrong = rig_variant(rig_p, "fy", "300.0", "303.0", tmp_path / "wrong.toml")
     frames = tmp_path / "level"
     sim = ["simulate", "--rig", rig_p, "--out", frames, "--frames", 12, "--motion", "level"]
-    assert CliRunner().invoke(cli, [str(a) for a in sim]).exit_code == 0
+    assert run(*sim).exit_code == 0
     cal = tmp_path / "cal.toml"
     args = ["calibrate", "zero-tilt", str(frames), "--rig", str(wrong), "--out", str(cal)]
-    r = CliRunner().invoke(cli, args)
+    r = run(*args)
     assert r.exit_code == 1 and not cal.exists(), r.output
     assert "camera check: aspect fy / fx" in r.output and ": off" in r.output
     fy = float(r.output.split("it fits with fy = ")[1].split(",")[0])
@@ -183,12 +181,10 @@ def test_zero_tilt_says_when_the_vertices_scatter_less_than_their_sigma(tmp_path
     rig_p = CONFIGS / "triangle-320.toml"
     frames = tmp_path / "level"
     args = ["--out", frames, "--frames", 8, "--motion", "level", "--noise", 0]
-    r = CliRunner().invoke(cli, ["simulate", "--rig", rig_p, *map(str, args)])
+    r = run("simulate", "--rig", rig_p, *args)
     assert r.exit_code == 0, r.output
     cal = tmp_path / "cal.toml"
-    r = CliRunner().invoke(
-        cli, ["calibrate", "zero-tilt", str(frames), "--rig", str(rig_p), "--out", str(cal)]
-    )
+    r = run("calibrate", "zero-tilt", str(frames), "--rig", str(rig_p), "--out", str(cal))
     assert r.exit_code == 0, r.output
     line = next(x for x in r.output.splitlines() if "sigma check" in x)
     hi = float(line.split("interval ")[1].split("-")[1].split(",")[0])
@@ -199,36 +195,15 @@ def test_zero_tilt_says_when_the_vertices_scatter_less_than_their_sigma(tmp_path
 def test_calibrate_zero_tilt_cli_end_to_end(tmp_path):
     rig_p = CONFIGS / "triangle-320.toml"
     frames = tmp_path / "level"
-    r = CliRunner().invoke(
-        cli,
-        [
-            "simulate",
-            "--rig",
-            str(rig_p),
-            "--out",
-            str(frames),
-            "--frames",
-            "8",
-            "--motion",
-            "level",
-            "--target-offset-mm",
-            "15",
-            "0",
-            "--camera-askew-deg",
-            "0.5",
-            "0.5",
-        ],
-    )
+    r = run("simulate", "--rig", rig_p, "--out", frames, "--frames", "8", "--motion",
+            "level", "--target-offset-mm", "15", "0",
+            "--camera-askew-deg", "0.5", "0.5")  # fmt: skip
     assert r.exit_code == 0, r.output
     # an earlier calibration (as a readout's would be) applied first
     pre = tmp_path / "pre.toml"
     pre.write_text("[platform]\nmax_tilt_deg = 8.0\n")
     cal = tmp_path / "cal.toml"
-    r = CliRunner().invoke(
-        cli,
-        ["calibrate", "zero-tilt", str(frames), "--rig", str(rig_p)]
-        + ["--calibration", str(pre), "--out", str(cal)],
-    )
+    r = run("calibrate", "zero-tilt", frames, "--rig", rig_p, "--calibration", pre, "--out", cal)
     assert r.exit_code == 0, r.output
     assert "target offset from the axis: dx +1" in r.output
     assert "sigma check: the vertices scatter" in r.output
@@ -239,21 +214,8 @@ def test_calibrate_zero_tilt_cli_end_to_end(tmp_path):
     assert "[mount]" in text and "[target]" in text and "[zero_tilt]" in text
     # clean frames: the edge model's sigma holds, and the file says so
     assert "[detect]" in text and "sigma_scale = 1.0" in text
-    r = CliRunner().invoke(
-        cli,
-        [
-            "batch",
-            str(frames),
-            "--rig",
-            str(rig_p),
-            "--calibration",
-            str(pre),
-            "--calibration",
-            str(cal),
-            "--truth",
-            str(frames / "truth.csv"),
-        ],
-    )
+    r = run("batch", frames, "--rig", rig_p, "--calibration", pre, "--calibration", cal,
+            "--truth", frames / "truth.csv")  # fmt: skip
     assert r.exit_code == 0
     # level frames read level after calibration
     import csv
