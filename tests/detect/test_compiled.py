@@ -216,16 +216,23 @@ def test_visvec_pure_turns_the_kernels_off():
         assert out == expected
 
 
-def test_kernels_that_do_not_load_leave_the_numpy_path_on(monkeypatch, capsys):
-    """A Numba that cannot compile or cache here: the detector is made, says so once on
-    stderr, and runs on numpy."""
+@pytest.fixture
+def unloadable(monkeypatch):
+    """Nothing loaded yet and the kernels on; ``unloadable(name)`` makes that kernel
+    fail as a Numba that cannot compile or cache here does."""
 
     def broken(*a, **k):
         raise RuntimeError("cannot cache function: no locator available")
 
     monkeypatch.setattr(E, "_warm", set())
     monkeypatch.setattr(_compiled, "ON", True)
-    monkeypatch.setattr(_compiled, "sample_geometry", broken)
+    return lambda name: monkeypatch.setattr(_compiled, name, broken)
+
+
+def test_kernels_that_do_not_load_leave_the_numpy_path_on(unloadable, capsys):
+    """A Numba that cannot compile or cache here: the detector is made, says so once on
+    stderr, and runs on numpy."""
+    unloadable("sample_geometry")
     rig = load_rig(CONFIGS / "triangle.toml")
     pipe = TrianglePipeline(rig)
     assert _compiled.ON is False
@@ -235,17 +242,11 @@ def test_kernels_that_do_not_load_leave_the_numpy_path_on(monkeypatch, capsys):
     assert pipe.process(Frame(0, 0.0, rig_img)).ok
 
 
-def test_the_pixel_fits_kernels_load_with_a_rig_that_uses_it(monkeypatch, capsys):
+def test_the_pixel_fits_kernels_load_with_a_rig_that_uses_it(unloadable, capsys):
     """A rig on the edge lines loads the edge fit's kernels only (a first run does not
     wait for the pixel fit's compilation); one with refine = "pixels" loads the pixel
     fit's too, and when those do not load the numpy path runs, said once."""
-
-    def broken(*a, **k):
-        raise RuntimeError("cannot cache function: no locator available")
-
-    monkeypatch.setattr(E, "_warm", set())
-    monkeypatch.setattr(_compiled, "ON", True)
-    monkeypatch.setattr(_compiled, "band_pixels", broken)
+    unloadable("band_pixels")
     rig = load_rig(CONFIGS / "triangle.toml")
     TrianglePipeline(rig)
     assert E._warm == {"edges"} and _compiled.ON is True
@@ -286,9 +287,9 @@ def test_the_pixel_fits_noise_correlation_compiled_or_not(monkeypatch):
     index[[5, 6, 12]] = [0, 1, 2]
     args = (index, np.array([5, 6, 12]), np.array([1, 7]), np.array([1.0, 2.0, 3.0]),
             np.array([0.5, 1.0, 2.0]))  # fmt: skip
-    pairs, rr, ww = _compiled.lag_sums(*args)
+    pairs, rr, ww = _compiled._lag_sums(*args)
     assert pairs.tolist() == [1.0, 1.0] and rr.tolist() == [2.0, 3.0]
-    assert _diff((pairs, rr, ww), _compiled.lag_sums.py_func(*args)) == 0.0
+    assert _diff((pairs, rr, ww), _compiled._lag_sums.py_func(*args)) == 0.0
 
 
 @pytest.fixture(scope="module")

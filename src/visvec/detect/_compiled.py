@@ -639,7 +639,10 @@ def _pixel_gn(x, y, counts, n, c, w, centroid, scale, steps):
         JT[3, p] = 1.0
         JT[4, p] = (x[p, 0] - centroid[0]) / scale
         JT[5, p] = (x[p, 1] - centroid[1]) / scale
+    # each edge's parameters: its line's rotation and offset, its width, the six levels
     idx = np.empty(9, np.int64)
+    for q in range(6):
+        idx[3 + q] = 9 + q
     rss = 0.0
     for it in range(steps):
         start = 0
@@ -686,8 +689,6 @@ def _pixel_gn(x, y, counts, n, c, w, centroid, scale, steps):
             He = Je @ Je.T
             be = Je @ r_all[start:stop]
             idx[0], idx[1], idx[2] = 2 * e, 2 * e + 1, 6 + e
-            for q in range(6):
-                idx[3 + q] = 9 + q
             for q in range(9):
                 b[idx[q]] += be[q]
                 for s in range(9):
@@ -714,7 +715,6 @@ def _pixel_gn(x, y, counts, n, c, w, centroid, scale, steps):
 
 sample_geometry = _jit(_sample_geometry)
 _lag_sums = _jit(_lag_sums)
-lag_sums = _lag_sums
 noise_inflation = _jit(_noise_inflation)
 band_pixels = _jit(_band_pixels)
 _ndtr_with_bell = _jit(_ndtr_with_bell)

@@ -224,16 +224,18 @@ def _band(image, n, c, reach, clear, camera, roll=None):
     if pts is None:
         return None
     pts = pts.reshape(-1, 2).astype(np.int64) + lo
+    if _compiled.ON and roll is None:  # the same pixels in the same order, compiled
+        reach, clear = np.asarray(reach, float), np.asarray(clear, float)
+        return _compiled.band_pixels(pts, _NO_XY, grid, cx, cy, aspect, lens, image, n, o,
+                                     reach, clear)  # fmt: skip
     # flat indices into the frame (one take is cheaper than a gather by row and column)
     flat = pts[:, 1] * camera.width + pts[:, 0]
-    x = _NO_XY
-    if roll is not None or not _compiled.ON:
-        x = _pinhole(pts, cx, cy, aspect)
-        if lens:
-            x += np.take(grid.reshape(-1, 2), flat, axis=0)
-        if roll is not None:
-            x = _unrolled(x / camera.fx, pts[:, 1], camera, roll) * camera.fx
-    if _compiled.ON:  # the same pixels in the same order, compiled (the fast extra)
+    x = _pinhole(pts, cx, cy, aspect)
+    if lens:
+        x += np.take(grid.reshape(-1, 2), flat, axis=0)
+    if roll is not None:
+        x = _unrolled(x / camera.fx, pts[:, 1], camera, roll) * camera.fx
+    if _compiled.ON:  # the unrolled coordinates given, the rest compiled
         reach, clear = np.asarray(reach, float), np.asarray(clear, float)
         return _compiled.band_pixels(pts, x, grid, cx, cy, aspect, lens, image, n, o, reach,
                                      clear)  # fmt: skip
