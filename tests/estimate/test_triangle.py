@@ -224,6 +224,43 @@ def test_the_residuals_measure_a_shear_no_attitude_explains(rig640):
         assert 1.0 / np.sqrt(b) < 0.01  # one frame pins k to 10 ms at 0.05 px
 
 
+def test_readout_evidence_update_is_the_free_fits_explain(rig640):
+    """ReadoutEvidence.add, written for speed, accumulates what the frame's residual
+    freed of its prior (VertexResidual.unconstrained) explains of the design [-A omega
+    of a 1 s readout, model_error_design] (VertexResidual.explain), and that free
+    residual's chi-square: the same numbers (1e-12), with a lever arm, a correction
+    already applied, and a height carried as a prior."""
+    from visvec.estimate.shear import ReadoutEvidence, _design, model_error_design
+    from visvec.shutter import shutter_shift
+
+    cam = rig640.camera
+    rng = np.random.default_rng(5)
+    ev = ReadoutEvidence.for_camera(cam, 30.0)
+    info, rhs, chi2 = np.zeros((10, 10)), np.zeros(10), 0.0
+    for k in range(6):
+        exact = _detection(rig640, euler_to_matrix(*rng.normal(0.0, 0.1, 3)))
+        seen = exact.points_n + rng.normal(0.0, 0.3 / cam.fx, (3, 2))
+        residual = solve_full(replace(exact, points_n=seen), rig640, height_prior=(1.0, 2.0))
+        xy, rows = exact.points_n, exact.points_px[:, 1]
+        omega, lever = rng.normal(0.0, 0.3, 3), rng.normal(0.0, 0.1, 3)
+        design = np.column_stack(
+            [-shutter_shift(xy, rows, cam, 1000.0, omega, lever), model_error_design(xy, cam)]
+        )
+        np.testing.assert_allclose(_design(xy, rows, cam, omega, lever), design, atol=1e-15)
+        applied = 5.0 * k
+        ev.add(residual.residual, xy, rows, cam, omega, lever, applied)
+        free = residual.residual.unconstrained()
+        a, b = free.explain(design)
+        info += b
+        ka = applied / 1000.0
+        rhs += a + b[:, 0] * ka
+        chi2 += free.r @ free.W @ free.r + 2.0 * ka * a[0] + ka**2 * b[0, 0]
+    scale = np.abs(info).max()
+    np.testing.assert_allclose(ev.info, info, rtol=0, atol=1e-12 * scale)
+    np.testing.assert_allclose(ev.rhs, rhs, rtol=1e-9, atol=1e-12 * np.abs(rhs).max())
+    assert ev.chi2 == pytest.approx(chi2, rel=1e-9) and ev.n == 6 and ev.dof == 6 * 2
+
+
 def test_readout_evidence_counts_what_a_correction_took_out(rig640):
     """Frames already taken out with a running readout estimate k0 show only k - k0 in
     their residuals; ReadoutEvidence adds k0 back, so its estimate stays the camera's

@@ -54,13 +54,13 @@ leaves them several times the noise), and the readout no longer than a frame.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from visvec.camera import CameraModel
 from visvec.estimate.triangle_full import VertexResidual
-from visvec.shutter import shutter_shift
 
 # a rolling shutter is reported when the run's readout estimate is this many of its
 # sigma from zero and at least this long (ms)
@@ -132,6 +132,44 @@ def model_error_prior(camera: CameraModel, principal_point_px: float | None = No
     return np.r_[np.full(6, STATIC_PRIOR_PX / camera.fx), np.full(2, pp), ASPECT_PRIOR]
 
 
+def _design(
+    xy: np.ndarray,
+    rows: np.ndarray,
+    camera: CameraModel,
+    omega_c: np.ndarray,
+    lever: np.ndarray | None,
+) -> np.ndarray:
+    """(6, N_PARAMS) the evidence's design for one frame: [-shutter_shift of a 1 s
+    readout, model_error_design], the same values written out per vertex in floats
+    (the whole-array form takes 40 us a frame, most of it numpy's per-call cost)."""
+    pts = xy.tolist()
+    wx, wy, wz = np.asarray(omega_c, float).tolist()
+    lx, ly, lz = (0.0, 0.0, 0.0) if lever is None else np.asarray(lever, float).tolist()
+    cy, height = camera.cy, camera.height
+    # the triangle's frame (see _triangle_frame): x along the centroid-to-apex direction
+    vx = pts[0][0] - (pts[0][0] + pts[1][0] + pts[2][0]) / 3.0
+    vy = pts[0][1] - (pts[0][1] + pts[1][1] + pts[2][1]) / 3.0
+    norm = math.hypot(vx, vy)
+    c, s = vx / norm, vy / norm
+    ifx, ify = 1.0 / camera.fx, 1.0 / camera.fy
+    out = []
+    for i, ((x, y), v) in enumerate(zip(pts, np.asarray(rows, float).tolist(), strict=True)):
+        t = (v - cy) / height  # s from the centre row's exposure, for a 1 s readout
+        ex, ey, ez = x + lx, y + ly, 1.0 + lz
+        # omega x e, and the projection's linearisation (see shutter_shift)
+        ox, oy, oz = wy * ez - wz * ey, wz * ex - wx * ez, wx * ey - wy * ex
+        row_x = [0.0] * N_PARAMS
+        row_y = [0.0] * N_PARAMS
+        row_x[0] = -(ox - x * oz) * t
+        row_y[0] = -(oy - y * oz) * t
+        row_x[1 + 2 * i], row_x[2 + 2 * i] = c, -s
+        row_y[1 + 2 * i], row_y[2 + 2 * i] = s, c
+        row_x[7] = ifx
+        row_y[8], row_y[9] = ify, y
+        out += (row_x, row_y)
+    return np.array(out)
+
+
 @dataclass
 class ReadoutEvidence:
     """The run's readout (s), a static residual pattern (6, triangle frame) and the
@@ -185,15 +223,21 @@ class ReadoutEvidence:
         # each frame judged with its height free: the height carried from the frames
         # before lags the frame's own, and its pull, which a principal point error makes
         # turn with the yaw, read as a -8 ms shutter (4 px off, before zero-tilt)
+        # (VertexResidual.unconstrained and .explain in one, written for speed: with
+        # C0 = (J^T W J)^-1 the weight the free fit leaves is P = W - W J C0 J^T W; the
+        # free residual r0 has W r0 = P r and r0^T W r0 = r^T P r, so a = -D^T P r and
+        # b = D^T P D for the design D)
+        J, W, r = residual.J, residual.W, residual.r
+        JW = J.T @ W
         try:
-            residual = residual.unconstrained()
+            C0 = np.linalg.inv(JW @ J)
         except np.linalg.LinAlgError:
             return  # vertices that alone do not fix the parameters measure nothing here
+        P = W - JW.T @ C0 @ JW
         # seen = centre row - A omega readout: the pattern of a unit (1 s) readout
-        design = np.empty((6, N_PARAMS))
-        design[:, 0] = -shutter_shift(xy, rows, camera, 1000.0, omega_c, lever)
-        design[:, 1:] = model_error_design(xy, camera)
-        a, b = residual.explain(design)
+        design = _design(xy, rows, camera, omega_c, lever)
+        PD = P @ design
+        a, b = -(PD.T @ r), design.T @ PD
         ka = applied_ms / 1000.0
         self.info += b
         self.rhs += a + b[:, 0] * ka
@@ -201,9 +245,8 @@ class ReadoutEvidence:
         # frame's r W r, with its residuals' share of k taken as k - ka, gains 2 ka a0 +
         # ka^2 b00; its degrees of freedom are 6 less the fit's parameters (with no prior
         # left, trace(C J^T W J) is their number)
-        self.chi2 += float(residual.r @ residual.W @ residual.r) + 2.0 * ka * a[0]
-        self.chi2 += ka * ka * b[0, 0]
-        self.dof += 6.0 - residual.J.shape[1]
+        self.chi2 += float(r @ P @ r) + 2.0 * ka * a[0] + ka * ka * b[0, 0]
+        self.dof += 6.0 - J.shape[1]
         self.n += 1
         self._cached = None
 

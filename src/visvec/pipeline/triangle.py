@@ -3,6 +3,8 @@ attitude, with the rolling-shutter and height evidence it gathers on the way."""
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from visvec.data import AttitudeSolution, Detection, Status
@@ -52,7 +54,7 @@ def body_rate(a: tuple[float, np.ndarray], b: tuple[float, np.ndarray]) -> np.nd
     if not 0 < t1 - t0 <= MAX_RATE_GAP_S:
         return None
     omega_b = logmap(R0.T @ R1) / (t1 - t0)
-    if np.degrees(np.linalg.norm(omega_b)) > MAX_RATE_DPS:
+    if math.degrees(math.sqrt(omega_b @ omega_b)) > MAX_RATE_DPS:
         return None
     return omega_b
 
