@@ -185,21 +185,32 @@ def test_triangle_leaving_the_view_is_rejected_with_reason(rig640):
     assert "partly_out_of_view" in last.warnings
 
 
-def test_dark_surround_of_a_triangle_half_a_pixel_from_the_border(rig640):
+def test_pixel_checks_of_a_triangle_half_a_pixel_from_the_border(rig640):
     """The dark-surround check's outer ring reached v = -0.42, in the image (the top
     pixel row spans -0.5 to 0.5), and its box started at row floor(-0.42) = -1, which
     sliced the image from its last row: an empty box, and cv2.fillPoly raised (an
     internal error on a good frame of a rig with its target off the axis). The box is
-    clamped to the image: the check runs, and still tells a dark board from none."""
+    clamped to the image: the checks run, and each still tells its case: a bright band
+    just outside the region the region check sees (20-25 % out) is no dark surround, a
+    grey board around the triangle no region of its shape, a saturated triangle
+    overexposed."""
     pts = np.array([[141.09, 26.73], [250.45, 172.5], [137.59, 206.79]])
     c = pts.mean(axis=0)
     assert -0.5 < (c + (pts - c) * 1.25)[:, 1].min() < 0.0
     det = TriangleDetector(rig640)
-    board = np.full((480, 640), 40, np.uint8)
-    cv2.fillPoly(board, [np.rint(pts).astype(np.int32)], 70)
-    assert det._dark_surround(board, pts, 8.0)
-    grey = np.full((480, 640), 70, np.uint8)
-    assert not det._dark_surround(grey, pts, 8.0)
+
+    def board(surround, inside, band=None):
+        img = np.full((480, 640), surround, np.uint8)
+        if band is not None:
+            img[:] = band
+            cv2.fillPoly(img, [np.rint(c + (pts - c) * 1.2).astype(np.int32)], surround)
+        cv2.fillPoly(img, [np.rint(pts).astype(np.int32)], inside)
+        return img
+
+    assert det._pixel_reason(board(40, 70), pts, 55.0, 8.0) is None
+    assert det._pixel_reason(board(40, 70, band=250), pts, 55.0, 8.0) == "no_dark_surround"
+    assert det._pixel_reason(board(70, 70), pts, 55.0, 8.0) == "obstructed"
+    assert det._pixel_reason(board(40, 255), pts, 147.0, 8.0) == "overexposed"
 
 
 def test_shape_checks_hold_wherever_the_triangle_falls_in_the_field(rig640):

@@ -58,6 +58,10 @@ REGION_AREA_TOL = 0.08
 EDGE_OUTLIER_MAX = 0.25
 BORDER_MARGIN_PX = 3.0
 SATURATED_MAX = 0.2
+# the pixel checks' polygons (see TriangleDetector._pixel_reason): the triangle scaled
+# about its centre: saturation inside, the region, the surround's band (outer, inner
+# edge) and the inside it is compared with
+_CHECK_SCALES = np.array([0.8, 1.2, 1.25, 1.08, 0.75])
 # a region showing a corner of the triangle (no last frame to go by) with less than this
 # share of its outline an edge is the triangle joined to a brighter part of the board
 # (measured: 0.5-0.74 for 98 % of such regions, 0.9-1.0 for most of those joined to a
@@ -162,21 +166,6 @@ def _centre(p: np.ndarray) -> np.ndarray:
     """The mean of the (3, 2) vertices, as ndarray.mean takes it (the sum over 3) without
     its wrapper's cost."""
     return np.add.reduce(p, axis=0) / 3
-
-
-def _saturated_share(image: np.ndarray, pts_px: np.ndarray) -> float:
-    """The share of saturated pixels (>= 254) inside the triangle shrunk by 20 %."""
-    c = _centre(pts_px)
-    inner = np.rint(c + (pts_px - c) * 0.8).astype(np.int32)
-    x0, y0 = np.maximum(inner.min(axis=0), 0)
-    x1, y1 = inner.max(axis=0) + 1
-    roi = image[y0:y1, x0:x1]
-    m = np.zeros(roi.shape, np.uint8)
-    cv2.fillPoly(m, [inner - [x0, y0]], 1)
-    n_in = cv2.countNonZero(m)
-    # saturated pixels inside: (roi >= 254) as a 0/1 image, counted under the mask
-    n_sat = cv2.countNonZero(cv2.threshold(roi, 253, 1, cv2.THRESH_BINARY)[1] & m)
-    return n_sat / n_in if n_in else 0.0
 
 
 def _pixel_fit(image, fit, xy, cov, camera, shutter=None, rate_c=None):
@@ -601,17 +590,7 @@ class TriangleDetector:
         area = abs(_signed_area(m.xy))
         if m.vertex_gap > max(VERTEX_GAP_MIN_PX, VERTEX_GAP_FRACTION * np.sqrt(area)):
             return "obstructed"
-        # saturation inside: the edges are clipped and their positions biased
-        if _saturated_share(image, m.pts_px) > SATURATED_MAX:
-            return "overexposed"
-        # the region found must be the whole triangle: an occluder or a light touching
-        # it changes the region's area against the fitted vertices'
-        if not self._region_matches(image, m.pts_px, m.level_mid):
-            return "obstructed"
-        # the surround must be the dark board
-        if not self._dark_surround(image, m.pts_px, s.min_contrast):
-            return "no_dark_surround"
-        return None
+        return self._pixel_reason(image, m.pts_px, m.level_mid, s.min_contrast)
 
     def _shutter_consider(
         self, m: _Measured, rate_c: np.ndarray | None
@@ -686,43 +665,56 @@ class TriangleDetector:
             reason = "obstructed"
         return reason, outline
 
-    def _region_matches(self, image: np.ndarray, pts_px: np.ndarray, level: float) -> bool:
-        """Pixels above the board/triangle mid-level near the triangle fill it, no more.
+    def _pixel_reason(
+        self, image: np.ndarray, pts_px: np.ndarray, level: float, min_contrast: float
+    ) -> str | None:
+        """Step 4's checks on the pixels, in turn; the first one's reason that fails:
 
-        An occluder over the triangle, or a light or clutter touching it, changes the
-        bright area against the area of the fitted triangle.
-        """
+        - "overexposed": saturated pixels (>= 254) are more than SATURATED_MAX of the
+          triangle shrunk by 20 % (the edges are clipped, their positions biased);
+        - "obstructed": the pixels above the board/triangle mid-level ``level`` in the
+          triangle grown by 20 % do not fill the fitted triangle's area to within
+          REGION_AREA_TOL (an occluder over it, a light or clutter touching it);
+        - "no_dark_surround": a band 8-25 % outside the triangle is not darker than the
+          triangle shrunk by 25 % by half ``min_contrast`` (not checked when the band
+          leaves the image).
+
+        Each polygon is the triangle scaled about its centre, its vertices rounded to
+        pixels, all in one box of the image (the largest polygon's, clamped to the
+        image: a corner within half a pixel of the border floors to -1, which as a
+        slice start is the last row or column)."""
         c = _centre(pts_px)
-        big = c + (pts_px - c) * 1.2
-        x0, y0 = np.maximum(np.floor(big.min(axis=0)).astype(int), 0)
-        x1, y1 = np.ceil(big.max(axis=0)).astype(int) + 1
+        scaled = c + (pts_px - c) * _CHECK_SCALES[:, None, None]
+        outer = scaled[2]
+        x0, y0 = np.maximum(np.floor(outer.min(axis=0)), 0).astype(int).tolist()
+        x1, y1 = (np.ceil(outer.max(axis=0)).astype(int) + 1).tolist()
         roi = image[y0:y1, x0:x1]
+        polys = (np.rint(scaled) - [x0, y0]).astype(np.int32)
+        # saturated pixels inside: (roi >= 254) as a 0/1 image, counted under the mask
         mask = np.zeros(roi.shape, np.uint8)
-        cv2.fillPoly(mask, [np.rint(big - [x0, y0]).astype(np.int32)], 1)
-        # pixels above the level inside the mask (threshold to 0/1, and-ed with the mask)
+        cv2.fillPoly(mask, [polys[0]], 1)
+        n_in = cv2.countNonZero(mask)
+        n_sat = cv2.countNonZero(cv2.threshold(roi, 253, 1, cv2.THRESH_BINARY)[1] & mask)
+        if n_in and n_sat / n_in > SATURATED_MAX:
+            return "overexposed"
+        # pixels above the level inside the grown triangle
+        mask = np.zeros(roi.shape, np.uint8)
+        cv2.fillPoly(mask, [polys[1]], 1)
         above = cv2.threshold(roi, np.floor(level), 1, cv2.THRESH_BINARY)[1]
         bright = float(cv2.countNonZero(above & mask))
         area = abs(_signed_area(pts_px))
-        return abs(bright / max(area, 1.0) - 1.0) <= REGION_AREA_TOL
-
-    def _dark_surround(self, image: np.ndarray, pts_px: np.ndarray, min_contrast: float) -> bool:
-        """Mean of a band just outside the triangle is darker than a band inside it."""
-        c = _centre(pts_px)
-        outer = c + (pts_px - c) * 1.25
+        if not abs(bright / max(area, 1.0) - 1.0) <= REGION_AREA_TOL:
+            return "obstructed"
         if not np.all(self.rig.camera.in_image(outer)):
-            return True  # cannot tell near the image edge; other checks apply
-        # a corner within half a pixel of the border (in the image, u or v > -0.5) floors
-        # to -1, which as a slice start is the last row or column: clamp it
-        x0, y0 = np.maximum(np.floor(outer.min(axis=0)).astype(int), 0)
-        x1, y1 = np.ceil(outer.max(axis=0)).astype(int) + 1
-        roi = image[y0:y1, x0:x1]
-        o = np.array([x0, y0])
-        ring_m = np.zeros(roi.shape, np.uint8)
-        cv2.fillPoly(ring_m, [np.rint(outer - o).astype(np.int32)], 255)
-        cv2.fillPoly(ring_m, [np.rint(c + (pts_px - c) * 1.08 - o).astype(np.int32)], 0)
-        inner_m = np.zeros(roi.shape, np.uint8)
-        cv2.fillPoly(inner_m, [np.rint(c + (pts_px - c) * 0.75 - o).astype(np.int32)], 255)
-        return _masked_mean(roi, inner_m) - _masked_mean(roi, ring_m) >= 0.5 * min_contrast
+            return None  # cannot tell near the image edge; other checks apply
+        ring = np.zeros(roi.shape, np.uint8)
+        cv2.fillPoly(ring, [polys[2]], 255)
+        cv2.fillPoly(ring, [polys[3]], 0)
+        inner = np.zeros(roi.shape, np.uint8)
+        cv2.fillPoly(inner, [polys[4]], 255)
+        if not _masked_mean(roi, inner) - _masked_mean(roi, ring) >= 0.5 * min_contrast:
+            return "no_dark_surround"
+        return None
 
     def _corners(self, image: np.ndarray, cand: Candidate, mask: np.ndarray):
         """The paper's corners: goodFeaturesToTrack on the region, then cornerSubPix."""
