@@ -74,6 +74,29 @@ def test_an_enclosing_triangle_is_found_where_opencv_finds_none():
     assert abs(cv2.contourArea(tri)) < 1.15 * cv2.contourArea(pts)
 
 
+def test_an_outline_gives_the_same_enclosing_triangle_as_int32_and_float32():
+    """findContours' int32 outlines go to OpenCV as they are (no float32 copy): the
+    same triangle, on noisy regions' ragged outlines and on the retry path's hull
+    (the int32 form of the outline OpenCV found none for)."""
+    rng = np.random.default_rng(2)
+    for _ in range(30):
+        img = (rng.normal(60, 3, (90, 120))).clip(0, 255).astype(np.uint8)
+        tri = rng.uniform([10, 10], [110, 80], (3, 2))
+        cv2.fillPoly(img, [np.rint(tri).astype(np.int32)], 90)
+        img = cv2.GaussianBlur(img, (3, 3), 0.8)
+        binary = cv2.threshold(img, 72, 255, cv2.THRESH_BINARY)[1]
+        cnts, _ = cv2.findContours(binary, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+        cnt = max(cnts, key=len)
+        assert cnt.dtype == np.int32
+        found = enclosing_triangle(cnt)
+        assert found is not None
+        np.testing.assert_array_equal(found, enclosing_triangle(cnt.astype(np.float32)))
+    hull = np.rint(np.array(_HULL_WITHOUT_TRIANGLE)).astype(np.int32).reshape(-1, 1, 2)
+    np.testing.assert_array_equal(
+        enclosing_triangle(hull), enclosing_triangle(hull.astype(np.float32))
+    )
+
+
 def test_an_enclosing_triangle_survives_opencv_raising(monkeypatch):
     calls = []
     real = cv2.minEnclosingTriangle

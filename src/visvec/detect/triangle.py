@@ -310,9 +310,9 @@ class TriangleDetector:
         area[~(np.abs(np.log(area / ref)) < np.log(3.0))] = ref
         return area.reshape(AREA_GRID, AREA_GRID).tolist()
 
-    def _image_area_at(self, uv: np.ndarray) -> float:
+    def _image_area_at(self, uv: tuple[float, float]) -> float:
         """The triangle's expected area (px) in the image when it is centred at pixel
-        ``uv``, bilinear in :meth:`_area_table`. Off the boresight, and through a wide
+        ``uv`` (u, v), bilinear in :meth:`_area_table`. Off the boresight, and through a wide
         lens's distortion, the same triangle covers more or fewer pixels (1.3x the
         centre's at 20-25 deg off the boresight through a 56 deg lens)."""
         cam, g, n = self.rig.camera, self._area_grid, AREA_GRID - 1
