@@ -367,6 +367,31 @@ def test_closed_form_start_is_exact_on_exact_points(rig640, yaw_deg):
     assert _angle(R_cn.T @ rig640.R_bc.T, R) < EXACT_TOL
 
 
+def test_closed_form_start_of_three_points_is_the_whole_array_one():
+    """The three-point closed form (floats around one SVD, the triangle's cold frames)
+    gives the rotation of the whole-array form for any number of points: 1e-12, over
+    noisy bearings of points beyond the centre of rotation (one branch in front) and of
+    points around it seen from afar (both branches, the better kept), and none where
+    neither is."""
+    from visvec.estimate.rotation import _initial_rotation_3, _initial_rotation_n
+
+    rng = np.random.default_rng(1)
+    kinds = {"beyond": 0, "around": 0, "none": 0}
+    for _ in range(600):
+        t_c = rng.normal(0.0, 300.0, 3)
+        X = rng.normal(0.0, 400.0, (3, 3)) + [0.0, 0.0, rng.choice([2000.0, -200.0])]
+        p = X @ euler_to_matrix(*rng.normal(0.0, 0.5, 3)).T + t_c
+        xy = p[:, :2] / p[:, 2:3] + rng.normal(0.0, 1e-2, (3, 2))
+        fast, whole = _initial_rotation_3(t_c, X, xy), _initial_rotation_n(t_c, X, xy)
+        assert (fast is None) == (whole is None)
+        if fast is None:
+            kinds["none"] += 1
+            continue
+        np.testing.assert_allclose(fast, whole, rtol=0, atol=1e-12)
+        kinds["around" if X[0, 2] < 0 else "beyond"] += 1
+    assert min(kinds.values()) > 50, kinds
+
+
 def test_full_recovers_attitude_with_lever_arm_and_tilted_mount(rig640):
     rig = replace(
         rig640,
