@@ -206,6 +206,46 @@ def test_a_cold_frame_gives_the_same_vertices_compiled_or_not(monkeypatch):
             assert np.abs(c0 - c1).max() <= 1e-9 * np.abs(c0).max()
 
 
+def test_the_attitude_fit_compiled_or_not(monkeypatch):
+    """The triangle's attitude fit with its height (estimate.rotation._fit_with_shift):
+    its compiled Gauss-Newton (gn_shift) gives numpy's rotation, height, residuals and
+    covariance (1e-12) in as many iterations, on the fits the test frames make, cold and
+    tracked; and its Python source the compiled result."""
+    from visvec.estimate import rotation
+
+    calls = []
+    real = rotation._fit_with_shift
+
+    def record(*args):
+        calls.append(args)
+        return real(*args)
+
+    monkeypatch.setattr(rotation, "_fit_with_shift", record)
+    for rig, img in _frames():
+        pipe = TrianglePipeline(rig)
+        for k in range(2):
+            pipe.process(Frame(k, k / rig.fps, img))
+    monkeypatch.undo()
+    assert len(calls) >= 12  # (the heads' frames are refused before)
+    for args in calls:
+        fits = []
+        for flag in (False, True):
+            monkeypatch.setattr(_compiled, "ON", flag)
+            fits.append(rotation._fit_with_shift(*args))
+        a, b = fits
+        assert a.iterations == b.iterations and a.converged == b.converged
+        np.testing.assert_allclose(b.R, a.R, rtol=0, atol=1e-12)
+        assert abs(b.shift - a.shift) < 1e-9  # mm
+        np.testing.assert_allclose(b.r, a.r, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(b.cov_p, a.cov_p, rtol=1e-9, atol=0)
+        assert b.chi2 == pytest.approx(a.chi2, rel=1e-9, abs=1e-12)
+    t_c, X, xy, W, R, prior = calls[0]
+    tols = (rotation.MAX_ITERATIONS, rotation.STEP_TOL_RAD**2, rotation.STEP_TOL_SHIFT)
+    kargs = (R, t_c, X, xy, W, prior.axis, float(prior.mean), 1.0 / prior.sigma**2, *tols)
+    monkeypatch.setattr(_compiled, "_expmap", _compiled._expmap.py_func)
+    assert _diff(_compiled.gn_shift(*kargs), _compiled.gn_shift.py_func(*kargs)) == 0.0
+
+
 def test_visvec_pure_turns_the_kernels_off():
     """VISVEC_PURE=1 runs the numpy functions (a lab can compare, or rule Numba out)."""
     code = "from visvec.detect import _compiled; print(_compiled.ON)"

@@ -1,6 +1,7 @@
-"""Compiled kernels of the edge fit (visvec.detect.edges) and of the pixel fit
-(visvec.detect.photometric: its pixels, Gauss-Newton steps and noise correlation),
-through Numba.
+"""Compiled kernels of the edge fit (visvec.detect.edges), of the pixel fit
+(visvec.detect.photometric: its pixels, Gauss-Newton steps and noise correlation) and of
+the triangle's attitude fit (visvec.estimate.rotation: its Gauss-Newton with the
+target's height), through Numba.
 
 A frame's edge fit works on a few hundred profiles of a dozen samples each: numpy spends
 most of its time there starting its array operations, not doing them. Each kernel here
@@ -713,6 +714,78 @@ def _pixel_gn(x, y, counts, n, c, w, centroid, scale, steps):
     return n, c, w, level, H, b, rss, r_all, g_all, True
 
 
+# ------------------------------------- the triangle's attitude (estimate.rotation)
+def _expmap(w0, w1, w2):
+    """visvec.rotations.expmap_xyz: Rodrigues' formula, its series below 1e-8 rad."""
+    t2 = w0 * w0 + w1 * w1 + w2 * w2
+    if t2 < 1e-16:
+        a, b = 1.0, 0.5
+    else:
+        t = math.sqrt(t2)
+        a, b = math.sin(t) / t, (1.0 - math.cos(t)) / t2
+    E = np.empty((3, 3))
+    E[0, 0] = 1.0 - b * (w1 * w1 + w2 * w2)
+    E[0, 1] = b * w0 * w1 - a * w2
+    E[0, 2] = b * w0 * w2 + a * w1
+    E[1, 0] = b * w0 * w1 + a * w2
+    E[1, 1] = 1.0 - b * (w0 * w0 + w2 * w2)
+    E[1, 2] = b * w1 * w2 - a * w0
+    E[2, 0] = b * w0 * w2 - a * w1
+    E[2, 1] = b * w1 * w2 + a * w0
+    E[2, 2] = 1.0 - b * (w0 * w0 + w1 * w1)
+    return E
+
+
+def _gn_shift(R, t_c, X, xy, W, axis, mean, w_s, max_iterations, tol_rad2, tol_shift):
+    """The Gauss-Newton of visvec.estimate.rotation._fit_with_shift, in (d, s): each
+    iteration its residuals and Jacobian (residuals_and_jacobian_shift), the normal
+    equations with the shift's prior, the step, R <- exp([d]x) R. Returns (R, s, r, J,
+    N, iterations, converged), r after the last small step to second order in it."""
+    n = X.shape[0]
+    s = mean
+    r = np.empty(2 * n)
+    J = np.empty((2 * n, 4))
+    converged = False
+    it = 0
+    while True:
+        e0 = R[0, 0] * axis[0] + R[0, 1] * axis[1] + R[0, 2] * axis[2]
+        e1 = R[1, 0] * axis[0] + R[1, 1] * axis[1] + R[1, 2] * axis[2]
+        e2 = R[2, 0] * axis[0] + R[2, 1] * axis[1] + R[2, 2] * axis[2]
+        for i in range(n):
+            x0, x1, x2 = X[i, 0] + s * axis[0], X[i, 1] + s * axis[1], X[i, 2] + s * axis[2]
+            qx = R[0, 0] * x0 + R[0, 1] * x1 + R[0, 2] * x2
+            qy = R[1, 0] * x0 + R[1, 1] * x1 + R[1, 2] * x2
+            qz = R[2, 0] * x0 + R[2, 1] * x1 + R[2, 2] * x2
+            iz = 1.0 / (qz + t_c[2])
+            u, v = (qx + t_c[0]) * iz, (qy + t_c[1]) * iz
+            r[2 * i] = u - xy[i, 0]
+            r[2 * i + 1] = v - xy[i, 1]
+            J[2 * i, 0] = -qy * u * iz
+            J[2 * i, 1] = (qz + qx * u) * iz
+            J[2 * i, 2] = -qy * iz
+            J[2 * i, 3] = (e0 - u * e2) * iz
+            J[2 * i + 1, 0] = -(qy * v + qz) * iz
+            J[2 * i + 1, 1] = qx * v * iz
+            J[2 * i + 1, 2] = qx * iz
+            J[2 * i + 1, 3] = (e1 - v * e2) * iz
+        JtW = J.T @ W
+        N = JtW @ J
+        N[3, 3] += w_s
+        if it == max_iterations:
+            break
+        it += 1
+        g = JtW @ r
+        g[3] += (s - mean) * w_s
+        step = -np.linalg.solve(N, g)
+        R = _expmap(step[0], step[1], step[2]) @ R
+        s += step[3]
+        if step[0] ** 2 + step[1] ** 2 + step[2] ** 2 < tol_rad2 and abs(step[3]) < tol_shift:
+            converged = True
+            r = r + J @ step
+            break
+    return R, s, r, J, N, it, converged
+
+
 sample_geometry = _jit(_sample_geometry)
 _lag_sums = _jit(_lag_sums)
 noise_inflation = _jit(_noise_inflation)
@@ -728,3 +801,5 @@ _group_tls = _jit(_group_tls)
 group_median = _jit(_group_median)
 _group_median = group_median
 robust_lines = _jit(_robust_lines)
+_expmap = _jit(_expmap)
+gn_shift = _jit(_gn_shift)

@@ -823,7 +823,8 @@ _warm: set[str] = set()
 def warm_up(pixel_fit: bool = False) -> None:
     """Load (or, the first time on a machine, compile) the compiled kernels now, not on
     a camera's first frame: an edge fit, cold and tracked, of a triangle drawn on a small
-    image, which calls each kernel with each kind of argument a frame gives it; with
+    image, which calls each kernel with each kind of argument a frame gives it, and an
+    attitude fit of three points (visvec.estimate.rotation); with
     ``pixel_fit`` the pixel fit's too (visvec.detect.photometric: a rig with refine =
     "pixels"; the edge lines' rigs do not wait for their compilation, about half the
     first run's 20 s). A few milliseconds once they are loaded; without Numba, nothing.
@@ -843,6 +844,10 @@ def warm_up(pixel_fit: bool = False) -> None:
     try:
         fit = fit_edges(img, corners, cam)
         fit_edges(img, corners, cam, width=fit.width)
+        # the triangle's attitude fit (visvec.estimate.rotation._fit_with_shift)
+        X = np.array([[0.0, 0.0, 1000.0], [100.0, 0.0, 1000.0], [0.0, 100.0, 1000.0]])
+        _compiled.gn_shift(np.eye(3), np.zeros(3), X, X[:, :2] / X[:, 2:], np.eye(6),
+                           np.array([0.0, 0.0, 1.0]), 0.0, 1.0, 15, 1e-12, 1e-3)  # fmt: skip
         if "pixels" in todo:
             # visvec.detect.photometric imports this module
             from visvec.detect.photometric import refine

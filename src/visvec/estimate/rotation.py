@@ -25,6 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from visvec.detect import _compiled
 from visvec.rotations import expmap, expmap_xyz
 
 MAX_ITERATIONS = 15
@@ -285,9 +286,22 @@ def fit_rotation(
 def _fit_with_shift(
     t_c: np.ndarray, X: np.ndarray, xy: np.ndarray, W: np.ndarray, R: np.ndarray, prior
 ) -> RotationFit:
-    """:func:`fit_rotation` with the ShiftPrior ``prior``: Gauss-Newton in (d, s)."""
-    s = prior.mean
+    """:func:`fit_rotation` with the ShiftPrior ``prior``: Gauss-Newton in (d, s). With
+    the fast extra the iterations run compiled (visvec.detect._compiled.gn_shift, the
+    same steps: a frame's fit in 10 us instead of 60)."""
     w_s = 1.0 / prior.sigma**2
+    if _compiled.ON:
+        # C-ordered float64 arrays, the one signature the kernel is compiled for
+        c = np.ascontiguousarray
+        R, s, r, J, N, it, converged = _compiled.gn_shift(
+            c(R, float), c(t_c, float), c(X, float), c(xy, float), c(W, float),
+            c(prior.axis, float), float(prior.mean), w_s, MAX_ITERATIONS, STEP_TOL_RAD**2,
+            STEP_TOL_SHIFT,
+        )  # fmt: skip
+        cov_p = np.linalg.inv(N)
+        chi2 = float(r @ W @ r) + (s - prior.mean) ** 2 * w_s
+        return RotationFit(R, cov_p[:3, :3], chi2, r, it, converged, s, J, cov_p)
+    s = prior.mean
     converged = False
     it = 0
     while True:
