@@ -224,19 +224,30 @@ def test_the_residuals_measure_a_shear_no_attitude_explains(rig640):
         assert 1.0 / np.sqrt(b) < 0.01  # one frame pins k to 10 ms at 0.05 px
 
 
-def test_readout_evidence_update_is_the_free_fits_explain(rig640):
-    """ReadoutEvidence.add, written for speed, accumulates what the frame's residual
-    freed of its prior (VertexResidual.unconstrained) explains of the design [-A omega
-    of a 1 s readout, model_error_design] (VertexResidual.explain), and that free
-    residual's chi-square: the same numbers (1e-12), with a lever arm, a correction
-    already applied, and a height carried as a prior."""
+@pytest.mark.parametrize("compiled", [False, True])
+def test_readout_evidence_update_is_the_free_fits_explain(rig640, compiled, monkeypatch):
+    """ReadoutEvidence.add, written for speed (and compiled with the fast extra),
+    accumulates what the frame's residual freed of its prior (VertexResidual.
+    unconstrained) explains of the design [-A omega of a 1 s readout,
+    model_error_design] (VertexResidual.explain), and that free residual's chi-square:
+    the same numbers (1e-12), with a lever arm, a correction already applied, and a
+    height carried as a prior; the compiled kernel gives what its Python source does
+    (to rounding: 1e-12)."""
+    from visvec.detect import _compiled
     from visvec.estimate.shear import ReadoutEvidence, _design, model_error_design
     from visvec.shutter import shutter_shift
+
+    if compiled and not _compiled.AVAILABLE:
+        pytest.skip("Numba (the fast extra)")
+    monkeypatch.setattr(_compiled, "ON", compiled)
+    if compiled:  # its Python source (py_func, which coverage follows), checked below
+        kernel = _compiled.readout_frame
+        monkeypatch.setattr(_compiled, "readout_frame", kernel.py_func)
 
     cam = rig640.camera
     rng = np.random.default_rng(5)
     ev = ReadoutEvidence.for_camera(cam, 30.0)
-    info, rhs, chi2 = np.zeros((10, 10)), np.zeros(10), 0.0
+    info, rhs, chi2, added = np.zeros((10, 10)), np.zeros(10), 0.0, []
     for k in range(6):
         exact = _detection(rig640, euler_to_matrix(*rng.normal(0.0, 0.1, 3)))
         seen = exact.points_n + rng.normal(0.0, 0.3 / cam.fx, (3, 2))
@@ -248,7 +259,8 @@ def test_readout_evidence_update_is_the_free_fits_explain(rig640):
         )
         np.testing.assert_allclose(_design(xy, rows, cam, omega, lever), design, atol=1e-15)
         applied = 5.0 * k
-        ev.add(residual.residual, xy, rows, cam, omega, lever, applied)
+        added.append((residual.residual, xy, rows, cam, omega, lever, applied))
+        ev.add(*added[-1])
         free = residual.residual.unconstrained()
         a, b = free.explain(design)
         info += b
@@ -259,6 +271,27 @@ def test_readout_evidence_update_is_the_free_fits_explain(rig640):
     np.testing.assert_allclose(ev.info, info, rtol=0, atol=1e-12 * scale)
     np.testing.assert_allclose(ev.rhs, rhs, rtol=1e-9, atol=1e-12 * np.abs(rhs).max())
     assert ev.chi2 == pytest.approx(chi2, rel=1e-9) and ev.n == 6 and ev.dof == 6 * 2
+    if compiled:  # and the compiled kernel gives what its source does
+        monkeypatch.setattr(_compiled, "readout_frame", kernel)
+        again = ReadoutEvidence.for_camera(cam, 30.0)
+        for args in added:
+            again.add(*args)
+        np.testing.assert_allclose(again.info, ev.info, rtol=0, atol=1e-12 * scale)
+        np.testing.assert_allclose(again.rhs, ev.rhs, rtol=1e-12, atol=1e-12 * np.abs(rhs).max())
+        assert again.chi2 == pytest.approx(ev.chi2, rel=1e-12)
+        # the posterior (ReadoutEvidence._posterior): compiled, its source, numpy
+        got = []
+        for on, solve in ((True, _compiled.readout_solve),
+                          (True, _compiled.readout_solve.py_func), (False, None)):  # fmt: skip
+            monkeypatch.setattr(_compiled, "ON", on)
+            if solve is not None:
+                monkeypatch.setattr(_compiled, "readout_solve", solve)
+            ev._cached = None
+            got.append(ev._posterior())
+        for cov, theta, fit in got[1:]:
+            np.testing.assert_allclose(cov, got[0][0], rtol=1e-9)
+            np.testing.assert_allclose(theta, got[0][1], rtol=1e-9)
+            assert fit == pytest.approx(got[0][2], rel=1e-9)
 
 
 def test_readout_evidence_counts_what_a_correction_took_out(rig640):

@@ -824,10 +824,10 @@ def warm_up(pixel_fit: bool = False) -> None:
     """Load (or, the first time on a machine, compile) the compiled kernels now, not on
     a camera's first frame: an edge fit, cold and tracked, of a triangle drawn on a small
     image, which calls each kernel with each kind of argument a frame gives it, and an
-    attitude fit of three points (visvec.estimate.rotation); with
-    ``pixel_fit`` the pixel fit's too (visvec.detect.photometric: a rig with refine =
-    "pixels"; the edge lines' rigs do not wait for their compilation, about half the
-    first run's 20 s). A few milliseconds once they are loaded; without Numba, nothing.
+    attitude fit of three points and its rolling-shutter evidence (visvec.estimate);
+    with ``pixel_fit`` the pixel fit's too (visvec.detect.photometric: a rig with
+    refine = "pixels"; the edge lines' rigs do not wait for their compilation, about
+    half the first run's 20 s). A few milliseconds once they are loaded; without Numba, nothing.
     Kernels that do not load (a Numba that cannot compile here, no writable place for
     its cache: NUMBA_CACHE_DIR names one) leave the numpy path on, with a line on
     stderr."""
@@ -848,6 +848,11 @@ def warm_up(pixel_fit: bool = False) -> None:
         X = np.array([[0.0, 0.0, 1000.0], [100.0, 0.0, 1000.0], [0.0, 100.0, 1000.0]])
         _compiled.gn_shift(np.eye(3), np.zeros(3), X, X[:, :2] / X[:, 2:], np.eye(6),
                            np.array([0.0, 0.0, 1.0]), 0.0, 1.0, 15, 1e-12, 1e-3)  # fmt: skip
+        # and its frame's rolling-shutter evidence (visvec.estimate.shear)
+        _compiled.readout_frame(np.eye(6)[:, :4].copy(), np.eye(6), np.zeros(6),
+                                X[:, :2] / X[:, 2:], np.ones(3), np.zeros(3), np.zeros(3), 1.0,
+                                2.0, 1.0, 1.0, 0.0, np.zeros((10, 10)), np.zeros(10))  # fmt: skip
+        _compiled.readout_solve(np.eye(10), np.eye(10), np.zeros(10), 0.0, 0.0)
         if "pixels" in todo:
             # visvec.detect.photometric imports this module
             from visvec.detect.photometric import refine
