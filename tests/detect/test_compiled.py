@@ -8,7 +8,7 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
-from dataclasses import replace
+from dataclasses import fields, replace
 
 import numpy as np
 import pytest
@@ -26,7 +26,15 @@ from conftest import CONFIGS, attitudes
 
 pytestmark = pytest.mark.skipif(not _compiled.AVAILABLE, reason="Numba (the fast extra)")
 
-KERNELS = ("_sample", "_positions", "_widths", "_robust_lines", "_group_median")
+KERNELS = (
+    "_sample",
+    "_positions",
+    "_widths",
+    "_robust_lines",
+    "_group_median",
+    "_edge_fit",
+    "_level_gain",
+)
 
 
 def _frames():
@@ -87,7 +95,12 @@ def calls():
 
 def _diff(a, b) -> float:
     """The largest difference between two outputs (tuples of arrays; a boolean's count
-    of disagreements)."""
+    of disagreements; an EdgeFit's fields)."""
+    if isinstance(a, E.EdgeFit):
+        a, b = (tuple(getattr(x, f.name) for f in fields(x)) for x in (a, b))
+    if a is None or b is None:
+        assert a is None and b is None
+        return 0.0
     if isinstance(a, tuple):
         return max(_diff(x, y) for x, y in zip(a, b, strict=True))
     a, b = np.asarray(a), np.asarray(b)
@@ -138,6 +151,8 @@ def test_the_kernels_run_as_python_give_what_compiled_gives(calls):
             _compiled.group_median,
             lambda a, k: (np.asarray(a[0], float), a[1], a[3]),
         ),
+        "_edge_fit": (_compiled.edge_stats, lambda a, k: (a[4], a[5], a[6], *a[9:])),
+        "_level_gain": (_compiled.level_gain, lambda a, k: (np.asarray(a[0], float), *a[1:])),
     }
     for name, (kernel, to_args) in kernels.items():
         for a, k in calls[name][1][:2]:

@@ -715,6 +715,53 @@ def _pixel_gn(x, y, counts, n, c, w, centroid, scale, steps):
     return n, c, w, level, H, b, rss, r_all, g_all, True
 
 
+# ------------------------------------------------- a fine pass's lines (_edge_fit)
+def _level_gain(width, half, step):
+    """edges._level_gain: (3,) px per unit of relative mid-level error, the erf model's
+    sum(g) / sum(g^2) over the window's samples."""
+    x = np.arange(-half, half + 1e-9, step)
+    out = np.empty(3)
+    for e in range(3):
+        w = width[e]
+        s1 = 0.0
+        s2 = 0.0
+        for k in range(x.shape[0]):
+            g = math.exp(-0.5 * (x[k] / w) ** 2) / (_SQRT_2PI * w)
+            s1 += g
+            s2 += g * g
+        out[e] = s1 / s2
+    return out
+
+
+def _edge_stats(sigmas, level_px, h_mid, gid, keep, along, trims, lengths):
+    """edges._edge_fit's statistics: each edge's per-point sigma with the levels' error
+    added, inlier count (float), outlier share, and how far its inliers stop short of
+    its two ends beyond the trims ((3, 2); the whole length without inliers)."""
+    counts = np.zeros(3)
+    n_profiles = np.zeros(3)
+    s_min = np.full(3, np.inf)
+    s_max = np.full(3, -np.inf)
+    for j in range(gid.shape[0]):
+        e = gid[j]
+        n_profiles[e] += 1.0
+        if keep[j]:
+            counts[e] += 1.0
+            s_min[e] = min(s_min[e], along[j])
+            s_max[e] = max(s_max[e], along[j])
+    sig = np.empty(3)
+    outl = np.empty(3)
+    gaps = np.empty((3, 2))
+    for e in range(3):
+        sig[e] = math.hypot(sigmas[e], level_px[e] / max(abs(h_mid[e]), 1e-6))
+        outl[e] = 1.0 - counts[e] / n_profiles[e]
+        if counts[e] > 0:
+            gaps[e, 0] = s_min[e] - trims[(e + 1) % 3]
+            gaps[e, 1] = lengths[e] - trims[(e + 2) % 3] - s_max[e]
+        else:
+            gaps[e, 0] = gaps[e, 1] = lengths[e]
+    return sig, counts, outl, gaps
+
+
 # ------------------------------------- the triangle's attitude (estimate.rotation)
 def _expmap(w0, w1, w2):
     """visvec.rotations.expmap_xyz: Rodrigues' formula, its series below 1e-8 rad."""
@@ -853,5 +900,7 @@ _group_median = group_median
 robust_lines = _jit(_robust_lines)
 _expmap = _jit(_expmap)
 gn_shift = _jit(_gn_shift)
+level_gain = _jit(_level_gain)
+edge_stats = _jit(_edge_stats)
 readout_frame = _jit(_readout_frame)
 readout_solve = _jit(_readout_solve)

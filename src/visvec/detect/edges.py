@@ -524,6 +524,8 @@ def _level_gain(width: np.ndarray, half: float, step: float) -> np.ndarray:
     profiles: it moves the whole line and is not in the edge points' residuals. A level
     error with opposite signs on the two sides shifts nothing (symmetric slope).
     """
+    if _compiled.ON:
+        return _compiled.level_gain(np.asarray(width, float), float(half), float(step))
     w = np.asarray(width, float)
     x = np.arange(-half, half + 1e-9, step)[None, :]
     g = np.exp(-0.5 * (x / w[:, None]) ** 2) / (np.sqrt(2.0 * np.pi) * w[:, None])
@@ -595,6 +597,12 @@ def _edge_fit(normals, offsets, centres, spreads, sigmas, level_px, h_mid, mid, 
               keep, along, trims, lengths) -> EdgeFit:  # fmt: skip
     """A fine pass's EdgeFit: its lines with their statistics (per edge: inliers,
     outlier share, contrast, and how far the inliers stop short of the ends)."""
+    if _compiled.ON:  # the same statistics, compiled (the fast extra)
+        sigmas, counts, outl, gaps = _compiled.edge_stats(
+            sigmas, level_px, h_mid, gid, keep, along, trims, lengths
+        )
+        return EdgeFit(normals, offsets, centres, spreads, counts, sigmas, outl, h_mid, mid,
+                       gaps, width.copy())  # fmt: skip
     # the levels' error, common to the edge's profiles (see _level_gain): added per
     # point, so that over the count it is the variance of the line's shift from the
     # fitted level line
