@@ -34,6 +34,7 @@ KERNELS = (
     "_group_median",
     "_edge_fit",
     "_level_gain",
+    "_lines",
 )
 
 
@@ -153,6 +154,7 @@ def test_the_kernels_run_as_python_give_what_compiled_gives(calls):
         ),
         "_edge_fit": (_compiled.edge_stats, lambda a, k: (a[4], a[5], a[6], *a[9:])),
         "_level_gain": (_compiled.level_gain, lambda a, k: (np.asarray(a[0], float), *a[1:])),
+        "_lines": (_compiled.inward_lines, lambda a, k: _inward_args(*a)),
     }
     for name, (kernel, to_args) in kernels.items():
         for a, k in calls[name][1][:2]:
@@ -193,6 +195,12 @@ def _widths_args(vals, e, clear, gid, half, step):
 
 def _lines_args(x, y, gid, index, use, floor, rounds):
     return x, y, gid, use, float(floor), int(rounds), E.EDGE_VARIANCE_INFLATION
+
+
+def _inward_args(raw, pts_px, pr, camera, shutter, rate_c, sigma_floor, rounds):
+    ideal = raw * camera.fx  # (the test frames' rigs have no rolling shutter)
+    return (ideal[:, 0], ideal[:, 1], pr.gid, pr.clear, float(sigma_floor), int(rounds),
+            E.EDGE_VARIANCE_INFLATION)  # fmt: skip
 
 
 def _sample_args(roi, corners, off, half, step, trims, spacing):

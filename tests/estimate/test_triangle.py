@@ -400,13 +400,20 @@ def test_closed_form_start_is_exact_on_exact_points(rig640, yaw_deg):
     assert _angle(R_cn.T @ rig640.R_bc.T, R) < EXACT_TOL
 
 
-def test_closed_form_start_of_three_points_is_the_whole_array_one():
-    """The three-point closed form (floats around one SVD, the triangle's cold frames)
-    gives the rotation of the whole-array form for any number of points: 1e-12, over
-    noisy bearings of points beyond the centre of rotation (one branch in front) and of
-    points around it seen from afar (both branches, the better kept), and none where
-    neither is."""
+@pytest.mark.parametrize("compiled", [False, True])
+def test_closed_form_start_of_three_points_is_the_whole_array_one(compiled, monkeypatch):
+    """The three-point closed form (the triangle's cold frames: floats around one SVD,
+    or compiled with the fast extra) gives the rotation of the whole-array form for any
+    number of points: 1e-12, over noisy bearings of points beyond the centre of rotation
+    (one branch in front) and of points around it seen from afar (both branches, the
+    better kept), and none where neither is; the kernel's Python source gives the
+    same."""
+    from visvec.detect import _compiled
     from visvec.estimate.rotation import _initial_rotation_3, _initial_rotation_n
+
+    if compiled and not _compiled.AVAILABLE:
+        pytest.skip("Numba (the fast extra)")
+    monkeypatch.setattr(_compiled, "ON", compiled)
 
     rng = np.random.default_rng(1)
     kinds = {"beyond": 0, "around": 0, "none": 0}
@@ -422,6 +429,9 @@ def test_closed_form_start_of_three_points_is_the_whole_array_one():
             continue
         np.testing.assert_allclose(fast, whole, rtol=0, atol=1e-12)
         kinds["around" if X[0, 2] < 0 else "beyond"] += 1
+        if compiled and kinds["beyond"] + kinds["around"] < 40:
+            found, R = _compiled.closed_form_3.py_func(t_c, X, xy)
+            assert found and np.abs(R - fast).max() < 1e-12
     assert min(kinds.values()) > 50, kinds
 
 

@@ -503,6 +503,27 @@ def _robust_lines(x, y, gid, use, floor, rounds, inflation):
     return n, offset, c, spread, sigmas, keep
 
 
+def _inward_lines(x, y, gid, clear, floor, rounds, inflation):
+    """edges._lines after its points: each edge's points with a clear step (all of them
+    where fewer than 5 are clear) through _robust_lines, the normals turned into the
+    triangle (towards the mean of the edges' centres)."""
+    m_all = len(x)
+    n_clear = np.zeros(3)
+    for p in range(m_all):
+        if clear[p]:
+            n_clear[gid[p]] += 1.0
+    use = np.empty(m_all, np.bool_)
+    for p in range(m_all):
+        use[p] = clear[p] or n_clear[gid[p]] < 5
+    n, offset, c, spread, sigmas, keep = robust_lines(x, y, gid, use, floor, rounds, inflation)
+    sx = c[0, 0] + c[1, 0] + c[2, 0]
+    sy = c[0, 1] + c[1, 1] + c[2, 1]
+    for g in range(3):
+        if n[g, 0] * sx + n[g, 1] * sy < 3.0 * offset[g]:
+            n[g, 0], n[g, 1], offset[g] = -n[g, 0], -n[g, 1], -offset[g]
+    return n, offset, c, spread, sigmas, keep
+
+
 # ------------------------------------------------- the pixel fit's noise correlation
 def _lag_sums(index, flat, offsets, r, w):
     """photometric._noise_inflation's sums: per lag (offset in the padded raster), the
@@ -784,6 +805,59 @@ def _expmap(w0, w1, w2):
     return E
 
 
+def _closed_form_3(t_c, X, xy):
+    """visvec.estimate.rotation._initial_rotation_3: the closed-form rotation from three
+    bearings (each branch of the depths in front, Procrustes by SVD; the better
+    reprojecting of two). Returns (found, R)."""
+    tt = t_c[0] * t_c[0] + t_c[1] * t_c[1] + t_c[2] * t_c[2]
+    b = np.empty((3, 3))
+    bt = np.empty(3)
+    root = np.empty(3)
+    for i in range(3):
+        n = math.sqrt(xy[i, 0] * xy[i, 0] + xy[i, 1] * xy[i, 1] + 1.0)
+        b[i, 0], b[i, 1], b[i, 2] = xy[i, 0] / n, xy[i, 1] / n, 1.0 / n
+        bt[i] = b[i, 0] * t_c[0] + b[i, 1] * t_c[1] + b[i, 2] * t_c[2]
+        disc = bt[i] * bt[i] - tt + (X[i, 0] * X[i, 0] + X[i, 1] * X[i, 1] + X[i, 2] * X[i, 2])
+        root[i] = math.sqrt(disc) if disc > 0.0 else 0.0
+    best = np.eye(3)
+    n_found = 0
+    best_cost = np.inf
+    for sign in (1.0, -1.0):
+        lam = bt + sign * root
+        if lam.min() <= 0:
+            continue
+        V = np.empty((3, 3))
+        for k in range(3):
+            for j in range(3):
+                V[k, j] = lam[k] * b[k, j] - t_c[j]
+        H = np.empty((3, 3))
+        for i in range(3):
+            for j in range(3):
+                H[i, j] = X[0, i] * V[0, j] + X[1, i] * V[1, j] + X[2, i] * V[2, j]
+        U, _, Vt = np.linalg.svd(H)
+        d = np.linalg.det(U) * np.linalg.det(Vt)
+        s = 1.0 if d == 0.0 else math.copysign(1.0, d)
+        R = np.empty((3, 3))
+        for i in range(3):
+            for j in range(3):
+                R[i, j] = Vt[0, i] * U[j, 0] + Vt[1, i] * U[j, 1] + s * Vt[2, i] * U[j, 2]
+        cost = 0.0
+        behind = False
+        for k in range(3):
+            p0 = R[0, 0] * X[k, 0] + R[0, 1] * X[k, 1] + R[0, 2] * X[k, 2] + t_c[0]
+            p1 = R[1, 0] * X[k, 0] + R[1, 1] * X[k, 1] + R[1, 2] * X[k, 2] + t_c[1]
+            p2 = R[2, 0] * X[k, 0] + R[2, 1] * X[k, 1] + R[2, 2] * X[k, 2] + t_c[2]
+            if p2 <= 0:
+                behind = True
+            cost += (p0 / p2 - xy[k, 0]) ** 2 + (p1 / p2 - xy[k, 1]) ** 2
+        if behind:
+            continue
+        n_found += 1
+        if n_found == 1 or cost < best_cost:
+            best, best_cost = R, cost
+    return n_found > 0, best
+
+
 def _gn_shift(R, t_c, X, xy, W, axis, mean, w_s, max_iterations, tol_rad2, tol_shift):
     """The Gauss-Newton of visvec.estimate.rotation._fit_with_shift, in (d, s): each
     iteration its residuals and Jacobian (residuals_and_jacobian_shift), the normal
@@ -898,8 +972,10 @@ _group_tls = _jit(_group_tls)
 group_median = _jit(_group_median)
 _group_median = group_median
 robust_lines = _jit(_robust_lines)
+inward_lines = _jit(_inward_lines)
 _expmap = _jit(_expmap)
 gn_shift = _jit(_gn_shift)
+closed_form_3 = _jit(_closed_form_3)
 level_gain = _jit(_level_gain)
 edge_stats = _jit(_edge_stats)
 readout_frame = _jit(_readout_frame)

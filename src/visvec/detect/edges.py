@@ -691,8 +691,11 @@ def _lines(raw, pts_px, pr: _Profiles, camera, shutter, rate_c, sigma_floor, rou
     ideal = raw * f
     if shutter is not None and rate_c is not None:
         ideal = unroll(raw, pts_px[:, 1], camera, rate_c, shutter.readout_ms, shutter.lever) * f
-    # an edge's points with a clear step; all of them if fewer than 5 are clear
     gid, clear = pr.gid, pr.clear
+    if _compiled.ON:  # the same, compiled (the fast extra)
+        return _compiled.inward_lines(ideal[:, 0], ideal[:, 1], gid, clear, float(sigma_floor),
+                                      int(rounds), EDGE_VARIANCE_INFLATION)  # fmt: skip
+    # an edge's points with a clear step; all of them if fewer than 5 are clear
     use = clear | (np.bincount(gid, clear, 3) < 5)[gid]
     normals_l, offsets, centres, spreads, sigmas, keep = _robust_lines(
         ideal[:, 0], ideal[:, 1], gid, pr.index, use, sigma_floor, rounds
@@ -854,6 +857,7 @@ def warm_up(pixel_fit: bool = False) -> None:
         fit_edges(img, corners, cam, width=fit.width)
         # the triangle's attitude fit (visvec.estimate.rotation._fit_with_shift)
         X = np.array([[0.0, 0.0, 1000.0], [100.0, 0.0, 1000.0], [0.0, 100.0, 1000.0]])
+        _compiled.closed_form_3(np.zeros(3), X, X[:, :2] / X[:, 2:])
         _compiled.gn_shift(np.eye(3), np.zeros(3), X, X[:, :2] / X[:, 2:], np.eye(6),
                            np.array([0.0, 0.0, 1.0]), 0.0, 1.0, 15, 1e-12, 1e-3)  # fmt: skip
         # and its frame's rolling-shutter evidence (visvec.estimate.shear)
