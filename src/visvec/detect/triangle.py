@@ -691,12 +691,14 @@ class TriangleDetector:
         roi = image[y0:y1, x0:x1]
         polys = (np.rint(scaled) - [x0, y0]).astype(np.int32)
         # saturated pixels inside: (roi >= 254) as a 0/1 image, counted under the mask
-        mask = np.zeros(roi.shape, np.uint8)
-        cv2.fillPoly(mask, [polys[0]], 1)
-        n_in = cv2.countNonZero(mask)
-        n_sat = cv2.countNonZero(cv2.threshold(roi, 253, 1, cv2.THRESH_BINARY)[1] & mask)
-        if n_in and n_sat / n_in > SATURATED_MAX:
-            return "overexposed"
+        # (none to count when the box holds none, as in most frames)
+        if cv2.minMaxLoc(roi)[1] >= 254:
+            mask = np.zeros(roi.shape, np.uint8)
+            cv2.fillPoly(mask, [polys[0]], 1)
+            n_in = cv2.countNonZero(mask)
+            n_sat = cv2.countNonZero(cv2.threshold(roi, 253, 1, cv2.THRESH_BINARY)[1] & mask)
+            if n_in and n_sat / n_in > SATURATED_MAX:
+                return "overexposed"
         # pixels above the level inside the grown triangle
         mask = np.zeros(roi.shape, np.uint8)
         cv2.fillPoly(mask, [polys[1]], 1)
