@@ -96,12 +96,12 @@ def _show_version(ctx: click.Context, _param: click.Parameter, value: bool) -> N
 
     if _compiled.AVAILABLE:
         numba_version = _compiled.numba.__version__
-        kernels = f"the triangle's edge and pixel fits compiled (Numba {numba_version})"
+        kernels = f"the triangle's edge, pixel and attitude fits compiled (Numba {numba_version})"
     elif _compiled.PURE:
-        kernels = "the triangle's edge and pixel fits in numpy (VISVEC_PURE is set)"
+        kernels = "the triangle's edge, pixel and attitude fits in numpy (VISVEC_PURE is set)"
     else:
-        kernels = ("the triangle's edge and pixel fits in numpy (pip install \"visvec[fast]\" "
-                   "compiles them)")  # fmt: skip
+        kernels = ("the triangle's edge, pixel and attitude fits in numpy (pip install "
+                   "\"visvec[fast]\" compiles them)")  # fmt: skip
     click.echo(f"visvec, version {__version__}\n{kernels}")
     ctx.exit()
 
