@@ -305,6 +305,34 @@ def test_kernels_that_do_not_load_leave_the_numpy_path_on(unloadable, capsys):
     assert pipe.process(Frame(0, 0.0, rig_img)).ok
 
 
+def test_a_first_compilation_is_announced(monkeypatch, capsys):
+    """Loading the kernels from the cache says nothing; compiling them (a first run on
+    a machine, about half a minute) says so on stderr while it runs, once."""
+    import time
+
+    monkeypatch.setattr(E, "_warm", set())
+    monkeypatch.setattr(_compiled, "ON", True)
+    monkeypatch.setattr(E, "COMPILE_NOTICE_S", 0.05)
+    E.warm_up()  # loaded (or compiled, on a first run): what it says is not checked here
+    capsys.readouterr()
+    slow = _compiled.readout_solve
+
+    def compiling(*a):
+        time.sleep(0.3)
+        return slow(*a)
+
+    monkeypatch.setattr(E, "_warm", set())
+    monkeypatch.setattr(_compiled, "readout_solve", compiling)
+    E.warm_up()
+    err = capsys.readouterr().err
+    assert err.count("compiling the triangle's kernels") == 1 and _compiled.ON
+    monkeypatch.setattr(E, "_warm", set())
+    monkeypatch.setattr(_compiled, "readout_solve", slow)
+    monkeypatch.setattr(E, "COMPILE_NOTICE_S", 5.0)
+    E.warm_up()
+    assert "compiling" not in capsys.readouterr().err
+
+
 def test_the_pixel_fits_kernels_load_with_a_rig_that_uses_it(unloadable, capsys):
     """A rig on the edge lines loads the edge fit's kernels only (a first run does not
     wait for the pixel fit's compilation); one with refine = "pixels" loads the pixel

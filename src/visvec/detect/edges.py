@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 import sys
+import threading
 from dataclasses import dataclass, replace
 
 import cv2
@@ -829,6 +830,13 @@ def fit_edges(
 
 # the kernels loaded so far: "edges" (the edge fit's), "pixels" (the pixel fit's)
 _warm: set[str] = set()
+# warm_up says it is compiling when loading the kernels takes longer than this (s)
+COMPILE_NOTICE_S = 1.5
+
+
+def _compile_notice() -> None:
+    print("visvec: compiling the triangle's kernels (the fast extra), once on this "
+          "machine: about half a minute", file=sys.stderr, flush=True)  # fmt: skip
 
 
 def warm_up(pixel_fit: bool = False) -> None:
@@ -837,11 +845,11 @@ def warm_up(pixel_fit: bool = False) -> None:
     image, which calls each kernel with each kind of argument a frame gives it, and an
     attitude fit of three points and its rolling-shutter evidence (visvec.estimate);
     with ``pixel_fit`` the pixel fit's too (visvec.detect.photometric: a rig with
-    refine = "pixels"; the edge lines' rigs do not wait for their compilation, about
-    half the first run's 20 s). A few milliseconds once they are loaded; without Numba, nothing.
-    Kernels that do not load (a Numba that cannot compile here, no writable place for
-    its cache: NUMBA_CACHE_DIR names one) leave the numpy path on, with a line on
-    stderr."""
+    refine = "pixels"). A few milliseconds once they are loaded; the first time on a
+    machine about 25 s (30 s with the pixel fit), announced on stderr when it takes over
+    COMPILE_NOTICE_S; without Numba, nothing. Kernels that do not load (a Numba that
+    cannot compile here, no writable place for its cache: NUMBA_CACHE_DIR names one)
+    leave the numpy path on, with a line on stderr."""
     todo = {"edges", "pixels"} if pixel_fit else {"edges"}
     todo -= _warm
     if not todo or not _compiled.ON:
@@ -852,6 +860,11 @@ def warm_up(pixel_fit: bool = False) -> None:
     cv2.fillPoly(img, [np.rint(corners).astype(np.int32)], 120)
     img = cv2.GaussianBlur(img, (0, 0), 0.8)
     cam = CameraModel(96, 96, 80.0, 80.0, 47.5, 47.5, np.zeros(5))
+    # loaded from the cache in a fraction of a second; compiling takes long enough that
+    # the operator is told why nothing happens
+    notice = threading.Timer(COMPILE_NOTICE_S, _compile_notice)
+    notice.daemon = True
+    notice.start()
     try:
         fit = fit_edges(img, corners, cam)
         fit_edges(img, corners, cam, width=fit.width)
@@ -875,6 +888,8 @@ def warm_up(pixel_fit: bool = False) -> None:
         _compiled.ON = False
         print(f"visvec: the compiled edge fit did not load ({type(exc).__name__}: {exc}); "
               "the numpy one runs (VISVEC_PURE=1 skips the attempt)", file=sys.stderr)  # fmt: skip
+    finally:
+        notice.cancel()
 
 
 # the rate step (rad/s) of the edge fit's shutter gain: 0.6 deg/s, a few hundredths of a
