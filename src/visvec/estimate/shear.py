@@ -5,8 +5,8 @@ at its own instant: the triangle's vertices are those of the centre row's exposu
 less A omega readout (:func:`visvec.shutter.shutter_matrix`). A rig that says so
 (``[camera] readout_ms``) has the detector take it out; one that does not (0, a global
 shutter) gets a yaw biased low at speed with a sigma that does not cover it
-(benchmarks/RESULTS.md, rolling shutter: at 20 deg/s and 640x480, 31 of 78 cold rows
-beyond 3 sigma). Every frame ok, or refused only narrowly as a shear refuses it, whose
+(benchmarks/out/triangle_rolling_shutter.json: at 20 deg/s and 640x480, 32 of 79 cold
+rows beyond 3 sigma). Every frame ok, or refused only narrowly as a shear refuses it, whose
 rate is known from the frame before it measures the readout from its own residuals
 (:meth:`VertexResidual.explain`, least squares on the part of the shear no attitude or
 height explains); summed over the run, a readout many sigma from zero says the camera
