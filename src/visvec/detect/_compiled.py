@@ -806,9 +806,9 @@ def _expmap(w0, w1, w2):
 
 
 def _closed_form_3(t_c, X, xy):
-    """visvec.estimate.rotation._initial_rotation_3: the closed-form rotation from three
-    bearings (each branch of the depths in front, Procrustes by SVD; the better
-    reprojecting of two). Returns (found, R)."""
+    """visvec.estimate.rotation.initial_rotation for three points: the closed-form
+    rotation from three bearings (each branch of the depths in front, Procrustes by SVD;
+    the better reprojecting of two). Returns (found, R)."""
     tt = t_c[0] * t_c[0] + t_c[1] * t_c[1] + t_c[2] * t_c[2]
     b = np.empty((3, 3))
     bt = np.empty(3)
@@ -859,10 +859,10 @@ def _closed_form_3(t_c, X, xy):
 
 
 def _gn_shift(R, t_c, X, xy, W, axis, mean, w_s, max_iterations, tol_rad2, tol_shift):
-    """The Gauss-Newton of visvec.estimate.rotation._fit_with_shift, in (d, s): each
-    iteration its residuals and Jacobian (residuals_and_jacobian_shift), the normal
-    equations with the shift's prior, the step, R <- exp([d]x) R. Returns (R, s, r, J,
-    N, iterations, converged), r after the last small step to second order in it."""
+    """visvec.estimate.rotation._gauss_newton_shift, in (d, s): each iteration its
+    residuals and Jacobian (residuals_and_jacobian_shift), the normal equations with the
+    shift's prior, the step, R <- exp([d]x) R. Returns (R, s, r, J, N, iterations,
+    converged), r after the last small step to second order in it."""
     n = X.shape[0]
     s = mean
     r = np.empty(2 * n)
@@ -910,10 +910,11 @@ def _gn_shift(R, t_c, X, xy, W, axis, mean, w_s, max_iterations, tol_rad2, tol_s
 
 # ------------------------- an undeclared rolling shutter's evidence (estimate.shear)
 def _readout_frame(J, W, r, xy, rows, omega, lever, cy, height, ifx, ify, ka, info, rhs):
-    """One frame of visvec.estimate.shear.ReadoutEvidence.add: its design (shear._design)
-    and what the free fit's weight P = W - W J C0 J^T W leaves of it, added to ``info``
-    and ``rhs`` in place. Returns (False, 0) when J^T W J is singular (nothing added),
-    else (True, the frame's chi-square term)."""
+    """One frame of visvec.estimate.shear.ReadoutEvidence.add: its design (-shutter_shift
+    of a 1 s readout beside shear.model_error_design) and what the free fit's weight
+    P = W - W J C0 J^T W leaves of it, added to ``info`` and ``rhs`` in place. Returns
+    (False, 0) when J^T W J is singular (nothing added), else (True, the frame's
+    chi-square term)."""
     JW = J.T @ W
     try:
         C0 = np.linalg.inv(JW @ J)

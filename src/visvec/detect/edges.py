@@ -828,7 +828,8 @@ def fit_edges(
     return fit
 
 
-# the kernels loaded so far: "edges" (the edge fit's), "pixels" (the pixel fit's)
+# the kernels loaded so far: "edges" (the edge fit's and the attitude fit's, every
+# triangle rig's), "pixels" (the pixel fit's)
 _warm: set[str] = set()
 # warm_up says it is compiling when loading the kernels takes longer than this (s)
 COMPILE_NOTICE_S = 1.5
@@ -870,13 +871,14 @@ def warm_up(pixel_fit: bool = False) -> None:
         fit_edges(img, corners, cam, width=fit.width)
         # the triangle's attitude fit (visvec.estimate.rotation._fit_with_shift)
         X = np.array([[0.0, 0.0, 1000.0], [100.0, 0.0, 1000.0], [0.0, 100.0, 1000.0]])
-        _compiled.closed_form_3(np.zeros(3), X, X[:, :2] / X[:, 2:])
-        _compiled.gn_shift(np.eye(3), np.zeros(3), X, X[:, :2] / X[:, 2:], np.eye(6),
-                           np.array([0.0, 0.0, 1.0]), 0.0, 1.0, 15, 1e-12, 1e-3)  # fmt: skip
+        xy = X[:, :2] / X[:, 2:]
+        _compiled.closed_form_3(np.zeros(3), X, xy)
+        _compiled.gn_shift(np.eye(3), np.zeros(3), X, xy, np.eye(6), np.array([0.0, 0.0, 1.0]),
+                           0.0, 1.0, 15, 1e-12, 1e-3)  # fmt: skip
         # and its frame's rolling-shutter evidence (visvec.estimate.shear)
-        _compiled.readout_frame(np.eye(6)[:, :4].copy(), np.eye(6), np.zeros(6),
-                                X[:, :2] / X[:, 2:], np.ones(3), np.zeros(3), np.zeros(3), 1.0,
-                                2.0, 1.0, 1.0, 0.0, np.zeros((10, 10)), np.zeros(10))  # fmt: skip
+        _compiled.readout_frame(np.eye(6)[:, :4].copy(), np.eye(6), np.zeros(6), xy, np.ones(3),
+                                np.zeros(3), np.zeros(3), 1.0, 2.0, 1.0, 1.0, 0.0,
+                                np.zeros((10, 10)), np.zeros(10))  # fmt: skip
         _compiled.readout_solve(np.eye(10), np.eye(10), np.zeros(10), 0.0, 0.0)
         if "pixels" in todo:
             # visvec.detect.photometric imports this module

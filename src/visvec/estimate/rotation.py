@@ -124,8 +124,12 @@ def initial_rotation(t_c: np.ndarray, p_n: np.ndarray, xy: np.ndarray) -> np.nda
     a geometry that is off) is clamped to zero: the start is then approximate and
     Gauss-Newton finishes the job.
     """
-    if len(xy) == 3:
-        return _initial_rotation_3(t_c, p_n, xy)
+    if len(xy) == 3 and _compiled.ON:
+        # the triangle's cold frames, compiled with the fast extra (the same steps for
+        # three points: 5 us instead of 46)
+        c = np.ascontiguousarray
+        found, R = _compiled.closed_form_3(c(t_c, float), c(p_n, float), c(xy, float))
+        return R if found else None
     return _initial_rotation_n(t_c, p_n, xy)
 
 
@@ -152,56 +156,6 @@ def _initial_rotation_n(t_c: np.ndarray, p_n: np.ndarray, xy: np.ndarray) -> np.
         # one branch in front (a ceiling target: the - root is behind the camera)
         return found[0][0] if found else None
     costs = [float(np.sum((p[:, :2] / p[:, 2:3] - xy) ** 2)) for _, p in found]
-    return found[int(np.argmin(costs))][0]
-
-
-def _initial_rotation_3(t_c: np.ndarray, p_n: np.ndarray, xy: np.ndarray) -> np.ndarray | None:
-    """:func:`initial_rotation` for three points (the triangle's cold frames), the same
-    steps in Python's floats around the one SVD (numpy's start-up on (3, 3) arrays
-    cost more than the arithmetic: 46 -> 25 us; compiled with the fast extra, 5 us)."""
-    if _compiled.ON:
-        c = np.ascontiguousarray
-        found, R = _compiled.closed_form_3(c(t_c, float), c(p_n, float), c(xy, float))
-        return R if found else None
-    tx, ty, tz = t_c.tolist()
-    X = p_n.tolist()
-    tt = tx * tx + ty * ty + tz * tz
-    rays = []  # (bearing, b.t, root) per point
-    for (x, y), (px, py, pz) in zip(xy.tolist(), X, strict=True):
-        n = math.sqrt(x * x + y * y + 1.0)
-        b = (x / n, y / n, 1.0 / n)
-        bt = b[0] * tx + b[1] * ty + b[2] * tz
-        disc = bt * bt - tt + (px * px + py * py + pz * pz)
-        rays.append((b, bt, math.sqrt(disc) if disc > 0.0 else 0.0))
-    found = []
-    for sign in (1.0, -1.0):
-        lam = [bt + sign * root for _, bt, root in rays]
-        if min(lam) <= 0:
-            continue
-        V = [
-            (la * b[0] - tx, la * b[1] - ty, la * b[2] - tz)
-            for la, (b, _, _) in zip(lam, rays, strict=True)
-        ]
-        # Procrustes (as _procrustes): the SVD of H = X^T V
-        H = [[sum(X[k][i] * V[k][j] for k in range(3)) for j in range(3)] for i in range(3)]
-        U, _, Vt = np.linalg.svd(np.array(H))
-        (a, b_, c), (d, e, f), (g, h, i) = U.tolist()
-        det_u = a * (e * i - f * h) - b_ * (d * i - f * g) + c * (d * h - e * g)
-        (a, b_, c), (d, e, f), (g, h, i) = Vt.tolist()
-        det_v = a * (e * i - f * h) - b_ * (d * i - f * g) + c * (d * h - e * g)
-        s = math.copysign(1.0, det_u * det_v) if det_u * det_v != 0.0 else 1.0
-        R = (Vt.T * [1.0, 1.0, s]) @ U.T
-        r20, r21, r22 = R[2].tolist()
-        if min(r20 * px + r21 * py + r22 * pz for px, py, pz in X) + tz <= 0:
-            continue
-        found.append((R, sign))
-    if len(found) < 2:
-        # one branch in front (a ceiling target: the - root is behind the camera)
-        return found[0][0] if found else None
-    costs = []
-    for R, _ in found:
-        p = p_n @ R.T + t_c
-        costs.append(float(np.sum((p[:, :2] / p[:, 2:3] - xy) ** 2)))
     return found[int(np.argmin(costs))][0]
 
 
@@ -302,9 +256,16 @@ def _fit_with_shift(
             c(prior.axis, float), float(prior.mean), w_s, MAX_ITERATIONS, STEP_TOL_RAD**2,
             STEP_TOL_SHIFT,
         )  # fmt: skip
-        cov_p = np.linalg.inv(N)
-        chi2 = float(r @ W @ r) + (s - prior.mean) ** 2 * w_s
-        return RotationFit(R, cov_p[:3, :3], chi2, r, it, converged, s, J, cov_p)
+    else:
+        R, s, r, J, N, it, converged = _gauss_newton_shift(t_c, X, xy, W, R, prior, w_s)
+    cov_p = np.linalg.inv(N)
+    chi2 = float(r @ W @ r) + (s - prior.mean) ** 2 * w_s
+    return RotationFit(R, cov_p[:3, :3], chi2, r, it, converged, s, J, cov_p)
+
+
+def _gauss_newton_shift(t_c, X, xy, W, R, prior, w_s):
+    """_fit_with_shift's iterations in numpy: (R, s, r, J, N, iterations, converged),
+    r after the last small step to second order in it."""
     s = prior.mean
     converged = False
     it = 0
@@ -326,9 +287,7 @@ def _fit_with_shift(
             # the residual after this last small step, to second order in it
             r = r + J @ step
             break
-    cov_p = np.linalg.inv(N)
-    chi2 = float(r @ W @ r) + (s - prior.mean) ** 2 * w_s
-    return RotationFit(R, cov_p[:3, :3], chi2, r, it, converged, s, J, cov_p)
+    return R, s, r, J, N, it, converged
 
 
 def _jacobian_table() -> np.ndarray:

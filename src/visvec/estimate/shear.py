@@ -54,7 +54,6 @@ leaves them several times the noise), and the readout no longer than a frame.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -62,6 +61,7 @@ import numpy as np
 from visvec.camera import CameraModel
 from visvec.detect import _compiled
 from visvec.estimate.triangle_full import VertexResidual
+from visvec.shutter import shutter_shift
 
 # a rolling shutter is reported when the run's readout estimate is this many of its
 # sigma from zero and at least this long (ms)
@@ -131,44 +131,6 @@ def model_error_prior(camera: CameraModel, principal_point_px: float | None = No
     width)."""
     pp = PRINCIPAL_POINT_PRIOR * camera.width if principal_point_px is None else principal_point_px
     return np.r_[np.full(6, STATIC_PRIOR_PX / camera.fx), np.full(2, pp), ASPECT_PRIOR]
-
-
-def _design(
-    xy: np.ndarray,
-    rows: np.ndarray,
-    camera: CameraModel,
-    omega_c: np.ndarray,
-    lever: np.ndarray | None,
-) -> np.ndarray:
-    """(6, N_PARAMS) the evidence's design for one frame: [-shutter_shift of a 1 s
-    readout, model_error_design], the same values written out per vertex in floats
-    (the whole-array form takes 40 us a frame, most of it numpy's per-call cost)."""
-    pts = xy.tolist()
-    wx, wy, wz = np.asarray(omega_c, float).tolist()
-    lx, ly, lz = (0.0, 0.0, 0.0) if lever is None else np.asarray(lever, float).tolist()
-    cy, height = camera.cy, camera.height
-    # the triangle's frame (see _triangle_frame): x along the centroid-to-apex direction
-    vx = pts[0][0] - (pts[0][0] + pts[1][0] + pts[2][0]) / 3.0
-    vy = pts[0][1] - (pts[0][1] + pts[1][1] + pts[2][1]) / 3.0
-    norm = math.hypot(vx, vy)
-    c, s = vx / norm, vy / norm
-    ifx, ify = 1.0 / camera.fx, 1.0 / camera.fy
-    out = []
-    for i, ((x, y), v) in enumerate(zip(pts, np.asarray(rows, float).tolist(), strict=True)):
-        t = (v - cy) / height  # s from the centre row's exposure, for a 1 s readout
-        ex, ey, ez = x + lx, y + ly, 1.0 + lz
-        # omega x e, and the projection's linearisation (see shutter_shift)
-        ox, oy, oz = wy * ez - wz * ey, wz * ex - wx * ez, wx * ey - wy * ex
-        row_x = [0.0] * N_PARAMS
-        row_y = [0.0] * N_PARAMS
-        row_x[0] = -(ox - x * oz) * t
-        row_y[0] = -(oy - y * oz) * t
-        row_x[1 + 2 * i], row_x[2 + 2 * i] = c, -s
-        row_y[1 + 2 * i], row_y[2 + 2 * i] = s, c
-        row_x[7] = ifx
-        row_y[8], row_y[9] = ify, y
-        out += (row_x, row_y)
-    return np.array(out)
 
 
 @dataclass
@@ -251,7 +213,10 @@ class ReadoutEvidence:
             return  # vertices that alone do not fix the parameters measure nothing here
         P = W - JW.T @ C0 @ JW
         # seen = centre row - A omega readout: the pattern of a unit (1 s) readout
-        design = _design(xy, rows, camera, omega_c, lever)
+        design = np.column_stack([
+            -shutter_shift(xy, rows, camera, 1000.0, omega_c, lever),
+            model_error_design(xy, camera),
+        ])  # fmt: skip
         PD = P @ design
         a, b = -(PD.T @ r), design.T @ PD
         self.info += b
