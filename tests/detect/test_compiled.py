@@ -465,3 +465,44 @@ def test_the_pixel_fit_compiled_or_not(pixel_fits, monkeypatch):
                                strict=True):  # fmt: skip
         size = max(np.abs(np.asarray(pure, float)).max(), 1.0)
         assert np.abs(np.asarray(as_python, float) - np.asarray(pure, float)).max() <= 1e-9 * size
+
+
+def test_the_bands_cover_compiled_or_not():
+    """The pixels the pixel fit's quadrilaterals cover (photometric._cover), compiled
+    and from numpy: the same, in raster order, each once; quadrilaterals that overlap,
+    a side along a row, one outside the box (none of it covered); and every pixel whose
+    centre a quadrilateral holds is among them."""
+    from visvec.detect import photometric as P
+
+    rng = np.random.default_rng(5)
+    shapes = 0
+    for trial in range(40):
+        centre = rng.uniform(20, 60, (3, 1, 2))
+        q = centre + rng.uniform(-15, 15, (3, 4, 2))
+        # convex: the corners in angle order about their mean
+        for i in range(3):
+            d = q[i] - q[i].mean(axis=0)
+            q[i] = q[i][np.argsort(np.arctan2(d[:, 1], d[:, 0]))]
+        if trial % 4 == 1:
+            q[0, 1, 1] = q[0, 0, 1]  # a side along a row
+        if trial % 4 == 2:
+            q[2] += 500.0  # outside the box
+        q = q.reshape(12, 2)
+        box = (0, 0, 99, 89)
+        fast = _compiled.cover(q, *box)
+        assert np.array_equal(fast, P._cover(q, *box))
+        assert np.array_equal(fast, _compiled.cover.py_func(q, *box))
+        assert len(np.unique(fast, axis=0)) == len(fast)
+        assert np.array_equal(fast, fast[np.lexsort((fast[:, 0], fast[:, 1]))])
+        assert fast[:, 0].min() >= 0 and fast[:, 0].max() <= 99 and fast[:, 1].max() <= 89
+        covered = np.zeros((90, 100), bool)
+        covered[fast[:, 1], fast[:, 0]] = True
+        v, u = np.mgrid[0:90, 0:100]
+        for quad in q.reshape(3, 4, 2):
+            # inside a convex quadrilateral: on the same side of its four sides
+            side = [(b[0] - a[0]) * (v - a[1]) - (b[1] - a[1]) * (u - a[0])
+                    for a, b in zip(quad, np.roll(quad, -1, axis=0), strict=True)]  # fmt: skip
+            inside = np.all(np.array(side) >= 0, axis=0) | np.all(np.array(side) <= 0, axis=0)
+            assert covered[inside].all()
+            shapes += int(inside.sum())
+    assert shapes > 1000

@@ -203,3 +203,51 @@ def test_a_band_with_something_else_in_it_is_not_fitted(rig320):
         assert not pf.ok
         found.append(seed)
     assert 100004 in found  # the benchmark's frame
+
+
+def _band_by_rule(image, n, c, reach, clear, camera):
+    """photometric._band's pixels by its rule alone, every pixel of the frame checked:
+    within an edge's reach and clear inside the other two, edge after edge, each edge's
+    in raster order (their places (column, row) and counts)."""
+    v, u = np.mgrid[0 : camera.height, 0 : camera.width]
+    uv = np.column_stack([u.ravel(), v.ravel()]).astype(float)
+    x = camera.undistort(uv) * camera.fx
+    d = x @ n.T - np.einsum("ij,ij->i", n, c)
+    keeps = [(np.abs(d[:, i]) < reach[i]) & (d[:, (i + 1) % 3] > clear[(i + 1) % 3])
+             & (d[:, (i + 2) % 3] > clear[(i + 2) % 3]) for i in range(3)]  # fmt: skip
+    return np.concatenate([uv[k] for k in keeps]), [int(k.sum()) for k in keeps]
+
+
+def test_the_bands_are_every_pixel_the_rule_takes(rig320, monkeypatch):
+    """The pixels each edge's band fits are exactly those its rule takes anywhere in the
+    frame (the quadrilaterals only narrow the search: none is missed at their sides),
+    through a pinhole and through a strong barrel distortion, compiled and from numpy;
+    the ideal coordinates are the lens model's."""
+    from visvec.detect import _compiled
+    from visvec.detect import photometric as P
+
+    cams = [rig320.camera, replace(rig320.camera, dist=np.array([-0.3, 0.1, 0.0, 0.0, 0.0]))]
+    tried = []
+    for cam, R in zip(cams * 3, attitudes(6, 8, 4.0), strict=True):
+        xy = project_target(rig320, R)
+        if not np.all(cam.in_image(cam.distort(cam.undistort(xy)), 5.0)):
+            continue
+        V = cam.undistort(xy) * cam.fx  # the ideal vertices: lines through their pairs
+        t = V[[2, 0, 1]] - V[[1, 2, 0]]
+        n = np.column_stack([-t[:, 1], t[:, 0]]) / np.linalg.norm(t, axis=1)[:, None]
+        n *= np.sign(np.einsum("ij,ij->i", n, V - V[[1, 2, 0]]))[:, None]  # inward
+        c = 0.5 * (V[[1, 2, 0]] + V[[2, 0, 1]])
+        w = np.array([0.7, 0.9, 1.4])
+        reach, clear = P.REACH_WIDTHS * w + P.REACH_PX, P.CLEAR_WIDTHS * w
+        image = np.arange(cam.width * cam.height, dtype=np.uint32).reshape(cam.height, -1)
+        image = (image % 251).astype(np.uint8)
+        want, counts = _band_by_rule(image, n, c, reach, clear, cam)
+        for flag in (False, True):
+            monkeypatch.setattr(_compiled, "ON", flag)
+            x, grey, uv, got_counts = P._band(image, n, c, reach, clear, cam)
+            assert got_counts.tolist() == counts and sum(counts) > 300
+            assert np.array_equal(uv, want)
+            assert np.array_equal(grey, image[uv[:, 1], uv[:, 0]].astype(float))
+            assert np.abs(x - cam.undistort(uv.astype(float)) * cam.fx).max() < 1e-3
+        tried.append(cam.has_distortion)
+    assert tried.count(True) >= 2 and tried.count(False) >= 2

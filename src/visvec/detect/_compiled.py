@@ -632,6 +632,59 @@ def _band_pixels(pts, given, grid, cx, cy, aspect, lens, image, n, o, reach, cle
     return xs, ys, uv, counts
 
 
+def _cover(q, lo0, lo1, hi0, hi1):
+    """photometric._cover compiled: the pixels (column, row) (P, 2) in raster order
+    that the three convex quadrilaterals ``q`` (12, 2) (px, four corners each) cover
+    with a pixel's margin, within columns lo0..hi0 and rows lo1..hi1: per row the
+    columns from each quadrilateral's least x, less one, to its greatest plus one, over
+    the strip of rows within one of the row; their union."""
+    rows = hi1 - lo1 + 1
+    c0 = np.full((rows, 3), 1, np.int64)
+    c1 = np.zeros((rows, 3), np.int64)
+    total = 0
+    for r in range(rows):
+        a, b = float(lo1 + r) - 1.0, float(lo1 + r) + 1.0
+        for i in range(3):
+            xmin, xmax = math.inf, -math.inf
+            for k in range(4):
+                x0, y0 = q[4 * i + k, 0], q[4 * i + k, 1]
+                x1, y1 = q[4 * i + (k + 1) % 4, 0], q[4 * i + (k + 1) % 4, 1]
+                if y1 == y0:  # a side along a row: all of it or none
+                    t0, t1 = (0.0, 1.0) if a <= y0 <= b else (1.0, 0.0)
+                else:
+                    ta, tb = (a - y0) / (y1 - y0), (b - y0) / (y1 - y0)
+                    t0, t1 = max(min(ta, tb), 0.0), min(max(ta, tb), 1.0)
+                if t0 <= t1:
+                    xa, xb = x0 + t0 * (x1 - x0), x0 + t1 * (x1 - x0)
+                    xmin, xmax = min(xmin, xa, xb), max(xmax, xa, xb)
+            if xmin <= xmax:
+                c0[r, i] = max(math.ceil(xmin - 1.0), lo0)
+                c1[r, i] = min(math.floor(xmax + 1.0), hi0)
+        # the three ranges by their first column (an empty one's is past hi0)
+        for i in range(3):
+            if c1[r, i] < c0[r, i]:
+                c0[r, i], c1[r, i] = hi0 + 1, hi0
+        for i in (1, 2, 1):
+            if c0[r, i] < c0[r, i - 1]:
+                c0[r, i], c0[r, i - 1] = c0[r, i - 1], c0[r, i]
+                c1[r, i], c1[r, i - 1] = c1[r, i - 1], c1[r, i]
+        # their union, counted once
+        last = lo0 - 1
+        for i in range(3):
+            total += max(c1[r, i] - max(c0[r, i], last + 1) + 1, 0)
+            last = max(last, c1[r, i])
+    pts = np.empty((total, 2), np.int64)
+    p = 0
+    for r in range(rows):
+        last = lo0 - 1
+        for i in range(3):
+            for u in range(max(c0[r, i], last + 1), c1[r, i] + 1):
+                pts[p, 0], pts[p, 1] = u, lo1 + r
+                p += 1
+            last = max(last, c1[r, i])
+    return pts
+
+
 def _ndtr_with_bell(u, bell):
     """The standard normal CDF at u to 1e-7 (Abramowitz & Stegun 7.1.26 at u / sqrt 2)
     given ``bell`` = exp(-u^2 / 2), as photometric._ndtr_with_bell evaluates it."""
@@ -962,6 +1015,7 @@ sample_geometry = _jit(_sample_geometry)
 _lag_sums = _jit(_lag_sums)
 noise_inflation = _jit(_noise_inflation)
 band_pixels = _jit(_band_pixels)
+cover = _jit(_cover)
 _ndtr_with_bell = _jit(_ndtr_with_bell)
 pixel_gn = _jit(_pixel_gn)
 _group_linear = _jit(_group_linear)

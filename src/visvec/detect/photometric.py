@@ -36,7 +36,6 @@ import math
 from dataclasses import dataclass
 from itertools import pairwise
 
-import cv2
 import numpy as np
 
 from visvec.camera import CameraModel
@@ -178,11 +177,55 @@ def _meet(n1, o1, n2, o2) -> tuple[float, float]:
     return ((o1 * n2[1] - o2 * n1[1]) / det, (n1[0] * o2 - n2[0] * o1) / det)
 
 
+def _cover(q: np.ndarray, lo0: int, lo1: int, hi0: int, hi1: int) -> np.ndarray:
+    """The pixels (column, row) (P, 2) in raster order that the three convex
+    quadrilaterals ``q`` (12, 2) (px, four corners each) cover with a pixel's margin,
+    within columns lo0..hi0 and rows lo1..hi1: per row the columns from each
+    quadrilateral's least x, less one, to its greatest plus one, over the strip of rows
+    within one of the row; their union. (A superset of the pixels whose centres the
+    quadrilaterals hold, for the exact check of _band; cheaper than drawing them.)"""
+    v = np.arange(lo1, hi1 + 1, dtype=float)
+    a, b = v - 1.0, v + 1.0
+    # the twelve sides (a quadrilateral's k-th from its corner k to corner k + 1), each
+    # clipped to each row's strip: the part between t0 and t1 of it
+    x0, y0 = q[:, :1], q[:, 1:]
+    nxt = q.reshape(3, 4, 2)[:, [1, 2, 3, 0]].reshape(12, 2)
+    x1, y1 = nxt[:, :1], nxt[:, 1:]
+    flat = (y1 == y0)[:, 0]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ta, tb = (a - y0) / (y1 - y0), (b - y0) / (y1 - y0)
+    t0, t1 = np.maximum(np.minimum(ta, tb), 0.0), np.minimum(np.maximum(ta, tb), 1.0)
+    # a side along a row: all of it or none
+    inside = (a <= y0[flat]) & (y0[flat] <= b)
+    t0[flat], t1[flat] = np.where(inside, 0.0, 1.0), np.where(inside, 1.0, 0.0)
+    meets = t0 <= t1
+    xa, xb = x0 + t0 * (x1 - x0), x0 + t1 * (x1 - x0)
+    xmin = np.where(meets, np.minimum(xa, xb), np.inf).reshape(3, 4, -1).min(axis=1)
+    xmax = np.where(meets, np.maximum(xa, xb), -np.inf).reshape(3, 4, -1).max(axis=1)
+    seen = xmin <= xmax
+    c0 = np.maximum(np.ceil(np.where(seen, xmin, 0.0) - 1.0).astype(np.int64), lo0).T.copy()
+    c1 = np.minimum(np.floor(np.where(seen, xmax, 0.0) + 1.0).astype(np.int64), hi0).T.copy()
+    # per row (R, 3) the three ranges by their first column (an empty one's past hi0)
+    empty = ~seen.T | (c1 < c0)
+    c0[empty], c1[empty] = hi0 + 1, hi0
+    order = (np.argsort(c0, axis=1, kind="stable") + np.arange(0, c0.size, 3)[:, None]).ravel()
+    c0, c1 = c0.ravel()[order].reshape(-1, 3), c1.ravel()[order].reshape(-1, 3)
+    # their union, each column once: a range starts past the ends of those before it
+    start = c0.copy()
+    start[:, 1:] = np.maximum(c0[:, 1:], np.maximum.accumulate(c1, axis=1)[:, :-1] + 1)
+    count = np.maximum(c1 - start + 1, 0).ravel()
+    first = np.cumsum(count) - count
+    u = np.repeat(start.ravel() - first, count) + np.arange(int(count.sum()))
+    rows = np.repeat(np.arange(lo1, hi1 + 1), count.reshape(-1, 3).sum(axis=1))
+    return np.column_stack([u, rows])
+
+
 def _band(image, n, c, reach, clear, camera, roll=None):
     """The pixels fitted to each edge: within its reach, and clear inside the other two
-    edges. The band of each edge is drawn as a quadrilateral in the image (its corners
-    taken through the lens, 1.5 px wider against the curvature a distortion gives it),
-    then checked exactly on the pixels' ideal coordinates. With ``roll`` (a rolling
+    edges. The band of each edge is a quadrilateral in the image (its corners taken
+    through the lens, 1.5 px wider against the curvature a distortion gives it); the
+    pixels it covers with a pixel's margin (_cover) are checked exactly on their ideal
+    coordinates. With ``roll`` (a rolling
     shutter and the camera's rate, see :func:`refine`) the lines are the centre row's
     exposure's: each pixel's coordinates are taken there (visvec.shutter.unroll) before
     the check, and the quadrilaterals' corners back to where their rows see them.
@@ -213,17 +256,13 @@ def _band(image, n, c, reach, clear, camera, roll=None):
                     [camera.width - 1, camera.height - 1])  # fmt: skip
     if np.any(hi <= lo):
         return None
-    # the three bands drawn on one mask; the exact check below gives each pixel to each
+    # the pixels the three bands cover; the exact check below gives each pixel to each
     # edge whose rule it meets
-    mask = np.zeros((hi[1] - lo[1] + 1, hi[0] - lo[0] + 1), np.uint8)
-    for i in range(3):
-        poly = np.rint((q_px[4 * i : 4 * i + 4] - lo) * 16).astype(np.int32)
-        cv2.fillPoly(mask, [poly], i + 1, cv2.LINE_8, 4)
     grid, cx, cy, aspect, lens = _IdealGrid.of(camera)
-    pts = cv2.findNonZero(mask)
-    if pts is None:
+    cover = _compiled.cover if _compiled.ON else _cover
+    pts = cover(q_px, int(lo[0]), int(lo[1]), int(hi[0]), int(hi[1]))
+    if not len(pts):
         return None
-    pts = pts.reshape(-1, 2).astype(np.int64) + lo
     if _compiled.ON and roll is None:  # the same pixels in the same order, compiled
         reach, clear = np.asarray(reach, float), np.asarray(clear, float)
         return _compiled.band_pixels(pts, _NO_XY, grid, cx, cy, aspect, lens, image, n, o,
