@@ -279,6 +279,36 @@ def test_visvec_pure_turns_the_kernels_off():
         assert out == expected
 
 
+def test_numba_is_loaded_by_the_first_kernel_called():
+    """Importing visvec does not import Numba; the first kernel called loads all of them
+    at once (a kernel taken before then runs compiled too), and a Numba that does not
+    import leaves the plain functions in place, the kernels off, with a line on
+    stderr."""
+    code = """if True:
+        import sys
+        import numpy as np
+        from visvec.detect import _compiled as C
+        held = C.group_median
+        print(type(C.positions).__name__, "numba" in sys.modules)
+        if sys.argv[1] == "broken":
+            sys.modules["numba"] = None  # an import that fails
+        x = np.array([3.0, 1.0, 2.0, 5.0])
+        out = held(x, np.array([0, 0, 1, 1]), np.ones(4, np.bool_))
+        print(out.tolist(), type(C.positions).__name__, C.ON, C.group_median is C._group_median)
+    """
+    outs = {}
+    for case in ("numba", "broken"):
+        r = subprocess.run([sys.executable, "-c", code, case], capture_output=True, text=True,
+                           check=True)  # fmt: skip
+        outs[case] = (r.stdout.splitlines(), r.stderr)
+    lines, err = outs["numba"]
+    assert lines[0] == "_Lazy False"
+    assert lines[1] == "[2.0, 3.5, 0.0] CPUDispatcher True True" and "did not import" not in err
+    lines, err = outs["broken"]
+    assert lines[0] == "_Lazy False"
+    assert lines[1] == "[2.0, 3.5, 0.0] function False True" and "Numba did not import" in err
+
+
 @pytest.fixture
 def unloadable(monkeypatch):
     """Nothing loaded yet and the kernels on; ``unloadable(name)`` makes that kernel

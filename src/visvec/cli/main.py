@@ -8,6 +8,7 @@ refused calibration, or anything unexpected (one line, the traceback only with
 
 from __future__ import annotations
 
+import importlib.metadata
 import logging
 import sys
 
@@ -95,7 +96,7 @@ def _show_version(ctx: click.Context, _param: click.Parameter, value: bool) -> N
     from visvec.detect import _compiled
 
     if _compiled.AVAILABLE:
-        numba_version = _compiled.numba.__version__
+        numba_version = importlib.metadata.version("numba")
         kernels = f"the triangle's edge, pixel and attitude fits compiled (Numba {numba_version})"
     elif _compiled.PURE:
         kernels = "the triangle's edge, pixel and attitude fits in numpy (VISVEC_PURE is set)"

@@ -13,26 +13,27 @@ frames of every kind the tests render).
 
 Numba is an optional extra (``pip install "visvec[fast]"``): it compiles these loops to
 machine code on first use (cached on disk after that) and has wheels for x86-64 and
-aarch64, the flight computers' two architectures. Without it, or with the environment
+aarch64, the flight computers' two architectures. It is imported when a kernel is first
+called (_load), all kernels then made at once; until then each module name here holds a
+_Lazy stand-in. Without it, or with the environment
 variable ``VISVEC_PURE=1``, edges and photometric run their numpy functions.
 """
 
 from __future__ import annotations
 
+import importlib.util
 import math
 import os
+import sys
+import threading
 
 import numpy as np
 
 PURE = os.environ.get("VISVEC_PURE", "").strip() not in ("", "0")
-try:
-    if PURE:
-        raise ImportError("VISVEC_PURE is set")
-    import numba
-except ImportError:  # the pure path
-    numba = None
-
-AVAILABLE = numba is not None
+# Numba is imported when a kernel is first called (_load), not with this module: its
+# import takes 0.2 s, which every command line paid, also those that run no triangle
+AVAILABLE = not PURE and importlib.util.find_spec("numba") is not None
+numba = None  # the module, once loaded
 # whether the kernels run: edges and photometric look here on every call; edges.warm_up
 # turns it off when they do not load
 ON = AVAILABLE
@@ -50,12 +51,69 @@ _SQRT_2 = math.sqrt(2.0)
 _SQRT_2PI = math.sqrt(2.0 * math.pi)
 
 
-def _jit(f):
-    if numba is None:
+# the kernels by the names this module calls them by, as they were made (_Lazy)
+_KERNELS: dict = {}
+_LOADING = threading.Lock()
+_loaded = False
+
+
+class _Lazy:
+    """A kernel before Numba is loaded: its first call loads every kernel (_load) and
+    is passed on to its dispatcher (or, where Numba did not import, to the plain
+    function). ``py_func``: the kernel as Python, as a dispatcher's."""
+
+    def __init__(self, name, f):
+        self.__name__ = name
+        self.py_func = f
+        self.dispatcher = None
+
+    def __call__(self, *args):
+        if self.dispatcher is None:
+            _load()
+        return (self.dispatcher or self.py_func)(*args)
+
+
+def _load():
+    """Import Numba and put every kernel's dispatcher in its place among this module's
+    names at once (where nothing else was put there), so that a kernel calling another
+    compiles against the other's dispatcher. A Numba that cannot be imported turns the
+    kernels off (ON) and leaves the plain functions in their places."""
+    global numba, ON, _loaded
+    with _LOADING:
+        if _loaded:
+            return
+        _loaded = True
+        names = globals()
+        try:
+            import numba as nb
+        except ImportError as exc:  # an installed Numba that does not import here
+            ON = False
+            for name, k in _KERNELS.items():
+                if names[name] is k:
+                    names[name] = k.py_func
+            print(f"visvec: Numba did not import ({exc}); the numpy path runs",
+                  file=sys.stderr)  # fmt: skip
+            return
+        made = {}
+        for name, k in _KERNELS.items():
+            if id(k.py_func) not in made:
+                # cache: compiled once per machine, loaded from disk after that; nogil:
+                # the live paths' threads run beside it; no fastmath: sums taken in the
+                # order written
+                made[id(k.py_func)] = nb.njit(cache=True, nogil=True)(k.py_func)
+            k.dispatcher = made[id(k.py_func)]
+            if names[name] is k:
+                names[name] = k.dispatcher
+        numba = nb
+
+
+def _jit(f, name):
+    """The kernel ``f`` known as ``name`` in this module: compiled on its first call
+    (with the fast extra), else the plain function."""
+    if not AVAILABLE:
         return f
-    # cache: compiled once per machine, loaded from disk after that; nogil: the live
-    # paths' threads run beside it; no fastmath: sums taken in the order written
-    return numba.njit(cache=True, nogil=True)(f)
+    _KERNELS[name] = _Lazy(name, f)
+    return _KERNELS[name]
 
 
 # ---------------------------------------------------------------- profiles (_sample)
@@ -1011,27 +1069,27 @@ def _readout_solve(info, prior_info, rhs, chi2, dof):
     return cov, theta, (chi2 - theta @ rhs) / max(left, 1.0)
 
 
-sample_geometry = _jit(_sample_geometry)
-_lag_sums = _jit(_lag_sums)
-noise_inflation = _jit(_noise_inflation)
-band_pixels = _jit(_band_pixels)
-cover = _jit(_cover)
-_ndtr_with_bell = _jit(_ndtr_with_bell)
-pixel_gn = _jit(_pixel_gn)
-_group_linear = _jit(_group_linear)
-_levels_suspect = _jit(_levels_suspect)
-_level_lines = _jit(_level_lines)
-positions = _jit(_positions)
-widths = _jit(_widths)
-_group_tls = _jit(_group_tls)
-group_median = _jit(_group_median)
-_group_median = group_median
-robust_lines = _jit(_robust_lines)
-inward_lines = _jit(_inward_lines)
-_expmap = _jit(_expmap)
-gn_shift = _jit(_gn_shift)
-closed_form_3 = _jit(_closed_form_3)
-level_gain = _jit(_level_gain)
-edge_stats = _jit(_edge_stats)
-readout_frame = _jit(_readout_frame)
-readout_solve = _jit(_readout_solve)
+sample_geometry = _jit(_sample_geometry, "sample_geometry")
+_lag_sums = _jit(_lag_sums, "_lag_sums")
+noise_inflation = _jit(_noise_inflation, "noise_inflation")
+band_pixels = _jit(_band_pixels, "band_pixels")
+cover = _jit(_cover, "cover")
+_ndtr_with_bell = _jit(_ndtr_with_bell, "_ndtr_with_bell")
+pixel_gn = _jit(_pixel_gn, "pixel_gn")
+_group_linear = _jit(_group_linear, "_group_linear")
+_levels_suspect = _jit(_levels_suspect, "_levels_suspect")
+_level_lines = _jit(_level_lines, "_level_lines")
+positions = _jit(_positions, "positions")
+widths = _jit(_widths, "widths")
+_group_tls = _jit(_group_tls, "_group_tls")
+group_median = _jit(_group_median, "group_median")
+_group_median = _jit(_group_median, "_group_median")
+robust_lines = _jit(_robust_lines, "robust_lines")
+inward_lines = _jit(_inward_lines, "inward_lines")
+_expmap = _jit(_expmap, "_expmap")
+gn_shift = _jit(_gn_shift, "gn_shift")
+closed_form_3 = _jit(_closed_form_3, "closed_form_3")
+level_gain = _jit(_level_gain, "level_gain")
+edge_stats = _jit(_edge_stats, "edge_stats")
+readout_frame = _jit(_readout_frame, "readout_frame")
+readout_solve = _jit(_readout_solve, "readout_solve")
