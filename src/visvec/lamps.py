@@ -23,8 +23,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial import Delaunay, cKDTree
 
+# (scipy.spatial is imported where it is used: its import, 0.2 s, is then not in every
+# command line's start, only in a lamps rig's)
 from visvec.errors import ConfigError, InputFileError
 
 MIN_SPACING_MM = 1.0  # two lamps closer than this are the same lamp listed twice
@@ -102,6 +103,8 @@ def read_lamp_map(path: str | Path, ceiling_z_mm: float) -> LampMap:
     xyz = np.array(rows).reshape(-1, 3)
     if len(xyz) < 3:
         raise ConfigError(f"{path}: {len(xyz)} lamps; at least 3 are needed")
+    from scipy.spatial import cKDTree
+
     tree = cKDTree(xyz[:, :2])
     pairs = sorted(tree.query_pairs(MIN_SPACING_MM))
     if pairs:
@@ -131,6 +134,8 @@ class Catalog:
     features: np.ndarray
 
     def __post_init__(self):
+        from scipy.spatial import cKDTree
+
         object.__setattr__(self, "tree", cKDTree(self.features))
 
     def lookup(self, feature: np.ndarray, tol_deg: float) -> np.ndarray:
@@ -201,6 +206,8 @@ def neighbour_triangles(xy: np.ndarray, k: int) -> np.ndarray:
     k = min(k, n - 1)
     if k < 2:
         return np.zeros((0, 3), dtype=int)
+    from scipy.spatial import cKDTree
+
     _, nb = cKDTree(xy).query(xy, k + 1)
     nb = nb[:, 1:]
     a, b = np.triu_indices(k, 1)
@@ -225,6 +232,8 @@ def build_catalog(lamps: LampMap) -> Catalog:
     three nearly collinear lamps) cannot be recognised by shape and are left out with
     a warning."""
     xy = lamps.xyz_mm[:, :2]
+    from scipy.spatial import Delaunay
+
     dt = Delaunay(xy)
     tri = dt.simplices
     order, feats = triangle_features(xy[tri])

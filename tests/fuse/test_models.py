@@ -216,7 +216,8 @@ def test_3d_a_burst_moves_the_attitude_not_the_gyro_calibration():
     attitude goes to the fix, and the gyro's scale factors, bias, misalignment and time
     offset take much less than a plain Kalman gain would give them, since the model has
     no account of a burst (a swing beyond the gyro's linear range)."""
-    from visvec.fuse.models import BURST_NIS, NIS_LIMIT
+    from visvec.chi2 import ppf
+    from visvec.fuse.models import BURST_P, NIS_P
 
     model = AttitudeModel(sample_s=0.01, jitter_sigma=0.0)
     fix0 = Fix(0.0, 0.0, np.eye(3), np.eye(3) * np.radians(0.1) ** 2, 0)
@@ -231,7 +232,7 @@ def test_3d_a_burst_moves_the_attitude_not_the_gyro_calibration():
     r = V[:, -1] * np.sqrt(20.0 * ev[-1])
     fix = Fix(0.5, 0.5, s.R @ expmap(r), fix0.cov, 1)
     new, taken, nis = model.update(s, fix)
-    assert taken and BURST_NIS < nis < NIS_LIMIT
+    assert taken and ppf(1.0 - BURST_P, 3) < nis < ppf(1.0 - NIS_P, 3)
     assert np.degrees(np.linalg.norm(logmap(new.R.T @ fix.value))) < 3 * 0.1  # at the fix
     K = np.linalg.solve(S, s.P[0:3, :]).T  # the plain gain
     plain = K @ r

@@ -29,13 +29,16 @@ The covariance is sigma^2 (J^T J)^-1 with sigma^2 from the final residual
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy.sparse import csr_matrix
 
 from visvec.camera import CameraModel
 from visvec.errors import InputFileError
 from visvec.rig import Mount, Pattern, Rig
+
+if TYPE_CHECKING:  # (scipy.sparse is imported where it is used: not at every start)
+    from scipy.sparse import csr_matrix
 
 
 def _rotvec_to_matrix(w: np.ndarray) -> np.ndarray:
@@ -327,6 +330,8 @@ def _jacobian(model: _Model, x: np.ndarray) -> csr_matrix:
             cols.append(start + 3 * owner2 + a)
             data.append(col)
     n_rows = 2 * L + model.n_off
+    from scipy.sparse import csr_matrix
+
     return csr_matrix(
         (np.concatenate(data), (np.concatenate(rows), np.concatenate(cols))), shape=(n_rows, len(x))
     )

@@ -41,9 +41,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-from scipy.optimize import least_squares
-from scipy.stats import chi2 as chi2_dist
 
+from visvec.chi2 import ppf as chi2_ppf
 from visvec.data import Detection
 from visvec.errors import InputFileError
 from visvec.estimate.shear import ASPECT_MIN, PRINCIPAL_POINT_MIN
@@ -213,6 +212,8 @@ def _fit(
     """Weighted least squares of [dx, dy, a, b, dh, yaw_1..yaw_K] over the frames'
     vertices (x0: the N_COMMON offsets to start from; ``camera``: the camera check's
     parameters fitted too, after them, from 0)."""
+    from scipy.optimize import least_squares  # (0.3 s to import: not at every start)
+
     n = len(dets)
     meas, Ls = _whitened(dets)
 
@@ -232,6 +233,8 @@ def _fit(
 def _yaw_alone(det: Detection, rig: Rig, offsets: np.ndarray, yaw0: float) -> tuple:
     """The yaw of one frame left out of the fit, with the offsets fixed, and its whitened
     residuals."""
+    from scipy.optimize import least_squares
+
     meas, (L,) = _whitened([det])
 
     def fun(y: np.ndarray) -> np.ndarray:
@@ -272,8 +275,8 @@ def calibrate_zero_tilt(dets: list[Detection], rig: Rig) -> ZeroTiltResult:
     chi2_own = chi2 * own
     ratio = float(np.sqrt(chi2_own / dof))
     # 95 % interval of the ratio: chi2_own / ratio^2 ~ chi-square(dof)
-    ratio_95 = ratio * np.sqrt(dof / chi2_dist.ppf([0.975, 0.025], dof))
-    wider = chi2_own > chi2_dist.ppf(SIGMA_CHECK_QUANTILE, dof)
+    ratio_95 = ratio * np.sqrt(dof / np.array([chi2_ppf(0.975, dof), chi2_ppf(0.025, dof)]))
+    wider = chi2_own > chi2_ppf(SIGMA_CHECK_QUANTILE, dof)
     sig = np.sqrt(np.diag(cov))
     sigma_yaw = np.full(n, np.nan)
     sigma_yaw[idx] = np.degrees(sig[N_COMMON:])
@@ -340,12 +343,12 @@ def _fit_leaving_out(dets: list[Detection], rig: Rig, yaw0: np.ndarray, own: flo
     them and while the rest still spread over MIN_YAW_SPREAD_DEG: (solution, kept)."""
     n = len(dets)
     keep = np.ones(n, dtype=bool)
-    limit = chi2_dist.ppf(OUTLIER_QUANTILE, 5)
+    limit = chi2_ppf(OUTLIER_QUANTILE, 5)
     while True:
         idx = np.flatnonzero(keep)
         sol = _fit([dets[i] for i in idx], rig, yaw0[idx])
         frame_chi2 = (sol.fun.reshape(len(idx), 6) ** 2).sum(axis=1) * own
-        s2 = max(1.0, float(np.median(frame_chi2)) / chi2_dist.median(5))
+        s2 = max(1.0, float(np.median(frame_chi2)) / chi2_ppf(0.5, 5))
         worst = int(np.argmax(frame_chi2))
         rest = np.delete(idx, worst)
         if (
@@ -367,7 +370,7 @@ def _camera_check(dets: list[Detection], rig: Rig, sol, chi2: float, dof: int):
     cam = slice(N_COMMON, N_COMMON + N_CAMERA)
     check_x = check.x[cam]
     check_sig = np.sqrt(np.diag(np.linalg.pinv(check.jac.T @ check.jac))[cam] * check_s2)
-    significant = (chi2 - check_chi2) / check_s2 > chi2_dist.ppf(CAMERA_CHECK_QUANTILE, N_CAMERA)
+    significant = (chi2 - check_chi2) / check_s2 > chi2_ppf(CAMERA_CHECK_QUANTILE, N_CAMERA)
     large = abs(check_x[0]) >= ASPECT_MIN or np.max(np.abs(check_x[1:])) >= (
         PRINCIPAL_POINT_MIN * rig.camera.width
     )

@@ -25,9 +25,9 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from itertools import combinations
+from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy.spatial import Delaunay, QhullError, cKDTree
 
 from visvec.lamps import (
     SLIVER_DEG,
@@ -38,6 +38,11 @@ from visvec.lamps import (
     triangle_features,
 )
 from visvec.rig import Rig
+
+# scipy.spatial is imported where it is used: its import (0.2 s, scipy's start) is then
+# not in every command line's start, only in a lamps rig's
+if TYPE_CHECKING:
+    from scipy.spatial import cKDTree
 
 ANGLE_TOL_DEG = 2.0  # feature lookup tolerance (smallest and largest angle)
 SIZE_TOL = 0.05  # relative perimeter tolerance of a matched triangle
@@ -122,6 +127,8 @@ class LampIdentifier:
         self.rig = rig
         self.lamps = rig.target.lamps.xyz_mm
         self.catalog = catalog if catalog is not None else build_catalog(rig.target.lamps)
+        from scipy.spatial import cKDTree
+
         self.map_tree = cKDTree(self.lamps[:, :2])
         self.z_ceiling = float(np.median(self.lamps[:, 2]))
         depth = self.z_ceiling - float(rig.t_b[2])
@@ -198,6 +205,8 @@ class LampIdentifier:
         if fin.sum() < 3:
             return Identification(none, None, reason="too_few_lamps")
         idx = np.nonzero(fin)[0]
+        from scipy.spatial import Delaunay, QhullError
+
         try:
             tri = idx[Delaunay(pts[fin]).simplices]
         except (QhullError, ValueError):
@@ -277,6 +286,8 @@ class LampIdentifier:
             xy = self.lamps[:, :2]
             cam = self.rig.camera
             reach = float(np.hypot(cam.width, cam.height)) * self.mm_per_px
+            from scipy.spatial import cKDTree
+
             pairs = cKDTree(xy).query_pairs(reach, output_type="ndarray")
             nb: list[set] = [set() for _ in range(len(xy))]
             for i, j in pairs:

@@ -17,7 +17,6 @@ from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
-from scipy.spatial import cKDTree
 
 from visvec.estimate.markers import solve_markers
 from visvec.geometry import lab_camera_offset_c
@@ -195,6 +194,8 @@ class MarkerIdentifier:
         # (H, M, 3) every marker in the camera frame at every attitude: X (R_CN R_NB)^T
         p = self.X @ (self.R_cn @ Rs).transpose(0, 2, 1) + self.t_c
         proj = p[..., :2] / p[..., 2:3]
+        from scipy.spatial import cKDTree
+
         d, _ = cKDTree(xy).query(proj.reshape(-1, 2), distance_upper_bound=COARSE_GATE_PX / self.f)
         score = np.isfinite(d).reshape(len(Rs), -1).sum(axis=1)
         order = np.argsort(-score)

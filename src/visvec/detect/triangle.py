@@ -16,8 +16,8 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from scipy.stats import chi2
 
+from visvec.chi2 import ppf as chi2_ppf
 from visvec.data import Detection, Status
 from visvec.detect.candidates import Candidate, iter_candidates, partial_triangle
 from visvec.detect.edges import (
@@ -86,7 +86,7 @@ SATURATED_LEVEL = 250.0
 # at the base vertices, 0.45 px at the blunted acute one; tests/benchmarks)
 CORNER_SIGMA_PX = 0.35
 # the pixel fit's vertices are taken when they agree with the edge lines' (see _pixel_fit)
-PIXEL_FIT_GATE = float(chi2.ppf(1.0 - 1e-4, 6))
+PIXEL_FIT_GATE_P = 1e-4
 
 
 # the (6,) covariance index of each identification's vertex order (x0, y0, x1, ...)
@@ -188,7 +188,7 @@ def _pixel_fit(image, fit, xy, cov, camera, shutter=None, rate_c=None):
         chi2_ = float(dv @ np.linalg.solve(cov + pf.cov, dv))
     except np.linalg.LinAlgError:
         return xy, cov
-    if not chi2_ < PIXEL_FIT_GATE:
+    if not chi2_ < chi2_ppf(1.0 - PIXEL_FIT_GATE_P, 6):
         return xy, cov
     # and when it is the more precise: residuals with a structure of their own (a head
     # in a band) widen its covariance through their correlation (photometric's

@@ -12,8 +12,8 @@ import math
 from functools import lru_cache
 
 import numpy as np
-from scipy.stats import chi2 as chi2_dist
 
+from visvec.chi2 import ppf as chi2_ppf
 from visvec.data import AttitudeSolution, Status
 from visvec.estimate.rotation import fit_rotation
 from visvec.geometry import lab_camera_offset_c
@@ -25,7 +25,7 @@ CHI2_REJECT_P = 1e-4
 
 @lru_cache(maxsize=256)
 def chi2_limit(dof: int) -> float:
-    return float(chi2_dist.ppf(1.0 - CHI2_REJECT_P, dof))
+    return chi2_ppf(1.0 - CHI2_REJECT_P, dof)
 
 
 def solve_markers(

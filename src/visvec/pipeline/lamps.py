@@ -5,8 +5,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.stats import chi2 as chi2_dist
 
+from visvec.chi2 import ppf as chi2_ppf
 from visvec.data import Status
 from visvec.detect.lamps import TRACK_GATE_PX, LampIdentifier
 from visvec.detect.spots import Spots, find_spots
@@ -48,9 +48,8 @@ DARK_MIN = 2
 DARK_MAX_AGE_S = 1.0
 # lost-in-space fits of this many spots or fewer must explain them within the noise
 FEW_CHECKED = 8
-# ... at p = 0.001: the chi-square limits of their 2n - 3 degrees of freedom, once
-CONSISTENT_CHI2 = {2 * n - 3: float(chi2_dist.ppf(0.999, 2 * n - 3))
-                   for n in range(DARK_MIN, FEW_CHECKED + 1)}  # fmt: skip
+# ... at p = 0.001 (the chi-square limit of their 2n - 3 degrees of freedom)
+CONSISTENT_P = 0.001
 
 
 class LampPipeline(Pipeline["LampDetection", PlanarSolution]):
@@ -165,8 +164,7 @@ class LampPipeline(Pipeline["LampDetection", PlanarSolution]):
         if dof <= 0:
             return True
         chi2 = 2 * sol.n_points * (sol.rms_px / self.sigma_px) ** 2
-        limit = CONSISTENT_CHI2.get(dof)
-        return chi2 <= (limit if limit is not None else float(chi2_dist.ppf(0.999, dof)))
+        return chi2 <= chi2_ppf(1.0 - CONSISTENT_P, dof)
 
     def estimate(self, frame):
         d = self.rig.detect

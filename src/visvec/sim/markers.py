@@ -12,7 +12,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.special import ndtr
 
 from visvec.geometry import markers_to_camera
 from visvec.rig import Rig
@@ -52,6 +51,8 @@ def add_spot(img: np.ndarray, u: float, v: float, flux: float, sigma: float) -> 
         return
     xs = np.arange(x0, x1 + 1) - 0.5  # pixel edges; pixel centres are integers
     ys = np.arange(y0, y1 + 1) - 0.5
+    from scipy.special import ndtr
+
     fx = np.diff(ndtr((xs - u) / sigma))
     fy = np.diff(ndtr((ys - v) / sigma))
     img[y0:y1, x0:x1] += flux * np.outer(fy, fx)

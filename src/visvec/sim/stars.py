@@ -20,7 +20,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from scipy.special import erf
 
 from visvec.rig import Rig
 from visvec.rotations import expmap
@@ -79,6 +78,8 @@ def _pixel_integrals(centres: np.ndarray, lo: int, n: int, sigma: float) -> np.n
     """(K, n) fraction of a 1-D Gaussian at each centre falling in pixels lo..lo+n-1
     (pixel p covers [p - 0.5, p + 0.5])."""
     edges = np.arange(lo, lo + n + 1) - 0.5
+    from scipy.special import erf
+
     c = erf((edges[None, :] - centres[:, None]) / (np.sqrt(2.0) * sigma))
     return 0.5 * np.diff(c, axis=1)
 
