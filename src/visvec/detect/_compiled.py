@@ -95,12 +95,20 @@ def _load():
                   file=sys.stderr)  # fmt: skip
             return
         made = {}
+        try:
+            for k in _KERNELS.values():
+                if id(k.py_func) not in made:
+                    # cache: compiled once per machine, loaded from disk after that;
+                    # nogil: the live paths' threads run beside it; no fastmath: sums
+                    # taken in the order written
+                    made[id(k.py_func)] = nb.njit(cache=True, nogil=True)(k.py_func)
+        except Exception:  # a Numba that cannot make them: the numpy path, and say why
+            ON = False
+            for name, k in _KERNELS.items():
+                if names[name] is k:
+                    names[name] = k.py_func
+            raise
         for name, k in _KERNELS.items():
-            if id(k.py_func) not in made:
-                # cache: compiled once per machine, loaded from disk after that; nogil:
-                # the live paths' threads run beside it; no fastmath: sums taken in the
-                # order written
-                made[id(k.py_func)] = nb.njit(cache=True, nogil=True)(k.py_func)
             k.dispatcher = made[id(k.py_func)]
             if names[name] is k:
                 names[name] = k.dispatcher
