@@ -70,7 +70,8 @@ class _Lazy:
     def __call__(self, *args):
         if self.dispatcher is None:
             _load()
-        return (self.dispatcher or self.py_func)(*args)
+        # (after a Numba that did not import: the plain function)
+        return (self.py_func if self.dispatcher is None else self.dispatcher)(*args)
 
 
 def _load():
