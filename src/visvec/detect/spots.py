@@ -231,11 +231,13 @@ def find_spots(
         z = np.zeros(0)
         return Spots(np.zeros((0, 2)), z, z, z, np.zeros(0, bool), T)
     a = np.array(out, dtype=float)
-    # the same spot found in two overlapping windows counts once
+    # the same spot found in two overlapping windows counts once: a spot within 0.5 px
+    # of one kept before it is dropped (the pairs' distances at once; the loop only
+    # over the spots that have such a pair)
     keep = np.ones(len(a), bool)
-    for i in range(len(a)):
+    close = np.triu(np.hypot(a[:, None, 0] - a[None, :, 0], a[:, None, 1] - a[None, :, 1]) < 0.5, 1)
+    for i in np.flatnonzero(close.any(axis=1)):
         if keep[i]:
-            d = np.hypot(a[i + 1 :, 0] - a[i, 0], a[i + 1 :, 1] - a[i, 1])
-            keep[i + 1 :][d < 0.5] = False
+            keep[close[i]] = False
     a = a[keep]
     return Spots(a[:, :2], a[:, 2], a[:, 3], a[:, 4], a[:, 5].astype(bool), T)
