@@ -5,11 +5,11 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from visvec.detect.markers import GATE_CHUNK, near_spots
+from visvec.detect.markers import GATE_CHUNK, SpotGate
 
 
 @pytest.mark.parametrize("seed", range(6))
-def test_near_spots_answers_as_a_bounded_kd_tree_query(seed):
+def test_the_spot_gate_answers_as_a_bounded_kd_tree_query(seed):
     """The grid and distance transform decide the points clear of the gate, the k-d
     tree the rest: the same answer as the k-d tree alone for every point, among them
     points a hair inside and outside the gate of a spot, over more points than one
@@ -24,9 +24,9 @@ def test_near_spots_answers_as_a_bounded_kd_tree_query(seed):
     at_gate = spots[k] + r[:, None] * np.column_stack([np.cos(ang), np.sin(ang)])
     pts = np.vstack([rng.uniform(-0.5, 0.5, (GATE_CHUNK + 5000, 2)), at_gate])
     want = np.isfinite(cKDTree(spots).query(pts, distance_upper_bound=gate)[0])
-    got = near_spots(spots, pts, gate)
+    got = SpotGate(spots, gate).near(pts)
     assert np.array_equal(got, want)
     assert 0 < want.sum() < len(pts) and want[-2000:].sum() > 500
     odd = np.array([[np.nan, 0.0], [np.inf, 0.0], [0.0, -np.inf], spots[0]])
-    assert near_spots(spots, odd, gate).tolist() == [False, False, False, True]
-    assert not near_spots(np.zeros((0, 2)), pts[:10], gate).any()
+    assert SpotGate(spots, gate).near(odd).tolist() == [False, False, False, True]
+    assert not SpotGate(np.zeros((0, 2)), gate).near(pts[:10]).any()

@@ -85,30 +85,26 @@ def _load():
             return
         _loaded = True
         names = globals()
-        try:
-            import numba as nb
-        except ImportError as exc:  # an installed Numba that does not import here
-            ON = False
-            for name, k in _KERNELS.items():
-                if names[name] is k:
-                    names[name] = k.py_func
-            print(f"visvec: Numba did not import ({exc}); the numpy path runs",
-                  file=sys.stderr)  # fmt: skip
-            return
         made = {}
         try:
+            import numba as nb
+
             for k in _KERNELS.values():
                 if id(k.py_func) not in made:
                     # cache: compiled once per machine, loaded from disk after that;
                     # nogil: the live paths' threads run beside it; no fastmath: sums
                     # taken in the order written
                     made[id(k.py_func)] = nb.njit(cache=True, nogil=True)(k.py_func)
-        except Exception:  # a Numba that cannot make them: the numpy path, and say why
+        except Exception as exc:  # a Numba that cannot import here or make them: numpy
             ON = False
             for name, k in _KERNELS.items():
                 if names[name] is k:
                     names[name] = k.py_func
-            raise
+            if not isinstance(exc, ImportError):
+                raise  # (warm_up says why)
+            print(f"visvec: Numba did not import ({exc}); the numpy path runs",
+                  file=sys.stderr)  # fmt: skip
+            return
         for name, k in _KERNELS.items():
             k.dispatcher = made[id(k.py_func)]
             if names[name] is k:

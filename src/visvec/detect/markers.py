@@ -99,12 +99,6 @@ class SpotGate:
         return near
 
 
-def near_spots(spots: np.ndarray, pts: np.ndarray, gate: float) -> np.ndarray:
-    """(K,) bool: whether each point ``pts`` (K, 2) lies within ``gate`` of a spot
-    (``spots`` (N, 2)); see SpotGate."""
-    return SpotGate(spots, gate).near(pts)
-
-
 @dataclass(frozen=True)
 class Identification:
     """ids : (N,) marker id of each spot, -1 for a spot that is no marker;

@@ -9,7 +9,6 @@ parameters and discard the translation; this estimates the three that exist.
 from __future__ import annotations
 
 import math
-from functools import lru_cache
 
 import numpy as np
 
@@ -23,7 +22,6 @@ from visvec.rig import Rig
 CHI2_REJECT_P = 1e-4
 
 
-@lru_cache(maxsize=256)
 def chi2_limit(dof: int) -> float:
     return chi2_ppf(1.0 - CHI2_REJECT_P, dof)
 

@@ -57,10 +57,16 @@ from visvec.chi2 import ppf as chi2_ppf
 from visvec.fuse.inputs import Fix
 from visvec.rotations import expmap, logmap, skew
 
+# a fix whose innovation's NIS is this improbable (3 degrees of freedom) is refused
 NIS_P = 1e-6
 # a fix taken with an innovation beyond this (p = 0.01) found a burst the model does not
 # hold (see AttitudeModel.update)
 BURST_P = 0.01
+
+
+def _nis_limit() -> float:
+    """The NIS beyond which a fix is refused (p = NIS_P, 3 degrees of freedom)."""
+    return chi2_ppf(1.0 - NIS_P, 3)
 
 
 @dataclass(frozen=True)
@@ -149,7 +155,7 @@ class PlanarModel:
             return PlanarState(x, P), True, math.nan
         S = s.P[np.ix_(idx, idx)] + R
         nis = float(r @ np.linalg.solve(S, r))
-        if nis > chi2_ppf(1.0 - NIS_P, 3):
+        if nis > _nis_limit():
             # refused: the filter or the fix is wrong; widen the pose's covariance by the
             # disagreement so that the rows stay honest and the next fix that agrees
             # with this one is taken (no lock-out)
@@ -370,7 +376,7 @@ class AttitudeModel:
         noise = self._learn(s, r, R, S)
         fade = self._fade(s.fade, nis)
         acc0 = (0.0, 0.0, 0.0)
-        if nis > chi2_ppf(1.0 - NIS_P, 3):
+        if nis > _nis_limit():
             # refused: the filter or the fix is wrong. Widen the attitude's covariance
             # by the disagreement, so that the rows stay honest and the next fix that
             # agrees with this one is taken (no lock-out); the widening counts as noise
@@ -420,7 +426,7 @@ class AttitudeModel:
         bump), and after a fix that found the filter off, the next interval is trusted
         less, so that its rows' sigma covers a burst that goes on."""
         f = (1.0 - FADE_NEW) * fade + FADE_NEW * nis / 3.0
-        return float(min(max(f, 1.0), chi2_ppf(1.0 - NIS_P, 3) / 3.0))
+        return float(min(max(f, 1.0), _nis_limit() / 3.0))
 
     def _learn(self, s: AttitudeState, r, R, S) -> NoiseFit:
         """The noise fit after a fix's innovation (covariance matching, module doc)."""
@@ -430,7 +436,7 @@ class AttitudeModel:
         x = 3.0 * np.array([s.acc[0], s.acc[1] ** 2])
         y = float(r @ r) - float(np.trace(R)) - float(np.trace(s.P[0:3, 0:3])) + s.acc[2]
         # a single wild fix (a glitch) counts at most as much as a fix at the gate
-        y = min(y, chi2_ppf(1.0 - NIS_P, 3) / 3.0 * float(np.trace(S)))
+        y = min(y, _nis_limit() / 3.0 * float(np.trace(S)))
         # var(y) = var(|r|^2) = 2 tr(S^2) for a Gaussian r
         v = 2.0 * float(np.sum(S * S))
         H = nf.H * NOISE_FORGET + np.outer(x, x) / v
