@@ -15,6 +15,7 @@ from visvec.estimate.planar import PlanarSolution, solve_planar
 from visvec.lamps import Catalog
 from visvec.output import PoseRow
 from visvec.pipeline.base import Pipeline
+from visvec.pipeline.noise import LearnedNoise
 from visvec.rig import Rig
 
 
@@ -29,13 +30,6 @@ class LampDetection:
     votes: int = 0
 
 
-# the learned centroid noise: old frames forgotten by this factor per frame (about the
-# last 100), the rig's value worth this many degrees of freedom at the start (forgotten
-# as a frame is), and never below this
-NOISE_FORGET = 0.99
-NOISE_PRIOR_DOF = 20.0
-NOISE_FLOOR_PX = 0.005
-NOISE_CAP = 3.0
 EDGE_PX = 5.0  # lamp spots closer than this to the image border may be cut
 # tracking goes on while at least MIN_TRACKED lamps and MIN_TRACKED_FRACTION of the spots
 # match the map from the predicted pose
@@ -76,12 +70,9 @@ class LampPipeline(Pipeline["LampDetection", PlanarSolution]):
             raise ConfigError(f"LampPipeline needs a lamps rig, not {rig.kind!r}")
         super().__init__(rig, method)
         self.identifier = LampIdentifier(rig, catalog)
-        # the centroid noise, learned from the fits' residuals (see _learn_noise); the
-        # rig's [detect] centroid_sigma_px is its prior
-        self.noise_r2 = 0.0  # forgetting sums of the squared residuals (px^2) ...
-        self.noise_dof = 0.0  # ... and of their degrees of freedom
-        self.prior_dof = NOISE_PRIOR_DOF  # the rig's value's weight, forgotten alike
-        self.sigma_px = rig.detect.centroid_sigma_px
+        # the centroid noise, learned from the fits' residuals; the rig's [detect]
+        # centroid_sigma_px is its prior
+        self.noise = LearnedNoise(rig.detect.centroid_sigma_px)
         self.track_state: tuple[float, np.ndarray, np.ndarray | None] | None = None
 
     def reset(self) -> None:
@@ -129,30 +120,14 @@ class LampPipeline(Pipeline["LampDetection", PlanarSolution]):
         return ident, sol
 
     def _learn_noise(self, sol: PlanarSolution) -> None:
-        """The centroid noise the next frames' covariance uses: the pooled residual
-        variance of the fits so far (sum of squared residuals over their degrees of
-        freedom, 2n - 3 per frame; the a-posteriori variance factor of least squares),
-        forgetting old frames (NOISE_FORGET) and with the rig's centroid_sigma_px as
-        a prior worth NOISE_PRIOR_DOF degrees of freedom at the start, forgotten as the
-        frames are: the rig's value is a guess (0.1 px where simulated lamps scatter
-        0.02 px), and frames of three to five lamps bring only 3 to 7 degrees of freedom
-        each, so a prior that never faded would keep their sigma half again too wide
-        (error/sigma RMS 0.56 at 90 % of the lamps dark; benchmarks/lamps_few_lit.py).
-        A frame scattering more than NOISE_CAP times the noise so far counts as if at
-        that cap (a stray spot taken for a lamp, a smeared frame: the pooled variance
-        is not an outlier's). A frame's own chi-square still widens its covariance
-        when it scatters more (solve_planar)."""
-        n = sol.n_points
-        dof = 2 * n - 3
-        if dof <= 0:
-            return
-        r2 = min(2 * n * sol.rms_px**2, dof * (NOISE_CAP * self.sigma_px) ** 2)
-        self.noise_r2 = NOISE_FORGET * self.noise_r2 + r2
-        self.noise_dof = NOISE_FORGET * self.noise_dof + dof
-        self.prior_dof *= NOISE_FORGET
-        s0 = self.rig.detect.centroid_sigma_px
-        var = (self.prior_dof * s0**2 + self.noise_r2) / (self.prior_dof + self.noise_dof)
-        self.sigma_px = max(float(np.sqrt(var)), NOISE_FLOOR_PX)
+        """The fit's residuals join the learned centroid noise (x, y and heading: 3
+        parameters)."""
+        self.noise.add(sol.n_points, sol.rms_px, 3)
+
+    @property
+    def sigma_px(self) -> float:
+        """The centroid noise the next frame's covariance uses (px)."""
+        return self.noise.sigma_px
 
     def _consistent(self, sol: PlanarSolution) -> bool:
         """Whether a fit of few lamps explains its spots within the noise (chi-square
