@@ -134,8 +134,9 @@ class DetectSettings:
         writes it when that is significantly wider than the model (compressed video).
     threshold : markers: grey level above which a pixel belongs to a spot (0 = automatic:
         background median + 6 robust sigmas, at least 20).
-    centroid_sigma_px : markers: 1-sigma noise of a spot centroid, used in the covariance;
-        lamps: the prior of the noise learned from the fits.
+    centroid_sigma_px : markers and lamps: the prior of the centroid noise learned from
+        the fits (visvec.pipeline.noise; markers: the identification's gates too);
+        starfield: the floor of a star's centroid noise.
     min_spot_px, max_spot_px : markers: accepted spot areas (pixels).
     """
 

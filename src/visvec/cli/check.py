@@ -11,6 +11,7 @@ import numpy as np
 
 from visvec.check import (
     ATTITUDE_KINDS,
+    CHUNK_FRAMES,
     camera_points,
     envelope,
     field_of_view_deg,
@@ -176,7 +177,9 @@ def _accuracy(rig, n_frames: int, seed: int, scheduler: str | None, workers: int
         ss = SpotScene()
         scene = (
             f"spot sigma {ss.psf_sigma_px:g} px, noise {ss.noise_sigma:g} grey levels; the "
-            f"rows' sigma from [detect] centroid_sigma_px {rig.detect.centroid_sigma_px:g}"
+            f"rows' sigma from the centroid noise as a run's first {CHUNK_FRAMES} frames learn it "
+            f"from [detect] centroid_sigma_px {rig.detect.centroid_sigma_px:g}; later rows' "
+            f"is narrower"
         )
     click.echo(
         f"  simulated: {n_frames} frames at random yaws and tilts within "

@@ -13,6 +13,7 @@ from visvec.errors import ConfigError
 from visvec.estimate.markers import solve_markers
 from visvec.estimate.pnp import PNP_FLAGS, solve_pnp
 from visvec.pipeline.base import AttitudePipeline, Pipeline
+from visvec.pipeline.noise import LearnedNoise
 from visvec.rig import Rig
 
 MARKER_METHODS = ("full", *PNP_FLAGS)
@@ -50,9 +51,17 @@ class MarkerPipeline(AttitudePipeline["MarkerDetection"]):
         if rig.kind != "markers":
             raise ConfigError(f"MarkerPipeline needs a markers rig, not {rig.kind!r}")
         super().__init__(rig, method)
-        self.sigma_px = rig.detect.centroid_sigma_px
-        self.identifier = MarkerIdentifier(rig, self.sigma_px)
+        # the centroid noise the rows' covariance and chi-square use, learned from the
+        # fits' residuals with the rig's [detect] centroid_sigma_px as its prior; the
+        # identification's gates keep the rig's value (a match, not a measurement)
+        self.noise = LearnedNoise(rig.detect.centroid_sigma_px)
+        self.identifier = MarkerIdentifier(rig, rig.detect.centroid_sigma_px)
         self.R_last: np.ndarray | None = None
+
+    @property
+    def sigma_px(self) -> float:
+        """The centroid noise the next frame's covariance uses (px)."""
+        return self.noise.sigma_px
 
     def reset(self) -> None:
         self.R_last = None
@@ -105,6 +114,8 @@ class MarkerPipeline(AttitudePipeline["MarkerDetection"]):
             sol = solve_pnp(spots.centroids_px[sel], ids[sel], self.rig, self.method, self.sigma_px)
         if sol.status is Status.OK:
             self.R_last = sol.R_nb if self.method == "full" else ident.R_nb
+            # its residuals measure the noise (3 parameters, or PnP's 6)
+            self.noise.add(sol.n_points, sol.rms_px, 3 if self.method == "full" else 6)
         return sol.status, sol, tuple(warnings) + sol.warnings
 
     def _markers_px(self, R_nb: np.ndarray) -> np.ndarray:
