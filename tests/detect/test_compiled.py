@@ -35,6 +35,7 @@ KERNELS = (
     "_edge_fit",
     "_level_gain",
     "_lines",
+    "lag_sums",
 )
 
 
@@ -152,9 +153,10 @@ def test_the_kernels_run_as_python_give_what_compiled_gives(calls):
             _compiled.group_median,
             lambda a, k: (np.asarray(a[0], float), a[1], a[3]),
         ),
-        "_edge_fit": (_compiled.edge_stats, lambda a, k: (a[4], a[5], a[6], *a[9:])),
+        "_edge_fit": (_compiled.edge_stats, lambda a, k: (a[4], a[5], a[6], *a[9:14])),
         "_level_gain": (_compiled.level_gain, lambda a, k: (np.asarray(a[0], float), *a[1:])),
         "_lines": (_compiled.inward_lines, lambda a, k: _inward_args(*a)),
+        "lag_sums": (_compiled.edge_lag_sums, lambda a, k: (*a, E.CORRELATION_LAGS)),
     }
     for name, (kernel, to_args) in kernels.items():
         for a, k in calls[name][1][:2]:

@@ -899,6 +899,30 @@ def _edge_stats(sigmas, level_px, h_mid, gid, keep, along, trims, lengths):
     return sig, counts, outl, gaps
 
 
+def _edge_lag_sums(ideal, gid, keep, normals, offsets, sigmas, lags):
+    """edges.lag_sums: per lag j = 0..lags, the sum of z_k z_(k + j) over the inlier
+    pairs j profiles apart on one edge (z the residual from the edge's line over its
+    sigma) and their count."""
+    m = gid.shape[0]
+    z = np.zeros(m)
+    for k in range(m):
+        if keep[k]:
+            e = gid[k]
+            r = ideal[k, 0] * normals[e, 0] + ideal[k, 1] * normals[e, 1] - offsets[e]
+            z[k] = r / sigmas[e]
+    out = np.zeros((2, lags + 1))
+    for j in range(lags + 1):
+        s = 0.0
+        p = 0
+        for k in range(m - j):
+            if keep[k] and keep[k + j] and gid[k] == gid[k + j]:
+                s += z[k] * z[k + j]
+                p += 1
+        out[0, j] = s
+        out[1, j] = p
+    return out
+
+
 # ------------------------------------- the triangle's attitude (estimate.rotation)
 def _expmap(w0, w1, w2):
     """visvec.rotations.expmap_xyz: Rodrigues' formula, its series below 1e-8 rad."""
@@ -1096,5 +1120,6 @@ gn_shift = _jit(_gn_shift, "gn_shift")
 closed_form_3 = _jit(_closed_form_3, "closed_form_3")
 level_gain = _jit(_level_gain, "level_gain")
 edge_stats = _jit(_edge_stats, "edge_stats")
+edge_lag_sums = _jit(_edge_lag_sums, "edge_lag_sums")
 readout_frame = _jit(_readout_frame, "readout_frame")
 readout_solve = _jit(_readout_solve, "readout_solve")

@@ -20,6 +20,7 @@ import numpy as np
 
 from visvec.camera import CameraModel
 from visvec.detect import _compiled
+from visvec.noise import CORRELATION_LAGS
 from visvec.shutter import RollingShutter, unroll
 
 # Variance inflation of the edge-point residuals for correlated neighbouring profiles
@@ -114,6 +115,10 @@ class EdgeFit:
     shutter_gain : (6, 3) or None, with ``gain``: how the vertices (normalised) move
         per rad/s of camera rate when the edge points are taken to the centre row's
         exposure (:func:`_shutter_gain`)
+    lag_sums : (2, CORRELATION_LAGS + 1) or None: over the three edges' inliers, their
+        residuals normalised by the edge's sigma, sum_k z_k z_(k + j) and the number of
+        pairs at each lag j (points j profiles apart, both inliers) for
+        visvec.noise.LearnedCorrelation
     """
 
     normals: np.ndarray
@@ -129,6 +134,7 @@ class EdgeFit:
     width: np.ndarray
     ok: bool = True
     shutter_gain: np.ndarray | None = None
+    lag_sums: np.ndarray | None = None
 
     def vertex_gaps(self) -> np.ndarray:
         """(3,) for each vertex, the longer unsupported stretch of its two edges (px)."""
@@ -595,7 +601,7 @@ def _crop(image: np.ndarray, corners_px: np.ndarray) -> tuple[np.ndarray, np.nda
 
 
 def _edge_fit(normals, offsets, centres, spreads, sigmas, level_px, h_mid, mid, width, gid,
-              keep, along, trims, lengths) -> EdgeFit:  # fmt: skip
+              keep, along, trims, lengths, lags=None) -> EdgeFit:  # fmt: skip
     """A fine pass's EdgeFit: its lines with their statistics (per edge: inliers,
     outlier share, contrast, and how far the inliers stop short of the ends)."""
     if _compiled.ON:  # the same statistics, compiled (the fast extra)
@@ -603,7 +609,7 @@ def _edge_fit(normals, offsets, centres, spreads, sigmas, level_px, h_mid, mid, 
             sigmas, level_px, h_mid, gid, keep, along, trims, lengths
         )
         return EdgeFit(normals, offsets, centres, spreads, counts, sigmas, outl, h_mid, mid,
-                       gaps, width.copy())  # fmt: skip
+                       gaps, width.copy(), lag_sums=lags)  # fmt: skip
     # the levels' error, common to the edge's profiles (see _level_gain): added per
     # point, so that over the count it is the variance of the line's shift from the
     # fitted level line
@@ -621,7 +627,7 @@ def _edge_fit(normals, offsets, centres, spreads, sigmas, level_px, h_mid, mid, 
         lengths[:, None],
     )
     return EdgeFit(normals, offsets, centres, spreads, counts, sigmas, outl, h_mid, mid, gaps,
-                   width.copy())  # fmt: skip
+                   width.copy(), lag_sums=lags)  # fmt: skip
 
 
 def _pass_window(npass: int, corners: np.ndarray, w_mid: float, half0: float, step: float,
@@ -694,8 +700,9 @@ def _lines(raw, pts_px, pr: _Profiles, camera, shutter, rate_c, sigma_floor, rou
         ideal = unroll(raw, pts_px[:, 1], camera, rate_c, shutter.readout_ms, shutter.lever) * f
     gid, clear = pr.gid, pr.clear
     if _compiled.ON:  # the same, compiled (the fast extra)
-        return _compiled.inward_lines(ideal[:, 0], ideal[:, 1], gid, clear, float(sigma_floor),
-                                      int(rounds), EDGE_VARIANCE_INFLATION)  # fmt: skip
+        out = _compiled.inward_lines(ideal[:, 0], ideal[:, 1], gid, clear, float(sigma_floor),
+                                     int(rounds), EDGE_VARIANCE_INFLATION)  # fmt: skip
+        return (*out, ideal)
     # an edge's points with a clear step; all of them if fewer than 5 are clear
     use = clear | (np.bincount(gid, clear, 3) < 5)[gid]
     normals_l, offsets, centres, spreads, sigmas, keep = _robust_lines(
@@ -704,7 +711,24 @@ def _lines(raw, pts_px, pr: _Profiles, camera, shutter, rate_c, sigma_floor, rou
     # normals into the triangle: towards the mean of the three edges' centres (a point
     # on each side: inside; compared as sums, n . sum < 3 offset)
     flip = np.where(normals_l @ centres.sum(axis=0) < 3.0 * offsets, -1.0, 1.0)
-    return normals_l * flip[:, None], offsets * flip, centres, spreads, sigmas, keep
+    return normals_l * flip[:, None], offsets * flip, centres, spreads, sigmas, keep, ideal
+
+
+def lag_sums(ideal, gid, keep, normals, offsets, sigmas) -> np.ndarray:
+    """(2, CORRELATION_LAGS + 1): the edge points' residuals from their lines over the
+    edge's sigma (outliers 0), sum_k z_k z_(k + j) and the pairs of inliers j profiles
+    apart on one edge, j = 0..CORRELATION_LAGS (see visvec.noise.LearnedCorrelation)."""
+    if _compiled.ON:  # the same, compiled (the fast extra)
+        return _compiled.edge_lag_sums(ideal, gid, keep, normals, offsets, sigmas, CORRELATION_LAGS)
+    r = ideal[:, 0] * normals[gid, 0] + ideal[:, 1] * normals[gid, 1] - offsets[gid]
+    z = np.where(keep, r / sigmas[gid], 0.0)
+    out = np.zeros((2, CORRELATION_LAGS + 1))
+    out[0, 0], out[1, 0] = z @ z, np.count_nonzero(keep)
+    for j in range(1, CORRELATION_LAGS + 1):
+        same = (gid[:-j] == gid[j:]) & keep[:-j] & keep[j:]
+        out[0, j] = float(np.sum(z[:-j] * z[j:] * same))
+        out[1, j] = np.count_nonzero(same)
+    return out
 
 
 def fit_edges(
@@ -786,7 +810,7 @@ def fit_edges(
                 passes.insert(k, 0)
         pts_px = pr.bases + e[:, None] * pr.normals
         raw = camera.undistort(pts_px)
-        normals_l, offsets, centres, spreads, sigmas, keep = _lines(
+        normals_l, offsets, centres, spreads, sigmas, keep, ideal = _lines(
             raw, pts_px, pr, camera, shutter, rate_c, sigma_floor, 3 if npass == 1 else 1
         )
         new = camera.distort(_vertices(normals_l, offsets)[0] / f)
@@ -800,8 +824,10 @@ def fit_edges(
         # the levels' share of each edge point's error (fine passes: the first pass's
         # area estimate is only used for its lines, never for a covariance)
         level_px = _level_gain(width, half, step) * pr.level_sd if npass >= 1 else np.zeros(3)
+        # a fine pass's residuals along the edges, for the correlation a run learns
+        lags = lag_sums(ideal, gid, keep, normals_l, offsets, sigmas) if npass >= 1 else None
         fit = _edge_fit(normals_l, offsets, centres, spreads, sigmas, level_px, pr.h_mid,
-                        pr.mid, width, gid, keep, pr.along, trims, pr.lengths)  # fmt: skip
+                        pr.mid, width, gid, keep, pr.along, trims, pr.lengths, lags)  # fmt: skip
         if gain and shutter is not None and not failed:
             omega = np.zeros(3) if rate_c is None else np.asarray(rate_c, float)
             fit = replace(

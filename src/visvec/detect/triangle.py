@@ -32,6 +32,7 @@ from visvec.detect.edges import (
 from visvec.detect.photometric import refine
 from visvec.errors import ConfigError
 from visvec.geometry import project_target
+from visvec.noise import LearnedCorrelation
 from visvec.rig import Rig
 from visvec.shutter import RollingShutter, shutter_matrix, shutter_shift
 
@@ -150,7 +151,8 @@ class _Measured:
     """A candidate's measured vertices: undistorted (xy, px at fx) and in the image
     (pts_px), their covariance (6x6), the edges' weakest contrast and largest outlier
     share, the largest gap between an edge's end and its vertex (px), the level
-    halfway between the triangle and its surround, and the shutter gain (or None)."""
+    halfway between the triangle and its surround, the shutter gain (or None), and the
+    edge points' lag sums (EdgeFit.lag_sums, or None)."""
 
     xy: np.ndarray
     pts_px: np.ndarray
@@ -160,6 +162,7 @@ class _Measured:
     vertex_gap: float
     level_mid: float
     gain: np.ndarray | None
+    lags: np.ndarray | None
 
 
 def _centre(p: np.ndarray) -> np.ndarray:
@@ -280,6 +283,10 @@ class TriangleDetector:
         self._fit_width: np.ndarray | None = None
         # the last detection came from the previous frame's vertices (small motion)
         self.last_was_tracked = False
+        # the edge points' correlation along the edges, learned over the run's frames
+        # (a video codec's): it widens the edge lines' covariance
+        self.correlation = LearnedCorrelation()
+        self._lags: np.ndarray | None = None  # the last verified detection's lag sums
 
     def _tracked_candidate(self, pts: np.ndarray) -> Candidate:
         inside = bool(np.all(self.rig.camera.in_image(pts, 2.0)))
@@ -344,6 +351,7 @@ class TriangleDetector:
         mean, warnings = self._brightness(image)
         reason, contour = "", np.zeros((0, 2))
         self.last_was_tracked = False
+        self._lags = None
         if self._last_points is not None:
             # tracking: refine straight from the last frame's vertices; any failed check
             # falls back to the full search below
@@ -355,6 +363,7 @@ class TriangleDetector:
                 self._prev_points, self._last_points = self._last_points, det.points_px
                 self._last_width = self._fit_width
                 self.last_was_tracked = True
+                self._learn()
                 return det
         levels = None if self._last_level is None else np.array([self._last_level])
         for _attempt in range(2):
@@ -371,6 +380,7 @@ class TriangleDetector:
                     self._last_level = cand.level
                     self._prev_points, self._last_points = None, det.points_px
                     self._last_width = self._fit_width
+                    self._learn()
                     return det
                 # a region that is not the triangle's shape says nothing; one that is
                 # but fails a later check is the triangle, unusable for that reason
@@ -424,6 +434,12 @@ class TriangleDetector:
             self._last_points = det.points_px
             self._last_width = self._fit_width
         return det
+
+    def _learn(self) -> None:
+        """The frame's edge points join the correlation learned over the run."""
+        if self._lags is not None:
+            sums, pairs = self._lags.tolist()
+            self.correlation.add(sums, pairs, 3)
 
     # ------------------------------------------------------------------ steps
     def _brightness(self, image: np.ndarray) -> tuple[float, list[str]]:
@@ -481,6 +497,7 @@ class TriangleDetector:
         if not np.all(cam.in_image(m.pts_px, BORDER_MARGIN_PX + 0.02 * cam.width)):
             w.append("near_fov_edge")
         consider, gain = self._shutter_consider(m, rate_c)
+        self._lags = m.lags
         return Detection(
             Status.OK,
             points_px=m.pts_px,
@@ -516,7 +533,7 @@ class TriangleDetector:
             if pts_px is None:
                 return "corners_not_found"
             xy = cam.undistort(pts_px) * cam.fx
-            return _Measured(xy, pts_px, cov, fit_contrast, outliers, 0.0, level_mid, None)
+            return _Measured(xy, pts_px, cov, fit_contrast, outliers, 0.0, level_mid, None, None)
         shutter = RollingShutter(self.readout_ms, self.lever_c) if self.readout_ms else None
         fit = fit_edges(
             image,
@@ -539,11 +556,15 @@ class TriangleDetector:
         if not fit.ok:
             return "edge_fit_failed"
         xy, cov = intersect(fit)
+        # neighbouring edge points' errors correlated (a codec's), as the run's frames
+        # say: the lines are less precise than their points' scatter alone says
+        cov = cov * self.correlation.factor
         if s.refine == "pixels":
             xy, cov = _pixel_fit(image, fit, xy, cov, cam, shutter, rate_c)
         return _Measured(
             xy, cam.distort(xy / cam.fx), cov, fit.contrast.min(), fit.outlier_fraction.max(),
             float(fit.vertex_gaps().max()), float(np.mean(fit.mid_level)), fit.shutter_gain,
+            fit.lag_sums,
         )  # fmt: skip
 
     def _named(self, m: _Measured) -> tuple[_Measured, np.ndarray, np.ndarray]:
@@ -561,7 +582,7 @@ class TriangleDetector:
         p, idx = list(perm), _PERM_INDEX[perm]
         gain = m.gain[idx] if m.gain is not None else None
         named = _Measured(m.xy[p], m.pts_px[p], m.cov[idx][:, idx], m.contrast, m.outliers,
-                          m.vertex_gap, m.level_mid, gain)  # fmt: skip
+                          m.vertex_gap, m.level_mid, gain, m.lags)  # fmt: skip
         return named, seen[p], ang[p]
 
     def _shape_reason(self, m: _Measured, seen: np.ndarray, angles_deg: np.ndarray) -> str | None:

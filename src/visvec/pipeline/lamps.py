@@ -13,9 +13,9 @@ from visvec.detect.spots import Spots, find_spots
 from visvec.errors import ConfigError
 from visvec.estimate.planar import PlanarSolution, solve_planar
 from visvec.lamps import Catalog
+from visvec.noise import LearnedNoise
 from visvec.output import PoseRow
 from visvec.pipeline.base import Pipeline
-from visvec.pipeline.noise import LearnedNoise
 from visvec.rig import Rig
 
 

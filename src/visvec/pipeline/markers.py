@@ -12,8 +12,8 @@ from visvec.detect.spots import Spots, find_spots
 from visvec.errors import ConfigError
 from visvec.estimate.markers import solve_markers
 from visvec.estimate.pnp import PNP_FLAGS, solve_pnp
+from visvec.noise import LearnedNoise
 from visvec.pipeline.base import AttitudePipeline, Pipeline
-from visvec.pipeline.noise import LearnedNoise
 from visvec.rig import Rig
 
 MARKER_METHODS = ("full", *PNP_FLAGS)
