@@ -379,11 +379,24 @@ def test_a_codecs_correlated_errors_along_the_edges_widen_the_sigma(rig320, tmp_
     eul = random_attitudes(40, 5.0, np.random.default_rng(31), "sweep")
     frames = [render_frame(rig320, euler_to_matrix(*e), Scene(), rng=3100 + k)
               for k, e in enumerate(eul)]  # fmt: skip
-    factors = {}
+    factors, notes = {}, {}
     for name, images in (("png", frames), ("mp4v", _through_mp4v(frames, tmp_path / "r.mp4"))):
         pipe = TrianglePipeline(rig320)
         rows = [pipe.process(Frame(i, i / 30.0, im)) for i, im in enumerate(images)]
         assert sum(r.ok for r in rows) >= 35, name
         factors[name] = pipe.detector.correlation.factor
+        notes[name] = " ".join(pipe.notes())
     assert factors["png"] == 1.0
     assert 1.2 < factors["mp4v"] < 2.6, factors
+    assert "codec" not in notes["png"] and "codec" in notes["mp4v"]
+
+
+def test_a_run_through_a_codec_is_told_so_at_its_end(rig320):
+    """The closing note, when the learned correlation says the frames went through a
+    codec; with the pixel fit, that it is not honest there."""
+    for refine in ("lines", "pixels"):
+        pipe = TrianglePipeline(replace(rig320, detect=replace(rig320.detect, refine=refine)))
+        assert not any("codec" in n for n in pipe.notes())
+        pipe.detector.correlation.factor = 1.9  # as mp4v's frames teach it
+        (note,) = [n for n in pipe.notes() if "codec" in n]
+        assert "1.9x" in note and ('refine = "lines"' in note) == (refine == "pixels")

@@ -38,6 +38,11 @@ MIN_HEIGHT_FRAMES = 10
 SHEAR_EVIDENCE_CHI2 = 4.0 * CHI2_REJECT[3]
 HEIGHT_NOTE_SIGMAS = 5.0
 HEIGHT_NOTE_MM = 1.0
+# the closing note on compressed frames: when the edge points' learned correlation
+# widens the lines' variance by this much (mp4v 1.4-2.0, Motion-JPEG at quality 75
+# 1.1-1.3, lossless frames and Motion-JPEG at quality 95 exactly 1;
+# visvec.noise.LearnedCorrelation)
+CODEC_NOTE_FACTOR = 1.2
 
 
 def _no_rigid_fit(sol: AttitudeSolution) -> bool:
@@ -157,6 +162,7 @@ class TrianglePipeline(AttitudePipeline[Detection]):
                 f"print's size or the focal length is off); measure it, or let `visvec "
                 f"calibrate zero-tilt` write it"
             )
+        notes += self._codec_note()
         if self.shear is not None:
             notes += self._camera_note()
         if self.shear is not None and self.shear.suspected():
@@ -171,6 +177,26 @@ class TrianglePipeline(AttitudePipeline[Detection]):
                 f"readout` on a recording of the platform swinging out and back"
             )
         return notes
+
+    def _codec_note(self) -> list[str]:
+        """The frames' errors shared along the edges as a video codec's are
+        (CODEC_NOTE_FACTOR): the rows' sigma was widened for it; the pixel fit is not
+        honest through such a codec."""
+        f = self.detector.correlation.factor
+        if not f >= CODEC_NOTE_FACTOR:
+            return []
+        note = (
+            f"visvec: the frames' errors are shared by neighbouring points of the "
+            f"triangle's edges as a video codec's are (their variance {f:.1f}x what the "
+            f"points' scatter says): the edge lines' sigma was widened for it. Record "
+            f"losslessly (PNG frames, or Motion-JPEG at quality 95)"
+        )
+        if self.rig.detect.refine == "pixels":
+            note += (
+                '; [detect] refine = "pixels" is not honest through such a codec (rows '
+                'beyond 5 sigma through mp4v): use refine = "lines" on these frames'
+            )
+        return [note]
 
     def _camera_note(self) -> list[str]:
         """The camera's aspect fy / fx and principal point, when the frames (at least
