@@ -88,14 +88,6 @@ SATURATED_LEVEL = 250.0
 CORNER_SIGMA_PX = 0.35
 # the pixel fit's vertices are taken when they agree with the edge lines' (see _pixel_fit)
 PIXEL_FIT_GATE_P = 1e-4
-# and not at all on frames that went through a video codec: when the edge points'
-# errors correlate along the edges so that the lines' variance is widened this much
-# (the run's learned correlation, visvec.noise.LearnedCorrelation: mp4v 1.4-2.0,
-# Motion-JPEG at quality 75 1.1-1.3, lossless frames and Motion-JPEG at quality 95
-# exactly 1). The pixel fit's noise model (white noise, widened for its correlation
-# over 2 px) misses what a motion-compensated codec leaves: through mp4v its rows lie
-# beyond 5 sigma (benchmarks/triangle_compression.py)
-CODEC_FACTOR = 1.2
 
 
 # the (6,) covariance index of each identification's vertex order (x0, y0, x1, ...)
@@ -295,8 +287,6 @@ class TriangleDetector:
         # (a video codec's): it widens the edge lines' covariance
         self.correlation = LearnedCorrelation()
         self._lags: np.ndarray | None = None  # the last verified detection's lag sums
-        # candidates whose pixel fit was left out for a codec's correlation
-        self.n_pixel_fit_skipped = 0
 
     def _tracked_candidate(self, pts: np.ndarray) -> Candidate:
         inside = bool(np.all(self.rig.camera.in_image(pts, 2.0)))
@@ -569,9 +559,7 @@ class TriangleDetector:
         # neighbouring edge points' errors correlated (a codec's), as the run's frames
         # say: the lines are less precise than their points' scatter alone says
         cov = cov * self.correlation.factor
-        if s.refine == "pixels" and self.correlation.factor >= CODEC_FACTOR:
-            self.n_pixel_fit_skipped += 1
-        elif s.refine == "pixels":
+        if s.refine == "pixels":
             xy, cov = _pixel_fit(image, fit, xy, cov, cam, shutter, rate_c)
         return _Measured(
             xy, cam.distort(xy / cam.fx), cov, fit.contrast.min(), fit.outlier_fraction.max(),

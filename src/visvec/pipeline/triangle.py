@@ -9,7 +9,6 @@ import numpy as np
 
 from visvec.data import AttitudeSolution, Detection, Status
 from visvec.detect import TriangleDetector
-from visvec.detect.triangle import CODEC_FACTOR
 from visvec.errors import ConfigError
 from visvec.estimate import ESTIMATORS
 from visvec.estimate.shear import (
@@ -39,6 +38,11 @@ MIN_HEIGHT_FRAMES = 10
 SHEAR_EVIDENCE_CHI2 = 4.0 * CHI2_REJECT[3]
 HEIGHT_NOTE_SIGMAS = 5.0
 HEIGHT_NOTE_MM = 1.0
+# the closing note on compressed frames: when the edge points' learned correlation
+# widens the lines' variance by this much (mp4v 1.4-2.0, Motion-JPEG at quality 75
+# 1.1-1.3, lossless frames and Motion-JPEG at quality 95 exactly 1;
+# visvec.noise.LearnedCorrelation)
+CODEC_NOTE_FACTOR = 1.2
 
 
 def _no_rigid_fit(sol: AttitudeSolution) -> bool:
@@ -176,10 +180,10 @@ class TrianglePipeline(AttitudePipeline[Detection]):
 
     def _codec_note(self) -> list[str]:
         """The frames' errors shared along the edges as a video codec's are
-        (detect.triangle.CODEC_FACTOR): the rows' sigma was widened for it; and when
-        the pixel fit was left out for it, on how many frames."""
+        (CODEC_NOTE_FACTOR): the rows' sigma was widened for it; the pixel fit is not
+        honest through such a codec."""
         f = self.detector.correlation.factor
-        if not f >= CODEC_FACTOR:
+        if not f >= CODEC_NOTE_FACTOR:
             return []
         note = (
             f"visvec: the frames' errors are shared by neighbouring points of the "
@@ -187,12 +191,10 @@ class TrianglePipeline(AttitudePipeline[Detection]):
             f"points' scatter says): the edge lines' sigma was widened for it. Record "
             f"losslessly (PNG frames, or Motion-JPEG at quality 95)"
         )
-        skipped = self.detector.n_pixel_fit_skipped
-        if self.rig.detect.refine == "pixels" and skipped:
+        if self.rig.detect.refine == "pixels":
             note += (
-                f'; the pixel fit (refine = "pixels") was left out of {skipped} frames: '
-                f"its noise model does not hold through a codec (rows beyond 5 sigma through "
-                f"mp4v), and the lines stood"
+                '; [detect] refine = "pixels" is not honest through such a codec (rows '
+                'beyond 5 sigma through mp4v): use refine = "lines" on these frames'
             )
         return [note]
 
