@@ -399,4 +399,5 @@ def test_a_run_through_a_codec_is_told_so_at_its_end(rig320):
         assert not any("codec" in n for n in pipe.notes())
         pipe.detector.correlation.factor = 1.9  # as mp4v's frames teach it
         (note,) = [n for n in pipe.notes() if "codec" in n]
-        assert "1.9x" in note and ('refine = "lines"' in note) == (refine == "pixels")
+        assert "1.9x" in note and "codec" in note
+        assert ('refine = "lines"' in note) == (refine == "pixels")

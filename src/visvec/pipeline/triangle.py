@@ -38,10 +38,10 @@ MIN_HEIGHT_FRAMES = 10
 SHEAR_EVIDENCE_CHI2 = 4.0 * CHI2_REJECT[3]
 HEIGHT_NOTE_SIGMAS = 5.0
 HEIGHT_NOTE_MM = 1.0
-# the closing note on compressed frames: when the edge points' learned correlation
+# the closing note on correlated frames: when the edge points' learned correlation
 # widens the lines' variance by this much (mp4v 1.4-2.0, Motion-JPEG at quality 75
-# 1.1-1.3, lossless frames and Motion-JPEG at quality 95 exactly 1;
-# visvec.noise.LearnedCorrelation)
+# 1.1-1.3, noise smoothed by a camera's (1, 2, 1) / 4 kernel about 1.3, lossless frames
+# of white noise and Motion-JPEG at quality 95 exactly 1; visvec.noise.LearnedCorrelation)
 CODEC_NOTE_FACTOR = 1.2
 
 
@@ -179,22 +179,26 @@ class TrianglePipeline(AttitudePipeline[Detection]):
         return notes
 
     def _codec_note(self) -> list[str]:
-        """The frames' errors shared along the edges as a video codec's are
-        (CODEC_NOTE_FACTOR): the rows' sigma was widened for it; the pixel fit is not
-        honest through such a codec."""
+        """The frames' errors shared along the edges (CODEC_NOTE_FACTOR), as a video
+        codec's or a camera's own smoothing makes them: the rows' sigma was widened for
+        it; the pixel fit is not honest through an inter-frame codec. (The correlation
+        does not tell the two apart: mp4v's frames and noise smoothed over 2 px read
+        alike, and the pixel fit is honest on the second.)"""
         f = self.detector.correlation.factor
         if not f >= CODEC_NOTE_FACTOR:
             return []
         note = (
             f"visvec: the frames' errors are shared by neighbouring points of the "
-            f"triangle's edges as a video codec's are (their variance {f:.1f}x what the "
-            f"points' scatter says): the edge lines' sigma was widened for it. Record "
-            f"losslessly (PNG frames, or Motion-JPEG at quality 95)"
+            f"triangle's edges, as a video codec's or a camera's own smoothing makes them "
+            f"(their variance {f:.1f}x what the points' scatter says): the edge lines' "
+            f"sigma was widened for it. If the frames were recorded through a codec, "
+            f"record losslessly (PNG frames, or Motion-JPEG at quality 95)"
         )
         if self.rig.detect.refine == "pixels":
             note += (
-                '; [detect] refine = "pixels" is not honest through such a codec (rows '
-                'beyond 5 sigma through mp4v): use refine = "lines" on these frames'
+                '; [detect] refine = "pixels" is not honest through an inter-frame codec '
+                '(rows beyond 5 sigma through mp4v): use refine = "lines" on such '
+                "recordings"
             )
         return [note]
 
