@@ -18,13 +18,11 @@ their sigma; the sweep is scored again with that ratio as `[detect] sigma_scale`
 from __future__ import annotations
 
 import argparse
-import tempfile
 from dataclasses import replace
-from pathlib import Path
 
-import cv2
 import numpy as np
 
+from visvec.bench.codecs import jpeg, mp4v
 from visvec.bench.triangle import Case, evaluate, render_cases, with_refine
 from visvec.calib.zero_tilt import calibrate_zero_tilt
 from visvec.data import Frame, Status
@@ -34,35 +32,6 @@ from visvec.sim.scene import Scene
 from visvec.sim.simulate import random_attitudes
 
 from _common import CONFIGS, add_refine_option, run_record, save_json, summarise
-
-
-def jpeg(images: list[np.ndarray], quality: int) -> list[np.ndarray]:
-    out = []
-    for im in images:
-        ok, buf = cv2.imencode(".jpg", im, [cv2.IMWRITE_JPEG_QUALITY, quality])
-        out.append(cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE))
-    return out
-
-
-def mp4v(images: list[np.ndarray]) -> list[np.ndarray]:
-    h, w = images[0].shape
-    with tempfile.TemporaryDirectory() as d:
-        path = str(Path(d) / "rec.mp4")
-        writer = cv2.VideoWriter(path, cv2.VideoWriter_fourcc(*"mp4v"), 30.0, (w, h))
-        for im in images:
-            writer.write(cv2.cvtColor(im, cv2.COLOR_GRAY2BGR))
-        writer.release()
-        cap = cv2.VideoCapture(path)
-        out = []
-        while True:
-            ok, frame = cap.read()
-            if not ok:
-                break
-            out.append(cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY))
-        cap.release()
-    if len(out) != len(images):
-        raise RuntimeError(f"mp4v round trip gave {len(out)} of {len(images)} frames")
-    return out
 
 
 def sigma_check(rig, images: list[np.ndarray]) -> dict:

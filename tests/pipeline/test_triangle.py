@@ -3,9 +3,9 @@ out frame to frame, refused rows."""
 
 from dataclasses import replace
 
-import cv2
 import numpy as np
 
+from visvec.bench.codecs import mp4v
 from visvec.data import Frame, Status
 from visvec.detect import TriangleDetector
 from visvec.geometry import project_target
@@ -352,26 +352,7 @@ def test_pipeline_turns_an_internal_error_into_a_refused_row(rig640, monkeypatch
     assert "bug" in pipe.last_error
 
 
-def _through_mp4v(images, path):
-    """The frames as OpenCV's mp4v writer and reader give them back."""
-    h, w = images[0].shape
-    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), 30.0, (w, h))
-    for im in images:
-        writer.write(cv2.cvtColor(im, cv2.COLOR_GRAY2BGR))
-    writer.release()
-    cap = cv2.VideoCapture(str(path))
-    out = []
-    while True:
-        ok, frame = cap.read()
-        if not ok:
-            break
-        out.append(cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY))
-    cap.release()
-    assert len(out) == len(images)
-    return out
-
-
-def test_a_codecs_correlated_errors_along_the_edges_widen_the_sigma(rig320, tmp_path):
+def test_a_codecs_correlated_errors_along_the_edges_widen_the_sigma(rig320):
     """mp4v's block errors are shared by neighbouring edge profiles: the run learns
     their correlation and widens the lines' covariance by the long-run variance
     (1.4 on these 40 frames at 320x240, 1.8 on a longer recording); the same frames
@@ -380,7 +361,7 @@ def test_a_codecs_correlated_errors_along_the_edges_widen_the_sigma(rig320, tmp_
     frames = [render_frame(rig320, euler_to_matrix(*e), Scene(), rng=3100 + k)
               for k, e in enumerate(eul)]  # fmt: skip
     factors, notes = {}, {}
-    for name, images in (("png", frames), ("mp4v", _through_mp4v(frames, tmp_path / "r.mp4"))):
+    for name, images in (("png", frames), ("mp4v", mp4v(frames))):
         pipe = TrianglePipeline(rig320)
         rows = [pipe.process(Frame(i, i / 30.0, im)) for i, im in enumerate(images)]
         assert sum(r.ok for r in rows) >= 35, name

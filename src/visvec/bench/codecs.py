@@ -1,0 +1,46 @@
+"""Frames through the codecs labs record with: each frame alone through JPEG (as
+Motion-JPEG stores it), or the whole sequence through OpenCV's mp4v (MPEG-4 part 2)
+writer and back (benchmarks/triangle_compression.py, and the tests of the learned edge
+correlation)."""
+
+from __future__ import annotations
+
+import tempfile
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+
+def jpeg(images: list[np.ndarray], quality: int) -> list[np.ndarray]:
+    """Each grey frame encoded alone at JPEG ``quality`` and decoded."""
+    out = []
+    for im in images:
+        ok, buf = cv2.imencode(".jpg", im, [cv2.IMWRITE_JPEG_QUALITY, quality])
+        if not ok:
+            raise RuntimeError("JPEG encoding failed")
+        out.append(cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE))
+    return out
+
+
+def mp4v(images: list[np.ndarray], fps: float = 30.0) -> list[np.ndarray]:
+    """The grey frames as OpenCV's mp4v writer stores them at its default quality and
+    its reader gives them back."""
+    h, w = images[0].shape
+    with tempfile.TemporaryDirectory() as d:
+        path = str(Path(d) / "rec.mp4")
+        writer = cv2.VideoWriter(path, cv2.VideoWriter_fourcc(*"mp4v"), fps, (w, h))
+        for im in images:
+            writer.write(cv2.cvtColor(im, cv2.COLOR_GRAY2BGR))
+        writer.release()
+        cap = cv2.VideoCapture(path)
+        out = []
+        while True:
+            ok, frame = cap.read()
+            if not ok:
+                break
+            out.append(cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY))
+        cap.release()
+    if len(out) != len(images):
+        raise RuntimeError(f"mp4v round trip gave {len(out)} of {len(images)} frames")
+    return out
