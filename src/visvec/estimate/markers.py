@@ -32,6 +32,7 @@ def solve_markers(
     rig: Rig,
     sigma_px: float,
     R_nb_guess: np.ndarray | None = None,
+    gate_px: float | None = None,
 ) -> AttitudeSolution:
     """Attitude from marker centroids.
 
@@ -46,6 +47,11 @@ def solve_markers(
         1-sigma centroid noise (pixels) for the weights and the covariance.
     R_nb_guess : (3, 3) ndarray, optional
         Start (tracking); the closed form from the bearings otherwise.
+    gate_px : float, optional
+        The centroid noise the chi-square test refuses by (default ``sigma_px``): a
+        pipeline that learned a narrower noise than the rig states still refuses only
+        what the rig's would, so that a change of the noise (a refocus, vibration) is
+        learned from the frames instead of refusing them all.
     """
     K = len(ids)
     if K < 3:
@@ -74,7 +80,8 @@ def solve_markers(
     # R_NB_true = R_NC exp([d]x) R_CB = R_NB exp([R_CB^T d]x): body-axis error R_CB^T d
     cov_b = R_cb.T @ cov_d @ R_cb
     status, warnings = Status.OK, ()
-    if fit.chi2 > chi2_limit(dof):
+    gate = sigma_px if gate_px is None else max(gate_px, sigma_px)
+    if fit.chi2 * (sigma_px / gate) ** 2 > chi2_limit(dof):
         status, warnings = Status.REJECTED, ("inconsistent_geometry",)
     return AttitudeSolution(
         status,

@@ -109,7 +109,9 @@ class MarkerPipeline(AttitudePipeline["MarkerDetection"]):
         if np.any(~sel & good):
             warnings.append("extra_spots")
         if self.method == "full":
-            sol = solve_markers(xy[sel], ids[sel], self.rig, self.sigma_px, ident.R_nb)
+            # refused by the rig's noise or the learned, the wider (see solve_markers)
+            gate = self.rig.detect.centroid_sigma_px
+            sol = solve_markers(xy[sel], ids[sel], self.rig, self.sigma_px, ident.R_nb, gate)
         else:
             sol = solve_pnp(spots.centroids_px[sel], ids[sel], self.rig, self.method, self.sigma_px)
         if sol.status is Status.OK:
