@@ -9,8 +9,9 @@ it). The fits themselves measure the noise: the pooled a-posteriori variance fac
 least squares, the sum of the squared residuals over their degrees of freedom.
 
 The correlation of the triangle's edge points along its edges
-(:class:`LearnedCorrelation`): a video codec's errors are shared by neighbouring
-profiles, and a line through them is less precise than their scatter says.
+(:class:`LearnedCorrelation`): a video codec's errors, or a camera's smoothed noise,
+are shared by neighbouring profiles, and a line through them is less precise than
+their scatter says.
 """
 
 from __future__ import annotations
@@ -80,7 +81,8 @@ def bartlett_lag(n: float) -> int:
 class LearnedCorrelation:
     """How much wider a line's error is than its points' scatter says, when neighbouring
     points' errors are correlated (a video codec's 8 x 8 blocks span several edge
-    profiles): the long-run variance of the points' mean over their variance,
+    profiles; a camera's demosaicing or denoising smooths its noise over a pixel or
+    two): the long-run variance of the points' mean over their variance,
 
         F = 1 + 2 sum_(j = 1..L) (1 - j / (L + 1)) rho_j,
 
@@ -90,10 +92,11 @@ class LearnedCorrelation:
     10-90 % range at 320x240 spans -1.1 to 0.7), so the sums are pooled over the frames
     of a run (forgetting CORRELATION_FORGET per frame): a codec is a property of the
     recording, not of a frame. Only the part of F - 1 beyond twice its own sampling
-    scatter counts (each rho_j scatters by 1 / sqrt(pairs)), and never below 1: sensor
-    noise gives rho_1 of -0.02 to 0.02 (the line fit's own residuals correlate by about
-    -2 / n at every lag, and the profiles' shared pixels by a little more than that;
-    EDGE_VARIANCE_INFLATION holds both), mp4v 0.50-0.56."""
+    scatter counts (each rho_j scatters by 1 / sqrt(pairs)), and never below 1: white
+    sensor noise gives rho_1 of -0.02 to 0.02 (the line fit's own residuals correlate by
+    about -2 / n at every lag, and the profiles' shared pixels by a little more than
+    that; EDGE_VARIANCE_INFLATION holds both), noise smoothed by (1, 2, 1) / 4 about
+    0.35, mp4v 0.34-0.56."""
 
     def __init__(self):
         # sum_k z_k z_(k + j) and the pairs, j = 0..CORRELATION_LAGS, and the edges

@@ -284,7 +284,7 @@ class TriangleDetector:
         # the last detection came from the previous frame's vertices (small motion)
         self.last_was_tracked = False
         # the edge points' correlation along the edges, learned over the run's frames
-        # (a video codec's): it widens the edge lines' covariance
+        # (a video codec's, a camera's smoothing): it widens the edge lines' covariance
         self.correlation = LearnedCorrelation()
         self._lags: np.ndarray | None = None  # the last verified detection's lag sums
 
@@ -556,8 +556,9 @@ class TriangleDetector:
         if not fit.ok:
             return "edge_fit_failed"
         xy, cov = intersect(fit)
-        # neighbouring edge points' errors correlated (a codec's), as the run's frames
-        # say: the lines are less precise than their points' scatter alone says
+        # neighbouring edge points' errors correlated (a codec's, a camera's smoothing),
+        # as the run's frames say: the lines are less precise than their points'
+        # scatter alone says
         cov = cov * self.correlation.factor
         if s.refine == "pixels":
             xy, cov = _pixel_fit(image, fit, xy, cov, cam, shutter, rate_c)
