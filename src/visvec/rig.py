@@ -135,8 +135,8 @@ class DetectSettings:
     threshold : markers: grey level above which a pixel belongs to a spot (0 = automatic:
         background median + 6 robust sigmas, at least 20).
     centroid_sigma_px : markers and lamps: the prior of the centroid noise learned from
-        the fits (visvec.noise; markers: the identification's gates too);
-        starfield: the floor of a star's centroid noise.
+        the fits (visvec.noise); markers: also the identification's gates and the least
+        noise a solution is refused by; starfield: the floor of a star's centroid noise.
     min_spot_px, max_spot_px : markers: accepted spot areas (pixels).
     """
 
