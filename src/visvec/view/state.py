@@ -16,7 +16,7 @@ from visvec.view.words import in_words
 
 # the page's plots span this much of the rows' time (s)
 WINDOW_S = 60.0
-# at most this many rows of history are kept (a 1 kHz IMU for a minute)
+# the rows of the last WINDOW_S are kept, at most this many (a 1 kHz IMU for a minute)
 MAX_HISTORY = 60_000
 # a frame is drawn and encoded for the page at most this often (s), and less often when
 # drawing takes more than RENDER_SHARE of the time (a slow computer): frames are dropped
@@ -81,7 +81,7 @@ class ViewState:
             self.n += 1
             self.n_ok += int(row.ok)
             self._last = d
-            self._hist.append((self.seq, d))
+            _keep_window(self._hist, self.seq, d)
             self._arrivals.append(now)
             self._latency.append(row.latency_ms)
             if frame.image is not None:
@@ -94,7 +94,7 @@ class ViewState:
         d = dict(d, _host_s=round(time.monotonic() - self.t0, 4))
         with self._lock:
             self.seq += 1
-            self._fused.append((self.seq, d))
+            _keep_window(self._fused, self.seq, d)
 
     def close(self) -> None:
         with self._lock:
@@ -106,9 +106,10 @@ class ViewState:
         """The page's data: the run's figures, the newest row, the rows after ``since``
         within the last WINDOW_S, the newest frame's aids."""
         with self._lock:
-            # copies only (C speed): the filtering is done outside the sensor's lock
-            hist_all = list(self._hist) if since < self.seq else []
-            fused_all = list(self._fused) if since < self.seq else []
+            # copies only of the rows the page has not had (at most seq - since of
+            # each), the filtering done outside the sensor's lock
+            hist_all = _newest(self._hist, self.seq - since)
+            fused_all = _newest(self._fused, self.seq - since)
             last = self._last
             arrivals = list(self._arrivals)
             latency = list(self._latency)
@@ -116,11 +117,6 @@ class ViewState:
             frame_no = self._latest[1] if self._latest else None
         hist = [d for s, d in hist_all if s > since]
         fused = [d for s, d in fused_all if s > since]
-        for rows in (hist, fused):
-            if rows:
-                t_end = rows[-1]["time_s"]
-                while rows and rows[0]["time_s"] < t_end - WINDOW_S:
-                    rows.pop(0)
         fps = None
         if len(arrivals) > 2 and arrivals[-1] > arrivals[0]:
             fps = (len(arrivals) - 1) / (arrivals[-1] - arrivals[0])
@@ -178,3 +174,25 @@ class ViewState:
             # the next frame no sooner than keeps the drawing within RENDER_SHARE
             self._every = max(FRAME_EVERY_S, (time.perf_counter() - t0) / RENDER_SHARE)
             return index, self._jpeg[1]
+
+
+def _keep_window(rows: deque, seq: int, d: dict) -> None:
+    """Append the row ``d`` (number ``seq``) to ``rows`` and drop those more than
+    WINDOW_S older than it (by their time_s): O(1) a row over a run, so that the page's
+    first request (since 0), or one after a reload, costs a minute's rows whenever it
+    comes, not the run's so far (which, copied and trimmed in the server's thread, took
+    the sensor's core for seconds after ten minutes of a 100 Hz IMU)."""
+    rows.append((seq, d))
+    t_end = d["time_s"]
+    while rows and rows[0][1]["time_s"] < t_end - WINDOW_S:
+        rows.popleft()
+
+
+def _newest(rows: deque, n: int) -> list:
+    """The newest ``n`` of ``rows`` (all when n >= len), oldest first: a deque is
+    indexed in O(1) near its ends, so a page's poll copies only what is new."""
+    if n <= 0:
+        return []
+    if n >= len(rows):
+        return list(rows)
+    return [rows[i] for i in range(len(rows) - n, len(rows))]
