@@ -42,6 +42,45 @@ def test_parse_address():
             parse_address(bad, "--serve")
 
 
+def test_the_view_keeps_a_minute_of_rows_and_a_poll_gets_the_new_ones():
+    """Ten minutes of a 100 Hz IMU's fused rows and 30 fps camera rows: the state keeps
+    only the last minute of each (what the page plots), so that a page opened late (a
+    first poll, since 0) gets one minute, not ten; a poll since its last seq gets
+    exactly the rows that came after it, oldest first; the answer's JSON is what one
+    json.dumps gives."""
+    from visvec.data import Frame, Status
+    from visvec.output import AttitudeRow
+    from visvec.rig import load_rig
+    from visvec.view.state import WINDOW_S, ViewState
+
+    state = ViewState(load_rig(RIG), ["yaw_deg"], ["sigma_yaw_deg"])
+    for k in range(60_000):  # 600 s at 100 Hz, a camera row every third
+        t = k / 100.0
+        state.fused({"frame": k, "time_s": t, "status": "ok"})
+        if k % 3 == 0:
+            row = AttitudeRow(k // 3, t, Status.OK, 0.2, 3, 1.0, (), euler_deg=np.ones(3),
+                              sigma_deg=np.full(3, 0.01))  # fmt: skip
+            state.see(Frame(k // 3, t, None), row, None)
+    assert len(state._fused) == int(WINDOW_S * 100) + 1
+    assert len(state._hist) == int(WINDOW_S * 100 / 3) + 1
+    first = state.snapshot(0)
+    assert len(first["fused"]) == int(WINDOW_S * 100) + 1
+    assert first["fused"][0]["time_s"] == pytest.approx(599.99 - WINDOW_S)
+    assert first["fused"][-1]["time_s"] == pytest.approx(599.99)
+    # the answer is encoded a chunk of rows at a time (the sensor's threads run between
+    # chunks), the same bytes as one json.dumps
+    from visvec.view.server import state_json
+
+    assert state_json(first) == json.dumps(first, allow_nan=False).encode()
+    seq = first["seq"]
+    for k in range(60_000, 60_025):
+        state.fused({"frame": k, "time_s": k / 100.0, "status": "ok"})
+    new = state.snapshot(seq)
+    assert [d["frame"] for d in new["fused"]] == list(range(60_000, 60_025))
+    assert new["history"] == []
+    assert state.snapshot(new["seq"])["fused"] == []
+
+
 def recording(folder: Path) -> Path:
     """The sample frames, then one frame with no target, FRAME_GAP_S apart."""
     folder.mkdir()
