@@ -290,8 +290,8 @@ def learned_line(engine, s) -> str:
 
 def live_summary(summary) -> str:
     """The end-of-run line of a live fusion."""
-    lat = sorted(summary.latencies_ms)
-    med = f", row latency median {lat[len(lat) // 2]:.2f} ms" if lat else ""
+    lat = summary.latencies_ms
+    med = f", row latency median {lat.median():.2f} ms" if len(lat) else ""
     bad = "; ".join(f"{n} malformed {k} rows skipped" for k, n in summary.bad.items())
     return (
         f"visvec: {summary.samples} inertial samples, {summary.ok} fused; {summary.fixes} ok "

@@ -301,13 +301,53 @@ def parse_fix(row: dict, planar: bool) -> Fix | None:
     return Fix(t, t + lat / 1000.0, value, cov, 0)
 
 
+class LatencyTally:
+    """The rows' latencies (ms) as a histogram of LATENCY_BINS_PER_DECADE log-spaced bins
+    a decade from LATENCY_LO_MS to LATENCY_HI_MS: a run of hours keeps a few kB, not
+    every row's number (a list of them grew by 11 MB an hour at 100 Hz, 115 MB at 1
+    kHz), and the median is read to 0.3 % (half a bin)."""
+
+    def __init__(self):
+        n = int(round(math.log10(LATENCY_HI_MS / LATENCY_LO_MS) * LATENCY_BINS_PER_DECADE))
+        self.counts = np.zeros(n + 2, np.int64)  # with one bin below and one above
+        self.n = 0
+
+    def add(self, ms: float) -> None:
+        if ms > LATENCY_LO_MS:
+            k = int(math.log10(ms / LATENCY_LO_MS) * LATENCY_BINS_PER_DECADE) + 1
+            k = min(k, len(self.counts) - 1)
+        else:
+            k = 0
+        self.counts[k] += 1
+        self.n += 1
+
+    def __len__(self) -> int:
+        return self.n
+
+    def median(self) -> float:
+        """The median's bin, at its geometric centre (the edge bins: their bound)."""
+        if not self.n:
+            return math.nan
+        k = int(np.searchsorted(np.cumsum(self.counts), self.n // 2 + 1))
+        if k == 0:
+            return LATENCY_LO_MS
+        if k == len(self.counts) - 1:
+            return LATENCY_HI_MS
+        return LATENCY_LO_MS * 10.0 ** ((k - 0.5) / LATENCY_BINS_PER_DECADE)
+
+
+# the latency tally's range (ms) and resolution
+LATENCY_LO_MS, LATENCY_HI_MS = 1e-3, 1e5
+LATENCY_BINS_PER_DECADE = 400
+
+
 @dataclass
 class LiveSummary:
     samples: int = 0
     ok: int = 0
     fixes: int = 0
     bad: dict = field(default_factory=dict)  # source -> malformed lines skipped
-    latencies_ms: list = field(default_factory=list)
+    latencies_ms: LatencyTally = field(default_factory=LatencyTally)
     interrupted: bool = False
     refused: bool = False
 
@@ -464,5 +504,5 @@ class _LiveRun:
         self.sink.write(row.as_dict())
         self.summary.samples += 1
         self.summary.ok += int(row.ok)
-        self.summary.latencies_ms.append(latency)
+        self.summary.latencies_ms.add(latency)
         return True
