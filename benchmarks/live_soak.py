@@ -6,7 +6,8 @@ The camera: an MJPEG stream served by this script on 127.0.0.1 (JPEG quality 95)
 table on a lap of 66 s (PerimeterPath: 66 s holds whole periods of its pushes and its
 sway, so the lap's frames, rendered once, loop without a seam). The IMU: 100 Hz planar
 samples (gyro and accelerometers with the simulator's biases, noise and faults)
-computed from the same path for every instant, sent over UDP in real time. The fused
+computed from the same path for every instant, sent over UDP in real time, stamped by
+the IMU's own clock, which runs 50 ppm slow (`--imu-ppm`; a free-running crystal). The fused
 rows come back over UDP (`--out udp://...`); the camera's own rows go to a file
 (`--camera-out`); a client on the other core fetches what the live page fetches, as
 often, and everything again once a minute (a page reloaded). The sensor is pinned to
@@ -76,6 +77,9 @@ while True:
     time.sleep(0.1)
 """
 RELOAD_S = 60.0
+# the IMU's clock runs this much slower than the host's (ppm): a free-running crystal
+# (tens of ppm; 50 ppm is 0.18 s an hour)
+IMU_PPM = 50.0
 
 
 def _render(i: int) -> bytes:
@@ -170,12 +174,19 @@ def main() -> None:
     ap.add_argument("--minutes", type=float, default=60.0)
     ap.add_argument("--window-min", type=float, default=5.0)
     ap.add_argument(
+        "--imu-ppm",
+        type=float,
+        default=IMU_PPM,
+        help="how much slower the IMU's clock runs than the host's (ppm)",
+    )
+    ap.add_argument(
         "--keep",
         type=Path,
         help="keep the camera's rows, the fused rows and the sensor's log in this folder",
     )
     args = ap.parse_args()
     taskset = shutil.which("taskset")
+    rate = 1.0 - args.imu_ppm * 1e-6
     t_render = time.perf_counter()
     jpegs = render_lap()
     print(f"rendered {len(jpegs)} frames in {time.perf_counter() - t_render:.0f} s", flush=True)
@@ -206,8 +217,8 @@ def main() -> None:
             if f[0] == "frame":
                 col.update({c: i for i, c in enumerate(f)})
                 continue
-            # the row's time is its sample's (sent as j / IMU_HZ): its index here
-            k = int(round(float(f[col["time_s"]]) * IMU_HZ)) if col else -1
+            # the row's time is its sample's, on the IMU's clock: its index here
+            k = int(round(float(f[col["time_s"]]) / rate * IMU_HZ)) if col else -1
             if 0 <= k < n_max:
                 got[k] = now
                 ok[k] = f[col["status"]] == "ok"
@@ -257,11 +268,14 @@ def main() -> None:
                 chunk = imu_samples(j, int(IMU_HZ), rng, model)
                 for t, gz, ax, ay in chunk:
                     wait = t0 + t - time.monotonic()
+                    t_imu = t * rate  # the time the IMU's own clock gives the sample
                     if wait > 0:
                         time.sleep(wait)
                     if j < n_max:
                         sent[j] = time.monotonic()
-                    s.sendto(f"{t:.4f},{gz:.6f},{ax:.6f},{ay:.6f}".encode(), ("127.0.0.1", p_imu))
+                    s.sendto(
+                        f"{t_imu:.5f},{gz:.6f},{ax:.6f},{ay:.6f}".encode(), ("127.0.0.1", p_imu)
+                    )
                     j += 1
                 if time.monotonic() >= next_stat:
                     st = proc_stats(proc.pid)
