@@ -248,7 +248,7 @@ def test_the_imu_clock_is_tied_to_the_hosts_through_an_hour_of_drift():
     their time: the tie (host minus IMU time, by which the camera's fixes are put on the
     IMU's clock) stays within 1 ms of the fastest arrival's, where the least over the
     whole run fell 0.18 s behind the slow clock."""
-    from visvec.fuse.live import CLOCK_WINDOW_S, ClockTie
+    from visvec.clocks import CLOCK_WINDOW_S, ClockTie
 
     rng = np.random.default_rng(5)
     host = np.arange(0.0, 3600.0, 0.01)

@@ -27,13 +27,13 @@ import socket
 import sys
 import threading
 import time
-from collections import deque
 from collections.abc import Iterator
 from dataclasses import dataclass, field, replace
 from urllib.parse import parse_qs, urlsplit
 
 import numpy as np
 
+from visvec.clocks import ClockTie
 from visvec.errors import ConfigError, InputFileError
 from visvec.fuse.inputs import ATTITUDE_FIX, ATTITUDE_IMU, PLANAR_FIX, PLANAR_IMU, STATUSES, Fix
 from visvec.fuse.inputs import _fix_cov as fix_cov
@@ -337,39 +337,6 @@ class LatencyTally:
         return LATENCY_LO_MS * 10.0 ** ((k - 0.5) / LATENCY_BINS_PER_DECADE)
 
 
-class ClockTie:
-    """The inertial clock against the host's: host time (time.monotonic) minus IMU time,
-    as the least of (arrival - time_s) over the samples of the last CLOCK_WINDOW_S (the
-    sample that took the least time to arrive sets it; the window's minimum kept by a
-    monotone deque, O(1) a sample).
-
-    Over the whole run, the least of them fell behind an IMU clock slower than the
-    host's: two free-running clocks differ by tens of ppm, 50 ppm is 0.18 s an hour,
-    and the camera's fixes of a run left for hours were fused that far from their
-    exposure. Within the window the offset lags at most the drift over the window
-    (1 ms at 100 ppm)."""
-
-    def __init__(self, window_s: float | None = None):
-        self.window_s = CLOCK_WINDOW_S if window_s is None else window_s
-        self._env: deque = deque()  # (arrival, arrival - t), the values increasing
-
-    def add(self, arrival: float, t: float) -> None:
-        v = arrival - t
-        env = self._env
-        while env and env[-1][1] >= v:
-            env.pop()
-        env.append((arrival, v))
-        while env[0][0] < arrival - self.window_s:
-            env.popleft()
-
-    @property
-    def offset(self) -> float:
-        """Host time minus IMU time (s); inf before the first sample."""
-        return self._env[0][1] if self._env else math.inf
-
-
-# the inertial clock is tied to the host's by the samples of this long (s)
-CLOCK_WINDOW_S = 10.0
 # the latency tally's range (ms) and resolution
 LATENCY_LO_MS, LATENCY_HI_MS = 1e-3, 1e5
 LATENCY_BINS_PER_DECADE = 400
