@@ -8,6 +8,7 @@ from collections.abc import Iterator
 
 import cv2
 
+from visvec.clocks import ClockTie
 from visvec.data import Frame
 from visvec.errors import SourceError
 from visvec.rig import CameraControls
@@ -19,6 +20,11 @@ _log = logging.getLogger(__name__)
 # a live source's timestamps are used while their elapsed time stays within this of
 # ours (s): a clock that is not running at real time (or jumped) is not the frames'
 SOURCE_CLOCK_TOLERANCE_S = 0.5
+# the source's clock is tied to ours by its fastest-read frame of the last
+# visvec.clocks.CLOCK_WINDOW_S, the tie moved towards it by at most this much a second
+# (1000 ppm: 0.03 ms a frame at 30 fps, so the frames' times never go back): a camera's
+# crystal that runs tens of ppm off the computer's is followed through hours
+SOURCE_SLEW = 1e-3
 # a live source that stops delivering is closed and opened again this often while it is
 # retried (s): a USB camera that dropped off the bus and came back (a loose cable, a
 # brown-out) or a stream whose connection broke delivers again only to a new capture
@@ -100,6 +106,10 @@ class VideoSource:
         # a stream's presentation time) as (first, last) in s, while they stay usable
         self._src: tuple[float, float] | None = None
         self._src_t0 = 0.0  # our time of the source's first timestamp (since a reopen)
+        # the source's clock against ours since its first timestamp, and the tie used
+        self._tie = ClockTie()
+        self._src_off = 0.0
+        self._src_read = 0.0  # our time of the last frame read by its timestamp
         self.clock = "source" if self.live else "file"
         self.reopened = 0  # how often a live source was closed and opened again
         self._last_frame_at: float | None = None  # time.monotonic() of the last frame read
@@ -224,7 +234,14 @@ class VideoSource:
         frame, which lags by up to a frame and jitters with the processing load) while
         it is positive, increasing and in step with our clock within
         SOURCE_CLOCK_TOLERANCE_S; the read time ``t_read`` from the first frame that is
-        not (a backend without timestamps gives 0), for the rest of the run."""
+        not (a backend without timestamps gives 0), for the rest of the run.
+
+        The source's elapsed time is put on our clock by a tie (visvec.clocks.ClockTie:
+        the frame of the last 10 s read soonest after its timestamp), towards which
+        the tie used moves by at most SOURCE_SLEW a second: a camera whose crystal runs
+        50 ppm off ours put its frames 0.18 s off an hour into a run, then (at 0.5 s,
+        after 3 hours) was dropped for the read times; a first frame read late (a
+        camera starting up) no longer sets every later frame's lag."""
         if self.clock != "source":
             return t_read
         ms = self.cap.get(cv2.CAP_PROP_POS_MSEC)
@@ -233,9 +250,16 @@ class VideoSource:
             # the first frame, or the first after a reopen (a stream's clock restarts)
             self._src = (ts, ts)
             self._src_t0 = t_read
+            self._tie, self._src_off, self._src_read = ClockTie(), 0.0, t_read
+            self._tie.add(t_read, t_read)
             return t_read
         if ts is not None and ts > self._src[1]:
-            t = self._src_t0 + ts - self._src[0]
+            base = self._src_t0 + ts - self._src[0]
+            self._tie.add(t_read, base)
+            slew = SOURCE_SLEW * max(t_read - self._src_read, 0.0)
+            self._src_off += min(max(self._tie.offset - self._src_off, -slew), slew)
+            self._src_read = t_read
+            t = base + self._src_off
             if abs(t - t_read) < SOURCE_CLOCK_TOLERANCE_S:
                 self._src = (self._src[0], ts)
                 return t
