@@ -1,6 +1,7 @@
 """`visvec fuse` from the command line: planar and 3-D files."""
 
 import csv
+import re
 
 import numpy as np
 from click.testing import CliRunner
@@ -26,6 +27,9 @@ def test_fuse_cli(tmp_path):
     assert rows[0]["status"] == "no_target" and "no_fix_yet" in rows[0]["warnings"]
     assert rows[-1]["status"] == "ok" and float(rows[-1]["sigma_x_mm"]) > 0
     assert "biases from" in r.output and "mean NIS" in r.output and "x: rms" in r.output
+    # what the filter learned, the fixes' time offset first (these are on time: near 0)
+    m = re.search(r"learned: fixes' time offset ([-+][\d.]+) \+- ([\d.]+) ms", r.output)
+    assert m and abs(float(m[1])) < 3 * float(m[2]) + 1.0, r.output
     bad = write(tmp_path, "bad.csv", "time_s,gz_dps,ax_mps2,ay_mps2\n0,0,0,0\n-1,0,0,0\n")
     r = CliRunner().invoke(cli, ["fuse", "--imu", str(bad), "--fixes", str(fixes)])
     assert r.exit_code == 2 and "line 3" in r.output

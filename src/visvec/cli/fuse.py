@@ -155,8 +155,9 @@ def fuse(imu_path, fixes_path, follow, max_samples, silent_s, gyro_range_dps, ou
     )
     if len(nis) >= 5:
         click.echo(nis_line(nis, fixes.planar), err=True)
-    if not fixes.planar and last[0] is not None:
-        click.echo(learned_line(engine, last[0]), err=True)
+    if last[0] is not None and (not fixes.planar or model.method == "kalman"):
+        line = planar_learned_line(last[0]) if fixes.planar else learned_line(engine, last[0])
+        click.echo(line, err=True)
     if rows and n_ok == 0:
         raise NoOkRows(f"none of the {len(rows)} inertial samples gave a fused row (no fix "
                        "could start the filter)")  # fmt: skip
@@ -268,6 +269,19 @@ def fusion_model(planar, period_s, method, gyro_noise_dps, accel_noise_mps2, fix
     if clock_jitter_ms is not None:
         model = replace(model, jitter_sigma=clock_jitter_ms / 1000.0)
     return model, Limits(max_rate_dps or 2000.0, None)
+
+
+def planar_learned_line(s) -> str:
+    """What the planar Kalman filter learned (visvec.fuse.models.PlanarModel), with
+    1-sigma: the fixes' time offset, the gyro's and the accelerometers' biases."""
+    sd = np.sqrt(np.clip(np.diag(s.P), 0.0, None))
+    x = s.x
+    return (
+        f"visvec: learned: fixes' time offset {1000 * x[8]:+.1f} +- {1000 * sd[8]:.1f} ms "
+        f"(their time_s after their exposure); gyro bias {math.degrees(x[5]):+.3f} +- "
+        f"{math.degrees(sd[5]):.3f} deg/s; accelerometer biases {x[6] / 1000:+.4f}, "
+        f"{x[7] / 1000:+.4f} +- {sd[6] / 1000:.4f} m/s^2"
+    )
 
 
 def learned_line(engine, s) -> str:

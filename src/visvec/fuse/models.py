@@ -8,9 +8,13 @@ rules share this propagation:
 - "paper": a fix replaces x, y and the heading at its exposure time (the paper's
   re-integration "with quite accurate initial condition"); velocity and biases are
   kept (biases from the rest calibration only);
-- "kalman" (default): an extended Kalman filter on [x, y, vx, vy, psi, b_g, b_ax, b_ay]
-  (mm, mm/s, rad, rad/s, mm/s^2) that also estimates the biases; fixes update it with
-  their own covariance and fixes whose innovation is implausible (chi-square, 3 dof,
+- "kalman" (default): an extended Kalman filter on [x, y, vx, vy, psi, b_g, b_ax, b_ay,
+  tau] (mm, mm/s, rad, rad/s, mm/s^2, s) that also estimates the biases and the fixes'
+  time offset tau (their stated time less their true exposure: a camera's frames
+  stamped when read, not when exposed). A fix stated at t measures the pose at t - tau,
+  h = [x - vx tau, y - vy tau, psi - w tau] (w the gyro's rate less its bias), the
+  first-order time shift the 3-D filter also makes (below). Fixes update it with their
+  own covariance and fixes whose innovation is implausible (chi-square, 3 dof,
   p < 1e-6) are refused.
 
 3-D: a multiplicative extended Kalman filter (Markley & Crassidis, Fundamentals of
@@ -71,8 +75,9 @@ def _nis_limit() -> float:
 
 @dataclass(frozen=True)
 class PlanarState:
-    x: np.ndarray  # [x, y, vx, vy, psi, b_g, b_ax, b_ay]
+    x: np.ndarray  # [x, y, vx, vy, psi, b_g, b_ax, b_ay, tau]
     P: np.ndarray
+    w: float = 0.0  # the last interval's rate less the bias (rad/s)
 
 
 @dataclass(frozen=True)
@@ -90,16 +95,20 @@ class PlanarModel:
     accel_bias_sigma: float = 20.0
     velocity_sigma: float = 300.0  # mm/s, unknown at the first fix
     fix_sigma: tuple[float, float] = (1.0, math.radians(0.05))  # mm, rad, without sigmas
+    # the fixes' time offset (s): its prior (a camera's latency from exposure to a read
+    # is tens of ms, more on a slow computer) and its random walk per sqrt(s)
+    time_offset_sigma: float = 0.05
+    time_offset_walk: float = 1e-4
 
     planar = True
 
     def init(self, fix: Fix) -> PlanarState:
         x = np.array([fix.value[0], fix.value[1], 0.0, 0.0, fix.value[2], self.gyro_bias0,
-                      *self.accel_bias0])  # fmt: skip
+                      *self.accel_bias0, 0.0])  # fmt: skip
         R = self._fix_cov(fix)
         P = np.diag([R[0, 0], R[1, 1], self.velocity_sigma**2, self.velocity_sigma**2,
                      R[2, 2], self.gyro_bias_sigma**2, self.accel_bias_sigma**2,
-                     self.accel_bias_sigma**2])  # fmt: skip
+                     self.accel_bias_sigma**2, self.time_offset_sigma**2])  # fmt: skip
         return PlanarState(x, P)
 
     def _fix_cov(self, fix: Fix) -> np.ndarray:
@@ -119,7 +128,7 @@ class PlanarModel:
         xn[0:2] = x[0:2] + x[2:4] * dt + 0.5 * an * dt * dt
         xn[2:4] = x[2:4] + an * dt
         xn[4] = x[4] + w * dt
-        F = np.eye(8)
+        F = np.eye(9)
         F[0, 2] = F[1, 3] = dt
         dan = np.array([-an[1], an[0]])  # d(a_N)/d(psi)
         F[0:2, 4] = 0.5 * dan * dt * dt
@@ -129,20 +138,31 @@ class PlanarModel:
         F[2:4, 6:8] = -Rz * dt
         F[4, 5] = -dt
         qa = (self.accel_noise * dt) ** 2
-        Q = np.zeros((8, 8))
+        Q = np.zeros((9, 9))
         Q[0, 0] = Q[1, 1] = qa * dt * dt / 4.0
         Q[2, 2] = Q[3, 3] = qa
         Q[0, 2] = Q[2, 0] = Q[1, 3] = Q[3, 1] = qa * dt / 2.0
         Q[4, 4] = (self.gyro_noise * dt) ** 2
         Q[5, 5] = self.gyro_bias_walk**2 * dt
         Q[6, 6] = Q[7, 7] = self.accel_bias_walk**2 * dt
-        return PlanarState(xn, F @ s.P @ F.T + Q)
+        Q[8, 8] = self.time_offset_walk**2 * dt
+        return PlanarState(xn, F @ s.P @ F.T + Q, w)
 
     def update(self, s: PlanarState, fix: Fix) -> tuple[PlanarState, bool, float]:
         """The state after a fix, whether the fix was accepted, and its normalised
         innovation squared (NIS; chi-square with 3 dof when the filter is consistent)."""
         R = self._fix_cov(fix)
-        r = fix.value - s.x[[0, 1, 4]]
+        x0 = s.x
+        tau = x0[8]
+        # the pose at the fix's true exposure, tau before its stated time, and its
+        # derivatives by the state (the rate w = gyro - b_g: d(-w tau)/d(b_g) = tau)
+        h = np.array([x0[0] - x0[2] * tau, x0[1] - x0[3] * tau, x0[4] - s.w * tau])
+        H = np.zeros((3, 9))
+        H[0, 0] = H[1, 1] = H[2, 4] = 1.0
+        H[0, 2] = H[1, 3] = -tau
+        H[2, 5] = tau
+        H[:, 8] = [-x0[2], -x0[3], -s.w]
+        r = fix.value - h
         r[2] = (r[2] + math.pi) % (2 * math.pi) - math.pi
         idx = [0, 1, 4]
         if self.method == "paper":
@@ -153,7 +173,8 @@ class PlanarModel:
             P[:, idx] = 0.0
             P[np.ix_(idx, idx)] = R
             return PlanarState(x, P), True, math.nan
-        S = s.P[np.ix_(idx, idx)] + R
+        PHt = s.P @ H.T
+        S = H @ PHt + R
         nis = float(r @ np.linalg.solve(S, r))
         if nis > _nis_limit():
             # refused: the filter or the fix is wrong; widen the pose's covariance by the
@@ -161,13 +182,12 @@ class PlanarModel:
             # with this one is taken (no lock-out)
             P = s.P.copy()
             P[np.ix_(idx, idx)] += np.outer(r, r)
-            return PlanarState(s.x, P), False, nis
-        K = np.linalg.solve(S, s.P[idx, :]).T
+            return PlanarState(s.x, P, s.w), False, nis
+        K = np.linalg.solve(S, PHt.T).T
         x = s.x + K @ r
-        IKH = np.eye(8)
-        IKH[:, idx] -= K
+        IKH = np.eye(9) - K @ H
         P = IKH @ s.P @ IKH.T + K @ R @ K.T  # Joseph form
-        return PlanarState(x, P), True, nis
+        return PlanarState(x, P, s.w), True, nis
 
     @staticmethod
     def values(s: PlanarState) -> tuple[np.ndarray, np.ndarray]:
