@@ -91,9 +91,11 @@ def test_track_with_imu_lamps_live(tmp_path):
     rows at the IMU's rate within 5 mm of the truth, and the camera's own rows."""
     from conftest import ROOT
 
-    rows, cam_rows, n_imu, rec, _ = _track_live(
+    rows, cam_rows, n_imu, rec, err = _track_live(
         tmp_path, ROOT / "configs" / "lamps.toml", ["--motion", "perimeter"], 45
     )
+    # at the end, what the filter learned: the camera's time offset first
+    assert "learned: fixes' time offset" in err, err
     assert sum(r["status"] == "ok" for r in cam_rows) > 40
     assert len(rows) > 0.9 * n_imu
     assert list(rows[0]) == list(PLANAR_COLUMNS)

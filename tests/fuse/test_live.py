@@ -61,6 +61,7 @@ def test_fuse_live_over_udp_in_real_time(tmp_path):
         rows = list(csv.DictReader(fh))
     assert len(rows) == n
     assert "1 malformed fix rows skipped" in err and "row latency median" in err
+    assert "learned: fixes' time offset" in err
     tt = truth_table(truth)
     ok = [r for r in rows if r["status"] == "ok"]
     assert len(ok) > n / 2

@@ -155,8 +155,8 @@ def fuse(imu_path, fixes_path, follow, max_samples, silent_s, gyro_range_dps, ou
     )
     if len(nis) >= 5:
         click.echo(nis_line(nis, fixes.planar), err=True)
-    if last[0] is not None and (not fixes.planar or model.method == "kalman"):
-        line = planar_learned_line(last[0]) if fixes.planar else learned_line(engine, last[0])
+    line = learned_of(engine, last[0])
+    if line:
         click.echo(line, err=True)
     if rows and n_ok == 0:
         raise NoOkRows(f"none of the {len(rows)} inertial samples gave a fused row (no fix "
@@ -271,6 +271,19 @@ def fusion_model(planar, period_s, method, gyro_noise_dps, accel_noise_mps2, fix
     return model, Limits(max_rate_dps or 2000.0, None)
 
 
+def learned_of(engine, s=None) -> str | None:
+    """The closing line of what the filter learned by the state ``s`` (default the
+    engine's newest), or None (no state yet; the planar reset rule, which learns
+    nothing)."""
+    if s is None and engine is not None:
+        s = engine.state
+    if s is None:
+        return None
+    if engine.model.planar:
+        return planar_learned_line(s) if engine.model.method == "kalman" else None
+    return learned_line(engine, s)
+
+
 def planar_learned_line(s) -> str:
     """What the planar Kalman filter learned (visvec.fuse.models.PlanarModel), with
     1-sigma: the fixes' time offset, the gyro's and the accelerometers' biases."""
@@ -336,3 +349,6 @@ def _run_live(imu_src, fixes_src, follow, max_samples, silent_s, setup, out, fmt
         summary = run_live(*readers, setup, open_rows, max_samples=max_samples,
                            silent_s=silent_s, echo=lambda m: click.echo(m, err=True))  # fmt: skip
     click.echo(live_summary(summary), err=True)
+    line = learned_of(summary.engine)
+    if line:
+        click.echo(line, err=True)

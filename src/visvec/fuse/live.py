@@ -351,6 +351,7 @@ class LiveSummary:
     latencies_ms: LatencyTally = field(default_factory=LatencyTally)
     interrupted: bool = False
     refused: bool = False
+    engine: object = None  # the fusion engine, once the first inertial row made it
 
 
 def run_live(imu: Reader, fixes, setup, open_rows, *, max_samples: int | None = None,
@@ -472,6 +473,7 @@ class _LiveRun:
             return False
         self.planar = planar
         self.engine, self.model = self.setup(planar)
+        self.summary.engine = self.engine
         self.sink = self.open_rows(planar)
         return True
 

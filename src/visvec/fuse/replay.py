@@ -133,6 +133,11 @@ class Fusion:
         self.rest = None  # (mean rad/s (3,), std rad/s (3,), n) once found
         self.n_saturated = 0
 
+    @property
+    def state(self):
+        """The newest sample's state (None before the first fix)."""
+        return self._states[-1] if self._states else None
+
     def add_fix(self, fix: Fix) -> None:
         """A fix that has just become available; it is applied at the next sample."""
         self._pending.append(fix)
