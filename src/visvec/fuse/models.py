@@ -13,7 +13,9 @@ rules share this propagation:
   time offset tau (their stated time less their true exposure: a camera's frames
   stamped when read, not when exposed). A fix stated at t measures the pose at t - tau,
   h = [x - vx tau, y - vy tau, psi - w tau] (w the gyro's rate less its bias), the
-  first-order time shift the 3-D filter also makes (below). Fixes update it with their
+  first-order time shift the 3-D filter also makes (below; the time offset as a filter
+  state: Li & Mourikis, "Online temporal calibration for camera-IMU systems", IJRR
+  33(7), 2014). Fixes update it with their
   own covariance and fixes whose innovation is implausible (chi-square, 3 dof,
   p < 1e-6) are refused.
 
