@@ -4,6 +4,7 @@ saturated gyro rebuilt, no lock-out."""
 from dataclasses import replace
 
 import numpy as np
+import pytest
 from fusion_cases import _err, _fixes, _sim3d, planar_case, truth_table
 
 from visvec.fuse.inputs import ImuData, read_fixes, read_imu
@@ -137,3 +138,38 @@ def test_3d_saturated_gyro_is_flagged_and_honest():
         z.append(float(err @ np.linalg.solve(x.state.P[0:3, 0:3], err)))
     # the attitude error's Mahalanobis distance: chi-square with 3 dof when honest
     assert np.mean(np.array(z) > 14.2) < 0.01  # chi2(3) beyond 14.2: 0.27 %
+
+
+def test_the_engines_state_after_a_step_cut_short(tmp_path):
+    """Ctrl-C in the middle of a step (a live run stopped) leaves that sample's state
+    unfilled: the engine's state, from which a live run's closing line says what the
+    filter learned, is then the newest one filled, not None."""
+    from dataclasses import dataclass
+
+    from visvec.fuse.replay import Fusion
+
+    imu_p, _, fixes_p = planar_case(tmp_path, duration=6.0)
+    fx = read_fixes(fixes_p)
+    imu = read_imu(imu_p, planar=True)
+
+    @dataclass(frozen=True)
+    class Stopped(PlanarModel):
+        calls: list = None
+
+        def propagate(self, s, gyro, accel, dt):
+            self.calls.append(1)
+            if len(self.calls) == 450:
+                raise KeyboardInterrupt
+            return super().propagate(s, gyro, accel, dt)
+
+    eng = Fusion(Stopped(calls=[]))
+    fixes = sorted(fx.fixes, key=lambda f: f.available_s)
+    last = None
+    with pytest.raises(KeyboardInterrupt):
+        for j, t in enumerate(imu.t):
+            while fixes and fixes[0].available_s <= t:
+                eng.add_fix(fixes.pop(0))
+            fs = eng.step(t, imu.gyro[j], imu.accel[j] if imu.accel is not None else None)
+            last = fs.state if fs.state is not None else last
+    assert last is not None and eng._states[-1] is None
+    assert eng.state is last

@@ -135,8 +135,9 @@ class Fusion:
 
     @property
     def state(self):
-        """The newest sample's state (None before the first fix)."""
-        return self._states[-1] if self._states else None
+        """The newest state of the samples kept (None before the first fix; a step cut
+        short by Ctrl-C may have left its own sample's unfilled)."""
+        return next((s for s in reversed(self._states) if s is not None), None)
 
     def add_fix(self, fix: Fix) -> None:
         """A fix that has just become available; it is applied at the next sample."""
