@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+import csv
 import json
+import socket
 import sys
+import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -68,3 +72,49 @@ def pyplot():
     import matplotlib.pyplot as plt
 
     return plt
+
+
+def free_udp_port() -> int:
+    """A UDP port on 127.0.0.1 free now (for a sensor's --imu udp://...)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class UdpRows:
+    """The CSV rows a sensor sends to udp://127.0.0.1:``port`` (its --out), received in
+    a daemon thread: ``on_row(arrival, fields)`` for each row after the header, which
+    ``header`` holds once it came, and ``col`` each column's index (arrival:
+    time.monotonic())."""
+
+    def __init__(self, on_row: Callable[[float, list[str]], None]):
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind(("127.0.0.1", 0))
+        self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 22)
+        self.sock.settimeout(0.5)
+        self.port = self.sock.getsockname()[1]
+        self.header: list[str] = []
+        self.col: dict[str, int] = {}
+        self._on_row = on_row
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._listen, daemon=True)
+        self._thread.start()
+
+    def _listen(self) -> None:
+        while not self._stop.is_set():
+            try:
+                data = self.sock.recv(65536)
+            except TimeoutError:
+                continue
+            now = time.monotonic()
+            fields = next(csv.reader([data.decode()]))
+            if fields[0] == "frame":
+                self.header[:] = fields
+                self.col = {c: i for i, c in enumerate(fields)}
+            elif self.header:
+                self._on_row(now, fields)
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join()
+        self.sock.close()

@@ -22,19 +22,12 @@ import socket
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 from pathlib import Path
 
 import numpy as np
 
-from _common import CONFIGS, run_record, save_json
-
-
-def free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+from _common import CONFIGS, UdpRows, free_udp_port, run_record, save_json
 
 
 def main() -> None:
@@ -48,29 +41,10 @@ def main() -> None:
         subprocess.run([sys.executable, "-m", "visvec", "simulate", "--rig", str(rig), "--out",
                         str(rec), "--frames", str(n_frames), "--motion", "perimeter", "--imu"],
                        check=True, capture_output=True)  # fmt: skip
-        p_imu, p_out = free_port(), free_port()
-        rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        rx.bind(("127.0.0.1", p_out))
-        rx.settimeout(0.5)
+        p_imu = free_udp_port()
         received: dict[int, tuple[float, list[str]]] = {}
-        header: list[str] = []
-        stop = threading.Event()
-
-        def listen():
-            while not stop.is_set():
-                try:
-                    data = rx.recv(65536)
-                except TimeoutError:
-                    continue
-                now = time.monotonic()
-                fields = next(csv.reader([data.decode()]))
-                if fields[0] == "frame":
-                    header[:] = fields
-                    continue
-                received[int(fields[0])] = (now, fields)
-
-        th = threading.Thread(target=listen, daemon=True)
-        th.start()
+        rx = UdpRows(lambda now, fields: received.__setitem__(int(fields[0]), (now, fields)))
+        p_out = rx.port
         taskset = ["taskset", "-c", "0"] if shutil.which("taskset") else []
         cmd = [*taskset, sys.executable, "-m", "visvec", "track", "--rig", str(rig), "--camera",
                str(rec), "--realtime", "--imu", f"udp://127.0.0.1:{p_imu}", "--out",
@@ -95,12 +69,11 @@ def main() -> None:
                 s.sendto(line.encode(), ("127.0.0.1", p_imu))
         _, err = proc.communicate(timeout=60)
         time.sleep(0.3)
-        stop.set()
-        th.join()
+        rx.close()
         truth = np.array([[float(r["x_mm"]), float(r["y_mm"])]
                           for r in csv.DictReader(open(rec / "imu_truth.csv"))])  # fmt: skip
     lat = np.array([(received[k][0] - sent[k]) * 1000.0 for k in sent if k in received])
-    col = {c: i for i, c in enumerate(header)}
+    col = rx.col
     ok = [f for _, f in received.values() if f[col["status"]] == "ok"]
     e = np.array([np.hypot(float(f[col["x_mm"]]) - truth[int(f[0]), 0],
                            float(f[col["y_mm"]]) - truth[int(f[0]), 1]) for f in ok])  # fmt: skip

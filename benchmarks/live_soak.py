@@ -26,7 +26,6 @@ within 10 % of the first window's; no wrong ok row (10 mm or 0.5 deg off).
 from __future__ import annotations
 
 import argparse
-import csv
 import os
 import re
 import shutil
@@ -47,7 +46,7 @@ import numpy as np
 from visvec.rig import load_rig
 from visvec.sim.lamps import ImuModel, LampScene, PerimeterPath, render_lamps
 
-from _common import CONFIGS, run_record, save_json
+from _common import CONFIGS, UdpRows, free_udp_port, run_record, save_json
 
 RIG = CONFIGS / "lamps.toml"
 FPS, IMU_HZ, LAP_S = 30.0, 100.0, 66.0
@@ -149,12 +148,6 @@ def imu_samples(j0: int, n: int, rng: np.random.Generator, model: ImuModel) -> n
     return np.column_stack([t, gz, ax, ay])
 
 
-def free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def proc_stats(pid: int) -> dict | None:
     """Resident memory (MB), threads, open files and CPU seconds of a process."""
     try:
@@ -193,47 +186,37 @@ def main() -> None:
     stop = threading.Event()
     t0 = time.monotonic() + 1.0
     cam = Camera(jpegs, t0, stop)
-    p_imu, p_out = free_udp_port(), free_udp_port()
-    rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    rx.bind(("127.0.0.1", p_out))
-    rx.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 22)
-    rx.settimeout(0.5)
+    p_imu = free_udp_port()
     # per sample index: when sent, when its row came, its status and pose
     n_max = int((args.minutes * 60 + 120) * IMU_HZ)
     sent = np.full(n_max, np.nan)
     got = np.full(n_max, np.nan)
     pose = np.full((n_max, 3), np.nan)
     ok = np.zeros(n_max, bool)
-    col: dict[str, int] = {}
 
-    def listen():
-        while not stop.is_set():
-            try:
-                data = rx.recv(65536)
-            except TimeoutError:
-                continue
-            now = time.monotonic()
-            f = next(csv.reader([data.decode()]))
-            if f[0] == "frame":
-                col.update({c: i for i, c in enumerate(f)})
-                continue
-            # the row's time is its sample's, on the IMU's clock: its index here
-            k = int(round(float(f[col["time_s"]]) / rate * IMU_HZ)) if col else -1
-            if 0 <= k < n_max:
-                got[k] = now
-                ok[k] = f[col["status"]] == "ok"
-                if ok[k]:
-                    pose[k] = [float(f[col[c]]) for c in ("x_mm", "y_mm", "heading_deg")]
+    def on_row(now: float, f: list[str]) -> None:
+        col = rx.col
+        # the row's time is its sample's, on the IMU's clock: its index here
+        k = int(round(float(f[col["time_s"]]) / rate * IMU_HZ))
+        if 0 <= k < n_max:
+            got[k] = now
+            ok[k] = f[col["status"]] == "ok"
+            if ok[k]:
+                pose[k] = [float(f[col[c]]) for c in ("x_mm", "y_mm", "heading_deg")]
 
-    threading.Thread(target=listen, daemon=True).start()
+    rx = UdpRows(on_row)
+    p_out = rx.port
     with tempfile.TemporaryDirectory() as tmp:
         camera_rows = Path(tmp) / "camera.csv"
         cmd = [sys.executable, "-m", "visvec", "--status-every", "60", "track", "--rig",
                str(RIG), "--camera", cam.url, "--imu", f"udp://127.0.0.1:{p_imu}", "--out",
                f"udp://127.0.0.1:{p_out}", "--camera-out", str(camera_rows), "--serve",
                "127.0.0.1:0"]  # fmt: skip
+        # a sensor that does not stop on Ctrl-C is sent SIGABRT at the end: Python's
+        # fault handler then writes every thread's stack to the log
+        env = dict(os.environ, PYTHONFAULTHANDLER="1")
         proc = subprocess.Popen(([taskset, "-c", "0"] if taskset else []) + cmd,
-                                stderr=subprocess.PIPE, text=True)  # fmt: skip
+                                stderr=subprocess.PIPE, text=True, env=env)  # fmt: skip
         log: list[str] = []
         seen = threading.Event()
         page: list[str] = []
@@ -292,10 +275,15 @@ def main() -> None:
             except subprocess.TimeoutExpired:
                 pass
         else:
-            proc.kill()
-            proc.wait()
+            proc.send_signal(signal.SIGABRT)
+            try:
+                proc.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
         time.sleep(0.5)
         stop.set()
+        rx.close()
         if poller is not None:
             poller.terminate()
             poller.wait(timeout=10)
@@ -322,6 +310,9 @@ def main() -> None:
         frames_served=cam.sent,
         camera_rows_written=camera_lines,
         sensor_log_tail=log[-6:],
+        # what the threads were doing when a sensor that did not stop was aborted
+        stopped_by_abort=proc.returncode == -signal.SIGABRT,
+        stacks_at_abort=[x for x in log if x.startswith(("Thread", "Current thread", "  File"))],
         one_core=bool(taskset),
     )
     print(save_json("live_soak", res))
