@@ -212,8 +212,8 @@ def main() -> None:
                str(RIG), "--camera", cam.url, "--imu", f"udp://127.0.0.1:{p_imu}", "--out",
                f"udp://127.0.0.1:{p_out}", "--camera-out", str(camera_rows), "--serve",
                "127.0.0.1:0"]  # fmt: skip
-        # a sensor that does not stop on Ctrl-C is sent SIGABRT at the end: Python's
-        # fault handler then writes every thread's stack to the log
+        # a sensor that does not stop is sent SIGABRT at the end: Python's fault
+        # handler then writes every thread's stack to the log
         env = dict(os.environ, PYTHONFAULTHANDLER="1")
         proc = subprocess.Popen(([taskset, "-c", "0"] if taskset else []) + cmd,
                                 stderr=subprocess.PIPE, text=True, env=env)  # fmt: skip
@@ -266,9 +266,12 @@ def main() -> None:
                         stats.append({"t_s": time.monotonic() - t0, **st})
                     next_stat += 10.0
         alive = proc.poll() is None
-        # Ctrl-C ends the run; with --serve the page stays until a second one
+        # SIGTERM ends the run as Ctrl-C does (a shell starts a background job with
+        # SIGINT ignored, and its children inherit that: this script under nohup ... &
+        # could not stop the sensor with SIGINT); with --serve the page stays until a
+        # second one
         for _ in range(2):
-            proc.send_signal(signal.SIGINT)
+            proc.send_signal(signal.SIGTERM)
             try:
                 proc.wait(timeout=15)
                 break
