@@ -169,7 +169,8 @@ def _as_python(kernel):
     inner = {n: getattr(_compiled, n) for n in ("_group_linear", "_levels_suspect",
                                                  "_level_lines", "_group_tls",
                                                  "_group_median", "_lag_sums",
-                                                 "_ndtr_with_bell")}  # fmt: skip
+                                                 "_ndtr_with_bell", "_pixel_gn", "_strided",
+                                                 "_noise_inflation")}  # fmt: skip
 
     def run(*args):
         mp = pytest.MonkeyPatch()
@@ -499,6 +500,30 @@ def test_the_pixel_fit_compiled_or_not(pixel_fits, monkeypatch):
                                strict=True):  # fmt: skip
         size = max(np.abs(np.asarray(pure, float)).max(), 1.0)
         assert np.abs(np.asarray(as_python, float) - np.asarray(pure, float)).max() <= 1e-9 * size
+    # the whole solve: the first step on every other pixel of each band, then the checks,
+    # the inflation and the vertices' covariance
+    assert P.FIRST_STRIDE == 2 and P.GN_STEPS == 2
+    xs, ys, cs = P._strided(x, y, counts, 2)
+    assert cs.tolist() == [(k + 1) // 2 for k in counts.tolist()] and len(ys) == cs.sum()
+    assert _diff((xs, ys, cs), _compiled._strided(x, y, counts, 2)) == 0.0
+    args = (x, y, bands[2], counts, n, c, w, V, V.mean(axis=0), 50.0)
+    pure = P._solve(*args)
+    for got in (_compiled.pixel_solve, _as_python(_compiled.pixel_solve)):
+        fast = got(*args, P.GN_STEPS, P.FIRST_STRIDE, P._LAGS, P.NOISE_LAG_PX,
+                   P.NOISE_MIN_PAIRS, P.EDGE_RMS_RATIO)  # fmt: skip
+        assert fast[0] is True and pure[0] is True
+        assert np.abs(fast[1] - pure[1]).max() < 1e-9
+        assert np.abs(fast[2] - pure[2]).max() <= 1e-9 * np.abs(pure[2]).max()
+        assert fast[4:] == pytest.approx(pure[4:], rel=1e-9)
+    # a band whose residuals are three times the others' is not taken, by either
+    y3 = y.copy()
+    y3[: counts[0]] += np.random.default_rng(1).normal(0.0, 6.0, counts[0])
+    args = (x, y3, bands[2], counts, n, c, w, V, V.mean(axis=0), 50.0)
+    pure = P._solve(*args)
+    fast = _compiled.pixel_solve(*args, P.GN_STEPS, P.FIRST_STRIDE, P._LAGS, P.NOISE_LAG_PX,
+                                 P.NOISE_MIN_PAIRS, P.EDGE_RMS_RATIO)  # fmt: skip
+    assert pure[0] is False and bool(fast[0]) is False
+    assert np.array_equal(pure[1], V) and np.array_equal(fast[1], V)
 
 
 def test_the_bands_cover_compiled_or_not():

@@ -852,6 +852,84 @@ def _pixel_gn(x, y, counts, n, c, w, centroid, scale, steps):
     return n, c, w, level, H, b, rss, r_all, g_all, True
 
 
+
+def _strided(x, y, counts, stride):
+    """photometric._strided: every ``stride``-th pixel of each band."""
+    cs = (counts + stride - 1) // stride
+    m = cs[0] + cs[1] + cs[2]
+    xs = np.empty((m, 2))
+    ys = np.empty(m)
+    k = 0
+    start = 0
+    for e in range(3):
+        for p in range(start, start + counts[e], stride):
+            xs[k, 0], xs[k, 1] = x[p, 0], x[p, 1]
+            ys[k] = y[p]
+            k += 1
+        start += counts[e]
+    return xs, ys, cs
+
+
+def _pixel_solve(x, y, uv, counts, n, c, w, V, centroid, scale, steps, stride, lags, L,
+                 min_pairs, rms_ratio):  # fmt: skip
+    """photometric._solve compiled: the same steps, checks, inflation and covariance."""
+    fail = np.full((6, 6), np.nan)
+    if steps > 1 and stride > 1:
+        xs, ys, cs = _strided(x, y, counts, stride)
+        out = _pixel_gn(xs, ys, cs, n, c, w, centroid, scale, steps - 1)
+        n, c, w = out[0], out[1], out[2]
+        if not out[9]:
+            return False, V, fail, w, math.nan, 1.0
+        steps = 1
+    n, c, w, _, H, _, rss, r, g, ok = _pixel_gn(x, y, counts, n, c, w, centroid, scale, steps)
+    if not ok:
+        return False, V, fail, w, math.nan, 1.0
+    m = len(y)
+    s2 = max(rss, 0.0) / max(m - 15, 1)
+    rms = np.empty(3)
+    start = 0
+    for e in range(3):
+        ss = 0.0
+        for p in range(start, start + counts[e]):
+            ss += r[p] * r[p]
+        rms[e] = math.sqrt(ss / counts[e])
+        start += counts[e]
+    rms.sort()
+    if rms[2] > rms_ratio * rms[1]:
+        return False, V, fail, w, s2, 1.0
+    inflation = _noise_inflation(uv, r, g, lags, L, min_pairs)
+    try:
+        Hi = np.linalg.inv(H)
+    except Exception:  # noqa: BLE001 - Numba catches no narrower class
+        return False, V, fail, w, s2, inflation
+    cov_p = inflation * s2 * np.ascontiguousarray(Hi[:6, :6])
+    # the vertices (edges._vertices: vertex i on lines i + 1, i + 2, Cramer's rule) and
+    # how the lines move them (photometric._vertex_gain)
+    V2 = np.empty((3, 2))
+    invs = np.empty((3, 2, 2))
+    for i in range(3):
+        j, k = (i + 1) % 3, (i + 2) % 3
+        a, b, cc, d = n[j, 0], n[j, 1], n[k, 0], n[k, 1]
+        det = a * d - b * cc
+        if det == 0.0:
+            return False, V, fail, w, s2, inflation
+        invs[i, 0, 0], invs[i, 0, 1] = d / det, -b / det
+        invs[i, 1, 0], invs[i, 1, 1] = -cc / det, a / det
+        oj = n[j, 0] * c[j, 0] + n[j, 1] * c[j, 1]
+        ok_ = n[k, 0] * c[k, 0] + n[k, 1] * c[k, 1]
+        V2[i, 0] = invs[i, 0, 0] * oj + invs[i, 0, 1] * ok_
+        V2[i, 1] = invs[i, 1, 0] * oj + invs[i, 1, 1] * ok_
+    G = np.zeros((6, 6))
+    for v in range(3):
+        for row in range(2):
+            ln = (v + 1 + row) % 3
+            nx, ny = n[ln, 0], n[ln, 1]
+            sv = (V2[v, 0] - c[ln, 0]) * -ny + (V2[v, 1] - c[ln, 1]) * nx
+            for q in range(2):
+                G[2 * v + q, 2 * ln] -= invs[v, q, row] * sv
+                G[2 * v + q, 2 * ln + 1] += invs[v, q, row]
+    return True, V2, G @ cov_p @ G.T, w, s2, inflation
+
 # ------------------------------------------------- a fine pass's lines (_edge_fit)
 def _level_gain(width, half, step):
     """edges._level_gain: (3,) px per unit of relative mid-level error, the erf model's
@@ -1101,10 +1179,14 @@ def _readout_solve(info, prior_info, rhs, chi2, dof):
 sample_geometry = _jit(_sample_geometry, "sample_geometry")
 _lag_sums = _jit(_lag_sums, "_lag_sums")
 noise_inflation = _jit(_noise_inflation, "noise_inflation")
+_noise_inflation = _jit(_noise_inflation, "_noise_inflation")
 band_pixels = _jit(_band_pixels, "band_pixels")
 cover = _jit(_cover, "cover")
 _ndtr_with_bell = _jit(_ndtr_with_bell, "_ndtr_with_bell")
 pixel_gn = _jit(_pixel_gn, "pixel_gn")
+_pixel_gn = _jit(_pixel_gn, "_pixel_gn")
+_strided = _jit(_strided, "_strided")
+pixel_solve = _jit(_pixel_solve, "pixel_solve")
 _group_linear = _jit(_group_linear, "_group_linear")
 _levels_suspect = _jit(_levels_suspect, "_levels_suspect")
 _level_lines = _jit(_level_lines, "_level_lines")

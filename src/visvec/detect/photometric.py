@@ -26,7 +26,8 @@ errors through the shared levels are correlated as they are.
 
 Phi is evaluated through erf by Abramowitz & Stegun's 7.1.26 (to 1e-7 of the contrast,
 with the exp(-u^2 / 2) the derivatives need anyway). With the fast extra the pixels'
-selection, the Gauss-Newton steps and the noise correlation's sums run compiled
+selection and the whole solve from the bands' pixels (_solve: the Gauss-Newton steps,
+the bands' check, the noise correlation, the vertices' covariance) run compiled
 (visvec.detect._compiled, tested equal to the numpy functions here).
 """
 
@@ -44,6 +45,12 @@ from visvec.detect.edges import _vertices, erf_with_bell
 from visvec.shutter import RollingShutter, unroll
 
 GN_STEPS = 2
+# the steps before the last on every FIRST_STRIDE-th pixel of each band (in its raster
+# order): from the lines they only bring the fit near its optimum, which the last step,
+# on every pixel, then reaches. On the 480 frames of benchmarks/triangle_crb.py the
+# errors over the bound moved by at most 0.011 from two steps on every pixel (at a stride
+# of 4 by up to 0.036); the first step costs half as much
+FIRST_STRIDE = 2
 # pixels within this many blur widths + REACH_PX of an edge are fitted to it
 REACH_WIDTHS = 3.0
 REACH_PX = 2.0
@@ -449,10 +456,42 @@ def refine(image: np.ndarray, normals: np.ndarray, offsets: np.ndarray, width: n
     x, y, uv, _ = bands
     centroid = V.mean(axis=0)
     scale = max(float(np.abs(V - centroid).max()), 1.0)
-    gn = _compiled.pixel_gn if _compiled.ON else _gauss_newton
-    n, c, w, _, H, _, rss, r, g, ok = gn(x, y, counts, n, c, w, centroid, scale, GN_STEPS)
+    if _compiled.ON:  # the same, compiled
+        ok, V, cov, w, s2, inflation = _compiled.pixel_solve(
+            x, y, uv, counts, n, c, w, V, centroid, scale, GN_STEPS, FIRST_STRIDE, _LAGS,
+            NOISE_LAG_PX, NOISE_MIN_PAIRS, EDGE_RMS_RATIO)  # fmt: skip
+    else:
+        ok, V, cov, w, s2, inflation = _solve(x, y, uv, counts, n, c, w, V, centroid, scale)
     if not ok:
         return _refused(V, w, m)
+    return PhotometricFit(V, cov, w, math.sqrt(s2), m, inflation=inflation)
+
+
+def _strided(x: np.ndarray, y: np.ndarray, counts: np.ndarray, stride: int):
+    """Every ``stride``-th pixel of each band (x, y and the bands' counts)."""
+    bounds = np.concatenate([[0], np.cumsum(counts)])
+    pick = np.concatenate([np.arange(a, b, stride) for a, b in pairwise(bounds)])
+    return x[pick], y[pick], (counts + stride - 1) // stride
+
+
+def _solve(x, y, uv, counts, n, c, w, V, centroid, scale):
+    """The fit from the starting lines (n, c), widths w and vertices V on the bands'
+    pixels: GN_STEPS Gauss-Newton steps (those before the last on every FIRST_STRIDE-th
+    pixel), the bands' residuals checked against each other (EDGE_RMS_RATIO), the
+    covariance inflated for the noise's correlation and taken to the vertices. Returns
+    whether it is to be taken, the vertices (3, 2) (the starting ones when it is not),
+    their covariance (6, 6), the widths, the residuals' variance and the inflation."""
+    steps = GN_STEPS
+    if steps > 1 and FIRST_STRIDE > 1:
+        xs, ys, cs = _strided(x, y, counts, FIRST_STRIDE)
+        n, c, w, *_, ok = _gauss_newton(xs, ys, cs, n, c, w, centroid, scale, steps - 1)
+        if not ok:
+            return False, V, None, w, math.nan, 1.0
+        steps = 1
+    n, c, w, _, H, _, rss, r, g, ok = _gauss_newton(x, y, counts, n, c, w, centroid, scale, steps)
+    if not ok:
+        return False, V, None, w, math.nan, 1.0
+    m = len(y)
     s2 = max(rss, 0.0) / max(m - N_PARAMS, 1)
     # the residuals of a band the model fits are the pixels' noise, alike in the three
     # bands (the same board and triangle): one band's twice the others' has something
@@ -461,14 +500,14 @@ def refine(image: np.ndarray, normals: np.ndarray, offsets: np.ndarray, width: n
     bounds = np.concatenate([[0], np.cumsum(counts)])
     rms = sorted(math.sqrt(float(r[a:b] @ r[a:b]) / (b - a)) for a, b in pairwise(bounds))
     if rms[2] > EDGE_RMS_RATIO * rms[1]:
-        return _refused(V, w, m)
+        return False, V, None, w, s2, 1.0
     inflation = _noise_inflation(uv, r, g)
     try:
         cov_p = inflation * s2 * np.linalg.inv(H)[:6, :6]
     except np.linalg.LinAlgError:
-        return _refused(V, w, m)
-    V, invs = _intersections(n, c)
+        return False, V, None, w, s2, inflation
+    V2, invs = _intersections(n, c)
     if invs is None:
-        return _refused(V, w, m)
-    G = _vertex_gain(n, c, V, invs)
-    return PhotometricFit(V, G @ cov_p @ G.T, w, math.sqrt(s2), m, inflation=inflation)
+        return False, V, None, w, s2, inflation
+    G = _vertex_gain(n, c, V2, invs)
+    return True, V2, G @ cov_p @ G.T, w, s2, inflation
