@@ -73,3 +73,24 @@ def test_fuse_3d_through_the_cli(tmp_path):
         sig = max(float(x[f"sigma_{k}"]) for k in ("yaw_deg", "pitch_deg", "roll_deg"))
         assert e < 5 * np.sqrt(3) * sig + 1e-4, (x["frame"], e, sig)
     assert np.sqrt(np.mean(np.square(err))) < 0.05
+
+
+def test_the_planar_learned_line_says_when_the_offset_is_not_learned_yet():
+    """The closing line of a planar run: the fixes' time offset with its sigma once the
+    fixes have told it; while its sigma is still near the prior's (one fix, or fixes
+    with no motion between them) it says so instead of printing the prior."""
+    from types import SimpleNamespace
+
+    from visvec.cli.fuse import planar_learned_line
+    from visvec.fuse.models import PlanarModel
+
+    prior = PlanarModel().time_offset_sigma
+    x = np.zeros(9)
+    x[8] = 0.03
+    P = np.diag([1.0] * 8 + [(0.9 * prior) ** 2])
+    line = planar_learned_line(SimpleNamespace(x=x, P=P), prior)
+    assert "time offset not yet" in line and f"prior +- {1000 * prior:.0f} ms" in line
+    assert "gyro bias" in line
+    P[8, 8] = 0.002**2
+    line = planar_learned_line(SimpleNamespace(x=x, P=P), prior)
+    assert "time offset +30.0 +- 2.0 ms" in line

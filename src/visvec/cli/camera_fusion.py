@@ -8,7 +8,7 @@ from contextlib import ExitStack, nullcontext
 import click
 
 from visvec.cli.common import rows_out
-from visvec.cli.fuse import fusion_model, learned_of, live_summary
+from visvec.cli.fuse import echo_learned, fusion_model, live_summary
 from visvec.errors import ConfigError, InputFileError
 from visvec.fuse.camera import CameraFixes
 from visvec.fuse.inputs import Fix, read_imu
@@ -74,9 +74,7 @@ def run_fused_camera(rig, frames, imu_src, method, out, fmt, camera_out, view=No
         camera.stop.set()
     click.echo(live_summary(summary) + f"; camera: {camera.n_frames} frames, {camera.n_ok} ok",
                err=True)  # fmt: skip
-    line = learned_of(summary.engine)
-    if line:
-        click.echo(line, err=True)
+    echo_learned(summary.engine)
     if summary.refused:
         raise SystemExit(2)
 

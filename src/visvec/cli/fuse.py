@@ -155,9 +155,7 @@ def fuse(imu_path, fixes_path, follow, max_samples, silent_s, gyro_range_dps, ou
     )
     if len(nis) >= 5:
         click.echo(nis_line(nis, fixes.planar), err=True)
-    line = learned_of(engine, last[0])
-    if line:
-        click.echo(line, err=True)
+    echo_learned(engine, last[0])
     if rows and n_ok == 0:
         raise NoOkRows(f"none of the {len(rows)} inertial samples gave a fused row (no fix "
                        "could start the filter)")  # fmt: skip
@@ -280,18 +278,39 @@ def learned_of(engine, s=None) -> str | None:
     if s is None:
         return None
     if engine.model.planar:
-        return planar_learned_line(s) if engine.model.method == "kalman" else None
+        if engine.model.method != "kalman":
+            return None
+        return planar_learned_line(s, engine.model.time_offset_sigma)
     return learned_line(engine, s)
 
 
-def planar_learned_line(s) -> str:
+def echo_learned(engine, s=None) -> None:
+    """Say on stderr what the filter learned (learned_of), when it learned anything."""
+    line = learned_of(engine, s)
+    if line:
+        click.echo(line, err=True)
+
+
+# the fixes' time offset counts as learned once its sigma is under this share of the
+# prior's (PlanarModel.time_offset_sigma): before that (one fix, fixes too far apart
+# in time for the motion to show it) the line says so, not the prior's +- 50 ms
+OFFSET_LEARNED_SHARE = 0.5
+
+
+def planar_learned_line(s, prior_s: float | None = None) -> str:
     """What the planar Kalman filter learned (visvec.fuse.models.PlanarModel), with
-    1-sigma: the fixes' time offset, the gyro's and the accelerometers' biases."""
+    1-sigma: the fixes' time offset (``prior_s``: its prior sigma), the gyro's and the
+    accelerometers' biases."""
     sd = np.sqrt(np.clip(np.diag(s.P), 0.0, None))
     x = s.x
+    if prior_s is not None and not sd[8] < OFFSET_LEARNED_SHARE * prior_s:
+        offset = (f"fixes' time offset not yet (too few fixes with motion between them; "
+                  f"prior +- {1000 * prior_s:.0f} ms)")  # fmt: skip
+    else:
+        offset = (f"fixes' time offset {1000 * x[8]:+.1f} +- {1000 * sd[8]:.1f} ms (their "
+                  "time_s after their exposure)")  # fmt: skip
     return (
-        f"visvec: learned: fixes' time offset {1000 * x[8]:+.1f} +- {1000 * sd[8]:.1f} ms "
-        f"(their time_s after their exposure); gyro bias {math.degrees(x[5]):+.3f} +- "
+        f"visvec: learned: {offset}; gyro bias {math.degrees(x[5]):+.3f} +- "
         f"{math.degrees(sd[5]):.3f} deg/s; accelerometer biases {x[6] / 1000:+.4f}, "
         f"{x[7] / 1000:+.4f} +- {sd[6] / 1000:.4f} m/s^2"
     )
@@ -349,6 +368,4 @@ def _run_live(imu_src, fixes_src, follow, max_samples, silent_s, setup, out, fmt
         summary = run_live(*readers, setup, open_rows, max_samples=max_samples,
                            silent_s=silent_s, echo=lambda m: click.echo(m, err=True))  # fmt: skip
     click.echo(live_summary(summary), err=True)
-    line = learned_of(summary.engine)
-    if line:
-        click.echo(line, err=True)
+    echo_learned(summary.engine)
