@@ -591,19 +591,27 @@ def _inward_lines(x, y, gid, clear, floor, rounds, inflation):
 def _lag_sums(index, flat, offsets, r, w):
     """photometric._noise_inflation's sums: per lag (offset in the padded raster), the
     band's pixel pairs at that lag and the sums of r r' and w w' over them (``index``:
-    each raster cell's pixel, len(r) where none is; ``flat``: each pixel's cell)."""
+    each raster cell's pixel, len(r) where none is; ``flat``: each pixel's cell). Lag
+    by lag, without a branch: a cell with no pixel gives the zero appended to r and w
+    (the sums are those of the pairs, in the same order)."""
     n = len(r)
     lags = len(offsets)
+    r0 = np.zeros(n + 1)
+    w0 = np.zeros(n + 1)
+    r0[:n] = r
+    w0[:n] = w
     pairs = np.zeros(lags)
     rr = np.zeros(lags)
     ww = np.zeros(lags)
-    for k in range(n):
-        for q in range(lags):
-            j = index[flat[k] + offsets[q]]
-            if j < n:
-                pairs[q] += 1.0
-                rr[q] += r[k] * r[j]
-                ww[q] += w[k] * w[j]
+    for q in range(lags):
+        o = offsets[q]
+        sp, sr, sw = 0.0, 0.0, 0.0
+        for k in range(n):
+            j = index[flat[k] + o]
+            sp += 1.0 if j < n else 0.0
+            sr += r[k] * r0[j]
+            sw += w[k] * w0[j]
+        pairs[q], rr[q], ww[q] = sp, sr, sw
     return pairs, rr, ww
 
 
