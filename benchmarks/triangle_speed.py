@@ -12,6 +12,7 @@ recording, timed in the same repeats; its accuracy beside it.
     python benchmarks/triangle_speed.py
     python benchmarks/triangle_speed.py --size 1920x1080   # an HD webcam, same field
     python benchmarks/triangle_speed.py --refine pixels    # with the pixel fit
+    python benchmarks/triangle_speed.py --pair   # lines and pixel fit in turn: their ratio
     VISVEC_PURE=1 python benchmarks/triangle_speed.py     # without the compiled kernels
 
 ``--size WxH`` puts the rig's lens on a sensor of that size with the same horizontal
@@ -56,6 +57,12 @@ def main() -> None:
         help="the tag baseline on every n-th attitude (its frames render slowly)",
     )
     add_refine_option(ap)
+    ap.add_argument(
+        "--pair",
+        action="store_true",
+        help="the edge lines and the pixel fit frame by frame in turn: their ratio, "
+        "which the machine's speed (and its drift during the run) leaves alone",
+    )
     args = ap.parse_args()
     _onecore.one_core()
     import _fiducial  # after _onecore: it imports numpy
@@ -84,6 +91,13 @@ def main() -> None:
     cases = [Case(e, Scene(), k) for k, e in enumerate(eul)]
     images = render_cases(rig, cases)
     pngs = [cv2.imencode(".png", im)[1] for im in images]
+    if args.pair:
+        res = {**run_record(), "image": f"{rig.camera.width}x{rig.camera.height}",
+               "frames": args.frames, "repeats": args.repeats, "compiled_kernels": _compiled.ON,
+               **pair(rig, images, pngs, args.repeats)}  # fmt: skip
+        print(res)
+        print(save_json(name.replace("triangle_speed", "triangle_speed_pair"), res))
+        return
     tag_eul = eul[:: args.tag_every]
     tags = _fiducial.render_tags(rig, tag_eul, Scene())
     bases = {"aruco": _fiducial.ArucoBaseline(rig, Scene()),
@@ -207,6 +221,32 @@ STEPS = (
     ("visvec.detect.triangle", "TriangleDetector", "detect", "detection (total)"),
     ("visvec.pipeline.triangle", "TrianglePipeline", "_solve", "attitude solve"),
 )
+
+
+def pair(rig, images, pngs, repeats: int) -> dict:
+    """Median ms of each frame with the edge lines and with the pixel fit, tracked and
+    cold, the four pipelines taking each frame in turn (with its PNG decode), and the
+    pixel fit's over the lines'."""
+    rigs = {r: with_refine(rig, r) for r in ("lines", "pixels")}
+    keys = [(r, m) for r in rigs for m in ("tracking", "cold")]
+    times: dict = {f"{r}_{m}": [] for r, m in keys}
+    times["png_decode"] = []
+    for _ in range(repeats):
+        pipes = {(r, m): TrianglePipeline(rigs[r]) for r, m in keys}
+        for i, im in enumerate(images):
+            for (r, m), pipe in pipes.items():
+                if m == "cold":
+                    pipe.detector.reset()
+                t = time.perf_counter()
+                pipe.process(Frame(i, i / rig.fps, im))
+                times[f"{r}_{m}"].append(time.perf_counter() - t)
+            t = time.perf_counter()
+            cv2.imdecode(pngs[i], cv2.IMREAD_GRAYSCALE)
+            times["png_decode"].append(time.perf_counter() - t)
+    med = {k: round(float(np.median(v)) * 1000, 3) for k, v in times.items()}
+    return {"median_ms": med,
+            "pixels_over_lines": {m: round(med[f"pixels_{m}"] / med[f"lines_{m}"], 3)
+                                  for m in ("tracking", "cold")}}  # fmt: skip
 
 
 def profile(rig, images, cold: bool) -> dict:
