@@ -860,7 +860,6 @@ def _pixel_gn(x, y, counts, n, c, w, centroid, scale, steps):
     return n, c, w, level, H, b, rss, r_all, g_all, True
 
 
-
 def _strided(x, y, counts, stride):
     """photometric._strided: every ``stride``-th pixel of each band."""
     cs = (counts + stride - 1) // stride
@@ -937,6 +936,7 @@ def _pixel_solve(x, y, uv, counts, n, c, w, V, centroid, scale, steps, stride, l
                 G[2 * v + q, 2 * ln] -= invs[v, q, row] * sv
                 G[2 * v + q, 2 * ln + 1] += invs[v, q, row]
     return True, V2, G @ cov_p @ G.T, w, s2, inflation
+
 
 # ------------------------------------------------- a fine pass's lines (_edge_fit)
 def _level_gain(width, half, step):
