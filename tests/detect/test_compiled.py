@@ -494,9 +494,9 @@ def test_the_pixel_fit_compiled_or_not(pixel_fits, monkeypatch):
     assert _diff(bands, P._band(image, n, c, reach, clear, camera)) == 0.0
     x, y, _, counts = bands
     args = (x, y, counts, n, c, w, V.mean(axis=0), 50.0, P.GN_STEPS)
-    fast = _compiled.pixel_gn(*args)
+    fast = _compiled._pixel_gn(*args)
     assert bool(fast[-1])
-    for as_python, pure in zip(_as_python(_compiled.pixel_gn)(*args), P._gauss_newton(*args),
+    for as_python, pure in zip(_as_python(_compiled._pixel_gn)(*args), P._gauss_newton(*args),
                                strict=True):  # fmt: skip
         size = max(np.abs(np.asarray(pure, float)).max(), 1.0)
         assert np.abs(np.asarray(as_python, float) - np.asarray(pure, float)).max() <= 1e-9 * size

@@ -297,13 +297,13 @@ def echo_learned(engine, s=None) -> None:
 OFFSET_LEARNED_SHARE = 0.5
 
 
-def planar_learned_line(s, prior_s: float | None = None) -> str:
+def planar_learned_line(s, prior_s: float) -> str:
     """What the planar Kalman filter learned (visvec.fuse.models.PlanarModel), with
     1-sigma: the fixes' time offset (``prior_s``: its prior sigma), the gyro's and the
     accelerometers' biases."""
     sd = np.sqrt(np.clip(np.diag(s.P), 0.0, None))
     x = s.x
-    if prior_s is not None and not sd[8] < OFFSET_LEARNED_SHARE * prior_s:
+    if not sd[8] < OFFSET_LEARNED_SHARE * prior_s:
         offset = (f"fixes' time offset not yet (too few fixes with motion between them; "
                   f"prior +- {1000 * prior_s:.0f} ms)")  # fmt: skip
     else:
