@@ -43,6 +43,7 @@ def cluster():
         yield c
 
 
+@pytest.mark.slow  # 10 s on a slow host
 def test_a_study_on_dask_is_the_serial_study_bit_for_bit(tmp_path, cluster):
     serial, out = _study(tmp_path, "serial", "--workers", "1")
     assert "on this process" in out
@@ -54,6 +55,7 @@ def test_a_study_on_dask_is_the_serial_study_bit_for_bit(tmp_path, cluster):
     assert len(json.loads(serial)["runs"]) == 6
 
 
+@pytest.mark.slow  # 7 s on a slow host
 def test_a_worker_that_dies_has_its_tasks_rerun(cluster):
     rig = load_rig(CONFIGS / "markers.toml")
     specs = [RunSpec(rig, 0.1, 0.0, 100 + k, 20, 20, True) for k in range(8)]

@@ -100,6 +100,7 @@ def test_numbers_that_are_not_numbers_are_refused(tmp_path):
         assert what in r.stderr and b"Traceback" not in r.stderr, (args, r.stderr)
 
 
+@pytest.mark.slow  # 10 s on a slow host
 def test_bad_times_and_truth_files_name_the_line(tmp_path):
     import shutil
 

@@ -1,5 +1,7 @@
 """`visvec calibrate readout`: a rolling shutter's readout from a turning recording."""
 
+import pytest
+
 from visvec.rig import load_rig
 
 from conftest import CONFIGS, rig_variant, run
@@ -34,6 +36,7 @@ def test_calibrate_readout_measures_a_rolling_shutter_from_a_turning_recording(t
     assert "no zero-tilt calibration given" in r.stderr  # the order the README gives
 
 
+@pytest.mark.slow  # 7 s on a slow host
 def test_calibrate_readout_is_not_fooled_by_a_principal_point_off(tmp_path):
     """A global-shutter camera whose principal point is 4 px right of the rig file's,
     swinging at up to 20 deg/s: the keystone that error leaves turns with the yaw as a

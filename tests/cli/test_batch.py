@@ -181,6 +181,7 @@ def test_batch_says_when_the_target_is_not_where_the_rig_file_puts_it(tmp_path):
     assert r.exit_code == 0 and "than the rig file" not in r.output
 
 
+@pytest.mark.slow  # 7 s on a slow host
 def test_batch_says_when_the_camera_aspect_is_off(tmp_path):
     """A rig file whose fy is 0.5 % too large for its camera (603 for 600): no attitude
     fits the triangle as seen, every frame is refused, and the run ends saying so and,
@@ -205,6 +206,7 @@ def test_batch_says_when_the_camera_aspect_is_off(tmp_path):
     assert {x["status"] for x in rows_of((tmp_path / "exact.csv").read_text())} == {"ok"}
 
 
+@pytest.mark.slow  # 8 s on a slow host
 def test_batch_says_when_the_camera_principal_point_is_off(tmp_path):
     """A rig file whose cx is 10 px right of the camera's: two frames in three refused,
     and over a swing out and back (where the principal point's keystone is told from a

@@ -5,6 +5,7 @@ import csv
 
 import cv2
 import numpy as np
+import pytest
 
 from conftest import CONFIGS, assert_within_3_sigma, rows_of, run
 
@@ -64,6 +65,7 @@ def test_simulate_a_rolling_shutter_sweep_that_batch_corrects(tmp_path):
     assert bad.exit_code == 2 and "--motion sweep" in bad.output
 
 
+@pytest.mark.slow  # 10 s on a slow host
 def test_motion_blur_of_a_long_exposure_neither_loses_nor_biases_the_triangle(tmp_path):
     """`simulate --exposure-ms 33` blurs a 40 deg/s sweep by its motion (each row
     collects light over 33 ms, centred on its time); tracked, every frame is ok and

@@ -129,6 +129,7 @@ def test_track_with_imu_live_view(tmp_path):
     assert state["run"]["ended"] and state["values"] == ["x_mm", "y_mm", "heading_deg"]
 
 
+@pytest.mark.slow  # 12 s on a slow host
 def test_track_with_imu_triangle_live(tmp_path):
     """The same for an attitude rig: a triangle sweep at 20 deg/s with a 3-D gyro over
     UDP; the fused attitude within 0.05 deg of the truth at every IMU sample, and

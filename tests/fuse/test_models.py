@@ -5,6 +5,7 @@ import math
 from dataclasses import replace
 
 import numpy as np
+import pytest
 from fusion_cases import (
     _err,
     _fixes,
@@ -69,6 +70,7 @@ def test_planar_kalman_learns_the_fixes_time_offset(tmp_path):
     assert rms0 > 1.0 and np.mean(z0 > 5.0) > 0.3
 
 
+@pytest.mark.slow  # 8 s on a slow host
 def test_3d_fusion_learns_bias_and_misalignment():
     """Simulated gyro with a bias and a 3 deg misalignment; fixes 2 Hz, 0.6 s late."""
     rng = np.random.default_rng(4)

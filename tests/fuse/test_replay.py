@@ -120,6 +120,7 @@ def test_declip_restores_a_clipped_swing():
     assert np.abs(est - v[at]).mean() < 0.5 * np.abs(rng - v[at]).mean()
 
 
+@pytest.mark.slow  # 8 s on a slow host
 def test_3d_saturated_gyro_is_flagged_and_honest():
     """A gyro clipped at 250 deg/s on a swing that peaks at about 320 deg/s: the flat
     tops are found, the rows flagged, and their sigma covers the error."""

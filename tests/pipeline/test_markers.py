@@ -243,6 +243,7 @@ def test_stray_spots_or_hidden_leds_never_give_the_half_turn(mrig, euler_deg, sc
     assert np.all(np.abs(err) < 3 * row.sigma_deg + 1e-4), err
 
 
+@pytest.mark.slow  # 18 s on a slow host
 def test_the_rows_sigma_is_learned_from_the_spots_scatter_and_follows_it(mrig):
     """The shipped rig's centroid_sigma_px (0.12) is a guess: the simulator's LEDs scatter
     about 0.012 px. Taken as it is, every row's sigma was about 9x its error (error over

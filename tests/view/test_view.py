@@ -277,6 +277,7 @@ return {frame: document.body.dataset.frame || '',
 """
 
 
+@pytest.mark.slow  # 11 s on a slow host
 def test_page_in_a_real_browser(tmp_path):
     from selenium.webdriver.common.by import By
 
