@@ -18,6 +18,28 @@ class Status(StrEnum):
     READ_ERROR = "read_error"
 
 
+# codecs that code every frame alone (FOURCCs, upper case, as cv2.CAP_PROP_FOURCC gives
+# them): JPEG and lossless ones, and raw pixel formats (a camera's YUYV, a Bayer mosaic).
+# Every other codec named is taken to predict frames from earlier ones (mp4v reads as
+# FMP4, H.264 as h264 or avc1, HEVC, VP8/9, AV1): their errors move with the image
+# (benchmarks/triangle_compression.py)
+INTRA_CODECS = frozenset(
+    "MJPG JPEG MJPA MJPB LJPG JPGL AVRN MPNG PNG FFV1 FFVH HFYU MJ2C MJP2 DVSD DV25 DV50 "
+    "APCN APCH APCS APCO AP4H UTVD ULRG ULRA ULY0 ULY2 ULY4 ULH0 ULH2 ULH4 "
+    "RAW RGB BGR RGB3 BGR3 RGBA BGRA ARGB DIB Y800 GREY GRAY Y8 Y16 Y10 Y12 YUYV YUY2 YVYU "
+    "UYVY VYUY I420 IYUV YV12 NV12 NV21 422P BA81 GBRG GRBG RGGB BGGR".split()
+)
+
+
+def inter_frame(codec: str) -> bool:
+    """Whether frames of ``codec`` (a FOURCC, see
+    :func:`visvec.sources.video.codec_of`) may be predicted
+    from earlier frames (motion-compensated: mp4v, H.264, HEVC, VP9, AV1): any codec
+    named that is not in INTRA_CODECS. An empty name (an image file, a source that does
+    not say) is not."""
+    return bool(codec) and codec.upper() not in INTRA_CODECS
+
+
 @dataclass(frozen=True)
 class Frame:
     """One image from a source.
@@ -37,6 +59,10 @@ class Frame:
     time_unix : float or None
         Its absolute time (s since 1970, UTC) where the source knows it: a live
         source's capture clock, a recording's times.csv with a time_unix column.
+    codec : str
+        The video codec the frame was decoded from, as its FOURCC (``"FMP4"`` for
+        mp4v, ``"h264"``, ``"MJPG"``), where the source knows it; empty for image files
+        and sources that do not say (see :func:`inter_frame`).
     """
 
     index: int
@@ -45,6 +71,7 @@ class Frame:
     name: str = ""
     error: str = ""
     time_unix: float | None = None
+    codec: str = ""
 
 
 @dataclass(frozen=True)

@@ -372,6 +372,41 @@ def test_a_codecs_correlated_errors_along_the_edges_widen_the_sigma(rig320):
     assert "codec" not in notes["png"] and "codec" in notes["mp4v"]
 
 
+def test_the_pixel_fit_is_set_aside_on_frames_of_an_inter_frame_codec(rig320):
+    """Frames that say they came through mp4v (Frame.codec "FMP4", as a video file's
+    reader names it) are measured by the edge lines on a pixel-fit rig: the same rows
+    as the lines' rig, and a closing note that says so; the same frames without a codec
+    go through the pixel fit (other rows). Motion-JPEG's frames keep it."""
+    eul = random_attitudes(12, 5.0, np.random.default_rng(31), "sweep")
+    frames = [render_frame(rig320, euler_to_matrix(*e), Scene(), rng=3100 + k)
+              for k, e in enumerate(eul)]  # fmt: skip
+    images, codec = mp4v(frames, with_codec=True)
+    assert codec == "FMP4"
+    pixels = replace(rig320, detect=replace(rig320.detect, refine="pixels"))
+
+    def run(rig, codec):
+        pipe = TrianglePipeline(rig)
+        rows = [pipe.process(Frame(i, i / 30.0, im, codec=codec)) for i, im in enumerate(images)]
+        assert sum(r.ok for r in rows) >= 10
+        return rows, pipe.notes()
+
+    lines, _ = run(rig320, codec)
+    set_aside, notes = run(pixels, codec)
+    fitted, notes_fitted = run(pixels, "")
+    mjpeg, notes_mjpeg = run(pixels, "MJPG")
+    both = [k for k in range(len(images)) if lines[k].ok and fitted[k].ok]
+    for k in range(len(images)):
+        assert set_aside[k].status is lines[k].status
+        if lines[k].ok:
+            assert np.array_equal(set_aside[k].euler_deg, lines[k].euler_deg)
+            assert np.array_equal(set_aside[k].sigma_deg, lines[k].sigma_deg)
+    assert max(np.abs(fitted[k].euler_deg - lines[k].euler_deg).max() for k in both) > 1e-4
+    assert all(np.array_equal(mjpeg[k].euler_deg, fitted[k].euler_deg) for k in both)
+    (note,) = [n for n in notes if "FMP4" in n]
+    assert "set aside" in note and "edge lines" in note
+    assert not any("FMP4" in n or "set aside" in n for n in notes_fitted + notes_mjpeg)
+
+
 def test_a_run_through_a_codec_is_told_so_at_its_end(rig320):
     """The closing note, when the learned correlation says the frames went through a
     codec; with the pixel fit, that it is not honest there."""

@@ -11,6 +11,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from visvec.sources.video import codec_of
+
 
 def jpeg(images: list[np.ndarray], quality: int) -> list[np.ndarray]:
     """Each grey frame encoded alone at JPEG ``quality`` and decoded."""
@@ -23,9 +25,11 @@ def jpeg(images: list[np.ndarray], quality: int) -> list[np.ndarray]:
     return out
 
 
-def mp4v(images: list[np.ndarray], fps: float = 30.0) -> list[np.ndarray]:
+def mp4v(images: list[np.ndarray], fps: float = 30.0, with_codec: bool = False):
     """The grey frames as OpenCV's mp4v writer stores them at its default quality and
-    its reader gives them back."""
+    its reader gives them back; ``with_codec``: and the codec's FOURCC as the reader
+    names it (visvec.sources.video.codec_of: "FMP4"), which `visvec batch` puts on each
+    frame of such a file (Frame.codec)."""
     h, w = images[0].shape
     with tempfile.TemporaryDirectory() as d:
         path = str(Path(d) / "rec.mp4")
@@ -34,6 +38,7 @@ def mp4v(images: list[np.ndarray], fps: float = 30.0) -> list[np.ndarray]:
             writer.write(cv2.cvtColor(im, cv2.COLOR_GRAY2BGR))
         writer.release()
         cap = cv2.VideoCapture(path)
+        codec = codec_of(cap)
         out = []
         while True:
             ok, frame = cap.read()
@@ -43,4 +48,4 @@ def mp4v(images: list[np.ndarray], fps: float = 30.0) -> list[np.ndarray]:
         cap.release()
     if len(out) != len(images):
         raise RuntimeError(f"mp4v round trip gave {len(out)} of {len(images)} frames")
-    return out
+    return (out, codec) if with_codec else out

@@ -135,10 +135,12 @@ def evaluate(
     method: str,
     track: bool = False,
     shear: bool = True,
+    codec: str = "",
 ) -> Outcome:
     """Run the pipeline (estimation rig ``rig``) on ``images`` and compare with the truth
     (``shear`` False: no readout estimated from the frames of a rig that declares none,
-    for comparison; a markers rig's frames go through its own pipeline)."""
+    for comparison; a markers rig's frames go through its own pipeline; ``codec``: the
+    frames' Frame.codec, as a video file's reader names it)."""
     if rig.kind == "triangle":
         pipe = TrianglePipeline(rig, method, check_shutter=shear)
     else:
@@ -147,7 +149,7 @@ def evaluate(
     for i, (img, case) in enumerate(zip(images, cases, strict=True)):
         if not track:
             pipe.reset()  # a cold frame: no tracking, no rate
-        row = pipe.process(Frame(i, i / 30.0, img))
+        row = pipe.process(Frame(i, i / 30.0, img, codec=codec))
         out.status.append(str(row.status))
         out.warnings.append(row.warnings)
         if row.status is Status.OK:

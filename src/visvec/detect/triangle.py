@@ -18,7 +18,7 @@ import cv2
 import numpy as np
 
 from visvec.chi2 import ppf as chi2_ppf
-from visvec.data import Detection, Status
+from visvec.data import Detection, Status, inter_frame
 from visvec.detect.candidates import Candidate, iter_candidates, partial_triangle
 from visvec.detect.edges import (
     LEVEL_EXTENT_PX,
@@ -287,6 +287,9 @@ class TriangleDetector:
         # (a video codec's, a camera's smoothing): it widens the edge lines' covariance
         self.correlation = LearnedCorrelation()
         self._lags: np.ndarray | None = None  # the last verified detection's lag sums
+        # the codec the frames come through (Frame.codec, set by the pipeline): through
+        # an inter-frame codec the pixel fit is not taken (see _measure)
+        self.codec = ""
 
     def _tracked_candidate(self, pts: np.ndarray) -> Candidate:
         inside = bool(np.all(self.rig.camera.in_image(pts, 2.0)))
@@ -562,7 +565,11 @@ class TriangleDetector:
         # as the run's frames say: the lines are less precise than their points'
         # scatter alone says
         cov = cov * self.correlation.factor
-        if s.refine == "pixels":
+        if s.refine == "pixels" and not inter_frame(self.codec):
+            # (through a codec that predicts frames from earlier ones its errors move
+            # with the image: the pixel fit, at its bound on sensor noise, then puts rows
+            # beyond 5 sigma; the edge lines, which learn the codec's correlation, stay
+            # honest. benchmarks/triangle_compression.py)
             xy, cov = _pixel_fit(image, fit, xy, cov, cam, shutter, rate_c)
         return _Measured(
             xy, cam.distort(xy / cam.fx), cov, fit.contrast.min(), fit.outlier_fraction.max(),

@@ -7,7 +7,7 @@ import math
 
 import numpy as np
 
-from visvec.data import AttitudeSolution, Detection, Status
+from visvec.data import AttitudeSolution, Detection, Status, inter_frame
 from visvec.detect import TriangleDetector
 from visvec.errors import ConfigError
 from visvec.estimate import ESTIMATORS
@@ -117,6 +117,9 @@ class TrianglePipeline(AttitudePipeline[Detection]):
         )
         # ok rows taken out with the frames' own readout estimate
         self.n_estimated_readout = 0
+        # the inter-frame codec (Frame.codec) a pixel-fit rig's frames came through, on
+        # which the pixel fit was set aside (notes)
+        self.inter_frame_codec = ""
         # every frame taken at rest (zero-tilt calibration): a rolling shutter has no
         # motion to correct, and unrelated frames need no rate
         self.still = still
@@ -185,6 +188,14 @@ class TrianglePipeline(AttitudePipeline[Detection]):
         does not tell the two apart: mp4v's frames and noise smoothed over 2 px read
         alike, and the pixel fit is honest on the second.)"""
         f = self.detector.correlation.factor
+        if self.inter_frame_codec:
+            return [
+                f"visvec: the frames came through {self.inter_frame_codec}, a codec that "
+                f'predicts frames from earlier ones: [detect] refine = "pixels" was set '
+                f"aside on them (its errors there move with the image, beyond its sigma) "
+                f"and the rows are the edge lines'. For the pixel fit, record losslessly "
+                f"(PNG frames, FFV1) or as Motion-JPEG"
+            ]
         if not f >= CODEC_NOTE_FACTOR:
             return []
         note = (
@@ -287,6 +298,9 @@ class TrianglePipeline(AttitudePipeline[Detection]):
         rolling = self.detector.readout_ms != 0
         estimated = rolling and self.shear is not None
         omega_c = self._camera_rate(frame.time_s)
+        self.detector.codec = frame.codec
+        if frame.codec and self.rig.detect.refine == "pixels" and inter_frame(frame.codec):
+            self.inter_frame_codec = frame.codec  # the pixel fit is not taken (the note)
         det = self.detector.detect(frame.image, omega_c)
         self.last_detection = det
         if det.status is not Status.OK:

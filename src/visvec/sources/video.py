@@ -39,6 +39,17 @@ STREAM_RETRY_PAUSE_S = 0.2
 MAX_UNREADABLE_IN_A_ROW = 25  # then a file is taken to be cut short there
 
 
+def codec_of(cap: cv2.VideoCapture) -> str:
+    """The FOURCC of the codec a capture decodes (stripped), or "" where it does not
+    say (0, -1, or not four printable characters); whether it predicts frames from
+    earlier ones: :func:`visvec.data.inter_frame`."""
+    v = int(cap.get(cv2.CAP_PROP_FOURCC) or 0)
+    if v <= 0:
+        return ""
+    s = "".join(chr((v >> (8 * k)) & 0xFF) for k in range(4))
+    return s.strip() if s.isprintable() else ""
+
+
 class VideoSource:
     """Frames from a camera index, a video file or a stream URL.
 
@@ -86,6 +97,8 @@ class VideoSource:
         self._mode = (self.size, fps)  # what a camera is asked for, again on a reopen
         self.retry_s = retry_s
         self.cap = self._open_stream() if self.stream else self._open()
+        # the codec the frames come through (Frame.codec)
+        self.codec = codec_of(self.cap) if self.cap.isOpened() else ""
         if not self.cap.isOpened():
             if isinstance(spec, int):
                 raise SourceError(
@@ -223,7 +236,8 @@ class VideoSource:
                 else:
                     if self.size is not None:
                         self._check_size(img)
-                    yield Frame(i, t, to_gray(img), f"{self.spec}#{i}", time_unix=unix)
+                    yield Frame(i, t, to_gray(img), f"{self.spec}#{i}", time_unix=unix,
+                                codec=self.codec)  # fmt: skip
                 i += 1
         finally:
             self.cap.release()
@@ -314,6 +328,7 @@ class VideoSource:
             if self.cap.isOpened():
                 ok, img = self.cap.read()
                 if ok:
+                    self.codec = codec_of(self.cap)
                     return img
         what = "stream" if self.stream else "camera"
         raise SourceError(
