@@ -34,12 +34,12 @@ from visvec.sim.simulate import random_attitudes
 from _common import CONFIGS, add_refine_option, run_record, save_json, summarise
 
 
-def sigma_check(rig, images: list[np.ndarray]) -> dict:
+def sigma_check(rig, images: list[np.ndarray], codec: str = "") -> dict:
     """`calibrate zero-tilt` on level frames: the sigma ratio it measures and writes."""
     pipe = TrianglePipeline(rig)
     dets = []
     for i, im in enumerate(images):
-        pipe.process(Frame(i, i / 30.0, im))
+        pipe.process(Frame(i, i / 30.0, im, codec=codec))
         if pipe.last_detection is not None and pipe.last_detection.status is Status.OK:
             dets.append(pipe.last_detection)
     cal = calibrate_zero_tilt(dets, rig)
@@ -59,12 +59,15 @@ def sigma_check(rig, images: list[np.ndarray]) -> dict:
     }
 
 
-def codecs(images: list[np.ndarray]) -> dict[str, list[np.ndarray]]:
+def codecs(images: list[np.ndarray]) -> dict[str, tuple[list[np.ndarray], str]]:
+    """The frames through each format, and the codec a video file's reader names for
+    them (Frame.codec: Motion-JPEG's MJPG codes each frame alone; mp4v's FMP4 predicts
+    frames from earlier ones, and the pixel fit is set aside on them)."""
     return {
-        "png": images,
-        "mjpeg_q95": jpeg(images, 95),
-        "mjpeg_q75": jpeg(images, 75),
-        "mp4v": mp4v(images),
+        "png": (images, ""),
+        "mjpeg_q95": (jpeg(images, 95), "MJPG"),
+        "mjpeg_q75": (jpeg(images, 75), "MJPG"),
+        "mp4v": mp4v(images, with_codec=True),
     }
 
 
@@ -86,12 +89,15 @@ def main() -> None:
         )
         level_by_codec = codecs(level)
         res = {}
-        for name, images in codecs(frames).items():
-            s = summarise(evaluate(rig, images, cases, "full", track=True))
-            check = sigma_check(rig, level_by_codec[name])
+        for name, (images, codec) in codecs(frames).items():
+            s = summarise(evaluate(rig, images, cases, "full", track=True, codec=codec))
+            s["codec"] = codec
+            check = sigma_check(rig, *level_by_codec[name])
             scaled = replace(rig, detect=replace(rig.detect, sigma_scale=check["sigma_scale"]))
             s["zero_tilt_sigma_check"] = check
-            s["with_sigma_scale"] = summarise(evaluate(scaled, images, cases, "full", track=True))
+            s["with_sigma_scale"] = summarise(
+                evaluate(scaled, images, cases, "full", track=True, codec=codec)
+            )
             res[name] = s
             print(cfg, name, s)
         results[cfg] = res
