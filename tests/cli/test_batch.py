@@ -332,3 +332,32 @@ def test_many_recordings_one_output_each_wherever_they_run(tmp_path):
     assert not (tmp_path / "x").exists()
     r = CliRunner().invoke(cli, ["batch", *recs, "--rig", RIG])
     assert r.exit_code == 2 and "several recordings need --out-dir" in r.output
+
+
+def test_batch_of_an_mp4v_video_with_the_pixel_fit_says_it_measures_with_the_lines(tmp_path):
+    """The shipped recording as an mp4v video: a pixel-fit rig says before the first row
+    that the pixel fit is set aside on these frames (FMP4 predicts frames from earlier
+    ones) and writes the same rows as the lines' rig; as Motion-JPEG, no such note."""
+    files = sorted(SAMPLES.glob("*.png"))
+    videos = {}
+    for fourcc, name in (("mp4v", "rec.mp4"), ("MJPG", "rec.avi")):
+        w = cv2.VideoWriter(str(tmp_path / name), cv2.VideoWriter_fourcc(*fourcc), 10.0,
+                            (640, 480), False)  # fmt: skip
+        for f in files:
+            w.write(cv2.imread(str(f), cv2.IMREAD_GRAYSCALE))
+        w.release()
+        videos[fourcc] = tmp_path / name
+    rig = CONFIGS / "triangle.toml"
+    pixels = rig_variant(rig, "refine", '"lines"', '"pixels"', tmp_path / "pixels.toml")
+    out = {}
+    for key, video, r in (("lines", videos["mp4v"], rig), ("pixels", videos["mp4v"], pixels),
+                          ("mjpeg", videos["MJPG"], pixels)):  # fmt: skip
+        res = run("batch", video, "--rig", r, "--out", tmp_path / f"{key}.csv")
+        assert res.exit_code == 0, res.output
+        rows = rows_of((tmp_path / f"{key}.csv").read_text())
+        assert len(rows) == len(files) and sum(x["status"] == "ok" for x in rows) >= 10
+        out[key] = (res.stderr, [{k: x[k] for k in x if k != "latency_ms"} for x in rows])
+    start = "the frames come through FMP4, a codec that predicts frames from earlier ones"
+    assert out["pixels"][0].count(start) == 1 and "set aside" in out["pixels"][0]
+    assert out["pixels"][1] == out["lines"][1]
+    assert "FMP4" not in out["lines"][0] and "set aside" not in out["mjpeg"][0]

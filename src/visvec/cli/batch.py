@@ -13,6 +13,7 @@ from visvec.cli.common import (
     KindCommand,
     check_output,
     load,
+    note_codec,
     note_inputs,
     note_uncalibrated,
     output_options,
@@ -106,6 +107,7 @@ def batch(paths, rig_path, calibration, truth, imu_path, fps, out_dir, scheduler
                                    "fused rows' truth instead")  # fmt: skip
         src = open_source(path, fps=rig.fps, max_frames=max_frames, retry_s=0.0)
         note_uncalibrated(rig)
+        note_codec(rig, src)
         run_fused_batch(rig, src, imu_path, method, out, fmt, camera_out)
         return
     if camera_out:
@@ -134,6 +136,7 @@ def run_batch(
         src = paced(src)
     # once the frames are found, before the first row (as `track` does)
     note_uncalibrated(rig)
+    note_codec(rig, src)
     try:
         rows = run_frames(
             rig,

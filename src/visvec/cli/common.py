@@ -11,6 +11,7 @@ from pathlib import Path
 
 import click
 
+from visvec.data import inter_frame
 from visvec.errors import ConfigError
 from visvec.pipeline import METHODS
 from visvec.rig import Rig, load_rig
@@ -234,6 +235,23 @@ def note_defaults(rig: Rig) -> None:
             "impossible_tilt (set it to the largest tilt your platform can make)",
             err=True,
         )
+
+
+def note_codec(rig: Rig, src) -> str | None:
+    """Say on stderr, before the first row, that a pixel-fit rig's frames come through a
+    codec that predicts frames from earlier ones (the source's ``codec``, Frame.codec):
+    the pixel fit is set aside on them (visvec.detect.triangle). Returns the line (for
+    the live view's information), or None."""
+    codec = getattr(src, "codec", "")
+    if rig.kind != "triangle" or rig.detect.refine != "pixels" or not inter_frame(codec):
+        return None
+    line = (
+        f"note: the frames come through {codec}, a codec that predicts frames from "
+        f'earlier ones: [detect] refine = "pixels" is set aside on them (its errors there '
+        f"move with the image); the rows are the edge lines'"
+    )
+    click.echo(f"visvec: {line}", err=True)
+    return line
 
 
 def note_uncalibrated(rig: Rig) -> None:

@@ -11,6 +11,7 @@ from visvec.cli.common import (
     check_new_recording,
     check_output,
     load,
+    note_codec,
     note_inputs,
     note_uncalibrated,
     output_options,
@@ -115,6 +116,9 @@ def track(
         view.state.info.extend(f"warning: {w}" for w in getattr(src, "settings_warnings", []))
     # said once the camera is open, before the first row: a live run may go on for hours
     note_uncalibrated(rig)
+    codec_line = note_codec(rig, src)
+    if view is not None and codec_line:
+        view.state.info.append(codec_line)
     if realtime:
         src = paced(src)
     try:
