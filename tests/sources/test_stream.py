@@ -155,3 +155,18 @@ def test_stream_that_stalls_for_good_ends_with_exit_3_and_its_rows_written(tmp_p
     assert "stream stopped delivering frames (retried for 1 s" in err
     rows = rows_of(out)
     assert [int(x["frame"]) for x in rows] == list(range(15))
+
+
+def test_an_mjpeg_streams_frames_keep_the_pixel_fit():
+    """An MJPEG stream's frames do not name a codec that predicts frames from earlier
+    ones (FFmpeg's "mjpeg" has no four-letter tag): a pixel-fit rig keeps its pixel fit."""
+    from visvec.data import inter_frame
+    from visvec.sources.open import open_source
+
+    srv = Mjpeg(first=10**6, then="drop")
+    try:
+        frames = list(open_source(srv.url, fps=FPS, retry_s=5.0, max_frames=3))
+    finally:
+        srv.close()
+    assert len(frames) == 3 and all(f.image is not None for f in frames)
+    assert not any(inter_frame(f.codec) for f in frames), [f.codec for f in frames]
