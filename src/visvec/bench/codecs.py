@@ -1,7 +1,8 @@
 """Frames through the codecs labs record with: each frame alone through JPEG (as
 Motion-JPEG stores it), or the whole sequence through OpenCV's mp4v (MPEG-4 part 2)
-writer and back (benchmarks/triangle_compression.py, and the tests of the learned edge
-correlation)."""
+writer, or through H.264 as a network camera streams it (PyAV's libx264, the bench
+extra), and back through OpenCV's reader (benchmarks/triangle_compression.py, and the
+tests of the learned edge correlation)."""
 
 from __future__ import annotations
 
@@ -49,3 +50,39 @@ def mp4v(images: list[np.ndarray], fps: float = 30.0, with_codec: bool = False):
     if len(out) != len(images):
         raise RuntimeError(f"mp4v round trip gave {len(out)} of {len(images)} frames")
     return (out, codec) if with_codec else out
+
+
+def h264(images: list[np.ndarray], fps: float = 30.0, crf: int = 23, gop: int = 30):
+    """The grey frames through H.264 as an IP camera streams it (libx264 through PyAV:
+    constant quality ``crf``, 23 being x264's default; a key frame every ``gop`` frames;
+    no B-frames, as for low latency; 4:2:0 at the video range 16-235), read back through
+    OpenCV, and the codec's FOURCC as its reader names it ("h264"). Needs PyAV (the
+    bench extra: OpenCV's own FFmpeg has no H.264 encoder)."""
+    import av
+
+    h, w = images[0].shape
+    with tempfile.TemporaryDirectory() as d:
+        path = str(Path(d) / "rec.mp4")
+        with av.open(path, "w") as out:
+            st = out.add_stream("libx264", rate=int(round(fps)))
+            st.width, st.height, st.pix_fmt = w, h, "yuv420p"
+            st.options = {"crf": str(crf), "g": str(gop), "bf": "0", "preset": "veryfast",
+                          "tune": "zerolatency"}  # fmt: skip
+            for im in images:
+                frame = av.VideoFrame.from_ndarray(im, format="gray").reformat(format="yuv420p")
+                for packet in st.encode(frame):
+                    out.mux(packet)
+            for packet in st.encode():
+                out.mux(packet)
+        cap = cv2.VideoCapture(path)
+        codec = codec_of(cap)
+        frames = []
+        while True:
+            ok, frame = cap.read()
+            if not ok:
+                break
+            frames.append(cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY))
+        cap.release()
+    if len(frames) != len(images):
+        raise RuntimeError(f"H.264 round trip gave {len(frames)} of {len(images)} frames")
+    return frames, codec
