@@ -337,7 +337,9 @@ def test_many_recordings_one_output_each_wherever_they_run(tmp_path):
 def test_batch_of_an_mp4v_video_with_the_pixel_fit_says_it_measures_with_the_lines(tmp_path):
     """The shipped recording as an mp4v video: a pixel-fit rig says before the first row
     that the pixel fit is set aside on these frames (FMP4 predicts frames from earlier
-    ones) and writes the same rows as the lines' rig; as Motion-JPEG, no such note."""
+    ones) and writes the same rows as the lines' rig; both say that no sigma_scale
+    measured the codec's errors, and their ok rows carry inter_frame_codec; as
+    Motion-JPEG, none of it."""
     files = sorted(SAMPLES.glob("*.png"))
     videos = {}
     for fourcc, name in (("mp4v", "rec.mp4"), ("MJPG", "rec.avi")):
@@ -360,4 +362,11 @@ def test_batch_of_an_mp4v_video_with_the_pixel_fit_says_it_measures_with_the_lin
     start = "the frames come through FMP4, a codec that predicts frames from earlier ones"
     assert out["pixels"][0].count(start) == 1 and "set aside" in out["pixels"][0]
     assert out["pixels"][1] == out["lines"][1]
-    assert "FMP4" not in out["lines"][0] and "set aside" not in out["mjpeg"][0]
+    # the lines' rig is told the rows' sigma does not cover the codec's errors, and
+    # each ok row says so; Motion-JPEG's frames are neither
+    assert out["lines"][0].count(start) == 1 and "set aside" not in out["lines"][0]
+    assert "calibrate zero-tilt` on level frames taken through this same" in out["lines"][0]
+    ok = [x for x in out["lines"][1] if x["status"] == "ok"]
+    assert all("inter_frame_codec" in x["warnings"].split(";") for x in ok)
+    assert "FMP4" not in out["mjpeg"][0] and "set aside" not in out["mjpeg"][0]
+    assert not any("inter_frame_codec" in x["warnings"] for x in out["mjpeg"][1])

@@ -407,6 +407,25 @@ def test_the_pixel_fit_is_set_aside_on_frames_of_an_inter_frame_codec(rig320):
     assert not any("FMP4" in n or "set aside" in n for n in notes_fitted + notes_mjpeg)
 
 
+def test_rows_through_an_inter_frame_codec_say_their_sigma_is_not_measured(rig320):
+    """Frames of a codec that predicts frames from earlier ones (h264, FMP4): each ok
+    row carries inter_frame_codec while the rig's [detect] sigma_scale is 1 (not
+    measured through the stream); with a measured sigma_scale, or through Motion-JPEG
+    or with no codec named, none does."""
+    eul = random_attitudes(6, 5.0, np.random.default_rng(31), "sweep")
+    images = [render_frame(rig320, euler_to_matrix(*e), Scene(), rng=3100 + k)
+              for k, e in enumerate(eul)]  # fmt: skip
+    measured = replace(rig320, detect=replace(rig320.detect, sigma_scale=1.4))
+    for rig, codec, warned in ((rig320, "h264", True), (rig320, "FMP4", True),
+                               (measured, "h264", False), (rig320, "MJPG", False),
+                               (rig320, "", False)):  # fmt: skip
+        pipe = TrianglePipeline(rig)
+        rows = [pipe.process(Frame(i, i / 30.0, im, codec=codec)) for i, im in enumerate(images)]
+        assert sum(r.ok for r in rows) == len(images), codec
+        assert all(("inter_frame_codec" in r.warnings) == warned for r in rows), (codec, rig)
+        assert any("sigma_scale measured them" in n for n in pipe.notes()) == warned
+
+
 def test_a_run_through_a_codec_is_told_so_at_its_end(rig320):
     """The closing note, when the learned correlation says the frames went through a
     codec; with the pixel fit, that it is not honest there."""

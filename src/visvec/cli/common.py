@@ -238,18 +238,16 @@ def note_defaults(rig: Rig) -> None:
 
 
 def note_codec(rig: Rig, src) -> str | None:
-    """Say on stderr, before the first row, that a pixel-fit rig's frames come through a
-    codec that predicts frames from earlier ones (the source's ``codec``, Frame.codec):
-    the pixel fit is set aside on them (visvec.detect.triangle). Returns the line (for
-    the live view's information), or None."""
+    """Say on stderr, before the first row, that a triangle rig's frames come through a
+    codec that predicts frames from earlier ones (the source's ``codec``, Frame.codec)
+    and what that means for its rows (visvec.pipeline.triangle.codec_advice). Returns
+    the line (for the live view's information), or None."""
+    from visvec.pipeline.triangle import codec_advice
+
     codec = getattr(src, "codec", "")
-    if rig.kind != "triangle" or rig.detect.refine != "pixels" or not inter_frame(codec):
+    if rig.kind != "triangle" or not inter_frame(codec):
         return None
-    line = (
-        f"note: the frames come through {codec}, a codec that predicts frames from "
-        f'earlier ones: [detect] refine = "pixels" is set aside on them (its errors there '
-        f"move with the image); the rows are the edge lines'"
-    )
+    line = f"note: {codec_advice(rig, codec)}"
     click.echo(f"visvec: {line}", err=True)
     return line
 

@@ -64,6 +64,34 @@ def body_rate(a: tuple[float, np.ndarray], b: tuple[float, np.ndarray]) -> np.nd
     return omega_b
 
 
+def codec_advice(rig: Rig, codec: str, past: bool = False) -> str:
+    """What a triangle rig's frames through ``codec``, one that predicts frames from
+    earlier ones (visvec.data.inter_frame), mean for its rows: the pixel fit is set
+    aside on them (a pixel-fit rig), and unless ``[detect] sigma_scale`` was measured
+    (by `calibrate zero-tilt` on level frames through the same stream) the rows' sigma
+    does not cover the codec's errors (their warning inter_frame_codec).
+    benchmarks/triangle_compression.py: through H.264 at x264's default quality with
+    the platform tilting, 30-37 of 300 rows beyond 3 sigma and 3-7 beyond 5; with the
+    measured sigma_scale 3 and none at 640x480 (1 at 320x240)."""
+    were, are = ("were", "came") if past else ("are", "come")
+    text = f"the frames {are} through {codec}, a codec that predicts frames from earlier ones"
+    parts = []
+    if rig.detect.refine == "pixels":
+        parts.append(
+            f'[detect] refine = "pixels" {"was" if past else "is"} set aside on them (its '
+            f"errors there move with the image) for the edge lines"
+        )
+    if rig.detect.sigma_scale == 1.0:
+        parts.append(
+            f"their errors {were} wider than the edges' noise model says, and no "
+            f"[detect] sigma_scale measured them (rows warned inter_frame_codec): run "
+            f"`visvec calibrate zero-tilt` on level frames taken through this same stream "
+            f"and use its calibration, or record losslessly (PNG frames, FFV1) or as "
+            f"Motion-JPEG"
+        )
+    return text + (": " + "; ".join(parts) if parts else "")
+
+
 class TrianglePipeline(AttitudePipeline[Detection]):
     """The triangle target; ``method`` "full" (default) or "paper"."""
 
@@ -189,13 +217,7 @@ class TrianglePipeline(AttitudePipeline[Detection]):
         alike, and the pixel fit is honest on the second.)"""
         f = self.detector.correlation.factor
         if self.inter_frame_codec:
-            return [
-                f"visvec: the frames came through {self.inter_frame_codec}, a codec that "
-                f'predicts frames from earlier ones: [detect] refine = "pixels" was set '
-                f"aside on them (its errors there move with the image, beyond its sigma) "
-                f"and the rows are the edge lines'. For the pixel fit, record losslessly "
-                f"(PNG frames, FFV1) or as Motion-JPEG"
-            ]
+            return [f"visvec: {codec_advice(self.rig, self.inter_frame_codec, True)}"]
         if not f >= CODEC_NOTE_FACTOR:
             return []
         note = (
@@ -299,8 +321,9 @@ class TrianglePipeline(AttitudePipeline[Detection]):
         estimated = rolling and self.shear is not None
         omega_c = self._camera_rate(frame.time_s)
         self.detector.codec = frame.codec
-        if frame.codec and self.rig.detect.refine == "pixels" and inter_frame(frame.codec):
-            self.inter_frame_codec = frame.codec  # the pixel fit is not taken (the note)
+        coded = inter_frame(frame.codec)
+        if coded:
+            self.inter_frame_codec = frame.codec  # (the closing note)
         det = self.detector.detect(frame.image, omega_c)
         self.last_detection = det
         if det.status is not Status.OK:
@@ -330,6 +353,11 @@ class TrianglePipeline(AttitudePipeline[Detection]):
             if estimated:
                 self.n_estimated_readout += 1
                 warnings += ("rolling_shutter_estimated",)
+            if coded and self.rig.detect.sigma_scale == 1.0:
+                # a codec that predicts frames from earlier ones: its errors are wider
+                # than the edges' noise model says, and no sigma_scale measured them
+                # (CODEC_WARNING)
+                warnings += ("inter_frame_codec",)
         return sol.status, sol, warnings
 
     def _add_shear_evidence(self, t: float, det, sol: AttitudeSolution, applied_ms: float) -> None:
