@@ -47,6 +47,8 @@ WARNING_WORDS = {
     "first_frame": "the first frame (a rate needs two)",
     "rolling_shutter_uncorrected": "a rolling shutter is not corrected",
     "rolling_shutter_estimated": "the rolling shutter's readout is estimated",
+    "inter_frame_codec": "the video codec's errors are not measured (calibrate zero-tilt "
+    "through this stream)",
 }
 
 
