@@ -424,6 +424,8 @@ def test_rows_through_an_inter_frame_codec_say_their_sigma_is_not_measured(rig32
         assert sum(r.ok for r in rows) == len(images), codec
         assert all(("inter_frame_codec" in r.warnings) == warned for r in rows), (codec, rig)
         assert any("sigma_scale measured them" in n for n in pipe.notes()) == warned
+        # a lines rig whose sigma_scale was measured has nothing to be told
+        assert any(codec and codec in n for n in pipe.notes()) == warned
 
 
 def test_a_run_through_a_codec_is_told_so_at_its_end(rig320):

@@ -245,9 +245,10 @@ def note_codec(rig: Rig, src) -> str | None:
     from visvec.pipeline.triangle import codec_advice
 
     codec = getattr(src, "codec", "")
-    if rig.kind != "triangle" or not inter_frame(codec):
+    advice = codec_advice(rig, codec) if rig.kind == "triangle" and inter_frame(codec) else ""
+    if not advice:
         return None
-    line = f"note: {codec_advice(rig, codec)}"
+    line = f"note: {advice}"
     click.echo(f"visvec: {line}", err=True)
     return line
 

@@ -568,8 +568,9 @@ class TriangleDetector:
         if s.refine == "pixels" and not inter_frame(self.codec):
             # (through a codec that predicts frames from earlier ones its errors move
             # with the image: the pixel fit, at its bound on sensor noise, then puts rows
-            # beyond 5 sigma; the edge lines, which learn the codec's correlation, stay
-            # honest. benchmarks/triangle_compression.py)
+            # beyond 5 sigma even on a yaw sweep, where the edge lines, which learn the
+            # codec's correlation, do not; visvec.pipeline.triangle.codec_advice,
+            # benchmarks/triangle_compression.py)
             xy, cov = _pixel_fit(image, fit, xy, cov, cam, shutter, rate_c)
         return _Measured(
             xy, cam.distort(xy / cam.fx), cov, fit.contrast.min(), fit.outlier_fraction.max(),

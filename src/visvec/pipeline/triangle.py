@@ -72,7 +72,8 @@ def codec_advice(rig: Rig, codec: str, past: bool = False) -> str:
     does not cover the codec's errors (their warning inter_frame_codec).
     benchmarks/triangle_compression.py: through H.264 at x264's default quality with
     the platform tilting, 30-37 of 300 rows beyond 3 sigma and 3-7 beyond 5; with the
-    measured sigma_scale 3 and none at 640x480 (1 at 320x240)."""
+    measured sigma_scale 3 and none at 640x480 (1 at 320x240). Empty when neither
+    applies (a lines rig with a measured sigma_scale)."""
     were, are = ("were", "came") if past else ("are", "come")
     text = f"the frames {are} through {codec}, a codec that predicts frames from earlier ones"
     parts = []
@@ -89,7 +90,7 @@ def codec_advice(rig: Rig, codec: str, past: bool = False) -> str:
             f"and use its calibration, or record losslessly (PNG frames, FFV1) or as "
             f"Motion-JPEG"
         )
-    return text + (": " + "; ".join(parts) if parts else "")
+    return text + ": " + "; ".join(parts) if parts else ""
 
 
 class TrianglePipeline(AttitudePipeline[Detection]):
@@ -145,8 +146,7 @@ class TrianglePipeline(AttitudePipeline[Detection]):
         )
         # ok rows taken out with the frames' own readout estimate
         self.n_estimated_readout = 0
-        # the inter-frame codec (Frame.codec) a pixel-fit rig's frames came through, on
-        # which the pixel fit was set aside (notes)
+        # the inter-frame codec (Frame.codec) the frames came through (notes)
         self.inter_frame_codec = ""
         # every frame taken at rest (zero-tilt calibration): a rolling shutter has no
         # motion to correct, and unrelated frames need no rate
@@ -216,8 +216,10 @@ class TrianglePipeline(AttitudePipeline[Detection]):
         does not tell the two apart: mp4v's frames and noise smoothed over 2 px read
         alike, and the pixel fit is honest on the second.)"""
         f = self.detector.correlation.factor
-        if self.inter_frame_codec:
-            return [f"visvec: {codec_advice(self.rig, self.inter_frame_codec, True)}"]
+        codec = self.inter_frame_codec
+        advice = codec_advice(self.rig, codec, True) if codec else ""
+        if advice:
+            return [f"visvec: {advice}"]
         if not f >= CODEC_NOTE_FACTOR:
             return []
         note = (
