@@ -170,7 +170,7 @@ def _as_python(kernel):
                                                  "_level_lines", "_group_tls",
                                                  "_group_median", "_lag_sums",
                                                  "_ndtr_with_bell", "_pixel_gn", "_strided",
-                                                 "_noise_inflation")}  # fmt: skip
+                                                 "noise_inflation")}  # fmt: skip
 
     def run(*args):
         mp = pytest.MonkeyPatch()

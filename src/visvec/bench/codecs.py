@@ -38,17 +38,7 @@ def mp4v(images: list[np.ndarray], fps: float = 30.0, with_codec: bool = False):
         for im in images:
             writer.write(cv2.cvtColor(im, cv2.COLOR_GRAY2BGR))
         writer.release()
-        cap = cv2.VideoCapture(path)
-        codec = codec_of(cap)
-        out = []
-        while True:
-            ok, frame = cap.read()
-            if not ok:
-                break
-            out.append(cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY))
-        cap.release()
-    if len(out) != len(images):
-        raise RuntimeError(f"mp4v round trip gave {len(out)} of {len(images)} frames")
+        out, codec = _read_back(path, len(images), "mp4v")
     return (out, codec) if with_codec else out
 
 
@@ -74,15 +64,21 @@ def h264(images: list[np.ndarray], fps: float = 30.0, crf: int = 23, gop: int = 
                     out.mux(packet)
             for packet in st.encode():
                 out.mux(packet)
-        cap = cv2.VideoCapture(path)
-        codec = codec_of(cap)
-        frames = []
-        while True:
-            ok, frame = cap.read()
-            if not ok:
-                break
-            frames.append(cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY))
-        cap.release()
-    if len(frames) != len(images):
-        raise RuntimeError(f"H.264 round trip gave {len(frames)} of {len(images)} frames")
-    return frames, codec
+        return _read_back(path, len(images), "H.264")
+
+
+def _read_back(path: str, n: int, what: str) -> tuple[list[np.ndarray], str]:
+    """The ``n`` grey frames of the video at ``path`` as OpenCV's reader gives them,
+    and the codec's FOURCC as it names it (visvec.sources.video.codec_of)."""
+    cap = cv2.VideoCapture(path)
+    codec = codec_of(cap)
+    out = []
+    while True:
+        ok, frame = cap.read()
+        if not ok:
+            break
+        out.append(cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY))
+    cap.release()
+    if len(out) != n:
+        raise RuntimeError(f"{what} round trip gave {len(out)} of {n} frames")
+    return out, codec

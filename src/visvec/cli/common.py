@@ -14,6 +14,7 @@ import click
 from visvec.data import inter_frame
 from visvec.errors import ConfigError
 from visvec.pipeline import METHODS
+from visvec.pipeline.triangle import codec_advice
 from visvec.rig import Rig, load_rig
 from visvec.sinks import UdpStream, open_sink
 
@@ -242,8 +243,6 @@ def note_codec(rig: Rig, src) -> str | None:
     codec that predicts frames from earlier ones (the source's ``codec``, Frame.codec)
     and what that means for its rows (visvec.pipeline.triangle.codec_advice). Returns
     the line (for the live view's information), or None."""
-    from visvec.pipeline.triangle import codec_advice
-
     codec = getattr(src, "codec", "")
     advice = codec_advice(rig, codec) if rig.kind == "triangle" and inter_frame(codec) else ""
     if not advice:

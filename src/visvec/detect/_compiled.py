@@ -904,7 +904,7 @@ def _pixel_solve(x, y, uv, counts, n, c, w, V, centroid, scale, steps, stride, l
     rms.sort()
     if rms[2] > rms_ratio * rms[1]:
         return False, V, fail, w, s2, 1.0
-    inflation = _noise_inflation(uv, r, g, lags, L, min_pairs)
+    inflation = noise_inflation(uv, r, g, lags, L, min_pairs)
     try:
         Hi = np.linalg.inv(H)
     except Exception:  # noqa: BLE001 - Numba catches no narrower class
@@ -1187,7 +1187,6 @@ def _readout_solve(info, prior_info, rhs, chi2, dof):
 sample_geometry = _jit(_sample_geometry, "sample_geometry")
 _lag_sums = _jit(_lag_sums, "_lag_sums")
 noise_inflation = _jit(_noise_inflation, "noise_inflation")
-_noise_inflation = _jit(_noise_inflation, "_noise_inflation")
 band_pixels = _jit(_band_pixels, "band_pixels")
 cover = _jit(_cover, "cover")
 _ndtr_with_bell = _jit(_ndtr_with_bell, "_ndtr_with_bell")

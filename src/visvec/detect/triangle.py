@@ -18,7 +18,7 @@ import cv2
 import numpy as np
 
 from visvec.chi2 import ppf as chi2_ppf
-from visvec.data import Detection, Status, inter_frame
+from visvec.data import Detection, Status
 from visvec.detect.candidates import Candidate, iter_candidates, partial_triangle
 from visvec.detect.edges import (
     LEVEL_EXTENT_PX,
@@ -287,9 +287,10 @@ class TriangleDetector:
         # (a video codec's, a camera's smoothing): it widens the edge lines' covariance
         self.correlation = LearnedCorrelation()
         self._lags: np.ndarray | None = None  # the last verified detection's lag sums
-        # the codec the frames come through (Frame.codec, set by the pipeline): through
-        # an inter-frame codec the pixel fit is not taken (see _measure)
-        self.codec = ""
+        # the frame came through a codec that predicts frames from earlier ones
+        # (visvec.data.inter_frame of its Frame.codec, set by the pipeline): the pixel
+        # fit is not taken (see _measure)
+        self.inter_frame = False
 
     def _tracked_candidate(self, pts: np.ndarray) -> Candidate:
         inside = bool(np.all(self.rig.camera.in_image(pts, 2.0)))
@@ -565,7 +566,7 @@ class TriangleDetector:
         # as the run's frames say: the lines are less precise than their points'
         # scatter alone says
         cov = cov * self.correlation.factor
-        if s.refine == "pixels" and not inter_frame(self.codec):
+        if s.refine == "pixels" and not self.inter_frame:
             # (through a codec that predicts frames from earlier ones its errors move
             # with the image: the pixel fit, at its bound on sensor noise, then puts rows
             # beyond 5 sigma even on a yaw sweep, where the edge lines, which learn the

@@ -322,8 +322,7 @@ class TrianglePipeline(AttitudePipeline[Detection]):
         rolling = self.detector.readout_ms != 0
         estimated = rolling and self.shear is not None
         omega_c = self._camera_rate(frame.time_s)
-        self.detector.codec = frame.codec
-        coded = inter_frame(frame.codec)
+        coded = self.detector.inter_frame = inter_frame(frame.codec)
         if coded:
             self.inter_frame_codec = frame.codec  # (the closing note)
         det = self.detector.detect(frame.image, omega_c)
