@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass, field
 from enum import StrEnum
 
@@ -63,6 +64,11 @@ class Frame:
         The video codec the frame was decoded from, as its FOURCC (``"FMP4"`` for
         mp4v, ``"h264"``, ``"MJPG"``), where the source knows it; empty for image files
         and sources that do not say (see :func:`inter_frame`).
+    read_late : threading.Event or None
+        Set (by a live source's reader, possibly after the frame was handed out) when
+        the frame's time is the moment it was read and it had waited in a queue
+        first, so its exposure was earlier by an unknown amount (see :attr:`late`);
+        None where the time does not depend on when the frame was read.
     """
 
     index: int
@@ -72,6 +78,13 @@ class Frame:
     error: str = ""
     time_unix: float | None = None
     codec: str = ""
+    read_late: threading.Event | None = None
+
+    @property
+    def late(self) -> bool:
+        """Whether ``time_s`` is later than the exposure by an unknown amount (the
+        frame was read late): its row is warned ``read_late``, and it is no fix."""
+        return self.read_late is not None and self.read_late.is_set()
 
 
 @dataclass(frozen=True)

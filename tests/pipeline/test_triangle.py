@@ -438,3 +438,20 @@ def test_a_run_through_a_codec_is_told_so_at_its_end(rig320):
         (note,) = [n for n in pipe.notes() if "codec" in n]
         assert "1.9x" in note and "codec" in note
         assert ('refine = "lines"' in note) == (refine == "pixels")
+
+
+def test_a_frame_read_late_keeps_its_values_and_is_warned(rig640):
+    """A live frame that waited before it was read (Frame.read_late set by its
+    reader): the same values, ok, warned read_late; a refused one is not warned."""
+    import threading
+
+    img = render_frame(rig640, euler_to_matrix(*np.radians([30.0, 1.0, -2.0])), Scene(), 5, 25.0)
+    flag = threading.Event()
+    on_time = TrianglePipeline(rig640).process(Frame(0, 0.0, img, read_late=flag))
+    flag.set()
+    late = TrianglePipeline(rig640).process(Frame(0, 0.0, img, read_late=flag))
+    assert on_time.ok and "read_late" not in on_time.warnings
+    assert late.ok and late.warnings == on_time.warnings + ("read_late",)
+    np.testing.assert_array_equal(late.euler_deg, on_time.euler_deg)
+    blank = TrianglePipeline(rig640).process(Frame(1, 0.0, np.zeros_like(img), read_late=flag))
+    assert not blank.ok and "read_late" not in blank.warnings

@@ -119,6 +119,7 @@ def track(
     codec_line = note_codec(rig, src)
     if view is not None and codec_line:
         view.state.info.append(codec_line)
+    source = src
     if realtime:
         src = paced(src)
     try:
@@ -140,7 +141,20 @@ def track(
             watchers=[view.state] if view is not None else None,
         )
     finally:
+        note_passed_over(source)
         linger(view)
+
+
+def note_passed_over(src) -> None:
+    """How many frames of a live stream came while the pipeline was busy with an
+    earlier one, and were passed over for the newest (visvec.sources.reader)."""
+    n = getattr(src, "dropped", 0)
+    if n:
+        click.echo(
+            f"visvec: {n} frames of the stream came while the pipeline was busy and were "
+            "passed over for the newest (the rows skip their numbers)",
+            err=True,
+        )
 
 
 def _advice(spec) -> str:

@@ -129,6 +129,9 @@ class Pipeline(Generic[DetT, SolT]):
         row = self._process(frame, t_in)
         if frame.time_unix is not None:
             row = replace(row, time_unix=frame.time_unix)
+        if row.ok and frame.late:
+            # right values of an unknown moment: said, and never taken for a fix
+            row = replace(row, warnings=row.warnings + ("read_late",))
         self.n_rows += 1
         if not row.ok:
             self.refused[row.reason] += 1

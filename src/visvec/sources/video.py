@@ -14,12 +14,21 @@ from visvec.errors import SourceError
 from visvec.rig import CameraControls
 from visvec.sources.controls import apply_controls, describe_controls
 from visvec.sources.folder import to_gray
+from visvec.sources.reader import Arrival, LiveReader
 
 _log = logging.getLogger(__name__)
 
 # a live source's timestamps are used while their elapsed time stays within this of
 # ours (s): a clock that is not running at real time (or jumped) is not the frames'
 SOURCE_CLOCK_TOLERANCE_S = 0.5
+# ... and only once they have kept time with ours for this long (s), to within
+# SOURCE_RATE_TOLERANCE: until then a frame's time is when it was read. An MJPEG
+# stream's timestamps are FFmpeg's count of its frames at 25 fps, 20 % fast on a 30 fps
+# camera: taken at their word they put frames up to SOURCE_CLOCK_TOLERANCE_S off before
+# the tolerance caught them
+SOURCE_CLOCK_TRIAL_S = 2.0
+# two crystals differ by tens of ppm; a clock 0.5 % off ours is not a crystal's
+SOURCE_RATE_TOLERANCE = 5e-3
 # the source's clock is tied to ours by its fastest-read frame of the last
 # visvec.clocks.CLOCK_WINDOW_S, the tie moved towards it by at most this much a second
 # (1000 ppm: 0.03 ms a frame at 30 fps, so the frames' times never go back): a camera's
@@ -48,6 +57,18 @@ def codec_of(cap: cv2.VideoCapture) -> str:
         return ""
     s = "".join(chr((v >> (8 * k)) & 0xFF) for k in range(4))
     return s.strip() if s.isprintable() else ""
+
+
+def _rate_off(trial: list[tuple[float, float]]) -> float:
+    """How much faster than ours a source's clock ran over a trial (0.01: 1 %), from
+    (read time, read time - source time) pairs: the least of the second over the
+    trial's first third against its last third (the frames read soonest after their
+    timestamps, whose lags are the transport's alone), divided by the time between."""
+    t0, t1 = trial[0][0], trial[-1][0]
+    third = (t1 - t0) / 3.0
+    a = min((p for p in trial if p[0] <= t0 + third), key=lambda p: p[1])
+    b = min((p for p in trial if p[0] >= t1 - third), key=lambda p: p[1])
+    return (a[1] - b[1]) / max(b[0] - a[0], 1e-9)
 
 
 class VideoSource:
@@ -123,6 +144,12 @@ class VideoSource:
         self._tie = ClockTie()
         self._src_off = 0.0
         self._src_read = 0.0  # our time of the last frame read by its timestamp
+        # (read time, read time - source time) of the frames of the source clock's
+        # trial (SOURCE_CLOCK_TRIAL_S); None once it is over
+        self._trial: list[tuple[float, float]] | None = None
+        self._read_time = True  # the last frame's time is when it was read
+        self._next_n = 0  # the number its reader gives the next frame
+        self.dropped = 0  # live frames read and not taken: the pipeline fell behind
         self.clock = "source" if self.live else "file"
         self.reopened = 0  # how often a live source was closed and opened again
         self._last_frame_at: float | None = None  # time.monotonic() of the last frame read
@@ -145,7 +172,7 @@ class VideoSource:
         if self.stream:
             if timeout_s is None:
                 timeout_s = max(self.retry_s, 0.1)
-            return cv2.VideoCapture(
+            cap = cv2.VideoCapture(
                 self.spec,
                 cv2.CAP_FFMPEG,
                 [
@@ -155,6 +182,10 @@ class VideoSource:
                     int(STREAM_STALL_S * 1000),
                 ],
             )
+            # a live stream is read in a thread of its own (visvec.sources.reader); a
+            # recording served over the network (it has a length) frame by frame
+            live = cap.isOpened() and not cap.get(cv2.CAP_PROP_FRAME_COUNT) > 0
+            return LiveReader(cap, "visvec-stream") if live else cap
         cap = cv2.VideoCapture(self.spec)
         size, fps = self._mode
         if size is not None and cap.isOpened():
@@ -180,7 +211,8 @@ class VideoSource:
         failed = 0  # frames of a file that could not be decoded, in a row
         try:
             while self.max_frames is None or i < self.max_frames:
-                ok, img = self.cap.read()
+                a = self._read()
+                ok, img = a.ok, a.image
                 if not ok and not self.live:
                     count = int(self.cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
                     if count <= 0 or i >= count:
@@ -206,19 +238,30 @@ class VideoSource:
                     count = self.cap.get(cv2.CAP_PROP_FRAME_COUNT)
                     if count and count > 0 and i >= count:
                         return  # a stream of known length has ended
-                    img = self._retry()
+                    a = self._retry()
+                    img = a.image
                 failed = 0
-                now = time.monotonic()
+                # a live frame's time is when its reader read it (time.monotonic()),
+                # not when it was taken here
+                now = a.t
                 self._last_frame_at = now
                 if self._t0 is None:
                     self._t0 = now
                     # the computer's clock at the first frame: a live frame's absolute
                     # time is this plus its time from the first
-                    self._unix0 = time.time()
+                    self._unix0 = time.time() - (time.monotonic() - now)
                 unix = None
+                late = None
                 if self.live:
-                    t = self._live_time(now - self._t0)
+                    # frames its reader read and this loop did not take (it fell behind):
+                    # no rows, as a camera's driver drops them, but their numbers
+                    i += max(a.n - self._next_n, 0)
+                    self.dropped += max(a.n - self._next_n, 0)
+                    self._next_n = a.n + 1
+                    t = self._live_time(now - self._t0, a.ms)
                     unix = self._unix0 + t
+                    # a time that is when the frame was read, and the frame had waited
+                    late = a.late if self._read_time else None
                 else:
                     ms = self.cap.get(cv2.CAP_PROP_POS_MSEC)
                     t = ms / 1000.0 if ms and ms > 0 else i / self.fps
@@ -237,47 +280,79 @@ class VideoSource:
                     if self.size is not None:
                         self._check_size(img)
                     yield Frame(i, t, to_gray(img), f"{self.spec}#{i}", time_unix=unix,
-                                codec=self.codec)  # fmt: skip
+                                codec=self.codec, read_late=late)  # fmt: skip
                 i += 1
         finally:
             self.cap.release()
 
-    def _live_time(self, t_read: float) -> float:
+    def _read(self) -> Arrival:
+        """The next frame: a live source's newest from its reader (stamped when it was
+        read there), a file's read now."""
+        if isinstance(self.cap, LiveReader):
+            return self.cap.take()
+        ok, img = self.cap.read()
+        t = time.monotonic()
+        return Arrival(ok, img, t, self.cap.get(cv2.CAP_PROP_POS_MSEC) if ok else 0.0)
+
+    def _live_time(self, t_read: float, ms: float) -> float:
         """A live frame's time (s from the first frame): the source's own timestamp
-        (the driver's capture time, not when this program got round to reading the
-        frame, which lags by up to a frame and jitters with the processing load) while
-        it is positive, increasing and in step with our clock within
-        SOURCE_CLOCK_TOLERANCE_S; the read time ``t_read`` from the first frame that is
-        not (a backend without timestamps gives 0), for the rest of the run.
+        ``ms`` (the driver's capture time, not when the frame was read, which lags by
+        up to a frame) once it has kept time with our clock for SOURCE_CLOCK_TRIAL_S
+        (to SOURCE_RATE_TOLERANCE) and while it stays positive, increasing and within
+        SOURCE_CLOCK_TOLERANCE_S of ours; the read time ``t_read`` during the trial and,
+        from the first frame whose timestamp fails (a backend without timestamps gives
+        0), for the rest of the run. ``self._read_time`` says which it was.
 
         The source's elapsed time is put on our clock by a tie (visvec.clocks.ClockTie:
-        the frame of the last 10 s read soonest after its timestamp), towards which
-        the tie used moves by at most SOURCE_SLEW a second: a camera whose crystal runs
-        50 ppm off ours put its frames 0.18 s off an hour into a run, then (at 0.5 s,
-        after 3 hours) was dropped for the read times; a first frame read late (a
-        camera starting up) no longer sets every later frame's lag."""
+        the frame of the last 10 s read soonest after its timestamp), set at the trial's
+        end and then moved towards the tie by at most SOURCE_SLEW a second: a camera
+        whose crystal runs 50 ppm off ours put its frames 0.18 s off an hour into a run,
+        then (at 0.5 s, after 3 hours) was dropped for the read times."""
+        self._read_time = True
         if self.clock != "source":
             return t_read
-        ms = self.cap.get(cv2.CAP_PROP_POS_MSEC)
         ts = ms / 1000.0 if ms and ms > 0 else None
+        if self._src is None and ms == 0.0:
+            ts = 0.0  # a first timestamp may be 0 (a stream's clock starts there)
         if ts is not None and self._src is None:
-            # the first frame, or the first after a reopen (a stream's clock restarts)
+            # the first frame, or the first after a reopen (a stream's clock restarts):
+            # a new trial
             self._src = (ts, ts)
             self._src_t0 = t_read
-            self._tie, self._src_off, self._src_read = ClockTie(), 0.0, t_read
+            self._tie = ClockTie()
             self._tie.add(t_read, t_read)
+            self._trial = [(t_read, 0.0)]
             return t_read
         if ts is not None and ts > self._src[1]:
             base = self._src_t0 + ts - self._src[0]
             self._tie.add(t_read, base)
-            slew = SOURCE_SLEW * max(t_read - self._src_read, 0.0)
-            self._src_off += min(max(self._tie.offset - self._src_off, -slew), slew)
-            self._src_read = t_read
-            t = base + self._src_off
-            if abs(t - t_read) < SOURCE_CLOCK_TOLERANCE_S:
-                self._src = (self._src[0], ts)
-                return t
-        if self._src is not None:
+            self._src = (self._src[0], ts)
+            if self._trial is not None and abs(base - t_read) < SOURCE_CLOCK_TOLERANCE_S:
+                self._trial.append((t_read, t_read - base))
+                if t_read - self._src_t0 < SOURCE_CLOCK_TRIAL_S:
+                    return t_read
+                fast = _rate_off(self._trial)
+                self._trial = None
+                if abs(fast) <= SOURCE_RATE_TOLERANCE:
+                    self._src_off, self._src_read = self._tie.offset, t_read
+                    self._read_time = False
+                    return base + self._src_off
+                _log.warning(
+                    "%s: the source's frame timestamps do not keep time (%.1f %% %s "
+                    "than this computer's clock); frames are timed when they are read",
+                    self.spec, 100 * abs(fast), "faster" if fast > 0 else "slower",
+                )  # fmt: skip
+                self.clock = "read"
+                return t_read
+            if self._trial is None:
+                slew = SOURCE_SLEW * max(t_read - self._src_read, 0.0)
+                self._src_off += min(max(self._tie.offset - self._src_off, -slew), slew)
+                self._src_read = t_read
+                t = base + self._src_off
+                if abs(t - t_read) < SOURCE_CLOCK_TOLERANCE_S:
+                    self._read_time = False
+                    return t
+        if self._src is not None and self._src[1] > 0:  # (not: never any but 0)
             _log.warning(
                 "%s: the source's frame timestamps stopped making sense at %.3f s; times "
                 "are now those at which frames are read",
@@ -299,7 +374,7 @@ class VideoSource:
             )
         self.size = None  # checked once
 
-    def _retry(self):
+    def _retry(self) -> Arrival:
         """The next frame of a live source that failed to deliver one: read again, and
         every REOPEN_EVERY_S close and open it again, until ``retry_s`` has passed."""
         start = time.monotonic()
@@ -315,6 +390,7 @@ class VideoSource:
                 self.cap = self._open(max(left, 0.1) if self.stream else None)
                 self.reopened += 1
                 self._src = None  # a new capture's timestamps start again
+                self._next_n = 0
                 n += 1
                 if n == 1:  # once per outage: the final error, if any, says how often
                     since = start if self._last_frame_at is None else self._last_frame_at
@@ -326,10 +402,10 @@ class VideoSource:
                 # a new capture may come in another mode (checked on its first frame)
                 self.size = self._mode[0]
             if self.cap.isOpened():
-                ok, img = self.cap.read()
-                if ok:
+                a = self._read()
+                if a.ok:
                     self.codec = codec_of(self.cap)
-                    return img
+                    return a
         what = "stream" if self.stream else "camera"
         raise SourceError(
             f"{self.spec}: the {what} stopped delivering frames (retried for {self.retry_s:g} s, "

@@ -49,6 +49,7 @@ WARNING_WORDS = {
     "rolling_shutter_estimated": "the rolling shutter's readout is estimated",
     "inter_frame_codec": "the video codec's errors are not measured (calibrate zero-tilt "
     "through this stream)",
+    "read_late": "the frame waited before it was read: its time is late (no fix)",
 }
 
 
