@@ -154,3 +154,53 @@ def test_track_with_imu_triangle_live(tmp_path):
         Rf = quat_to_matrix(np.array([float(r[k]) for k in ("qw", "qx", "qy", "qz")]))
         e.append(np.degrees(np.linalg.norm(logmap(truth[int(r["frame"])].T @ Rf))))
     assert np.sqrt(np.mean(np.square(e))) < 0.05, np.sqrt(np.mean(np.square(e)))
+
+
+def test_a_frame_found_late_after_its_row_is_no_fix():
+    """The reader may learn that a frame waited only after it was handed out (it was
+    read when the hold-up ended, and the next came at once): CameraFixes asks again
+    when it would send the fix, so a frame found late while its row was written is no
+    fix, though its row (already out) is ok without the warning."""
+    import queue
+    import threading
+
+    from visvec.data import Frame
+    from visvec.fuse.camera import CameraFixes
+
+    class Row:
+        ok = True
+
+        def __init__(self, frame):
+            self.warnings = "read_late" if frame.late else ""
+
+        def as_dict(self):
+            return {"time_s": "0", "status": "ok", "warnings": self.warnings}
+
+    class Pipe:
+        def process(self, frame):
+            return Row(frame)
+
+    flags = [threading.Event() for _ in range(4)]
+    flags[1].set()  # late before its row
+
+    class Sink:  # writing frame 2's row, the reader learns that frame 2 waited
+        def __init__(self):
+            self.rows = []
+
+        def write(self, d):
+            self.rows.append(d)
+            if len(self.rows) == 3:
+                flags[2].set()
+
+    frames = [Frame(k, k / 30.0, np.zeros((2, 2), np.uint8), read_late=flags[k]) for k in range(4)]
+    events = queue.Queue()
+    sink = Sink()
+    cam = CameraFixes(frames, Pipe(), events, sink=sink)
+    cam.run()
+    fixes = []
+    while not events.empty():
+        e = events.get()
+        if e.kind == "fix":
+            fixes.append(e)
+    assert [r["warnings"] for r in sink.rows] == ["", "read_late", "", ""]
+    assert len(fixes) == 2 and cam.n_ok == 2

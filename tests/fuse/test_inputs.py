@@ -39,3 +39,22 @@ def test_bad_fixes_files_name_the_line(tmp_path):
     fx = read_fixes(write(tmp_path, "e.csv", head + good + "1,2.0,rejected,,,,,,,,0,5,x\n"))
     assert len(fx.fixes) == 1 and fx.n_rows == 2 and fx.planar
     assert fx.fixes[0].available_s == pytest.approx(1.6)
+
+
+def test_rows_read_late_are_no_fixes(tmp_path):
+    """An ok row warned read_late (a live frame that waited before it was read: its time
+    is later than its exposure by an unknown amount) is not a fix, from a file or live;
+    its other warnings do not matter."""
+    from visvec.fuse.live import parse_fix
+
+    head = ",".join(PLANAR_COLUMNS) + "\n"
+    rows = [
+        "0,1.0,ok,1,2,3,0.1,0.1,0.01,0.1,9,6,\n",
+        "1,1.1,ok,1,2,3,0.1,0.1,0.01,0.1,9,6,low_brightness;read_late\n",
+        "2,1.2,ok,1,2,3,0.1,0.1,0.01,0.1,9,6,low_brightness\n",
+    ]
+    fx = read_fixes(write(tmp_path, "f.csv", head + "".join(rows)))
+    assert [f.time_s for f in fx.fixes] == [1.0, 1.2] and fx.n_rows == 3
+    keys = PLANAR_COLUMNS
+    live = [dict(zip(keys, r.strip("\n").split(","), strict=False)) for r in rows]
+    assert [parse_fix(r, planar=True) is None for r in live] == [False, True, False]

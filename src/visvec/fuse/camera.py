@@ -76,7 +76,8 @@ class CameraFixes:
                 self.n_frames += 1
                 if self.sink is not None:
                     self.sink.write(row.as_dict())
-                if row.ok:
+                if row.ok and not frame.late:
+                    # (late asked again: its reader may have learnt it since the row)
                     self.n_ok += 1
                     d = {k: ("" if v is None else str(v)) for k, v in row.as_dict().items()}
                     d["_host_exposure"] = t0 + (frame.time_s - first)

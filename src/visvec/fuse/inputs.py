@@ -23,6 +23,16 @@ ATTITUDE_IMU = ("gx_dps", "gy_dps", "gz_dps")
 PLANAR_FIX = ("x_mm", "y_mm", "heading_deg")
 ATTITUDE_FIX = ("qw", "qx", "qy", "qz")
 STATUSES = ("ok", "no_target", "rejected", "not_converged", "read_error")
+# an ok row with one of these warnings is no fix: its time is not its exposure's
+# (read_late: a live frame read after it had waited, visvec.sources.reader)
+UNTIMED = ("read_late",)
+
+
+def untimed(row: dict) -> bool:
+    """Whether an ok row's time is not known well enough for a fix (UNTIMED)."""
+    return any(w in UNTIMED for w in (row.get("warnings") or "").split(";"))
+
+
 GAP_PERIODS = 3.0  # a step longer than this many median periods is a gap
 
 
@@ -202,7 +212,7 @@ def read_fixes(path: str | Path) -> Fixes:
                 raise InputFileError(
                     f"{path}: line {line}: status = {status!r}: expected one of {STATUSES}"
                 )
-            if status != "ok":
+            if status != "ok" or untimed(row):
                 continue
             t = _number(row, "time_s", path, line)
             lat = _number(row, "latency_ms", path, line) if "latency_ms" in cols else 0.0

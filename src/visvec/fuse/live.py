@@ -35,7 +35,15 @@ import numpy as np
 
 from visvec.clocks import ClockTie
 from visvec.errors import ConfigError, InputFileError
-from visvec.fuse.inputs import ATTITUDE_FIX, ATTITUDE_IMU, PLANAR_FIX, PLANAR_IMU, STATUSES, Fix
+from visvec.fuse.inputs import (
+    ATTITUDE_FIX,
+    ATTITUDE_IMU,
+    PLANAR_FIX,
+    PLANAR_IMU,
+    STATUSES,
+    Fix,
+    untimed,
+)
 from visvec.fuse.inputs import _fix_cov as fix_cov
 from visvec.fuse.run import fused_rows
 from visvec.rotations import quat_to_matrix
@@ -272,11 +280,12 @@ def parse_imu(row: dict, planar: bool) -> tuple[float, np.ndarray, np.ndarray | 
 
 def parse_fix(row: dict, planar: bool) -> Fix | None:
     """An ok row as a fix (available at its exposure plus ``latency_ms``, or when it
-    arrives if that is later), None for another status; ValueError if malformed."""
+    arrives if that is later), None for another status or an untimed row (its time is
+    not its exposure's: visvec.fuse.inputs.UNTIMED); ValueError if malformed."""
     status = (row.get("status") or "").strip()
     if status not in STATUSES:
         raise ValueError(f"status {status!r}")
-    if status != "ok":
+    if status != "ok" or untimed(row):
         return None
     t = _num(row, "time_s")
     lat = _num(row, "latency_ms") if (row.get("latency_ms") or "").strip() else 0.0
