@@ -20,7 +20,13 @@ against the path; the sensor's resident memory, threads, open files and CPU shar
 window within 10 % of its level then, and each window's latency median and row rate
 within 10 % of the first window's; no wrong ok row (10 mm or 0.5 deg off).
 
-    python benchmarks/live_soak.py [--minutes 60] [--window-min 5]
+With `--busy N`, N busy processes share the sensor's core for the whole run (a starved
+processor, as when the platform's computer runs other work): the wrong-row count is the
+figure that matters there (a frame that waited before it was read must not become a fix
+of the wrong moment), with the camera's rows warned `read_late` and the frames passed
+over beside it.
+
+    python benchmarks/live_soak.py [--minutes 60] [--window-min 5] [--busy N]
 """
 
 from __future__ import annotations
@@ -173,6 +179,13 @@ def main() -> None:
         help="how much slower the IMU's clock runs than the host's (ppm)",
     )
     ap.add_argument(
+        "--busy",
+        type=int,
+        default=0,
+        help="busy processes on the sensor's core beside it (a starved processor: the "
+        "sensor gets 1/(N+1) of its core)",
+    )
+    ap.add_argument(
         "--keep",
         type=Path,
         help="keep the camera's rows, the fused rows and the sensor's log in this folder",
@@ -217,6 +230,13 @@ def main() -> None:
         env = dict(os.environ, PYTHONFAULTHANDLER="1")
         proc = subprocess.Popen(([taskset, "-c", "0"] if taskset else []) + cmd,
                                 stderr=subprocess.PIPE, text=True, env=env)  # fmt: skip
+        busy = [
+            subprocess.Popen(
+                ([taskset, "-c", "0"] if taskset else [])
+                + [sys.executable, "-c", "while True: pass"]
+            )  # fmt: skip
+            for _ in range(args.busy)
+        ]
         log: list[str] = []
         seen = threading.Event()
         page: list[str] = []
@@ -284,6 +304,9 @@ def main() -> None:
             except subprocess.TimeoutExpired:
                 proc.kill()
                 proc.wait()
+        for b in busy:
+            b.kill()
+            b.wait()
         time.sleep(0.5)
         stop.set()
         rx.close()
@@ -292,6 +315,11 @@ def main() -> None:
             poller.wait(timeout=10)
         cam.httpd.shutdown()
         camera_lines = sum(1 for _ in open(camera_rows)) - 1 if camera_rows.exists() else 0
+        # ok camera rows whose frame had waited before it was read: no fixes
+        read_late = 0
+        if camera_rows.exists():
+            with open(camera_rows) as fh:
+                read_late = sum(1 for line in fh if "read_late" in line)
         if args.keep:
             args.keep.mkdir(parents=True, exist_ok=True)
             shutil.copy(camera_rows, args.keep / "camera.csv")
@@ -312,6 +340,16 @@ def main() -> None:
         exit_code=proc.returncode,
         frames_served=cam.sent,
         camera_rows_written=camera_lines,
+        camera_rows_read_late=read_late,
+        camera_frames_passed_over=next(
+            (
+                int(m.group(1))
+                for x in log
+                if (m := re.search(r"(\d+) frames of the stream came", x))
+            ),
+            0,
+        ),
+        busy_processes=args.busy,
         sensor_log_tail=log[-6:],
         # what the threads were doing when a sensor that did not stop was aborted
         stopped_by_abort=proc.returncode == -signal.SIGABRT,
