@@ -18,6 +18,7 @@ row is made, the fusion again when the fix is sent)."""
 
 from __future__ import annotations
 
+import queue
 import threading
 import time
 from collections import deque
@@ -58,13 +59,14 @@ class LiveReader:
     capture fails or :meth:`release`; :meth:`take` hands out the newest frame read
     (frames read and not taken are counted in ``dropped``). Once the thread runs, the
     capture is used by it alone, and it releases it; ``get`` answers from what was read
-    before the thread started, and the POS_MSEC of the frame taken last."""
+    before the thread started, and the POS_MSEC of the frame taken last. The frames
+    pass through a queue.SimpleQueue (None when the capture has ended), drained to the
+    newest at each take."""
 
     def __init__(self, cap: cv2.VideoCapture, name: str = "visvec-reader"):
         self._cap = cap
         self._props: dict[int, float] = {}
-        self._cond = threading.Condition()
-        self._slot: Arrival | None = None
+        self._q: queue.SimpleQueue[Arrival | None] = queue.SimpleQueue()  # None: ended
         self._last: Arrival | None = None  # the last one taken (POS_MSEC)
         self._ended = False
         self._stop = threading.Event()
@@ -76,7 +78,7 @@ class LiveReader:
         return True
 
     def get(self, prop: int) -> float:
-        if not self._thread.is_alive() and not self._ended:
+        if self._thread.ident is None and not self._ended:
             return self._cap.get(prop)  # not started: the capture is still ours
         if prop == cv2.CAP_PROP_POS_MSEC:
             return self._last.ms if self._last is not None else 0.0
@@ -100,17 +102,30 @@ class LiveReader:
 
     def take(self, timeout_s: float = TAKE_TIMEOUT_S) -> Arrival:
         """The newest frame read since the last taken, waited for; a failed Arrival
-        when the capture failed (or nothing came within ``timeout_s``)."""
+        when the capture failed (its frames all taken) or nothing came within
+        ``timeout_s``."""
         if self._thread.ident is None and not self._ended:
             self._props = {
                 p: self._cap.get(p)
                 for p in (cv2.CAP_PROP_FPS, cv2.CAP_PROP_FOURCC, cv2.CAP_PROP_FRAME_COUNT)
             }
             self._thread.start()
-        with self._cond:
-            self._cond.wait_for(lambda: self._slot is not None or self._ended, timeout_s)
-            a, self._slot = self._slot, None
-        if a is None:  # the capture failed (its last frame was taken) or is silent
+        a = None
+        if not self._ended:
+            try:
+                a = self._q.get(timeout=timeout_s)
+                while a is not None:  # the newest of those waiting
+                    b = self._q.get_nowait()
+                    if b is None:
+                        self._ended = True
+                        break
+                    a = b
+                    self.dropped += 1
+            except queue.Empty:
+                pass
+            if a is None and not self._ended:
+                self._ended = not self._thread.is_alive()
+        if a is None:
             return Arrival(False, None, time.monotonic())
         self._last = a
         return a
@@ -123,7 +138,7 @@ class LiveReader:
             while not self._stop.is_set():
                 ok, img = self._cap.read()
                 if not ok:
-                    return  # (a frame read and not yet taken is still handed out)
+                    return  # (the frames read and not yet taken are still handed out)
                 t = time.monotonic()
                 a = Arrival(True, img, t, self._cap.get(cv2.CAP_PROP_POS_MSEC), n)
                 if len(arrivals) < arrivals.maxlen:
@@ -136,14 +151,8 @@ class LiveReader:
                             prev.late.set()  # read when the hold-up ended
                 arrivals.append(t)
                 n += 1
-                with self._cond:
-                    if self._slot is not None:
-                        self.dropped += 1
-                    self._slot = a
-                    self._cond.notify_all()
+                self._q.put(a)
                 prev = a
         finally:
-            with self._cond:
-                self._ended = True
-                self._cond.notify_all()
+            self._q.put(None)
             self._cap.release()
