@@ -18,7 +18,8 @@ sample's send to its row's arrival, the ok share, the position and heading error
 against the path; the sensor's resident memory, threads, open files and CPU share
 (from /proc). Target: nothing grows or slows with the hours: memory after the first
 window within 10 % of its level then, and each window's latency median and row rate
-within 10 % of the first window's; no wrong ok row (10 mm or 0.5 deg off).
+within 10 % of the first window's; no wrong ok row (10 mm or 0.5 deg off, or beyond 5
+of its own sigma on an axis).
 
 With `--busy N`, N busy processes share the sensor's core for the whole run (a starved
 processor, as when the platform's computer runs other work): the wrong-row count is the
@@ -58,6 +59,7 @@ RIG = CONFIGS / "lamps.toml"
 FPS, IMU_HZ, LAP_S = 30.0, 100.0, 66.0
 PATH = PerimeterPath(lap_s=LAP_S)
 WRONG_MM, WRONG_DEG = 10.0, 0.5
+SIGMAS = ("sigma_x_mm", "sigma_y_mm", "sigma_heading_deg")
 
 
 # a client that fetches what the page fetches, as often: the frame every 100 ms, the
@@ -205,6 +207,7 @@ def main() -> None:
     sent = np.full(n_max, np.nan)
     got = np.full(n_max, np.nan)
     pose = np.full((n_max, 3), np.nan)
+    sigma = np.full((n_max, 3), np.nan)  # the rows' own 1-sigma
     ok = np.zeros(n_max, bool)
 
     def on_row(now: float, f: list[str]) -> None:
@@ -216,6 +219,7 @@ def main() -> None:
             ok[k] = f[col["status"]] == "ok"
             if ok[k]:
                 pose[k] = [float(f[col[c]]) for c in ("x_mm", "y_mm", "heading_deg")]
+                sigma[k] = [float(f[col[c]]) for c in SIGMAS]
 
     rx = UdpRows(on_row)
     p_out = rx.port
@@ -332,9 +336,10 @@ def main() -> None:
                 sent=sent[k],
                 got=got[k],
                 pose=pose[k],
+                sigma=sigma[k],
                 ok=ok[k],
             )
-    res = analyse(args, sent, got, pose, ok, j_first, j, stats)
+    res = analyse(args, sent, got, pose, sigma, ok, j_first, j, stats)
     res.update(
         ran_to_the_end=alive,
         exit_code=proc.returncode,
@@ -362,8 +367,10 @@ def main() -> None:
     print({k: v for k, v in res.items() if k not in ("windows", "memory")})
 
 
-def analyse(args, sent, got, pose, ok, j0, j1, stats) -> dict:
-    """Per window: rows, latency, ok share, errors; the process's memory and CPU."""
+def analyse(args, sent, got, pose, sigma, ok, j0, j1, stats) -> dict:
+    """Per window: rows, latency, ok share, errors; the process's memory and CPU. Over the
+    run: the ok rows off by WRONG_MM or WRONG_DEG, and those beyond 5 of their own sigma
+    on an axis (x, y, heading: the calibration test of DEVELOPERS.md)."""
     idx = np.arange(j0, j1)
     t = idx / IMU_HZ
     truth = PATH.at(t)
@@ -399,6 +406,10 @@ def analyse(args, sent, got, pose, ok, j0, j1, stats) -> dict:
             "cpu_share": round(cpu, 3) if cpu is not None else None,
         })  # fmt: skip
     wrong = int(np.sum(okk & ((e_mm > WRONG_MM) | (np.abs(e_deg) > WRONG_DEG))))
+    err = np.column_stack([pose[idx, 0] - truth[:, 0], pose[idx, 1] - truth[:, 1], e_deg])
+    z = np.where(okk[:, None], np.abs(err) / np.where(okk[:, None], sigma[idx], 1.0), 0.0)
+    zmax = z.max(axis=1)
+    beyond3 = float(np.mean(zmax[okk] > 3.0)) if okk.any() else 0.0
     first, rest = windows[0], windows[1:] or windows
     rss = [w["rss_mb"] for w in windows if w["rss_mb"] is not None]
     growth = round(max(rss[1:] or rss) / rss[0] - 1.0, 4) if rss else None
@@ -412,6 +423,9 @@ def analyse(args, sent, got, pose, ok, j0, j1, stats) -> dict:
         "rows_received": int(np.isfinite(lat).sum()),
         "ok_rows": int(okk.sum()),
         "wrong_ok_rows": wrong,
+        "ok_rows_beyond_5_sigma": int(np.sum(zmax > 5.0)),
+        "ok_rows_beyond_3_sigma_share": round(beyond3, 5),
+        "largest_error_over_sigma": round(float(zmax.max()), 2) if okk.any() else None,
         "windows": windows,
         "memory": [{"t_min": round(s["t_s"] / 60.0, 2), "rss_mb": s["rss_mb"]} for s in stats],
         "rss_growth_after_first_window": growth,
