@@ -255,15 +255,16 @@ class VideoSource:
                 if self.live:
                     # frames its reader read and this loop did not take (it fell behind):
                     # no rows, as a camera's driver drops them, but their numbers
-                    i += max(a.n - self._next_n, 0)
-                    self.dropped += max(a.n - self._next_n, 0)
+                    passed = max(a.n - self._next_n, 0)
+                    i += passed
+                    self.dropped += passed
                     self._next_n = a.n + 1
                     t = self._live_time(now - self._t0, a.ms)
                     unix = self._unix0 + t
                     # a time that is when the frame was read, and the frame had waited
                     late = a.late if self._read_time else None
                 else:
-                    ms = self.cap.get(cv2.CAP_PROP_POS_MSEC)
+                    ms = a.ms  # (read with the frame by _read)
                     t = ms / 1000.0 if ms and ms > 0 else i / self.fps
                     # the container's own frame number: frames the decoder skipped
                     # silently are rows of their own, not shifted onto the next one's
