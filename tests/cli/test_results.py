@@ -135,7 +135,8 @@ def test_fuse_writes_errors_and_summary(tmp_path):
     """`visvec fuse --truth --errors --summary`: the fused rows' errors and figures."""
     lamps = ROOT / "configs" / "lamps.toml"
     rec = tmp_path / "rec"
-    assert run("simulate", "--rig", lamps, "--out", rec, "--frames", 20, "--imu").exit_code == 0
+    # 3 s: the fusion first aligns the fixes' clock with the IMU's (about 1 s)
+    assert run("simulate", "--rig", lamps, "--out", rec, "--frames", 90, "--imu").exit_code == 0
     fixes = tmp_path / "fixes.csv"
     assert run("batch", rec, "--rig", lamps, "--out", fixes).exit_code == 0
     out, err, summ = tmp_path / "fused.csv", tmp_path / "err.csv", tmp_path / "sum.json"

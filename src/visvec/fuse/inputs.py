@@ -153,13 +153,16 @@ class Fix:
     """One ok fix: exposure time ``time_s``, ``available_s`` when it reached the
     fusion, ``value`` (x_mm, y_mm, heading rad) or R_NB (3, 3), ``cov`` (3, 3) in mm and
     rad (planar) or rad in body axes (attitude), or None where the file has no sigma
-    columns, and its file ``line``."""
+    columns, and its file ``line``. ``shift``: how much earlier than its stated time
+    the fusion applies it (its time offset as the fusion then knew it; ``time_s`` is
+    then the stated time less ``shift``)."""
 
     time_s: float
     available_s: float
     value: np.ndarray
     cov: np.ndarray | None
     line: int
+    shift: float = 0.0
 
 
 @dataclass(frozen=True)

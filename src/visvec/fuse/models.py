@@ -15,9 +15,20 @@ rules share this propagation:
   h = [x - vx tau, y - vy tau, psi - w tau] (w the gyro's rate less its bias), the
   first-order time shift the 3-D filter also makes (below; the time offset as a filter
   state: Li & Mourikis, "Online temporal calibration for camera-IMU systems", IJRR
-  33(7), 2014). Fixes update it with their
-  own covariance and fixes whose innovation is implausible (chi-square, 3 dof,
-  p < 1e-6) are refused.
+  33(7), 2014). Fixes update it with their own covariance plus their timing jitter
+  (below), and fixes whose innovation is implausible (chi-square, 3 dof, p < 1e-6) are
+  refused.
+
+  The timing jitter: beyond a constant offset, each fix's time is off by a few tenths of
+  a millisecond to milliseconds (a frame timed when it arrives over a network; the
+  inertial clock tied to the host's through arrivals), which moves the pose it states
+  by J dt, J = dh/dt = (vx, vy, w). At 100 mm/s, 0.4 ms is 0.04 mm: more than a lamp
+  fix's own sigma. The fix's covariance is R + sigma_t^2 J J^T, sigma_t learned from the
+  fixes' innovations by covariance matching in J's direction (Mehra 1972, as the 3-D
+  filter's process noise, below): with S the innovation covariance without the jitter,
+  a = S^-1 J and g = J^T a, the projection a^T r has variance g + sigma_t^2 g^2, so
+  y = ((a^T r)^2 - g) / g^2 is an unbiased sample of sigma_t^2, of variance
+  2 (1/g + sigma_t^2)^2; a weighted mean with a forgetting factor (PlanarJitter).
 
 3-D: a multiplicative extended Kalman filter (Markley & Crassidis, Fundamentals of
 Spacecraft Attitude Determination and Control, 2014, Sec. 6.2, Eqs. 6.60-6.63) on the
@@ -75,11 +86,78 @@ def _nis_limit() -> float:
     return chi2_ppf(1.0 - NIS_P, 3)
 
 
+# the fixes' timing jitter (PlanarModel, module doc): the prior (1 ms, a frame timed when
+# it arrives) counts as this many fixes; the fit remembers about the last 1/(1 - forget)
+JITTER_PRIOR_S = 1e-3
+JITTER_PRIOR_FIXES = 3.0
+JITTER_FORGET = 0.99
+# a single fix counts at most as one whose projected innovation is this many of its
+# sigmas squared (a late frame is not jitter: it must not widen every fix after it)
+JITTER_CLIP = 9.0
+# a fix whose innovation along J is beyond this (chi-square, 1 dof, p = 0.01) is given its
+# own timing variance (PlanarModel.update)
+JITTER_OWN_CHI2 = 6.635
+# the time offset's alignment before the filter starts (PlanarModel.align): the offsets
+# tried (s; a network camera's frames arrive up to some hundreds of ms after their
+# exposure) and their step, the fixes it needs at least, the sigma it must reach, how
+# much worse (chi-square) another local minimum must fit; a fix without a sigma counts
+# as one of 0.05 deg
+ALIGN_TAU = (-0.05, 0.5)
+ALIGN_STEP = 0.002
+ALIGN_MIN_FIXES = 15
+ALIGN_SIGMA = 0.005
+ALIGN_UNIQUE = 25.0
+ALIGN_FIX_VAR = math.radians(0.05) ** 2
+
+
+@dataclass(frozen=True)
+class PlanarJitter:
+    """The learned 1-sigma timing jitter of the fixes (s): a weighted mean of the samples
+    y = ((a^T r)^2 - g) / g^2 (module doc) with the prior ``s0``; ``h``, ``z``: the sums
+    of the weights and of the weighted samples, forgotten by JITTER_FORGET per fix."""
+
+    s0: float = JITTER_PRIOR_S
+    h: float = 0.0
+    z: float = 0.0
+    n: int = 0
+
+    @property
+    def var(self) -> float:
+        if self.s0 <= 0.0:  # no jitter (fixes timed by the IMU's own clock)
+            return 0.0
+        h0 = JITTER_PRIOR_FIXES / (2.0 * self.s0**4)
+        return max((h0 * self.s0**2 + self.z) / (h0 + self.h), 0.0)
+
+    def learn(self, r: np.ndarray, S: np.ndarray, J: np.ndarray) -> PlanarJitter:
+        a = np.linalg.solve(S, J)
+        g = float(J @ a)
+        if g <= 0.0 or self.s0 <= 0.0:  # at rest: nothing to learn about timing
+            return self
+        v = self.var
+        p2 = min(float(a @ r) ** 2, JITTER_CLIP * (g + v * g * g))
+        y = (p2 - g) / (g * g)
+        wt = 1.0 / (2.0 * (1.0 / g + v) ** 2)
+        return PlanarJitter(self.s0, self.h * JITTER_FORGET + wt,
+                            self.z * JITTER_FORGET + wt * y, self.n + 1)  # fmt: skip
+
+
 @dataclass(frozen=True)
 class PlanarState:
     x: np.ndarray  # [x, y, vx, vy, psi, b_g, b_ax, b_ay, tau]
     P: np.ndarray
     w: float = 0.0  # the last interval's rate less the bias (rad/s)
+    jitter: PlanarJitter = PlanarJitter()
+    # while the last fix was refused: its disagreement with the filter (3, 3) on
+    # (x, y, psi), added to the rows' covariance, not to the filter's (PlanarModel.update)
+    dispute: np.ndarray | None = None
+    # from one fix only: the velocity is not known yet, and the fixes' time offset is
+    # not yet coupled to the pose (PlanarModel.update)
+    pending: bool = False
+    an: tuple[float, float] = (0.0, 0.0)  # the last interval's acceleration, lab (mm/s^2)
+
+    @property
+    def disputed(self) -> bool:
+        return self.dispute is not None
 
 
 @dataclass(frozen=True)
@@ -101,17 +179,170 @@ class PlanarModel:
     # is tens of ms, more on a slow computer) and its random walk per sqrt(s)
     time_offset_sigma: float = 0.05
     time_offset_walk: float = 1e-4
+    # the fixes' timing jitter (s, 1-sigma): the prior of the learned one; with
+    # learn_jitter False, fixed at it
+    jitter_sigma: float = JITTER_PRIOR_S
+    learn_jitter: bool = True
+    # fixes refused in a row restart the filter only once they have been for this long
+    # (Fusion.step): a stream's frames that come late for a moment (a camera or its
+    # network held up: tens to hundreds of ms) are refused while the IMU carries the
+    # pose, rather than taken as the truth by a restart
+    restart_after_s: float = 1.0
 
     planar = True
 
     def init(self, fix: Fix) -> PlanarState:
+        # the time offset's prior: centred on the shift the fix is applied with (the
+        # engine's linearisation point, Fusion._shift_fixes), its sigma the prior's
         x = np.array([fix.value[0], fix.value[1], 0.0, 0.0, fix.value[2], self.gyro_bias0,
-                      *self.accel_bias0, 0.0])  # fmt: skip
+                      *self.accel_bias0, fix.shift])  # fmt: skip
         R = self._fix_cov(fix)
         P = np.diag([R[0, 0], R[1, 1], self.velocity_sigma**2, self.velocity_sigma**2,
                      R[2, 2], self.gyro_bias_sigma**2, self.accel_bias_sigma**2,
                      self.accel_bias_sigma**2, self.time_offset_sigma**2])  # fmt: skip
-        return PlanarState(x, P)
+        return PlanarState(x, P, jitter=PlanarJitter(self.jitter_sigma), pending=True)
+
+    def align(self, ts: np.ndarray, rate: np.ndarray, accel: np.ndarray | None,
+              fixes: list[Fix]) -> tuple[float, float] | None:  # fmt: skip
+        """The fixes' time offset from their poses against the IMU's, before the filter
+        starts: (tau, its 1-sigma) in seconds, or None while the data cannot tell it
+        (the platform has not turned or pushed enough, or too few fixes).
+
+        ``ts`` are the IMU's sample times, ``rate`` the gyro's mean rate (rad/s, z) and
+        ``accel`` the accelerometers' (m/s^2, body x, y; or None) over the interval
+        ending at each. A fix stated at t shows the pose at t - tau. For each tau of a
+        grid:
+        - heading: from fix k to fix k+1 the heading turns by Psi(t_k+1 - tau) -
+          Psi(t_k - tau) - b (t_k+1 - t_k), Psi the gyro's integral and b its bias,
+          fitted (generalised least squares: the fixes' heading noise, each fix in two
+          turns, plus the gyro's white noise over each interval; differencing takes the
+          gyro's random walk apart, which would make a fit of the headings themselves
+          too sure);
+        - position: the accelerometers, turned to the lab by that heading (its start
+          from the fixes), integrated twice, P(t); the fixes' positions less P at
+          t_k - tau, second-differenced (which takes out the start position and
+          velocity), against the accelerometers' biases turned and integrated alike
+          (fitted), with the fixes' noise (each fix in three differences) and the
+          accelerometers' white noise.
+        tau is the grid's least sum of both chi-squares, refined by a parabola; its
+        sigma is from the parabola's curvature, scaled by the fit's reduced
+        chi-square when that is above 1 (a timing jitter, not in the covariance). This
+        is the alignment of two sensors by correlation (Mair et al., "Spatio-temporal
+        initialization for IMU to camera registration", IEEE ROBIO 2011): exact for any
+        offset, where the filter's first-order time shift (update) holds to some tens
+        of ms. It is refused unless the minimum is sharp (sigma under ALIGN_SIGMA) and
+        unique (no other local minimum within ALIGN_UNIQUE of it in chi-square).
+
+        Only what the offset changes tells it: a constant turn rate or acceleration
+        shifted in time looks like a gyro or accelerometer bias. On 2 s windows along
+        the lamps path (lap 66 s, 30 Hz lamp fixes) the accepted alignments were off
+        by 12 ms rms, at most 54 ms, and by 2.6 of their sigma rms: the sigma is too
+        small, and the filter's prior on the offset is at least ALIGN_PRIOR_MIN
+        (replay.py), from which it learns the rest."""
+        if len(ts) < 3:
+            return None
+        dt = np.diff(ts)
+        period = float(np.median(dt))
+        psi = np.concatenate([[0.0], np.cumsum(rate[1:] * dt)])
+        t = np.array([f.time_s + f.shift for f in fixes])
+        ok = (t - ALIGN_TAU[1] >= ts[0]) & (t - ALIGN_TAU[0] <= ts[-1])
+        if ok.sum() < ALIGN_MIN_FIXES:
+            return None
+        fx = [f for f, k in zip(fixes, ok, strict=True) if k]
+        t = t[ok]
+        val = np.array([f.value for f in fx])
+        var = np.array([np.diag(f.cov) if f.cov is not None else
+                        [self.fix_sigma[0] ** 2] * 2 + [self.fix_sigma[1] ** 2]
+                        for f in fx])  # fmt: skip
+        # heading: the turns between consecutive fixes, whitened
+        dz = (np.diff(val[:, 2]) + math.pi) % (2 * math.pi) - math.pi
+        dtk = np.diff(t)
+        n = len(dz)
+        v2 = var[:, 2]
+        C = np.diag(v2[1:] + v2[:-1] + self.gyro_noise**2 * period * dtk)
+        C[np.arange(n - 1), np.arange(1, n)] = C[np.arange(1, n), np.arange(n - 1)] = -v2[1:-1]
+        Wh = np.linalg.inv(np.linalg.cholesky(C))  # whitening: W C W^T = I
+        g = Wh @ dtk
+        gg = float(g @ g)
+        # position: second differences (rows of D2 take out a + b t), whitened per axis
+        D2 = np.zeros((n - 1, n + 1))
+        for k in range(n - 1):
+            h0, h1 = dtk[k], dtk[k + 1]
+            D2[k, k : k + 3] = [1.0 / h0, -(1.0 / h0 + 1.0 / h1), 1.0 / h1]
+        use_pos = accel is not None and n >= 3
+        if use_pos:
+            acc = np.asarray(accel, float) * 1000.0  # mm/s^2
+            q = (self.accel_noise**2 * period * (2.0 / 3.0)
+                 * (0.5 * (dtk[1:] + dtk[:-1])) ** 3 * np.sum(D2 * D2, axis=1) / 6.0)  # fmt: skip
+            Wp = [np.linalg.inv(np.linalg.cholesky(D2 @ np.diag(var[:, ax]) @ D2.T + np.diag(q)))
+                  for ax in (0, 1)]  # fmt: skip
+        grid = np.arange(ALIGN_TAU[0], ALIGN_TAU[1] + 1e-9, ALIGN_STEP)
+        te = t[None, :] - grid[:, None]  # (grid, fixes): the fixes' true times
+        turn = np.diff(np.interp(te, ts, psi), axis=1)
+        y = (dz[None, :] - turn) @ Wh.T  # whitened; y = -b dt
+        k = (y @ g) / gg
+        res = y - k[:, None] * g[None, :]
+        ss = np.sum(res * res, axis=1)
+        if use_pos:
+            ss = ss + self._align_position(ts, psi, acc, -k, te, val, D2, Wp)
+        i = int(np.argmin(ss))
+        if i == 0 or i == len(grid) - 1:
+            return None
+        a, b, c = ss[i - 1], ss[i], ss[i + 1]
+        curv = (a - 2.0 * b + c) / ALIGN_STEP**2  # d2 SS / d tau2
+        if curv <= 0.0:
+            return None
+        tau = grid[i] + 0.5 * ALIGN_STEP * (a - c) / (a - 2.0 * b + c)
+        dof = (n - 2) + (2 * (n - 1) - 2 if use_pos else 0)
+        chi2_red = max(1.0, b / max(dof, 1))
+        sigma = math.sqrt(2.0 / curv * chi2_red)
+        # another local minimum that fits nearly as well: ambiguous
+        far = np.abs(grid - tau) > max(5.0 * sigma, 2 * ALIGN_STEP)
+        mins = (ss[1:-1] <= ss[:-2]) & (ss[1:-1] <= ss[2:]) & far[1:-1]
+        if np.any(ss[1:-1][mins] < b + ALIGN_UNIQUE * chi2_red) or sigma > ALIGN_SIGMA:
+            return None
+        return float(tau), sigma
+
+    @staticmethod
+    def _align_position(ts, psi, acc, bias, te, val, D2, Wp) -> np.ndarray:
+        """The position part of align's chi-square at each tau of the grid (its
+        docstring): ``bias`` (grid,) the gyro's bias fitted at each, ``te`` (grid,
+        fixes) the fixes' true times."""
+        # the heading at the samples: the gyro's, its bias off, started from the fixes'
+        # (linear interpolation at the fixes' true times, as index and weight)
+        j = np.clip(np.searchsorted(ts, te) - 1, 0, len(ts) - 2)  # (grid, fixes)
+        w = (te - ts[j]) / (ts[j + 1] - ts[j])
+        rows = np.arange(len(te))[:, None]
+        phi = psi[None, :] - bias[:, None] * (ts - ts[0])[None, :]  # (grid, samples)
+        at_fix = phi[rows, j] * (1.0 - w) + phi[rows, j + 1] * w
+        psi0 = np.angle(np.mean(np.exp(1j * (val[None, :, 2] - at_fix)), axis=1))
+        ang = phi + psi0[:, None]
+        c, s = np.cos(ang), np.sin(ang)
+        # a reading is the mean over the interval ending at its sample: integrated twice,
+        # the acceleration and the two unit biases (body x, y) turned to the lab
+        dt = np.diff(ts, prepend=ts[0])[None, :, None]
+        cols = np.stack([c * acc[:, 0] - s * acc[:, 1], s * acc[:, 0] + c * acc[:, 1],
+                         c, s, -s, c], axis=2)  # fmt: skip
+        vel = np.cumsum(cols * dt, axis=1)
+        pos = np.cumsum((vel - 0.5 * cols * dt) * dt, axis=1)  # (grid, samples, 6)
+        at = pos[rows, j] * (1.0 - w[..., None]) + pos[rows, j + 1] * w[..., None]
+        # z - P = p0 + v0 t - B b_a: second differences, whitened, b_a fitted
+        d = np.einsum("kn,gnc->gkc", D2, at)  # (grid, n - 1, 6)
+        dz = D2 @ val[:, :2]  # (n - 1, 2)
+        y = np.concatenate([(dz[None, :, 0] - d[:, :, 0]) @ Wp[0].T,
+                            (dz[None, :, 1] - d[:, :, 1]) @ Wp[1].T], axis=1)  # fmt: skip
+        A = np.concatenate([np.einsum("kn,gnc->gkc", Wp[0], d[:, :, [2, 4]]),
+                            np.einsum("kn,gnc->gkc", Wp[1], d[:, :, [3, 5]])], axis=1)  # fmt: skip
+        AtA = np.einsum("gkc,gkd->gcd", A, A)
+        Aty = np.einsum("gkc,gk->gc", A, y)
+        coef = np.linalg.solve(AtA, Aty[..., None])[..., 0]
+        r = y - np.einsum("gkc,gc->gk", A, coef)
+        return np.sum(r * r, axis=1)
+
+    @staticmethod
+    def time_offset(s: PlanarState) -> tuple[float, float]:
+        """The fixes' time offset and its 1-sigma (s)."""
+        return float(s.x[8]), math.sqrt(max(float(s.P[8, 8]), 0.0))
 
     def _fix_cov(self, fix: Fix) -> np.ndarray:
         if fix.cov is not None:
@@ -148,24 +379,18 @@ class PlanarModel:
         Q[5, 5] = self.gyro_bias_walk**2 * dt
         Q[6, 6] = Q[7, 7] = self.accel_bias_walk**2 * dt
         Q[8, 8] = self.time_offset_walk**2 * dt
-        return PlanarState(xn, F @ s.P @ F.T + Q, w)
+        return PlanarState(xn, F @ s.P @ F.T + Q, w, s.jitter, s.dispute, s.pending,
+                           (float(an[0]), float(an[1])))  # fmt: skip
 
     def update(self, s: PlanarState, fix: Fix) -> tuple[PlanarState, bool, float]:
         """The state after a fix, whether the fix was accepted, and its normalised
         innovation squared (NIS; chi-square with 3 dof when the filter is consistent)."""
-        R = self._fix_cov(fix)
+        R0 = self._fix_cov(fix)
         x0 = s.x
-        tau = x0[8]
-        # the pose at the fix's true exposure, tau before its stated time, and its
-        # derivatives by the state (the rate w = gyro - b_g: d(-w tau)/d(b_g) = tau)
-        h = np.array([x0[0] - x0[2] * tau, x0[1] - x0[3] * tau, x0[4] - s.w * tau])
-        H = np.zeros((3, 9))
-        H[0, 0] = H[1, 1] = H[2, 4] = 1.0
-        H[0, 2] = H[1, 3] = -tau
-        H[2, 5] = tau
-        H[:, 8] = [-x0[2], -x0[3], -s.w]
-        r = fix.value - h
-        r[2] = (r[2] + math.pi) % (2 * math.pi) - math.pi
+        # the pose's rate: a timing error dt moves the fix by J dt
+        J = np.array([x0[2], x0[3], s.w])
+        if s.pending:
+            return self._second(s, fix, R0), True, math.nan
         idx = [0, 1, 4]
         if self.method == "paper":
             x = s.x.copy()
@@ -173,30 +398,158 @@ class PlanarModel:
             P = s.P.copy()
             P[idx, :] = 0.0
             P[:, idx] = 0.0
-            P[np.ix_(idx, idx)] = R
-            return PlanarState(x, P), True, math.nan
+            P[np.ix_(idx, idx)] = R0
+            return PlanarState(x, P, jitter=s.jitter), True, math.nan
+        h, H = self._measure(x0, s.w, x0, s.an, fix.shift)
+        # the second-order terms of h's products (v tau, b_g tau): a Gaussian
+        # second-order filter (Gelb, Applied Optimal Estimation, 1974, Sec. 6.1; for
+        # h_i = c_i x_a x_tau: E h_i gains c_i P_a,tau and the innovation's covariance
+        # c_i c_j (P_a,a' P_tau,tau + P_a,tau P_tau,a')). While the offset is known to tens
+        # of ms and the bias to tenths of a degree per second, they are what the first
+        # order leaves out: 0.5 deg/s by 50 ms is 0.025 deg, eight heading fix sigmas
+        a = [2, 3, 5]
+        c = np.array([-1.0, -1.0, 1.0])
+        h = h + c * s.P[a, 8]
+        Pa = s.P[a, 8]
+        R_nj = R0 + np.outer(c, c) * (s.P[np.ix_(a, a)] * s.P[8, 8] + np.outer(Pa, Pa))
+        r = self._wrap(fix.value - h)
         PHt = s.P @ H.T
-        S = H @ PHt + R
+        S_nj = H @ PHt + R_nj  # without the timing jitter
+        S = S_nj + np.outer(J, J) * s.jitter.var
+        # this fix's own timing error: where its innovation along J is beyond what the
+        # jitter explains (p = JITTER_OWN_P, one degree of freedom), its timing variance
+        # is what makes it as expected (the one-fix covariance match of PlanarJitter):
+        # a frame that came late for a moment counts for what it is worth along J
+        # instead of being refused (or, taken with the jitter's sigma, pulling the pose
+        # by many of its sigmas); a disagreement across J is gated as before
+        u = np.linalg.solve(S, J)
+        g = float(J @ u)
+        p2 = float(u @ r) ** 2
+        if g > 0.0 and p2 > g * JITTER_OWN_CHI2:
+            S = S + np.outer(J, J) * (p2 - g) / (g * g)
         nis = float(r @ np.linalg.solve(S, r))
         if nis > _nis_limit():
-            # refused: the filter or the fix is wrong; widen the pose's covariance by the
-            # disagreement so that the rows stay honest and the next fix that agrees
-            # with this one is taken (no lock-out)
-            P = s.P.copy()
-            P[np.ix_(idx, idx)] += np.outer(r, r)
-            return PlanarState(s.x, P, s.w), False, nis
+            # refused: the filter or the fix is wrong. The rows' covariance is widened by
+            # the disagreement, so that they stay honest whichever it was; the filter's
+            # own is not, so that the next fix is gated as narrowly: a fix that merely
+            # agrees with this one must not be taken as the truth with its own small
+            # sigma. A fix that agrees with the filter ends the dispute; fixes refused
+            # for restart_after_s restart the filter on the latest (Fusion.step).
+            return replace(s, dispute=np.outer(r, r)), False, nis
+        R = S - H @ PHt
         K = np.linalg.solve(S, PHt.T).T
         x = s.x + K @ r
         IKH = np.eye(9) - K @ H
         P = IKH @ s.P @ IKH.T + K @ R @ K.T  # Joseph form
-        return PlanarState(x, P, s.w), True, nis
+        jitter = s.jitter
+        if self.learn_jitter:
+            jitter = jitter.learn(r, S_nj, J)
+        return PlanarState(x, P, s.w, jitter), True, nis
+
+    def _second(self, s: PlanarState, fix: Fix, R0: np.ndarray) -> PlanarState:
+        """The second fix after a start: with the first, it gives the velocity, and only
+        then can the fixes' time offset be coupled to the pose.
+
+        The fix measures the pose tau before its stated time, h = pose - J tau with
+        J = (v, w), bilinear in the velocity and the offset. Linearised at the start,
+        where the velocity is unknown (0 +- velocity_sigma), the update would take the
+        first fixes' pose as the pose at their stated time with their own small sigma:
+        the heading, off by w tau, would pin the offset near its prior mean at the next
+        fix (at 0.2 rad/s a heading fix's 0.003 deg is 0.3 ms), and the offset would
+        then creep to its value over minutes with every row beyond its sigma (the
+        planar live soak, 2026-11-27). So the first two fixes are taken as if the
+        offset were zero (its column and gain left out: the state is then the pose at
+        tau before the stated time, the velocity their IMU-corrected difference), and
+        then the offset is added as what it is, an unknown independent of them: the
+        pose at the stated time is that pose plus J tau (J from the new velocity, the
+        gyro's rate and the IMU's acceleration), so the mean moves by J tau^ and the
+        covariance gains J P_tt J^T with the cross terms J P_tt. From there the
+        ordinary update is linearised at a known velocity."""
+        h, H = self._measure(s.x, s.w, s.x, s.an, fix.shift)
+        H[:, 8] = 0.0
+        H[0, 2] = H[1, 3] = 0.0
+        h = s.x[[0, 1, 4]]
+        r = self._wrap(fix.value - h)
+        PHt = s.P @ H.T
+        J = np.array([s.x[2], s.x[3], s.w])
+        R = R0 + np.outer(J, J) * s.jitter.var
+        for _ in range(2):
+            # twice: the fixes' timing jitter moves them along the velocity, which only
+            # this update tells (the first pass's velocity makes the second's J)
+            K = np.linalg.solve(H @ PHt + R, PHt.T).T
+            K[8] = 0.0
+            x = s.x + K @ r
+            J = np.array([x[2], x[3], s.w])
+            R = R0 + np.outer(J, J) * s.jitter.var
+        IKH = np.eye(9) - K @ H
+        P = IKH @ s.P @ IKH.T + K @ R @ K.T
+        # the offset, coupled: the pose, velocity and heading at the stated time
+        G = np.zeros(9)
+        G[[0, 1, 2, 3, 4]] = [x[2], x[3], s.an[0], s.an[1], s.w]
+        G[8] = 0.0
+        ptt = P[8, 8]
+        x[0:5] += G[0:5] * (x[8] - fix.shift)
+        cross = P[:, 8].copy()
+        P = P + np.outer(G, G) * ptt + np.outer(G, cross) + np.outer(cross, G)
+        return PlanarState(x, P, s.w, s.jitter, None, False, s.an)
+
+    def reinit(self, s: PlanarState, fix: Fix) -> PlanarState:
+        """Start again from ``fix``'s pose (the velocity unknown again), keeping what was
+        learned of the IMU (its biases) and of the fixes' jitter; the time offset goes
+        back to its prior (a filter that refused fixes in a row may have had it
+        wrong), centred on the shift the fix is applied with."""
+        n = self.init(fix)
+        keep = [5, 6, 7]
+        P = n.P.copy()
+        P[np.ix_(keep, keep)] = s.P[np.ix_(keep, keep)]
+        x = n.x.copy()
+        x[keep] = s.x[keep]
+        return PlanarState(x, P, s.w, s.jitter, pending=True)
+
+    @staticmethod
+    def _measure(
+        x: np.ndarray, w0: float, x0: np.ndarray, an: tuple[float, float], shift: float
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The pose a fix measures from state ``x`` (at the fix's true exposure, tau
+        before its stated time) and its derivatives by the state; ``w0`` is the rate
+        less the bias of state ``x0`` (the rate w = gyro - b_g: d(-w tau)/d(b_g) =
+        tau)."""
+        tau = x[8] - shift  # what is left of the offset (the fix was applied shifted)
+        w = w0 - (x[5] - x0[5])
+        # to second order in tau for the position (0.5 a tau^2 is 0.03 mm at 40 ms and
+        # 35 mm/s^2, two lamp fix sigmas); the acceleration as the IMU measured it
+        ax, ay = an
+        h = np.array([x[0] - x[2] * tau + 0.5 * ax * tau * tau,
+                      x[1] - x[3] * tau + 0.5 * ay * tau * tau,
+                      x[4] - w * tau])  # fmt: skip
+        H = np.zeros((3, 9))
+        H[0, 0] = H[1, 1] = H[2, 4] = 1.0
+        H[0, 2] = H[1, 3] = -tau
+        H[2, 5] = tau
+        H[:, 8] = [-x[2] + ax * tau, -x[3] + ay * tau, -w]
+        return h, H
+
+    @staticmethod
+    def _wrap(r: np.ndarray) -> np.ndarray:
+        r = r.copy()
+        r[2] = (r[2] + math.pi) % (2 * math.pi) - math.pi
+        return r
 
     @staticmethod
     def values(s: PlanarState) -> tuple[np.ndarray, np.ndarray]:
         """(x_mm, y_mm, heading rad) and their 1-sigma."""
         v = s.x[[0, 1, 4]].copy()
         v[2] = (v[2] + math.pi) % (2 * math.pi) - math.pi
-        return v, np.sqrt(np.clip(np.diag(s.P)[[0, 1, 4]], 0.0, None))
+        var = np.diag(s.P)[[0, 1, 4]]
+        if s.dispute is not None:
+            var = var + np.diag(s.dispute)
+        if s.pending:
+            # from one fix: it is the pose tau before its stated time, and the velocity
+            # is not known (PlanarModel._second)
+            ptt = s.P[8, 8]
+            var = var + ptt * np.array([s.x[2] ** 2 + s.P[2, 2], s.x[3] ** 2 + s.P[3, 3],
+                                        s.w**2])  # fmt: skip
+        return v, np.sqrt(np.clip(var, 0.0, None))
 
 
 @dataclass(frozen=True)

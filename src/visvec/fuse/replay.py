@@ -21,13 +21,27 @@ from __future__ import annotations
 import bisect
 import math
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from visvec.fuse.inputs import Fix, ImuData
 
 MAX_REJECTED_IN_A_ROW = 3  # then the filter restarts from the latest fix
+# a model that estimates its fixes' time offset (PlanarModel.time_offset) has them applied
+# at their stated time less the offset as last set: set again, and the history
+# replayed, once the estimate is known to SHIFT_SIGMA and has moved SHIFT_STEP from it
+SHIFT_STEP = 0.005  # s
+SHIFT_SIGMA = 0.005  # s
+# the filter waits for the time offset's alignment (PlanarModel.align) at most while its
+# fixes span ALIGN_WAIT_S, and not at all when they come fewer than ALIGN_FEW_FIXES in
+# that time (they could not align it); the prior on the offset is then the alignment's
+# sigma, at least ALIGN_PRIOR_MIN (that sigma is too small: PlanarModel.align), within
+# which the filter's first-order time shift holds
+ALIGN_WAIT_S = 4.0
+ALIGN_EVERY_S = 0.25  # while it waits, it tries again this often
+ALIGN_FEW_FIXES = 10
+ALIGN_PRIOR_MIN = 0.02
 
 
 @dataclass(frozen=True)
@@ -122,6 +136,7 @@ class Fusion:
         self._pending: list[Fix] = []  # fixes added since the last sample
         self.n_applied = 0
         self._rejected_streak = 0
+        self._refused_since = 0.0  # the exposure of the first fix of the streak
         self._last_good = None  # the last good reading
         self._prev_a = None
         self._index = 0
@@ -132,6 +147,10 @@ class Fusion:
         self._initialised = False
         self.rest = None  # (mean rad/s (3,), std rad/s (3,), n) once found
         self.n_saturated = 0
+        self.shift = 0.0  # s: the fixes are applied this much before their stated time
+        # the time offset found before the start, (tau, sigma) s; (nan, nan) if none was
+        self.aligned: tuple[float, float] | None = None
+        self._align_next = -math.inf
 
     @property
     def state(self):
@@ -311,12 +330,22 @@ class Fusion:
             start = min(start, bisect.bisect_left(self._ts, min(f.time_s for f in new)))
         nis_new: list[float] = []
         if not self._replay(start, new, warnings, nis_new):
+            if self._known and self.aligned is None:
+                warnings.append("aligning_clocks")
             return FusedSample(k, t, None, self.n_applied, (*warnings, "no_fix_yet"))
-        if self._rejected_streak >= MAX_REJECTED_IN_A_ROW:
+        if (
+            new
+            and self._rejected_streak >= MAX_REJECTED_IN_A_ROW
+            and (
+                max(f.time_s for f in new) - self._refused_since
+                >= getattr(self.model, "restart_after_s", 0.0)
+            )
+        ):
             # the filter has disagreed with several fixes in a row: trust the fixes again,
             # keeping what it learned of the sensor where the model can
             self._restart_on(max(new, key=lambda f: f.time_s))
             warnings.append("filter_restarted")
+        self._shift_fixes()
         self._forget(t)
         st = self._states[-1]
         if getattr(st, "saturated", False) or clipped.any():
@@ -379,6 +408,8 @@ class Fusion:
         ts, new = self._ts, []
         pending, self._pending = self._pending, []
         for f in pending:
+            if self.shift:
+                f = replace(f, time_s=f.time_s - self.shift, shift=self.shift)
             if f.time_s < ts[0] or f.time_s > t:
                 warnings.append("fix_too_old" if f.time_s < ts[0] else "fix_from_future")
                 continue
@@ -400,8 +431,11 @@ class Fusion:
             if init is None:
                 return False
             if not self._initialised:
+                if not self._align():
+                    return False
                 self._initialised = True
                 self._find_rest(ts[-1])
+                init = known[0][2]
             s, t_s = self.model.init(init), init.time_s
             if any(init is f for f in new):
                 self.n_applied += 1
@@ -424,12 +458,92 @@ class Fusion:
                         self._rejected_streak = 0
                     else:
                         warnings.append("fix_rejected")
+                        if self._rejected_streak == 0:
+                            self._refused_since = f.time_s
                         self._rejected_streak += 1
             if ts[j] > t_s:
                 s = model.propagate(s, gyro[j], acc[j], ts[j] - t_s)
                 t_s = ts[j]
             states[j] = s
         return True
+
+    def _align(self) -> bool:
+        """Before the filter starts, with a model that can (PlanarModel.align): the
+        fixes' time offset from their heading against the gyro's. False while it waits
+        for enough of them (at most ALIGN_WAIT_S of fixes; then it starts without);
+        once found, the fixes are applied shifted by it, and the model's prior on the
+        offset is its sigma."""
+        align = getattr(self.model, "align", None)
+        known = self._known
+        if align is None or self.aligned is not None or not known:
+            return True
+        if self.model.time_offset_sigma <= 0.0:  # the offset is held (known)
+            self.aligned = (math.nan, math.nan)
+            return True
+        if self._ts[-1] < self._align_next:
+            return False
+        self._align_next = self._ts[-1] + ALIGN_EVERY_S
+        ts = np.array(self._ts)
+        rate = np.array([g[0][2] for g in self._gyro])
+        accel = None if any(a is None for a in self._acc) else np.array(self._acc)
+        # on the first ALIGN_WAIT_S of fixes only, whenever they arrive (so that the
+        # start does not depend on the order in which they came)
+        t0 = known[0][0]
+        found = align(ts, rate, accel, [f for t, _, f in known if t <= t0 + ALIGN_WAIT_S])
+        if found is None:
+            # wait while fixes come fast enough to align within ALIGN_WAIT_S (sparse
+            # fixes, such as LuVeX's 1.7 Hz, would only hold the rows up)
+            waited = float(ts[-1]) - known[0][0]
+            if waited < ALIGN_WAIT_S and waited / len(known) < ALIGN_WAIT_S / ALIGN_FEW_FIXES:
+                return False
+            self.aligned = (math.nan, math.nan)
+            return True
+        tau, sigma = found
+        self.aligned = found
+        prior = max(sigma, -tau, ALIGN_PRIOR_MIN)
+        self.model = replace(self.model, time_offset_sigma=prior)
+        self._move_fixes(max(tau, 0.0))
+        return True
+
+    def _move_fixes(self, shift: float) -> float | None:
+        """The known fixes applied ``shift`` before their stated time from now on; the
+        earliest time any of them was or is now at (None without fixes)."""
+        self.shift = shift
+        ts, known = self._ts, self._known
+        if not known:
+            return None
+        first = min(known[0][0], known[0][2].time_s + known[0][2].shift - shift)
+        moved = []
+        for _, _, f in known:
+            g = replace(f, time_s=f.time_s + f.shift - shift, shift=shift)
+            if ts[0] < g.time_s <= ts[-1]:
+                moved.append((g.time_s, id(g), g))
+        moved.sort(key=lambda e: e[:2])
+        known[:] = moved
+        return first if moved else None
+
+    def _shift_fixes(self) -> None:
+        """Step 4b: with a model that estimates its fixes' time offset, the fixes are
+        applied at their stated time less the offset, so that the model's first-order
+        time shift (PlanarModel, the module doc) covers only what is left of it: at
+        40 ms and 35 mm/s^2 the second order is already 0.03 mm, two lamp fix sigmas,
+        and a network camera's frames arrive 50-200 ms after their exposure. When the
+        estimate is known well enough and has moved far enough from the shift in use,
+        the known fixes are moved and the history replayed from the earliest."""
+        offset = getattr(self.model, "time_offset", None)
+        st = self._states[-1] if self._states else None
+        if offset is None or st is None:
+            return
+        tau, sigma = offset(st)
+        shift = max(tau, 0.0)
+        if sigma > SHIFT_SIGMA or abs(shift - self.shift) < SHIFT_STEP:
+            return
+        # replayed from before the earliest of the fixes where they were and where they
+        # go (the state there has none of them in it; before the first, the filter
+        # starts again)
+        first = self._move_fixes(shift)
+        if first is not None:
+            self._replay(bisect.bisect_left(self._ts, first), [], [], [])
 
     def _restart_on(self, latest: Fix) -> None:
         """Step 4: start again from ``latest`` (keeping what the model learned of the
