@@ -180,3 +180,13 @@ def test_a_refused_fix_widens_the_rows_not_the_filter():
     assert PlanarModel.values(after.state)[1][0] > 4.0
     end = out[int(np.searchsorted(t, fixes[bad[1] + 2].available_s)) + 1]
     assert "fix_disputed" not in end.warnings and PlanarModel.values(end.state)[1][0] < 0.1
+
+
+def test_an_imu_without_fixes_keeps_only_its_history():
+    """Hours of IMU samples before the camera's first fix: the engine keeps its history
+    window, not every sample."""
+    imu = _imu(30.0, seed=11)
+    eng = Fusion(PlanarModel(), history_s=2.0)
+    out = list(fuse(imu, [], PlanarModel(), engine=eng))
+    assert all(fs.state is None and "no_fix_yet" in fs.warnings for fs in out)
+    assert len(eng._ts) <= 2.0 / 0.01 + 2

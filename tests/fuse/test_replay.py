@@ -20,8 +20,10 @@ def test_out_of_order_fixes_give_the_same_state_as_in_order(tmp_path):
     rng = np.random.default_rng(1)
     shuffled = [replace(f, available_s=f.time_s + rng.uniform(0.1, 3.0))
                 for f in fx.fixes if f.time_s < 15.0]  # fmt: skip
-    last = max(f.available_s for f in shuffled)
-    in_order = [replace(f, available_s=last) for f in shuffled]
+    # in order: each 3 s late (as late as the latest shuffled one, and within the
+    # history: a fix older than it is dropped, fix_too_old)
+    in_order = [replace(f, available_s=f.time_s + 3.0) for f in shuffled]
+    last = max(f.available_s for f in shuffled + in_order)
     a = list(fuse(imu, shuffled, PlanarModel()))
     b = list(fuse(imu, in_order, PlanarModel()))
     k = int(np.searchsorted(imu.t, last)) + 1

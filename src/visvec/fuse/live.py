@@ -45,6 +45,7 @@ from visvec.fuse.inputs import (
     untimed,
 )
 from visvec.fuse.inputs import _fix_cov as fix_cov
+from visvec.fuse.models import warm_up
 from visvec.fuse.run import fused_rows
 from visvec.rotations import quat_to_matrix
 
@@ -375,6 +376,9 @@ def run_live(imu: Reader, fixes, setup, open_rows, *, max_samples: int | None = 
     process): the run also ends once the fixes' source has ended and the IMU has
     been quiet for QUIET_END_S."""
     run = _LiveRun(imu, fixes, setup, open_rows, silent_s, echo, kind, end_with_fixes)
+    # what the filters import on their first fix (scipy.special, half a second), here,
+    # before any row waits on it
+    warm_up()
     for r in (imu, fixes):
         r.start()
     try:

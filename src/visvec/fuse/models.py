@@ -30,6 +30,14 @@ rules share this propagation:
   y = ((a^T r)^2 - g) / g^2 is an unbiased sample of sigma_t^2, of variance
   2 (1/g + sigma_t^2)^2; a weighted mean with a forgetting factor (PlanarJitter).
 
+  h is bilinear in the state (v tau, b_g tau), and a first-order time shift holds only
+  to some tens of ms. So: before the filter starts, the engine aligns the offset from
+  the fixes' poses against the IMU's (PlanarModel.align, Fusion._align) and applies the
+  fixes at their stated time less it (Fusion._shift_fixes), leaving the filter the rest
+  of it; the first two fixes give the velocity before the offset is coupled to the pose
+  (PlanarModel._second); and the update carries the Gaussian second-order terms of the
+  products (PlanarModel.update).
+
 3-D: a multiplicative extended Kalman filter (Markley & Crassidis, Fundamentals of
 Spacecraft Attitude Determination and Control, 2014, Sec. 6.2, Eqs. 6.60-6.63) on the
 attitude error, the gyro bias and, beyond the usual filter, the gyro's misalignment to
@@ -81,6 +89,13 @@ NIS_P = 1e-6
 BURST_P = 0.01
 
 
+def warm_up() -> None:
+    """Compute (and cache) the chi-square quantiles the filters use, so that the import
+    they take (scipy.special: 0.5 s) does not fall on a live run's first fix."""
+    _nis_limit()
+    chi2_ppf(1.0 - BURST_P, 3)
+
+
 def _nis_limit() -> float:
     """The NIS beyond which a fix is refused (p = NIS_P, 3 degrees of freedom)."""
     return chi2_ppf(1.0 - NIS_P, 3)
@@ -99,10 +114,11 @@ JITTER_CLIP = 9.0
 JITTER_OWN_CHI2 = 6.635
 # the time offset's alignment before the filter starts (PlanarModel.align): the offsets
 # tried (s; a network camera's frames arrive up to some hundreds of ms after their
-# exposure) and their step, the fixes it needs at least, the sigma it must reach, how
-# much worse (chi-square) another local minimum must fit; a fix without a sigma counts
-# as one of 0.05 deg
+# exposure), their coarse step and the fine one about its best, the fixes it needs at
+# least, the sigma it must reach, how much worse (chi-square) another local minimum
+# must fit; a fix without a sigma counts as one of 0.05 deg
 ALIGN_TAU = (-0.05, 0.5)
+ALIGN_COARSE = 0.01
 ALIGN_STEP = 0.002
 ALIGN_MIN_FIXES = 15
 ALIGN_SIGMA = 0.005
@@ -276,15 +292,26 @@ class PlanarModel:
                  * (0.5 * (dtk[1:] + dtk[:-1])) ** 3 * np.sum(D2 * D2, axis=1) / 6.0)  # fmt: skip
             Wp = [np.linalg.inv(np.linalg.cholesky(D2 @ np.diag(var[:, ax]) @ D2.T + np.diag(q)))
                   for ax in (0, 1)]  # fmt: skip
-        grid = np.arange(ALIGN_TAU[0], ALIGN_TAU[1] + 1e-9, ALIGN_STEP)
-        te = t[None, :] - grid[:, None]  # (grid, fixes): the fixes' true times
-        turn = np.diff(np.interp(te, ts, psi), axis=1)
-        y = (dz[None, :] - turn) @ Wh.T  # whitened; y = -b dt
-        k = (y @ g) / gg
-        res = y - k[:, None] * g[None, :]
-        ss = np.sum(res * res, axis=1)
-        if use_pos:
-            ss = ss + self._align_position(ts, psi, acc, -k, te, val, D2, Wp)
+
+        def chi2(grid: np.ndarray) -> np.ndarray:
+            te = t[None, :] - grid[:, None]  # (grid, fixes): the fixes' true times
+            turn = np.diff(np.interp(te, ts, psi), axis=1)
+            y = (dz[None, :] - turn) @ Wh.T  # whitened; y = -b dt
+            k = (y @ g) / gg
+            res = y - k[:, None] * g[None, :]
+            out = np.sum(res * res, axis=1)
+            if use_pos:
+                out = out + self._align_position(ts, psi, acc, -k, te, val, D2, Wp)
+            return out
+
+        # coarse over the whole range, then fine about its best
+        coarse = np.arange(ALIGN_TAU[0], ALIGN_TAU[1] + 1e-9, ALIGN_COARSE)
+        ssc = chi2(coarse)
+        ic = int(np.argmin(ssc))
+        if ic == 0 or ic == len(coarse) - 1:
+            return None
+        grid = np.arange(coarse[ic - 1], coarse[ic + 1] + 1e-9, ALIGN_STEP)
+        ss = chi2(grid)
         i = int(np.argmin(ss))
         if i == 0 or i == len(grid) - 1:
             return None
@@ -297,9 +324,9 @@ class PlanarModel:
         chi2_red = max(1.0, b / max(dof, 1))
         sigma = math.sqrt(2.0 / curv * chi2_red)
         # another local minimum that fits nearly as well: ambiguous
-        far = np.abs(grid - tau) > max(5.0 * sigma, 2 * ALIGN_STEP)
-        mins = (ss[1:-1] <= ss[:-2]) & (ss[1:-1] <= ss[2:]) & far[1:-1]
-        if np.any(ss[1:-1][mins] < b + ALIGN_UNIQUE * chi2_red) or sigma > ALIGN_SIGMA:
+        far = np.abs(coarse - tau) > max(5.0 * sigma, 2 * ALIGN_COARSE)
+        mins = (ssc[1:-1] <= ssc[:-2]) & (ssc[1:-1] <= ssc[2:]) & far[1:-1]
+        if np.any(ssc[1:-1][mins] < b + ALIGN_UNIQUE * chi2_red) or sigma > ALIGN_SIGMA:
             return None
         return float(tau), sigma
 
@@ -439,6 +466,9 @@ class PlanarModel:
         R = S - H @ PHt
         K = np.linalg.solve(S, PHt.T).T
         x = s.x + K @ r
+        # the offset within what a camera can be late by (the alignment's range): beyond
+        # it the filter has gone wrong, and the engine's shift follows the offset
+        x[8] = min(max(x[8], ALIGN_TAU[0]), ALIGN_TAU[1])
         IKH = np.eye(9) - K @ H
         P = IKH @ s.P @ IKH.T + K @ R @ K.T  # Joseph form
         jitter = s.jitter

@@ -26,6 +26,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from visvec.fuse.inputs import Fix, ImuData
+from visvec.fuse.models import ALIGN_TAU
 
 MAX_REJECTED_IN_A_ROW = 3  # then the filter restarts from the latest fix
 # a model that estimates its fixes' time offset (PlanarModel.time_offset) has them applied
@@ -33,12 +34,16 @@ MAX_REJECTED_IN_A_ROW = 3  # then the filter restarts from the latest fix
 # replayed, once the estimate is known to SHIFT_SIGMA and has moved SHIFT_STEP from it
 SHIFT_STEP = 0.005  # s
 SHIFT_SIGMA = 0.005  # s
-# the filter waits for the time offset's alignment (PlanarModel.align) at most while its
-# fixes span ALIGN_WAIT_S, and not at all when they come fewer than ALIGN_FEW_FIXES in
-# that time (they could not align it); the prior on the offset is then the alignment's
-# sigma, at least ALIGN_PRIOR_MIN (that sigma is too small: PlanarModel.align), within
-# which the filter's first-order time shift holds
+SHIFT_MAX = ALIGN_TAU[1]  # s: the largest offset the alignment tries
+# the filter waits for the time offset's alignment (PlanarModel.align; Fusion._align):
+# at rest at most while its fixes span ALIGN_WAIT_S, not at all when they come fewer
+# than ALIGN_FEW_FIXES in that time (they could not align it); the prior on the offset
+# is then the alignment's sigma, at least ALIGN_PRIOR_MIN (that sigma is too small:
+# PlanarModel.align), within which the filter's first-order time shift holds
 ALIGN_WAIT_S = 4.0
+# a platform that moves this much over ALIGN_WAIT_S of fixes waits on for its alignment
+ALIGN_MOVING_MM = 10.0
+ALIGN_MOVING_DEG = 1.0
 ALIGN_EVERY_S = 0.25  # while it waits, it tries again this often
 ALIGN_FEW_FIXES = 10
 ALIGN_PRIOR_MIN = 0.02
@@ -332,6 +337,7 @@ class Fusion:
         if not self._replay(start, new, warnings, nis_new):
             if self._known and self.aligned is None:
                 warnings.append("aligning_clocks")
+            self._forget(t)  # an IMU with no fix for hours keeps only its history
             return FusedSample(k, t, None, self.n_applied, (*warnings, "no_fix_yet"))
         if (
             new
@@ -469,10 +475,18 @@ class Fusion:
 
     def _align(self) -> bool:
         """Before the filter starts, with a model that can (PlanarModel.align): the
-        fixes' time offset from their heading against the gyro's. False while it waits
-        for enough of them (at most ALIGN_WAIT_S of fixes; then it starts without);
+        fixes' time offset from their poses against the IMU's. False while it waits;
         once found, the fixes are applied shifted by it, and the model's prior on the
-        offset is its sigma."""
+        offset is its sigma (at least ALIGN_PRIOR_MIN).
+
+        It tries on the first ALIGN_WAIT_S of fixes, whenever they arrive (so that the
+        start does not depend on the order in which they came), and then, while the
+        platform moves, on the latest ALIGN_WAIT_S: a moving platform's rows with the
+        offset unknown would be wrong with a small sigma (a stream 300 ms late with
+        1 ms of jitter: rows 45 sigma off). It starts without when the platform is at
+        rest after ALIGN_WAIT_S (the offset does not matter then; the filter learns it
+        once it moves), or at once when the fixes come too sparse to align (fewer than
+        ALIGN_FEW_FIXES in ALIGN_WAIT_S: LuVeX's 1.7 Hz)."""
         align = getattr(self.model, "align", None)
         known = self._known
         if align is None or self.aligned is not None or not known:
@@ -483,18 +497,26 @@ class Fusion:
         if self._ts[-1] < self._align_next:
             return False
         self._align_next = self._ts[-1] + ALIGN_EVERY_S
-        ts = np.array(self._ts)
-        rate = np.array([g[0][2] for g in self._gyro])
-        accel = None if any(a is None for a in self._acc) else np.array(self._acc)
-        # on the first ALIGN_WAIT_S of fixes only, whenever they arrive (so that the
-        # start does not depend on the order in which they came)
-        t0 = known[0][0]
-        found = align(ts, rate, accel, [f for t, _, f in known if t <= t0 + ALIGN_WAIT_S])
+        waited = self._ts[-1] - known[0][0]
+        if waited / len(known) >= ALIGN_WAIT_S / ALIGN_FEW_FIXES:
+            self.aligned = (math.nan, math.nan)
+            return True
+        if waited < ALIGN_WAIT_S:
+            t0 = known[0][0]
+            fixes = [f for t, _, f in known if t <= t0 + ALIGN_WAIT_S]
+        else:
+            t1 = known[-1][0]
+            fixes = [f for t, _, f in known if t >= t1 - ALIGN_WAIT_S]
+        # with the samples they can reach
+        lo = bisect.bisect_left(self._ts, fixes[0].time_s - SHIFT_MAX - 0.05)
+        hi = bisect.bisect_right(self._ts, fixes[-1].time_s + 0.05)
+        ts = np.array(self._ts[lo:hi])
+        rate = np.array([g[0][2] for g in self._gyro[lo:hi]])
+        acc = self._acc[lo:hi]
+        accel = None if any(a is None for a in acc) else np.array(acc)
+        found = align(ts, rate, accel, fixes)
         if found is None:
-            # wait while fixes come fast enough to align within ALIGN_WAIT_S (sparse
-            # fixes, such as LuVeX's 1.7 Hz, would only hold the rows up)
-            waited = float(ts[-1]) - known[0][0]
-            if waited < ALIGN_WAIT_S and waited / len(known) < ALIGN_WAIT_S / ALIGN_FEW_FIXES:
+            if waited < ALIGN_WAIT_S or _moving(fixes):
                 return False
             self.aligned = (math.nan, math.nan)
             return True
@@ -505,45 +527,37 @@ class Fusion:
         self._move_fixes(max(tau, 0.0))
         return True
 
-    def _move_fixes(self, shift: float) -> float | None:
-        """The known fixes applied ``shift`` before their stated time from now on; the
-        earliest time any of them was or is now at (None without fixes)."""
+    def _move_fixes(self, shift: float) -> None:
+        """The known fixes applied ``shift`` before their stated time, as the fixes that
+        come from now on (before the filter starts: nothing to replay)."""
         self.shift = shift
-        ts, known = self._ts, self._known
-        if not known:
-            return None
-        first = min(known[0][0], known[0][2].time_s + known[0][2].shift - shift)
+        ts = self._ts
         moved = []
-        for _, _, f in known:
+        for _, _, f in self._known:
             g = replace(f, time_s=f.time_s + f.shift - shift, shift=shift)
             if ts[0] < g.time_s <= ts[-1]:
                 moved.append((g.time_s, id(g), g))
         moved.sort(key=lambda e: e[:2])
-        known[:] = moved
-        return first if moved else None
+        self._known[:] = moved
 
     def _shift_fixes(self) -> None:
-        """Step 4b: with a model that estimates its fixes' time offset, the fixes are
-        applied at their stated time less the offset, so that the model's first-order
-        time shift (PlanarModel, the module doc) covers only what is left of it: at
-        40 ms and 35 mm/s^2 the second order is already 0.03 mm, two lamp fix sigmas,
-        and a network camera's frames arrive 50-200 ms after their exposure. When the
-        estimate is known well enough and has moved far enough from the shift in use,
-        the known fixes are moved and the history replayed from the earliest."""
+        """Step 4b: with a model that estimates its fixes' time offset, new fixes are
+        applied at their stated time less the offset as now known, so that the model's
+        first-order time shift (PlanarModel, the module doc) covers only what is left
+        of it: at 40 ms and 35 mm/s^2 the second order is already 0.03 mm, two lamp fix
+        sigmas, and a network camera's frames arrive 50-300 ms after their exposure.
+        The shift is set again once the estimate is known to SHIFT_SIGMA and has moved
+        SHIFT_STEP from it. A fix keeps the shift it came with (the model reads it
+        from the fix), so nothing is replayed: a shift costs nothing, whatever the
+        estimate does."""
         offset = getattr(self.model, "time_offset", None)
         st = self._states[-1] if self._states else None
         if offset is None or st is None:
             return
         tau, sigma = offset(st)
-        shift = max(tau, 0.0)
-        if sigma > SHIFT_SIGMA or abs(shift - self.shift) < SHIFT_STEP:
-            return
-        # replayed from before the earliest of the fixes where they were and where they
-        # go (the state there has none of them in it; before the first, the filter
-        # starts again)
-        first = self._move_fixes(shift)
-        if first is not None:
-            self._replay(bisect.bisect_left(self._ts, first), [], [], [])
+        shift = min(max(tau, 0.0), SHIFT_MAX)
+        if sigma <= SHIFT_SIGMA and abs(shift - self.shift) >= SHIFT_STEP:
+            self.shift = shift
 
     def _restart_on(self, latest: Fix) -> None:
         """Step 4: start again from ``latest`` (keeping what the model learned of the
@@ -574,6 +588,15 @@ class Fusion:
             for buf in (ts, self._raw, self._clip, self._gyro, self._acc, self._states):
                 del buf[:cut]
             self._known[:] = [x for x in self._known if x[0] >= ts[0]]
+
+
+def _moving(fixes: list[Fix]) -> bool:
+    """Whether planar fixes show the platform moving: their positions spread over
+    ALIGN_MOVING_MM or their headings over ALIGN_MOVING_DEG."""
+    v = np.array([f.value for f in fixes])
+    heading = np.unwrap(v[:, 2])
+    return bool(np.ptp(v[:, 0]) > ALIGN_MOVING_MM or np.ptp(v[:, 1]) > ALIGN_MOVING_MM
+                or np.ptp(heading) > math.radians(ALIGN_MOVING_DEG))  # fmt: skip
 
 
 def fuse(
