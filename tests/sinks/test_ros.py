@@ -114,7 +114,8 @@ def test_mcap_without_its_libraries_is_refused_before_any_frame(tmp_path, monkey
 def test_fused_rows_as_ros2_messages(tmp_path):
     lamps = ROOT / "configs" / "lamps.toml"
     rec = tmp_path / "rec"
-    assert run("simulate", "--rig", lamps, "--out", rec, "--frames", 12, "--imu").exit_code == 0
+    # 5 s: the fusion first aligns the camera's clock with the IMU's (1-2 s here)
+    assert run("simulate", "--rig", lamps, "--out", rec, "--frames", 150, "--imu").exit_code == 0
     args = ("batch", rec, "--rig", lamps, "--imu", rec / "imu.csv")
     # (one run: a replay's fixes are available after their measured processing time,
     # so two runs need not fuse alike)
@@ -124,7 +125,7 @@ def test_fused_rows_as_ros2_messages(tmp_path):
     poses = [m for m in msgs if m[0] == "/visvec/pose"]
     status = [m[3].status[0] for m in msgs if m[0] == "/visvec/status"]
     assert len(status) == n_imu  # a row per IMU sample
-    assert len(poses) == sum(st.message == "ok" for st in status) > 0.8 * n_imu
+    assert len(poses) == sum(st.message == "ok" for st in status) > 0.5 * n_imu
 
 
 def test_rows_as_a_ros2_bag_folder(tmp_path):
