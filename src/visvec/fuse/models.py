@@ -116,14 +116,13 @@ JITTER_OWN_CHI2 = 6.635
 # tried (s; a network camera's frames arrive up to some hundreds of ms after their
 # exposure), their coarse step and the fine one about its best, the fixes it needs at
 # least, the sigma it must reach, how much worse (chi-square) another local minimum
-# must fit; a fix without a sigma counts as one of 0.05 deg
+# must fit
 ALIGN_TAU = (-0.05, 0.5)
 ALIGN_COARSE = 0.01
 ALIGN_STEP = 0.002
 ALIGN_MIN_FIXES = 15
 ALIGN_SIGMA = 0.005
 ALIGN_UNIQUE = 25.0
-ALIGN_FIX_VAR = math.radians(0.05) ** 2
 
 
 @dataclass(frozen=True)
@@ -427,7 +426,7 @@ class PlanarModel:
             P[:, idx] = 0.0
             P[np.ix_(idx, idx)] = R0
             return PlanarState(x, P, jitter=s.jitter), True, math.nan
-        h, H = self._measure(x0, s.w, x0, s.an, fix.shift)
+        h, H = self._measure(x0, s.w, s.an, fix.shift)
         # the second-order terms of h's products (v tau, b_g tau): a Gaussian
         # second-order filter (Gelb, Applied Optimal Estimation, 1974, Sec. 6.1; for
         # h_i = c_i x_a x_tau: E h_i gains c_i P_a,tau and the innovation's covariance
@@ -495,11 +494,9 @@ class PlanarModel:
         gyro's rate and the IMU's acceleration), so the mean moves by J tau^ and the
         covariance gains J P_tt J^T with the cross terms J P_tt. From there the
         ordinary update is linearised at a known velocity."""
-        h, H = self._measure(s.x, s.w, s.x, s.an, fix.shift)
-        H[:, 8] = 0.0
-        H[0, 2] = H[1, 3] = 0.0
-        h = s.x[[0, 1, 4]]
-        r = self._wrap(fix.value - h)
+        H = np.zeros((3, 9))  # the pose itself: the offset left out
+        H[0, 0] = H[1, 1] = H[2, 4] = 1.0
+        r = self._wrap(fix.value - s.x[[0, 1, 4]])
         PHt = s.P @ H.T
         J = np.array([s.x[2], s.x[3], s.w])
         R = R0 + np.outer(J, J) * s.jitter.var
@@ -538,14 +535,12 @@ class PlanarModel:
 
     @staticmethod
     def _measure(
-        x: np.ndarray, w0: float, x0: np.ndarray, an: tuple[float, float], shift: float
+        x: np.ndarray, w: float, an: tuple[float, float], shift: float
     ) -> tuple[np.ndarray, np.ndarray]:
         """The pose a fix measures from state ``x`` (at the fix's true exposure, tau
-        before its stated time) and its derivatives by the state; ``w0`` is the rate
-        less the bias of state ``x0`` (the rate w = gyro - b_g: d(-w tau)/d(b_g) =
-        tau)."""
+        before its stated time) and its derivatives by the state; ``w`` is the rate
+        less the bias (w = gyro - b_g: d(-w tau)/d(b_g) = tau)."""
         tau = x[8] - shift  # what is left of the offset (the fix was applied shifted)
-        w = w0 - (x[5] - x0[5])
         # to second order in tau for the position (0.5 a tau^2 is 0.03 mm at 40 ms and
         # 35 mm/s^2, two lamp fix sigmas); the acceleration as the IMU measured it
         ax, ay = an
