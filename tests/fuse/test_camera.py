@@ -92,7 +92,7 @@ def test_track_with_imu_lamps_live(tmp_path):
     from conftest import ROOT
 
     rows, cam_rows, n_imu, rec, err = _track_live(
-        tmp_path, ROOT / "configs" / "lamps.toml", ["--motion", "perimeter"], 90
+        tmp_path, ROOT / "configs" / "lamps.toml", ["--motion", "perimeter"], 120
     )
     # at the end, what the filter learned: the camera's time offset first
     assert "learned: fixes' time offset" in err, err
@@ -101,7 +101,8 @@ def test_track_with_imu_lamps_live(tmp_path):
     assert list(rows[0]) == list(PLANAR_COLUMNS)
     tt = truth_table(rec / "imu_truth.csv")
     # the fusion starts once it has aligned the camera's clock with the IMU's (from
-    # their headings, about a second); the rows before say so
+    # their headings, 1-2 s: two tries in a row find the same offset); the rows before
+    # say so
     first = next(i for i, r in enumerate(rows) if r["status"] == "ok")
     assert 0 < first < 0.6 * len(rows)
     assert all("aligning_clocks" in r["warnings"] for r in rows[first - 10 : first])

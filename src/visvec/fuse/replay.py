@@ -47,6 +47,19 @@ ALIGN_MOVING_DEG = 1.0
 ALIGN_EVERY_S = 0.25  # while it waits, it tries again this often
 ALIGN_FEW_FIXES = 10
 ALIGN_PRIOR_MIN = 0.02
+# an alignment is taken only when the ALIGN_CONFIRM tries before it (each ALIGN_EVERY_S
+# earlier, on nearly the same fixes) found it too, within ALIGN_AGREE of the larger of
+# their sigmas. Over a second or two of fixes a steady change of the turn rate confounds
+# the offset with the gyro's bias, and the fit's sigma does not hold what is left: a live
+# soak's start (benchmarks/live_soak.py) aligned 26.7 +- 4.0 ms on its first 1 s of fixes,
+# 11.8 +- 5.6 on 1.5 s, 7.3 +- 4.4 on 2 s, the offset 3.8 ms; started on the first, the
+# filter took the same fixes to 19.9 +- 3.5 ms and its first rows were 5 sigma off.
+# Confirmed, that run starts at 4.2 s, 4.0 +- 1.5 ms, no row beyond 4 sigma; synthetic
+# lamps streams (offsets 7-300 ms, five stretches of the lap) start 0.5 s later (median
+# 2.8 s) with 0.9 % of rows beyond 3 sigma (1.3 % before). Two confirming tries: 0.7 %,
+# 3.1 s; three: a moving platform that never starts within 10 s
+ALIGN_AGREE = 1.0
+ALIGN_CONFIRM = 1
 
 
 @dataclass(frozen=True)
@@ -156,6 +169,7 @@ class Fusion:
         # the time offset found before the start, (tau, sigma) s; (nan, nan) if none was
         self.aligned: tuple[float, float] | None = None
         self._align_next = -math.inf
+        self._align_tries: list[tuple[float, float] | None] = []  # the last tries' finds
 
     @property
     def state(self):
@@ -486,7 +500,8 @@ class Fusion:
         1 ms of jitter: rows 45 sigma off). It starts without when the platform is at
         rest after ALIGN_WAIT_S (the offset does not matter then; the filter learns it
         once it moves), or at once when the fixes come too sparse to align (fewer than
-        ALIGN_FEW_FIXES in ALIGN_WAIT_S: LuVeX's 1.7 Hz)."""
+        ALIGN_FEW_FIXES in ALIGN_WAIT_S: LuVeX's 1.7 Hz). An alignment is taken once the
+        try before it found the same (ALIGN_CONFIRM, ALIGN_AGREE)."""
         align = getattr(self.model, "align", None)
         known = self._known
         if align is None or self.aligned is not None or not known:
@@ -515,6 +530,10 @@ class Fusion:
         acc = self._acc[lo:hi]
         accel = None if any(a is None for a in acc) else np.array(acc)
         found = align(ts, rate, accel, fixes)
+        earlier = self._align_tries[-ALIGN_CONFIRM:]
+        self._align_tries = [*earlier, found]
+        if found is not None and not _agree(found, earlier):
+            found = None  # not yet confirmed: as if none were found
         if found is None:
             if waited < ALIGN_WAIT_S or _moving(fixes):
                 return False
@@ -588,6 +607,14 @@ class Fusion:
             for buf in (ts, self._raw, self._clip, self._gyro, self._acc, self._states):
                 del buf[:cut]
             self._known[:] = [x for x in self._known if x[0] >= ts[0]]
+
+
+def _agree(found: tuple[float, float], earlier: list) -> bool:
+    """Whether an alignment (tau, sigma) is confirmed by the ALIGN_CONFIRM tries before
+    it (ALIGN_AGREE)."""
+    return len(earlier) >= ALIGN_CONFIRM and all(
+        e is not None and abs(found[0] - e[0]) <= ALIGN_AGREE * max(found[1], e[1]) for e in earlier
+    )
 
 
 def _moving(fixes: list[Fix]) -> bool:
