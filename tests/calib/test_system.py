@@ -1,5 +1,6 @@
 """Batch self-calibration of a markers rig."""
 
+import re
 from dataclasses import replace
 
 import numpy as np
@@ -205,13 +206,16 @@ def test_calibrate_system_cli(tmp_path, mrig):
     assert "B's orientation 1-sigma" in out.read_text().split("[camera]")[0]
     cal = load_rig(CONFIGS / "markers.toml", out)
     assert abs(cal.camera.fx - true.camera.fx) < 5.0
+    # the residual becomes the centroid noise's prior of later runs (the rig says 0.1)
+    report = float(re.search(r"residual_std_px = ([0-9.]+)", out.read_text()).group(1))
+    assert cal.detect.centroid_sigma_px == pytest.approx(report, abs=1e-5)
+    nominal = load_rig(CONFIGS / "markers.toml").detect.centroid_sigma_px
+    assert cal.detect.centroid_sigma_px != nominal
     assert abs(cal.t_n[2] - true.t_n[2]) < 3.0
     r = run("batch", frames, "--rig", CONFIGS / "markers.toml", "--calibration", out,
             "--truth", frames / "truth.csv")  # fmt: skip
     # the calibration file applies: frames are identified and solved with it (16 frames
     # calibrate the camera only roughly, so some fail the strict residual test)
-    import re
-
     ok = int(re.search(r"frames 16, ok (\d+)", r.output).group(1))
     assert ok >= 12
     rms = [float(x) for x in re.findall(r"rms ([0-9.]+) deg", r.output)]

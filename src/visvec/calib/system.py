@@ -530,7 +530,8 @@ def _common_attitude_sigma_arcsec(cov: np.ndarray, model: _Model) -> np.ndarray:
 
 
 def calibration_sections(cal: SystemCalibration) -> dict[str, dict[str, object]]:
-    """Sections of the calibration file (camera, mount, target patterns)."""
+    """Sections of the calibration file (camera, mount, the centroid noise, target
+    patterns, the report)."""
     rig = cal.rig
     cam = rig.camera
     return {
@@ -542,6 +543,10 @@ def calibration_sections(cal: SystemCalibration) -> dict[str, dict[str, object]]
             "dist": [round(float(v), 9) for v in cam.dist],
         },
         "mount": {"position_mm": np.round(rig.t_n, 5)},
+        # the residual per image coordinate, the LEDs' centroid noise as the calibrated
+        # model leaves it: the prior of the noise later runs learn (noise.LearnedNoise),
+        # so that their first rows' sigma is the lab's rather than the rig file's guess
+        "detect": {"centroid_sigma_px": round(min(max(cal.residual_std_px, 1e-4), 10.0), 5)},
         "target": {
             "patterns": [
                 {
