@@ -9,74 +9,17 @@ import math
 import numpy as np
 import pytest
 
+from visvec.bench.planar import (
+    FIX_COV,
+    GAUSS3,
+    Along,
+    errors_over_sigma,
+    imu_along,
+    late_fixes,
+)
 from visvec.fuse.inputs import Fix, ImuData
 from visvec.fuse.models import PlanarModel
 from visvec.fuse.replay import ALIGN_WAIT_S, Fusion, fuse
-from visvec.sim.lamps import ImuModel, PerimeterPath
-
-BASE = PerimeterPath(lap_s=66.0)
-
-
-class _Along:
-    """BASE from ``t0`` s on (another stretch of the lap: other turns and pushes)."""
-
-    def __init__(self, t0: float = 0.0):
-        self.t0 = t0
-
-    def at(self, t):
-        return BASE.at(np.asarray(t) + self.t0)
-
-    def derivatives(self, t, h=1e-3):
-        return BASE.derivatives(np.asarray(t) + self.t0, h)
-
-
-PATH = _Along()
-FIX_COV = np.diag([0.014**2, 0.014**2, math.radians(0.003) ** 2])  # a lamp fix's
-# the share of a 3-axis Gaussian beyond 3 sigma on some axis
-GAUSS3 = 1.0 - (1.0 - 0.0027) ** 3
-
-
-def _imu(seconds: float, seed: int, path=PATH) -> ImuData:
-    """100 Hz planar samples along ``path``, with the simulator's biases and noise."""
-    m = ImuModel(fault_fraction=0.0)
-    rng = np.random.default_rng(seed)
-    t = np.arange(0.0, seconds, 0.01)
-    vel, acc = path.derivatives(t)
-    psi = path.at(t)[:, 2]
-    c, s = np.cos(psi), np.sin(psi)
-    ax = (c * acc[:, 0] + s * acc[:, 1]) / 1000.0 + m.accel_bias_mps2[0]
-    ay = (-s * acc[:, 0] + c * acc[:, 1]) / 1000.0 + m.accel_bias_mps2[1]
-    gz = np.radians(np.degrees(vel[:, 2]) + m.gyro_bias_dps)
-    n = len(t)
-    gyro = np.zeros((n, 3))
-    gyro[:, 2] = gz + np.radians(m.gyro_noise_dps) * rng.standard_normal(n)
-    accel = np.column_stack([ax, ay]) + m.accel_noise_mps2 * rng.standard_normal((n, 2))
-    return ImuData(t, gyro, accel, np.arange(n), (), 0.01)
-
-
-def _fixes(seconds: float, late, seed: int, latency: float = 0.003, path=PATH) -> list[Fix]:
-    """30 Hz fixes, each the pose ``late(t)`` s before its stated time t."""
-    rng = np.random.default_rng(seed + 100)
-    out = []
-    for i, t in enumerate(np.arange(0.05, seconds - 0.1, 1.0 / 30.0)):
-        p = path.at(np.array([t - late(t, rng)]))[0]
-        p = p + rng.multivariate_normal(np.zeros(3), FIX_COV)
-        out.append(Fix(float(t), float(t) + latency, p, FIX_COV, i))
-    return out
-
-
-def _z(samples, path=PATH):
-    """Per ok row: its time and its largest error over sigma (x, y, heading)."""
-    t, z = [], []
-    for fs in samples:
-        if fs.state is None:
-            continue
-        v, sig = PlanarModel.values(fs.state)
-        tr = path.at(np.array([fs.time_s]))[0]
-        e = np.abs([v[0] - tr[0], v[1] - tr[1], (v[2] - tr[2] + math.pi) % (2 * math.pi) - math.pi])
-        t.append(fs.time_s)
-        z.append(float(np.max(e / sig)))
-    return np.array(t), np.array(z)
 
 
 @pytest.mark.parametrize("late_s", [0.007, 0.1, 0.3])
@@ -88,17 +31,17 @@ def test_a_constant_offset_is_aligned_and_the_rows_stay_honest(late_s):
     Gaussian's."""
     zs = []
     for k, t0 in enumerate((0.0, 23.0, 45.0)):
-        path = _Along(t0)
-        imu = _imu(12.0, seed=k, path=path)
+        path = Along(t0)
+        imu = imu_along(12.0, seed=k, path=path)
         eng = Fusion(PlanarModel())
-        fixes = _fixes(12.0, lambda t, r: late_s, seed=10 + k, path=path)
+        fixes = late_fixes(12.0, lambda t, r: late_s, seed=10 + k, path=path)
         out = list(fuse(imu, fixes, PlanarModel(), engine=eng))
         tau, sigma = eng.aligned
         assert abs(tau - late_s) < 0.06 and sigma < 0.01  # PlanarModel.align: 54 ms at most
         first = next(i for i, fs in enumerate(out) if fs.state is not None)
         assert 0.5 < out[first].time_s < ALIGN_WAIT_S
         assert all("aligning_clocks" in fs.warnings for fs in out[first - 20 : first])
-        t, z = _z(out, path)
+        t, z = errors_over_sigma(out, path)
         assert len(z) == len(out) - first  # every row from the first on
         zs.append(z)
         est, est_sigma = PlanarModel.time_offset(out[-1].state)
@@ -121,8 +64,8 @@ def test_an_alignment_is_taken_only_once_the_next_try_confirms_it(monkeypatch):
 
     monkeypatch.setattr(PlanarModel, "align", align)
     eng = Fusion(PlanarModel())
-    out = list(fuse(_imu(6.0, seed=3), _fixes(6.0, lambda t, r: 0.1, seed=4), PlanarModel(),
-                    engine=eng))  # fmt: skip
+    imu, fixes = imu_along(6.0, seed=3), late_fixes(6.0, lambda t, r: 0.1, seed=4)
+    out = list(fuse(imu, fixes, PlanarModel(), engine=eng))
     assert eng.aligned == (0.0995, 0.003)
     first = next(i for i, fs in enumerate(out) if fs.state is not None)
     # the fourth try confirmed the third: the start after it, not before
@@ -155,15 +98,15 @@ def test_at_rest_the_fusion_starts_unaligned():
 def test_timing_jitter_is_learned_and_covered():
     """Frames stated 10 ms late with 1 ms of jitter (a stream timed on arrival): the
     learned jitter is near 1 ms, and the rows stay honest."""
-    imu = _imu(20.0, seed=5)
-    fixes = _fixes(20.0, lambda t, r: 0.01 + 0.001 * r.standard_normal(), seed=6)
+    imu = imu_along(20.0, seed=5)
+    fixes = late_fixes(20.0, lambda t, r: 0.01 + 0.001 * r.standard_normal(), seed=6)
     out = list(fuse(imu, fixes, PlanarModel()))
     jit = math.sqrt(out[-1].state.jitter.var)
     assert 0.7e-3 < jit < 1.4e-3
-    t, z = _z(out)
+    t, z = errors_over_sigma(out)
     assert z.max() < 5.0 and np.mean(z > 3.0) < 2 * GAUSS3
     # without the jitter term the same fixes put rows beyond 5 sigma
-    t0, z0 = _z(fuse(imu, fixes, PlanarModel(jitter_sigma=0.0)))
+    t0, z0 = errors_over_sigma(fuse(imu, fixes, PlanarModel(jitter_sigma=0.0)))
     assert z0.max() > 5.0
 
 
@@ -171,14 +114,14 @@ def test_frames_late_for_a_moment_neither_restart_nor_mislead():
     """For half a second every frame comes 60 ms late (a network camera held up, at
     its normal pace): the filter neither restarts on them nor takes them as the truth;
     every ok row stays within 5 of its sigma."""
-    imu = _imu(14.0, seed=7)
+    imu = imu_along(14.0, seed=7)
 
     def late(t, r):
         return 0.008 + (0.06 if 8.0 <= t < 8.5 else 0.0)
 
-    out = list(fuse(imu, _fixes(14.0, late, seed=8), PlanarModel()))
+    out = list(fuse(imu, late_fixes(14.0, late, seed=8), PlanarModel()))
     assert not any("filter_restarted" in fs.warnings for fs in out)
-    t, z = _z(out)
+    t, z = errors_over_sigma(out)
     assert z.max() < 5.0
     burst = (t > 8.0) & (t < 8.7)
     assert burst.sum() > 50 and z[burst].max() < 5.0
@@ -188,8 +131,8 @@ def test_a_refused_fix_widens_the_rows_not_the_filter():
     """A fix 5 mm off is refused; the rows after it carry `fix_disputed` and a sigma
     that covers it, and a second such fix is refused as well (not taken because the
     first widened the filter); the next good fix ends the dispute."""
-    imu = _imu(6.0, seed=9)
-    fixes = _fixes(6.0, lambda t, r: 0.0, seed=10)
+    imu = imu_along(6.0, seed=9)
+    fixes = late_fixes(6.0, lambda t, r: 0.0, seed=10)
     bad = [i for i, f in enumerate(fixes) if 4.0 < f.time_s][:2]
     for i in bad:
         f = fixes[i]
@@ -208,7 +151,7 @@ def test_a_refused_fix_widens_the_rows_not_the_filter():
 def test_an_imu_without_fixes_keeps_only_its_history():
     """Hours of IMU samples before the camera's first fix: the engine keeps its history
     window, not every sample."""
-    imu = _imu(30.0, seed=11)
+    imu = imu_along(30.0, seed=11)
     eng = Fusion(PlanarModel(), history_s=2.0)
     out = list(fuse(imu, [], PlanarModel(), engine=eng))
     assert all(fs.state is None and "no_fix_yet" in fs.warnings for fs in out)
