@@ -102,7 +102,10 @@ def test_calibrate_zero_tilt_cli_refuses_a_wrong_camera_model(tmp_path):
     assert "nothing written" in r.output
 
 
-@pytest.mark.parametrize("scale_in_rig", [1.0, 1.5])
+@pytest.mark.parametrize(
+    "scale_in_rig",
+    [1.0, pytest.param(1.5, marks=pytest.mark.slow)],  # 4 s each
+)
 def test_zero_tilt_measures_how_much_wider_the_vertices_scatter_than_their_sigma(
     rig640, scale_in_rig
 ):

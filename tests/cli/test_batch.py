@@ -298,6 +298,7 @@ def test_batch_takes_a_quoted_glob(tmp_path):
     assert r.exit_code == 3 and "no image matches the pattern" in r.stderr
 
 
+@pytest.mark.slow  # 4-7 s: the default run stays under 5 minutes
 def test_many_recordings_one_output_each_wherever_they_run(tmp_path):
     """`batch REC... --out-dir DIR`: one output per recording, named after it, the same
     rows whether the recordings run in this process or on a local Dask cluster of two

@@ -116,6 +116,7 @@ def test_3d_time_offset_and_rest_bias_are_learned():
     assert np.sqrt(np.mean(late**2)) < 0.15
 
 
+@pytest.mark.slow  # 4-7 s: the default run stays under 5 minutes
 def test_3d_a_drifting_clock_is_followed():
     """The gyro's clock runs 300 ppm slow against the fixes': its time offset grows from
     0 to 18 ms over the minute. The filter learns the clocks' rate difference and ends

@@ -122,6 +122,7 @@ def test_lamps_rig(tmp_path):
         load_rig(write(tmp_path, down, "c.toml"))
 
 
+@pytest.mark.slow  # 4-7 s: the default run stays under 5 minutes
 def test_catalog_build_and_check_say_how_unique_the_maps_triangles_are(tmp_path):
     """Issue 35: with a rig, `catalog build` says how many map triangles fit in its view
     and the share with a rival within the few-lamps lookup's tolerance; a regular grid

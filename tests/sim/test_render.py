@@ -89,6 +89,7 @@ def test_tone_curve_keeps_the_output_levels_and_moves_the_edges_outwards(rig640)
     assert 40 < grow < 250, grow
 
 
+@pytest.mark.slow  # 4-7 s: the default run stays under 5 minutes
 def test_motion_blur_takes_the_exposure_in_ms_as_the_rig_does(rig640):
     """exposure_ms (ms, as [camera] exposure_ms) averages the frame over the attitudes of
     the exposure, centred on R_nb: a 20 ms exposure is the mean of frames spread over

@@ -150,6 +150,7 @@ def test_stream_that_never_answers_is_given_up_after_retry_s(tmp_path):
     assert took < 1.5 + 3.0  # the retry time and the interpreter's start, not 30 s
 
 
+@pytest.mark.slow  # 4-7 s: the default run stays under 5 minutes
 def test_stream_that_stalls_for_good_ends_with_exit_3_and_its_rows_written(tmp_path):
     srv = Mjpeg(first=15, then="stall")
     try:

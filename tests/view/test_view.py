@@ -211,6 +211,7 @@ def test_port_in_use_is_refused_before_the_camera_opens(tmp_path):
     assert "no-such-video" not in r.stderr  # refused before the camera was opened
 
 
+@pytest.mark.slow  # 4-7 s: the default run stays under 5 minutes
 def test_many_browsers_do_not_stop_the_rows(tmp_path):
     """Forty clients polling as fast as they can while a replay runs: every row is
     written, each once, and the run ends on time."""
