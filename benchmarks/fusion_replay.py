@@ -22,7 +22,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
-from live_soak import IMU_HZ, IMU_PPM, PATH, imu_samples
+from live_soak import IMU_HZ, IMU_PPM, imu_samples, over_sigma
 
 from visvec.clocks import ClockTie
 from visvec.fuse.live import parse_fix
@@ -36,20 +36,9 @@ from _common import run_record, save_json
 CLUSTER_GAP_S = 0.5
 
 
-def _errors_over_sigma(t, pose, sigma, ok) -> np.ndarray:
-    """Each row's largest error over its sigma (x, y, heading) against the path; 0 for
-    rows not ok."""
-    tr = PATH.at(t)
-    dh = (pose[:, 2] - np.degrees(tr[:, 2]) + 180.0) % 360.0 - 180.0
-    err = np.column_stack([pose[:, 0] - tr[:, 0], pose[:, 1] - tr[:, 1], dh])
-    with np.errstate(invalid="ignore", divide="ignore"):
-        z = np.abs(err) / sigma
-    return np.where(ok, np.nan_to_num(z, nan=0.0).max(axis=1), 0.0)
-
-
 def judge(t, pose, sigma, ok) -> dict:
     """The calibration test's figures and the rows beyond 5 sigma as events."""
-    z = _errors_over_sigma(t, pose, sigma, ok)
+    z = over_sigma(t, pose, sigma, ok)
     bad = np.flatnonzero(z > 5.0)
     events = []
     if len(bad):

@@ -367,6 +367,16 @@ def main() -> None:
     print({k: v for k, v in res.items() if k not in ("windows", "memory")})
 
 
+def over_sigma(t: np.ndarray, pose: np.ndarray, sigma: np.ndarray, ok: np.ndarray) -> np.ndarray:
+    """Each row's largest error over its own sigma (x, y mm; heading deg) against the
+    path at its time ``t``; 0 for rows not ok."""
+    truth = PATH.at(t)
+    e_deg = (pose[:, 2] - np.degrees(truth[:, 2]) + 180.0) % 360.0 - 180.0
+    err = np.column_stack([pose[:, 0] - truth[:, 0], pose[:, 1] - truth[:, 1], e_deg])
+    z = np.where(ok[:, None], np.abs(err) / np.where(ok[:, None], sigma, 1.0), 0.0)
+    return z.max(axis=1)
+
+
 def analyse(args, sent, got, pose, sigma, ok, j0, j1, stats) -> dict:
     """Per window: rows, latency, ok share, errors; the process's memory and CPU. Over the
     run: the ok rows off by WRONG_MM or WRONG_DEG, and those beyond 5 of their own sigma
@@ -406,9 +416,7 @@ def analyse(args, sent, got, pose, sigma, ok, j0, j1, stats) -> dict:
             "cpu_share": round(cpu, 3) if cpu is not None else None,
         })  # fmt: skip
     wrong = int(np.sum(okk & ((e_mm > WRONG_MM) | (np.abs(e_deg) > WRONG_DEG))))
-    err = np.column_stack([pose[idx, 0] - truth[:, 0], pose[idx, 1] - truth[:, 1], e_deg])
-    z = np.where(okk[:, None], np.abs(err) / np.where(okk[:, None], sigma[idx], 1.0), 0.0)
-    zmax = z.max(axis=1)
+    zmax = over_sigma(t, pose[idx], sigma[idx], okk)
     beyond3 = float(np.mean(zmax[okk] > 3.0)) if okk.any() else 0.0
     first, rest = windows[0], windows[1:] or windows
     rss = [w["rss_mb"] for w in windows if w["rss_mb"] is not None]
