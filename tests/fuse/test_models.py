@@ -17,7 +17,7 @@ from fusion_cases import (
 )
 
 from visvec.fuse.inputs import Fix, ImuData
-from visvec.fuse.models import AttitudeModel, PlanarModel
+from visvec.fuse.models import AttitudeModel, PlanarJitter, PlanarModel
 from visvec.fuse.replay import Limits, fuse
 from visvec.rotations import expmap, logmap
 from visvec.sim.lamps import ImuModel
@@ -66,8 +66,41 @@ def test_planar_kalman_learns_the_fixes_time_offset(tmp_path):
     state, rms, z = rows(PlanarModel())
     assert abs(state.x[8] - 0.03) < 0.002
     assert rms < 0.2 and np.sqrt(np.mean(z**2)) < 1.5 and z.max() < 5.0
-    _, rms0, z0 = rows(PlanarModel(time_offset_sigma=0.0, time_offset_walk=0.0))
+    # the offset held at 0, and nothing learned of the fixes' timing (the lateness
+    # state would take some of a constant offset too)
+    held = PlanarModel(time_offset_sigma=0.0, time_offset_walk=0.0, learn_jitter=False)
+    _, rms0, z0 = rows(held)
     assert rms0 > 1.0 and np.mean(z0 > 5.0) > 0.3
+
+
+def test_planar_lateness_is_what_the_recent_fixes_show_beyond_the_jitter():
+    """The lateness's variance (PlanarJitter.lasting) stays below the jitter's (its own
+    noise) while the fixes' timing is as the long run's, and after one frame 10 ms late;
+    it grows within a few fixes that come 5 ms late, to their lateness within ten, and
+    is below the jitter again some tens of fixes after they are on time; the long-run
+    jitter hardly moves."""
+    rng = np.random.default_rng(1)
+    S = np.diag([0.02**2, 0.02**2, math.radians(0.003) ** 2])  # a lamp fix's
+    J = np.array([60.0, 20.0, 0.05])  # mm/s, rad/s
+    jit = PlanarJitter(0.5e-3)
+    cov = S + np.outer(J, J) * 0.5e-3**2
+
+    def fixes(n, late_s):
+        nonlocal jit
+        for _ in range(n):
+            jit = jit.learn(rng.multivariate_normal(J * late_s, cov), S, J)
+        return jit
+
+    # on time: what the short fit finds beyond the long is its own noise, of the
+    # order of the jitter
+    assert fixes(200, 0.0).lasting < 4 * jit.var
+    assert abs(math.sqrt(jit.var) - 0.5e-3) < 0.15e-3
+    assert fixes(1, 0.01).lasting < 4 * jit.var
+    assert fixes(30, 0.0).lasting < 4 * jit.var
+    assert math.sqrt(fixes(3, 0.005).lasting) > 1e-3
+    assert math.sqrt(fixes(10, 0.005).lasting) > 3e-3
+    assert math.sqrt(jit.var) < 1e-3  # the long-run fit, clipped, hardly moves
+    assert fixes(60, 0.0).lasting < 4 * jit.var
 
 
 @pytest.mark.slow  # 8 s on a slow host

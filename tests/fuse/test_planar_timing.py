@@ -127,6 +127,34 @@ def test_frames_late_for_a_moment_neither_restart_nor_mislead():
     assert burst.sum() > 50 and z[burst].max() < 5.0
 
 
+@pytest.mark.parametrize(("t0", "extra_s"), [(11.0, 0.003), (51.0, 0.008)])
+def test_frames_late_by_milliseconds_for_a_second_are_carried_by_the_lateness(t0, extra_s):
+    """For a second every frame comes a few milliseconds later than the stream's offset
+    (a camera or its network held up; the live soak's frames at 587 s), with 0.3 ms of
+    jitter: a white jitter would average those fixes and follow them with a sigma that
+    shrinks (9-10 sigma off on these stretches before the lateness state); the
+    lateness state takes the disagreement, and every ok row stays within 5 of its
+    sigma."""
+    path = Along(t0)
+    imu = imu_along(14.0, seed=int(t0) + 7, path=path)
+
+    def late(t, r):
+        return 0.008 + 0.0003 * r.standard_normal() + (extra_s if 8.0 <= t < 9.0 else 0.0)
+
+    out = list(fuse(imu, late_fixes(14.0, late, seed=int(t0) + 8, path=path), PlanarModel()))
+    t, z = errors_over_sigma(out, path)
+    assert z.max() < 5.0
+    # the pose follows the first late fixes before the lateness is learned: beyond 3
+    # sigma more often than a Gaussian's only in the hold-up and the second after it
+    away = (t < 8.0) | (t > 10.0)
+    assert np.mean(z[away] > 3.0) < 2 * GAUSS3
+    # the state took the lateness while it lasted, and let it go after
+    lateness = np.array([fs.state.x[9] for fs in out if fs.state is not None])
+    during = (t > 8.3) & (t < 9.0)
+    assert np.max(np.abs(lateness[during])) > 0.3 * extra_s
+    assert np.max(np.abs(lateness[t > 12.0])) < 0.1 * extra_s
+
+
 def test_a_refused_fix_widens_the_rows_not_the_filter():
     """A fix 5 mm off is refused; the rows after it carry `fix_disputed` and a sigma
     that covers it, and a second such fix is refused as well (not taken because the

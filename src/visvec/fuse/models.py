@@ -9,11 +9,12 @@ rules share this propagation:
   re-integration "with quite accurate initial condition"); velocity and biases are
   kept (biases from the rest calibration only);
 - "kalman" (default): an extended Kalman filter on [x, y, vx, vy, psi, b_g, b_ax, b_ay,
-  tau] (mm, mm/s, rad, rad/s, mm/s^2, s) that also estimates the biases and the fixes'
-  time offset tau (their stated time less their true exposure: a camera's frames
-  stamped when read, not when exposed). A fix stated at t measures the pose at t - tau,
-  h = [x - vx tau, y - vy tau, psi - w tau] (w the gyro's rate less its bias), the
-  first-order time shift the 3-D filter also makes (below; the time offset as a filter
+  tau, l] (mm, mm/s, rad, rad/s, mm/s^2, s, s) that also estimates the biases, the
+  fixes' time offset tau (their stated time less their true exposure: a camera's frames
+  stamped when read, not when exposed) and a lateness l that lasts (below). A fix
+  stated at t measures the pose at t - tau, h = [x - vx tau, y - vy tau, psi - w tau]
+  (w the gyro's rate less its bias), the first-order time shift the 3-D filter also
+  makes (below; the time offset as a filter
   state: Li & Mourikis, "Online temporal calibration for camera-IMU systems", IJRR
   33(7), 2014). Fixes update it with their own covariance plus their timing jitter
   (below), and fixes whose innovation is implausible (chi-square, 3 dof, p < 1e-6) are
@@ -29,6 +30,34 @@ rules share this propagation:
   a = S^-1 J and g = J^T a, the projection a^T r has variance g + sigma_t^2 g^2, so
   y = ((a^T r)^2 - g) / g^2 is an unbiased sample of sigma_t^2, of variance
   2 (1/g + sigma_t^2)^2; a weighted mean with a forgetting factor (PlanarJitter).
+
+  A lateness that lasts: a camera or its network held up for a second or so delivers
+  its frames some milliseconds later than the offset says, which a white jitter does
+  not hold: the filter averages those fixes as independent and follows them with a
+  sigma that shrinks (a live soak, 2026-11-27: frames 1-10 ms late for a second, 78
+  rows beyond 5 sigma). So the fixes' timing has a third part, a lateness l, a state of
+  its own: a first-order Gauss-Markov process, l' = -l / T + w (T = LATE_TIME_S; Brown
+  & Hwang, Introduction to Random Signals and Applied Kalman Filtering, 4th ed., 2012,
+  Ch. 2, the first-order Gauss-Markov process: over a step dt, l decays by
+  phi = exp(-dt / T) and gains the variance sigma_l^2 (1 - phi^2)). A fix stated at t
+  shows the pose at t - tau - l, so l's column of H is tau's; they differ in their
+  dynamics (tau stays, l goes back to 0 within T). Its variance sigma_l^2 is learned
+  from the same samples y as the jitter, fitted a second time with a short memory
+  (JITTER_FORGET_SHORT: about the last 10 fixes): what the recent fixes show beyond
+  the long-run jitter, sigma_l^2 = max(0, short - long), is a lateness that lasts
+  (covariance matching over two windows). The short fit's samples are clipped as the
+  long fit's (JITTER_CLIP), but about its own value: a lateness that lasts grows it up
+  to ninefold a fix, where one frame late for a moment counts for little (and is
+  weighed by its own timing error, below). l's variance is kept at least sigma_l^2 (a
+  lateness just found is not known in value). While the recent fixes are timed as the
+  long run, sigma_l is the short fit's own noise and l stays near 0; when they come
+  late, sigma_l grows within a few fixes, their disagreement along J goes to l, and the
+  IMU carries the pose; as l takes it, the innovations (with l in the model) shrink,
+  sigma_l goes back to 0 and l decays, so that a pose that has drifted is not held off
+  by l. Replayed (benchmarks/fusion_replay.py) on a soak's kept fixes, and on an older
+  soak's with two such hold-ups, no row is beyond 5 sigma (77 and 109 without l); the
+  cost, that the fixes count a little less along J while sigma_l is the short fit's
+  noise: on those runs a position error 6-11 % larger and a sigma 18-22 % larger.
 
   h is bilinear in the state (v tau, b_g tau), and a first-order time shift holds only
   to some tens of ms. So: before the filter starts, the engine aligns the offset from
@@ -106,6 +135,14 @@ def _nis_limit() -> float:
 JITTER_PRIOR_S = 1e-3
 JITTER_PRIOR_FIXES = 3.0
 JITTER_FORGET = 0.99
+# and a second fit of the same samples that remembers about the last 10 fixes: what it
+# finds beyond the first is the variance of a lateness that lasts (PlanarJitter.lasting;
+# the module doc)
+JITTER_FORGET_SHORT = 0.9
+# the planar filter's states, and the lateness state's correlation time (s): the
+# hold-ups of a camera or its network seen last about a second
+N_PLANAR = 10
+LATE_TIME_S = 1.0
 # a single fix counts at most as one whose projected innovation is this many of its
 # sigmas squared (a late frame is not jitter: it must not widen every fix after it)
 JITTER_CLIP = 9.0
@@ -129,12 +166,17 @@ ALIGN_UNIQUE = 25.0
 class PlanarJitter:
     """The learned 1-sigma timing jitter of the fixes (s): a weighted mean of the samples
     y = ((a^T r)^2 - g) / g^2 (module doc) with the prior ``s0``; ``h``, ``z``: the sums
-    of the weights and of the weighted samples, forgotten by JITTER_FORGET per fix."""
+    of the weights and of the weighted samples, forgotten by JITTER_FORGET per fix;
+    ``hs``, ``zs``: the same forgotten by JITTER_FORGET_SHORT, whose excess over the
+    jitter is the variance of a lateness that lasts."""
 
     s0: float = JITTER_PRIOR_S
     h: float = 0.0
     z: float = 0.0
     n: int = 0
+    # the same samples with a short memory (JITTER_FORGET_SHORT), without the prior
+    hs: float = 0.0
+    zs: float = 0.0
 
     @property
     def var(self) -> float:
@@ -143,22 +185,37 @@ class PlanarJitter:
         h0 = JITTER_PRIOR_FIXES / (2.0 * self.s0**4)
         return max((h0 * self.s0**2 + self.z) / (h0 + self.h), 0.0)
 
+    @property
+    def lasting(self) -> float:
+        """The variance of a lateness that lasts (s^2): what the recent fixes' timing
+        shows beyond the long-run jitter (PlanarModel, the lateness state)."""
+        if self.s0 <= 0.0 or self.hs <= 0.0:
+            return 0.0
+        return max(self.zs / self.hs - self.var, 0.0)
+
     def learn(self, r: np.ndarray, S: np.ndarray, J: np.ndarray) -> PlanarJitter:
         a = np.linalg.solve(S, J)
         g = float(J @ a)
         if g <= 0.0 or self.s0 <= 0.0:  # at rest: nothing to learn about timing
             return self
         v = self.var
-        p2 = min(float(a @ r) ** 2, JITTER_CLIP * (g + v * g * g))
+        q2 = float(a @ r) ** 2
+        p2 = min(q2, JITTER_CLIP * (g + v * g * g))
         y = (p2 - g) / (g * g)
+        # the short fit's samples clipped alike, about its own value: a lateness that
+        # lasts grows it ninefold a fix, where one late frame counts for little
+        vs = max(self.zs / self.hs, v) if self.hs > 0.0 else v
+        ys = (min(q2, JITTER_CLIP * (g + vs * g * g)) - g) / (g * g)
         wt = 1.0 / (2.0 * (1.0 / g + v) ** 2)
         return PlanarJitter(self.s0, self.h * JITTER_FORGET + wt,
-                            self.z * JITTER_FORGET + wt * y, self.n + 1)  # fmt: skip
+                            self.z * JITTER_FORGET + wt * y, self.n + 1,
+                            self.hs * JITTER_FORGET_SHORT + wt,
+                            self.zs * JITTER_FORGET_SHORT + wt * ys)  # fmt: skip
 
 
 @dataclass(frozen=True)
 class PlanarState:
-    x: np.ndarray  # [x, y, vx, vy, psi, b_g, b_ax, b_ay, tau]
+    x: np.ndarray  # [x, y, vx, vy, psi, b_g, b_ax, b_ay, tau, lateness]
     P: np.ndarray
     w: float = 0.0  # the last interval's rate less the bias (rad/s)
     jitter: PlanarJitter = PlanarJitter()
@@ -210,11 +267,11 @@ class PlanarModel:
         # the time offset's prior: centred on the shift the fix is applied with (the
         # engine's linearisation point, Fusion._shift_fixes), its sigma the prior's
         x = np.array([fix.value[0], fix.value[1], 0.0, 0.0, fix.value[2], self.gyro_bias0,
-                      *self.accel_bias0, fix.shift])  # fmt: skip
+                      *self.accel_bias0, fix.shift, 0.0])  # fmt: skip
         R = self._fix_cov(fix)
         P = np.diag([R[0, 0], R[1, 1], self.velocity_sigma**2, self.velocity_sigma**2,
                      R[2, 2], self.gyro_bias_sigma**2, self.accel_bias_sigma**2,
-                     self.accel_bias_sigma**2, self.time_offset_sigma**2])  # fmt: skip
+                     self.accel_bias_sigma**2, self.time_offset_sigma**2, 0.0])  # fmt: skip
         return PlanarState(x, P, jitter=PlanarJitter(self.jitter_sigma), pending=True)
 
     def align(self, ts: np.ndarray, rate: np.ndarray, accel: np.ndarray | None,
@@ -387,7 +444,9 @@ class PlanarModel:
         xn[0:2] = x[0:2] + x[2:4] * dt + 0.5 * an * dt * dt
         xn[2:4] = x[2:4] + an * dt
         xn[4] = x[4] + w * dt
-        F = np.eye(9)
+        phi = math.exp(-dt / LATE_TIME_S)  # the lateness: first-order Gauss-Markov
+        xn[9] = phi * x[9]
+        F = np.eye(N_PLANAR)
         F[0, 2] = F[1, 3] = dt
         dan = np.array([-an[1], an[0]])  # d(a_N)/d(psi)
         F[0:2, 4] = 0.5 * dan * dt * dt
@@ -397,7 +456,7 @@ class PlanarModel:
         F[2:4, 6:8] = -Rz * dt
         F[4, 5] = -dt
         qa = (self.accel_noise * dt) ** 2
-        Q = np.zeros((9, 9))
+        Q = np.zeros((N_PLANAR, N_PLANAR))
         Q[0, 0] = Q[1, 1] = qa * dt * dt / 4.0
         Q[2, 2] = Q[3, 3] = qa
         Q[0, 2] = Q[2, 0] = Q[1, 3] = Q[3, 1] = qa * dt / 2.0
@@ -405,7 +464,12 @@ class PlanarModel:
         Q[5, 5] = self.gyro_bias_walk**2 * dt
         Q[6, 6] = Q[7, 7] = self.accel_bias_walk**2 * dt
         Q[8, 8] = self.time_offset_walk**2 * dt
-        return PlanarState(xn, F @ s.P @ F.T + Q, w, s.jitter, s.dispute, s.pending,
+        F[9, 9] = phi
+        lasting = s.jitter.lasting
+        Q[9, 9] = lasting * (1.0 - phi * phi)
+        P = F @ s.P @ F.T + Q
+        P[9, 9] = max(P[9, 9], lasting)  # a lateness just found is not known in value
+        return PlanarState(xn, P, w, s.jitter, s.dispute, s.pending,
                            (float(an[0]), float(an[1])))  # fmt: skip
 
     def update(self, s: PlanarState, fix: Fix) -> tuple[PlanarState, bool, float]:
@@ -435,9 +499,10 @@ class PlanarModel:
         # order leaves out: 0.5 deg/s by 50 ms is 0.025 deg, eight heading fix sigmas
         a = [2, 3, 5]
         c = np.array([-1.0, -1.0, 1.0])
-        h = h + c * s.P[a, 8]
-        Pa = s.P[a, 8]
-        R_nj = R0 + np.outer(c, c) * (s.P[np.ix_(a, a)] * s.P[8, 8] + np.outer(Pa, Pa))
+        Pa = s.P[a, 8] + s.P[a, 9]
+        Poo = s.P[8, 8] + 2.0 * s.P[8, 9] + s.P[9, 9]
+        h = h + c * Pa
+        R_nj = R0 + np.outer(c, c) * (s.P[np.ix_(a, a)] * Poo + np.outer(Pa, Pa))
         r = self._wrap(fix.value - h)
         PHt = s.P @ H.T
         S_nj = H @ PHt + R_nj  # without the timing jitter
@@ -468,7 +533,7 @@ class PlanarModel:
         # the offset within what a camera can be late by (the alignment's range): beyond
         # it the filter has gone wrong, and the engine's shift follows the offset
         x[8] = min(max(x[8], ALIGN_TAU[0]), ALIGN_TAU[1])
-        IKH = np.eye(9) - K @ H
+        IKH = np.eye(N_PLANAR) - K @ H
         P = IKH @ s.P @ IKH.T + K @ R @ K.T  # Joseph form
         jitter = s.jitter
         if self.learn_jitter:
@@ -494,7 +559,7 @@ class PlanarModel:
         gyro's rate and the IMU's acceleration), so the mean moves by J tau^ and the
         covariance gains J P_tt J^T with the cross terms J P_tt. From there the
         ordinary update is linearised at a known velocity."""
-        H = np.zeros((3, 9))  # the pose itself: the offset left out
+        H = np.zeros((3, N_PLANAR))  # the pose itself: the offset left out
         H[0, 0] = H[1, 1] = H[2, 4] = 1.0
         r = self._wrap(fix.value - s.x[[0, 1, 4]])
         PHt = s.P @ H.T
@@ -504,14 +569,14 @@ class PlanarModel:
             # twice: the fixes' timing jitter moves them along the velocity, which only
             # this update tells (the first pass's velocity makes the second's J)
             K = np.linalg.solve(H @ PHt + R, PHt.T).T
-            K[8] = 0.0
+            K[8:] = 0.0
             x = s.x + K @ r
             J = np.array([x[2], x[3], s.w])
             R = R0 + np.outer(J, J) * s.jitter.var
-        IKH = np.eye(9) - K @ H
+        IKH = np.eye(N_PLANAR) - K @ H
         P = IKH @ s.P @ IKH.T + K @ R @ K.T
         # the offset, coupled: the pose, velocity and heading at the stated time
-        G = np.zeros(9)
+        G = np.zeros(N_PLANAR)
         G[[0, 1, 2, 3, 4]] = [x[2], x[3], s.an[0], s.an[1], s.w]
         G[8] = 0.0
         ptt = P[8, 8]
@@ -540,18 +605,19 @@ class PlanarModel:
         """The pose a fix measures from state ``x`` (at the fix's true exposure, tau
         before its stated time) and its derivatives by the state; ``w`` is the rate
         less the bias (w = gyro - b_g: d(-w tau)/d(b_g) = tau)."""
-        tau = x[8] - shift  # what is left of the offset (the fix was applied shifted)
+        # what is left of the offset (the fix was applied shifted), and the lateness
+        tau = x[8] + x[9] - shift
         # to second order in tau for the position (0.5 a tau^2 is 0.03 mm at 40 ms and
         # 35 mm/s^2, two lamp fix sigmas); the acceleration as the IMU measured it
         ax, ay = an
         h = np.array([x[0] - x[2] * tau + 0.5 * ax * tau * tau,
                       x[1] - x[3] * tau + 0.5 * ay * tau * tau,
                       x[4] - w * tau])  # fmt: skip
-        H = np.zeros((3, 9))
+        H = np.zeros((3, N_PLANAR))
         H[0, 0] = H[1, 1] = H[2, 4] = 1.0
         H[0, 2] = H[1, 3] = -tau
         H[2, 5] = tau
-        H[:, 8] = [-x[2] + ax * tau, -x[3] + ay * tau, -w]
+        H[:, 8] = H[:, 9] = [-x[2] + ax * tau, -x[3] + ay * tau, -w]
         return h, H
 
     @staticmethod
@@ -571,7 +637,7 @@ class PlanarModel:
         if s.pending:
             # from one fix: it is the pose tau before its stated time, and the velocity
             # is not known (PlanarModel._second)
-            ptt = s.P[8, 8]
+            ptt = s.P[8, 8] + 2.0 * s.P[8, 9] + s.P[9, 9]
             var = var + ptt * np.array([s.x[2] ** 2 + s.P[2, 2], s.x[3] ** 2 + s.P[3, 3],
                                         s.w**2])  # fmt: skip
         return v, np.sqrt(np.clip(var, 0.0, None))
