@@ -22,7 +22,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
-from live_soak import IMU_HZ, IMU_PPM, imu_samples, over_sigma
+from live_soak import IMU_HZ, IMU_PPM, PATH, imu_samples, over_sigma
 
 from visvec.clocks import ClockTie
 from visvec.fuse.live import parse_fix
@@ -47,12 +47,17 @@ def judge(t, pose, sigma, ok) -> dict:
                            "to_s": round(float(t[run[-1]]), 2), "rows": len(run),
                            "largest": round(float(z[run].max()), 2)})  # fmt: skip
     first = float(t[np.argmax(ok)]) if ok.any() else None
+    # the position's error and sigma (each row's larger axis), over the ok rows
+    e = np.hypot(*(pose[ok, :2] - PATH.at(t[ok])[:, :2]).T)
+    sig_mm = sigma[ok, :2].max(axis=1)
     return {
         "rows": len(t),
         "ok_rows": int(ok.sum()),
         "first_ok_s": first,
         "beyond_3_sigma_share": round(float(np.mean(z[ok] > 3.0)), 5) if ok.any() else None,
         "beyond_5_sigma": len(bad),
+        "position_rms_mm": round(float(np.sqrt(np.mean(e * e))), 4) if ok.any() else None,
+        "position_sigma_median_mm": round(float(np.median(sig_mm)), 4) if ok.any() else None,
         "largest_error_over_sigma": round(float(z.max()), 2) if ok.any() else None,
         "beyond_4_sigma_first_10_s": int(np.sum((z > 4.0) & (t < (first or 0.0) + 10.0))),
         "events_beyond_5_sigma": events,

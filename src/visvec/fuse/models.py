@@ -57,7 +57,7 @@ rules share this propagation:
   by l. Replayed (benchmarks/fusion_replay.py) on a soak's kept fixes, and on an older
   soak's with two such hold-ups, no row is beyond 5 sigma (77 and 109 without l); the
   cost, that the fixes count a little less along J while sigma_l is the short fit's
-  noise: on those runs a position error 6-11 % larger and a sigma 18-22 % larger.
+  noise: on those runs a position error 5-12 % larger and a sigma 18-21 % larger.
 
   h is bilinear in the state (v tau, b_g tau), and a first-order time shift holds only
   to some tens of ms. So: before the filter starts, the engine aligns the offset from
