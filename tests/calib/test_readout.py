@@ -14,6 +14,7 @@ def _turning(rig_p, rec, motion, rate_dps, *more):
     assert r.exit_code == 0, r.output
 
 
+@pytest.mark.slow  # 6-7 s: the default run stays under 5 minutes
 def test_calibrate_readout_measures_a_rolling_shutter_from_a_turning_recording(tmp_path):
     """A 640x480 webcam reading its rows over 25 ms, recorded while the platform swings
     out and back at up to 15 deg/s (the recording the README asks for): the readout

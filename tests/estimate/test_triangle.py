@@ -168,6 +168,7 @@ def test_the_height_known_over_frames_gives_an_off_axis_camera_its_tilts_back(ri
     assert np.abs(z).max() < 4.0
 
 
+@pytest.mark.slow  # 6 s: the default run stays under 5 minutes
 def test_the_running_height_learns_the_lab_and_restarts_when_it_changes(rig640):
     """Frames of a lab whose ceiling is 5 mm higher than the rig file says: the pipeline's
     height track finds it and the run's closing note says so. When the lab changes under

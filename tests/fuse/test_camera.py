@@ -85,6 +85,7 @@ def _track_live(tmp_path, rig, sim_args, n_frames, serve=False):
     return rows, cam_rows, len(lines) - 1, rec, err
 
 
+@pytest.mark.slow  # 8-9 s: the default run stays under 5 minutes
 def test_track_with_imu_lamps_live(tmp_path):
     """A lamps recording played as a camera at its own pace while a thread sends the
     matching IMU samples over UDP at 100 Hz in real time: `track --imu` writes fused
