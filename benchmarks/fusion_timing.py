@@ -20,7 +20,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from visvec.bench.planar import GAUSS3, Along, errors_over_sigma, imu_along, late_fixes
+from visvec.bench.planar import (
+    GAUSS3,
+    Along,
+    errors_over_sigma,
+    held_up,
+    imu_along,
+    late_fixes,
+)
 from visvec.fuse.models import PlanarModel
 from visvec.fuse.replay import Fusion, fuse
 
@@ -56,14 +63,10 @@ def one(offset: float, jitter: float, t0: float) -> dict:
     }
 
 
-def held_up(extra: float, hold: float, t0: float) -> dict:
+def one_held_up(extra: float, hold: float, t0: float) -> dict:
     path = Along(t0)
     imu = imu_along(HOLD_SECONDS, seed=int(t0) + 7, path=path)
-
-    def late(t, r):
-        on = HOLD_AT_S <= t < HOLD_AT_S + hold
-        return 0.008 + 0.0003 * r.standard_normal() + (extra if on else 0.0)
-
+    late = held_up(extra, HOLD_AT_S, hold)
     fixes = late_fixes(HOLD_SECONDS, late, seed=int(t0) + 8, path=path)
     t, z = errors_over_sigma(fuse(imu, fixes, PlanarModel()), path)
     away = (t < HOLD_AT_S) | (t > HOLD_AT_S + hold + 1.0)
@@ -80,7 +83,7 @@ def held_up(extra: float, hold: float, t0: float) -> dict:
 
 def main() -> None:
     runs = [one(d, j, t0) for d in OFFSETS_S for j in JITTERS_S for t0 in STRETCHES_S]
-    held = [held_up(e, h, t0) for e in HOLD_EXTRA_S for h in HOLD_FOR_S for t0 in STRETCHES_S]
+    held = [one_held_up(e, h, t0) for e in HOLD_EXTRA_S for h in HOLD_FOR_S for t0 in STRETCHES_S]
     firsts = [r["first_ok_s"] for r in runs if r["first_ok_s"] is not None]
     shares = [r["beyond_3_share"] for r in runs if r["beyond_3_share"] is not None]
     res = {

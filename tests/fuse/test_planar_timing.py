@@ -14,6 +14,7 @@ from visvec.bench.planar import (
     GAUSS3,
     Along,
     errors_over_sigma,
+    held_up,
     imu_along,
     late_fixes,
 )
@@ -137,11 +138,8 @@ def test_frames_late_by_milliseconds_for_a_second_are_carried_by_the_lateness(t0
     sigma."""
     path = Along(t0)
     imu = imu_along(14.0, seed=int(t0) + 7, path=path)
-
-    def late(t, r):
-        return 0.008 + 0.0003 * r.standard_normal() + (extra_s if 8.0 <= t < 9.0 else 0.0)
-
-    out = list(fuse(imu, late_fixes(14.0, late, seed=int(t0) + 8, path=path), PlanarModel()))
+    fixes = late_fixes(14.0, held_up(extra_s, 8.0, 1.0), seed=int(t0) + 8, path=path)
+    out = list(fuse(imu, fixes, PlanarModel()))
     t, z = errors_over_sigma(out, path)
     assert z.max() < 5.0
     # the pose follows the first late fixes before the lateness is learned: beyond 3

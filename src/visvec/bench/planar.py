@@ -54,6 +54,19 @@ def imu_along(seconds: float, seed: int, path=None) -> ImuData:
     return ImuData(t, gyro, accel, np.arange(n), (), 0.01)
 
 
+def held_up(extra: float, at: float, hold: float, offset: float = 0.008,
+            jitter: float = 0.0003) -> Callable:  # fmt: skip
+    """The lateness of a stream ``offset`` s late with ``jitter`` s of white jitter whose
+    frames come ``extra`` s later still from ``at`` for ``hold`` s (a camera or its
+    network held up), for late_fixes."""
+
+    def late(t: float, rng: np.random.Generator) -> float:
+        on = at <= t < at + hold
+        return offset + jitter * rng.standard_normal() + (extra if on else 0.0)
+
+    return late
+
+
 def late_fixes(seconds: float, late: Callable, seed: int, latency: float = 0.003,
                path=None) -> list[Fix]:  # fmt: skip
     """30 Hz fixes along ``path``, each the pose ``late(t, rng)`` s before its stated
