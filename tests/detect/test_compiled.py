@@ -452,6 +452,8 @@ def test_the_pixel_fit_compiled_or_not(pixel_fits, monkeypatch):
     from visvec.detect import photometric as P
 
     assert len(pixel_fits) >= 10
+    # the second frame of each pair starts from the run's blur the first one learned
+    assert sum(a[7] is not None for a in pixel_fits) >= 5
     taken = 0
     for a in pixel_fits:
         got = {}
@@ -506,22 +508,37 @@ def test_the_pixel_fit_compiled_or_not(pixel_fits, monkeypatch):
     xs, ys, cs = P._strided(x, y, counts, 2)
     assert cs.tolist() == [(k + 1) // 2 for k in counts.tolist()] and len(ys) == cs.sum()
     assert _diff((xs, ys, cs), _compiled._strided(x, y, counts, 2)) == 0.0
-    args = (x, y, bands[2], counts, n, c, w, V, V.mean(axis=0), 50.0)
-    pure = P._solve(*args)
-    for got in (_compiled.pixel_solve, _as_python(_compiled.pixel_solve)):
-        fast = got(*args, P.GN_STEPS, P.FIRST_STRIDE, P._LAGS, P.NOISE_LAG_PX,
-                   P.NOISE_MIN_PAIRS, P.EDGE_RMS_RATIO)  # fmt: skip
-        assert fast[0] is True and pure[0] is True
-        assert np.abs(fast[1] - pure[1]).max() < 1e-9
-        assert np.abs(fast[2] - pure[2]).max() <= 1e-9 * np.abs(pure[2]).max()
-        assert fast[4:] == pytest.approx(pure[4:], rel=1e-9)
+    # and from a run's blur: one step on every pixel; from a blur 30 % off, more
+    cold_start = P._solve(x, y, bands[2], counts, n, c, w, V, V.mean(axis=0), 50.0)
+    steps = []
+    gauss_newton = P._gauss_newton
+    monkeypatch.setattr(P, "_gauss_newton", lambda *a: steps.append(a[-1]) or gauss_newton(*a))
+    for start, warm in ((w, False), (cold_start[3], True), (1.3 * cold_start[3], True)):
+        args = (x, y, bands[2], counts, n, c, start, V, V.mean(axis=0), 50.0)
+        steps.clear()
+        pure = P._solve(*args, warm)
+        # (the first fit: a step on every other pixel, then one on every pixel)
+        assert steps == ([1] * pure[6] if warm else [1, 1])
+        assert pure[6] == (1 if start is cold_start[3] else 2 if warm else 1)
+        for got in (_compiled.pixel_solve, _as_python(_compiled.pixel_solve)):
+            fast = got(*args, P.GN_STEPS, P.FIRST_STRIDE, P._LAGS, P.NOISE_LAG_PX,
+                       P.NOISE_MIN_PAIRS, P.EDGE_RMS_RATIO, warm, P.WIDTH_SETTLED,
+                       P.WARM_STEPS)  # fmt: skip
+            assert fast[0] is True and pure[0] is True
+            assert np.abs(fast[1] - pure[1]).max() < 1e-9
+            assert np.abs(fast[2] - pure[2]).max() <= 1e-9 * np.abs(pure[2]).max()
+            assert fast[4:] == pytest.approx(pure[4:], rel=1e-9)
+        # each start reaches the same vertices, well within their sigma
+        sd = np.sqrt(np.diag(pure[2]))
+        assert np.abs((pure[1] - cold_start[1]).ravel() / sd).max() < 0.3
     # a band whose residuals are three times the others' is not taken, by either
     y3 = y.copy()
     y3[: counts[0]] += np.random.default_rng(1).normal(0.0, 6.0, counts[0])
     args = (x, y3, bands[2], counts, n, c, w, V, V.mean(axis=0), 50.0)
     pure = P._solve(*args)
     fast = _compiled.pixel_solve(*args, P.GN_STEPS, P.FIRST_STRIDE, P._LAGS, P.NOISE_LAG_PX,
-                                 P.NOISE_MIN_PAIRS, P.EDGE_RMS_RATIO)  # fmt: skip
+                                 P.NOISE_MIN_PAIRS, P.EDGE_RMS_RATIO, False, P.WIDTH_SETTLED,
+                                 P.WARM_STEPS)  # fmt: skip
     assert pure[0] is False and bool(fast[0]) is False
     assert np.array_equal(pure[1], V) and np.array_equal(fast[1], V)
 

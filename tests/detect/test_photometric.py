@@ -60,14 +60,16 @@ def test_a_pixel_fit_that_disagrees_with_the_lines_is_not_taken(rig320):
     xy, cov = intersect(fit)
     pf = refine(img, fit.normals, fit.offsets, fit.width, rig320.camera)
     assert pf.ok
-    got, got_cov = tri._pixel_fit(img, fit, xy, cov, rig320.camera)
+    got, got_cov, taken = tri._pixel_fit(img, fit, xy, cov, rig320.camera)
     np.testing.assert_array_equal(got, pf.xy)
     np.testing.assert_array_equal(got_cov, pf.cov)
+    np.testing.assert_array_equal(taken.width, pf.width)
     # lines 8 sigma away from what the pixels say: the pixel fit is refused
     far = xy + 8.0 * np.sqrt(np.diag(cov)).reshape(3, 2)
-    got, got_cov = tri._pixel_fit(img, fit, far, cov, rig320.camera)
+    got, got_cov, taken = tri._pixel_fit(img, fit, far, cov, rig320.camera)
     np.testing.assert_array_equal(got, far)
     np.testing.assert_array_equal(got_cov, cov)
+    assert taken is None
 
 
 def test_the_vertices_gain_is_the_lines_derivative():
@@ -181,9 +183,53 @@ def test_a_pixel_fit_wider_than_the_lines_is_not_taken(rig320, monkeypatch):
     pf = refine(img, fit.normals, fit.offsets, fit.width, rig320.camera)
     wide = replace(pf, cov=pf.cov * 4.0 * np.trace(cov) / np.trace(pf.cov))
     monkeypatch.setattr(tri, "refine", lambda *a: wide)
-    got, got_cov = tri._pixel_fit(img, fit, xy, cov, rig320.camera)
+    got, got_cov, taken = tri._pixel_fit(img, fit, xy, cov, rig320.camera)
     np.testing.assert_array_equal(got, xy)
     np.testing.assert_array_equal(got_cov, cov)
+    assert taken is None  # nothing for the run's blur to learn from
+
+
+def test_the_runs_blur_starts_the_fit_and_follows_a_refocus(rig640, monkeypatch):
+    """After a run's first pixel fit each fit starts from the run's blur width (the
+    fits' widths averaged), kept through a reset (a property of the lens), and takes one
+    step on every pixel where that width holds; a lens refocused from a blur of 0.6 px
+    to 1.5 px: the first fit after it takes more steps, the run's blur is then its, and
+    the next fits take one step again; every row within its sigma. A lines rig learns
+    none."""
+    starts = []
+    refine_ = tri.refine
+
+    def spy(*a):
+        pf = refine_(*a)
+        starts.append((a[7], pf.steps))
+        return pf
+
+    monkeypatch.setattr(tri, "refine", spy)
+    det = TriangleDetector(_pixels(rig640))
+    z, blurs, steps = [], [], []
+    for k, R in enumerate(attitudes(8, 31)):
+        scene = Scene(blur_sigma_px=0.6 if k < 4 else 1.5)
+        det.reset()
+        d = det.detect(render_frame(rig640, R, scene, rng=900 + k))
+        assert d.status is Status.OK, d.reason
+        truth = rig640.camera.undistort(project_target(rig640, R))
+        z.append((d.points_n - truth).ravel() / np.sqrt(np.diag(d.cov_n)))
+        blurs.append(det._blur)
+        assert starts[-1][0] == (blurs[-2] if k else None)
+        steps.append(starts[-1][1])
+    # the first fit: a strided step and one on every pixel; then one from the run's blur
+    # (a second where an edge's own width is more than 10 % off the three's median);
+    # the refocus: three
+    assert steps[0] == 1 and steps[1] == 1 and steps[4] == 3, steps
+    assert sum(s == 1 for s in steps[5:]) >= 2, steps
+    # the model's width of a 0.6 px blur: sqrt(0.6^2 + 1/12) = 0.67 px
+    assert 0.6 < blurs[3] < 0.75
+    assert 1.4 < blurs[4] < 1.6
+    assert np.abs(z).max() < 4.5
+    lines = TriangleDetector(rig640)
+    img = render_frame(rig640, attitudes(1, 31)[0], Scene(), rng=1)
+    assert lines.detect(img).status is Status.OK
+    assert lines._blur is None
 
 
 def test_a_band_with_something_else_in_it_is_not_fitted(rig320):

@@ -659,7 +659,8 @@ def _band_pixels(pts, given, grid, cx, cy, aspect, lens, image, n, o, reach, cle
     ``grid``), grey levels (M,), places in the frame (M, 2) and each edge's count
     (3,)."""
     total = len(pts)
-    rule = np.zeros((3, total), np.bool_)
+    # each edge's pixels (their places in pts, in raster order), found in one pass
+    picked = np.empty((3, total), np.int64)
     counts = np.zeros(3, np.int64)
     xy = np.empty((total, 2))
     for p in range(total):
@@ -677,13 +678,13 @@ def _band_pixels(pts, given, grid, cx, cy, aspect, lens, image, n, o, reach, cle
         d2 = x0 * n[2, 0] + x1 * n[2, 1] - o[2]
         # a pixel is an edge's when within its reach and clear of the other two
         if abs(d0) < reach[0] and d1 > clear[1] and d2 > clear[2]:
-            rule[0, p] = True
+            picked[0, counts[0]] = p
             counts[0] += 1
         if abs(d1) < reach[1] and d2 > clear[2] and d0 > clear[0]:
-            rule[1, p] = True
+            picked[1, counts[1]] = p
             counts[1] += 1
         if abs(d2) < reach[2] and d0 > clear[0] and d1 > clear[1]:
-            rule[2, p] = True
+            picked[2, counts[2]] = p
             counts[2] += 1
     m = counts[0] + counts[1] + counts[2]
     xs = np.empty((m, 2))
@@ -691,15 +692,15 @@ def _band_pixels(pts, given, grid, cx, cy, aspect, lens, image, n, o, reach, cle
     uv = np.empty((m, 2), np.int64)
     k = 0
     for i in range(3):
-        for p in range(total):
-            if rule[i, p]:
-                col, row = pts[p, 0], pts[p, 1]
-                xs[k, 0] = xy[p, 0]
-                xs[k, 1] = xy[p, 1]
-                ys[k] = image[row, col]
-                uv[k, 0] = col
-                uv[k, 1] = row
-                k += 1
+        for q in range(counts[i]):
+            p = picked[i, q]
+            col, row = pts[p, 0], pts[p, 1]
+            xs[k, 0] = xy[p, 0]
+            xs[k, 1] = xy[p, 1]
+            ys[k] = image[row, col]
+            uv[k, 0] = col
+            uv[k, 1] = row
+            k += 1
     return xs, ys, uv, counts
 
 
@@ -890,19 +891,35 @@ def _strided(x, y, counts, stride):
 
 
 def _pixel_solve(x, y, uv, counts, n, c, w, V, centroid, scale, steps, stride, lags, L,
-                 min_pairs, rms_ratio):  # fmt: skip
+                 min_pairs, rms_ratio, warm, settled, warm_steps):  # fmt: skip
     """photometric._solve compiled: the same steps, checks, inflation and covariance."""
     fail = np.full((6, 6), np.nan)
-    if steps > 1 and stride > 1:
-        xs, ys, cs = _strided(x, y, counts, stride)
-        out = _pixel_gn(xs, ys, cs, n, c, w, centroid, scale, steps - 1)
-        n, c, w = out[0], out[1], out[2]
-        if not out[9]:
-            return False, V, fail, w, math.nan, 1.0
+    if warm:
+        # from the run's blur: one step on every pixel, another while the last moved a
+        # width by more than ``settled``, ``warm_steps`` at most
+        out = _pixel_gn(x, y, counts, n, c, w, centroid, scale, 1)
         steps = 1
-    n, c, w, _, H, _, rss, r, g, ok = _pixel_gn(x, y, counts, n, c, w, centroid, scale, steps)
+        while steps < warm_steps and out[9]:
+            moved = 0.0
+            for e in range(3):
+                moved = max(moved, abs(out[2][e] / w[e] - 1.0))
+            if moved <= settled:
+                break
+            w = out[2]
+            out = _pixel_gn(x, y, counts, out[0], out[1], w, centroid, scale, 1)
+            steps += 1
+    else:
+        if steps > 1 and stride > 1:
+            xs, ys, cs = _strided(x, y, counts, stride)
+            first = _pixel_gn(xs, ys, cs, n, c, w, centroid, scale, steps - 1)
+            n, c, w = first[0], first[1], first[2]
+            if not first[9]:
+                return False, V, fail, w, math.nan, 1.0, 0
+            steps = 1
+        out = _pixel_gn(x, y, counts, n, c, w, centroid, scale, steps)
+    n, c, w, _, H, _, rss, r, g, ok = out
     if not ok:
-        return False, V, fail, w, math.nan, 1.0
+        return False, V, fail, w, math.nan, 1.0, steps
     m = len(y)
     s2 = max(rss, 0.0) / max(m - 15, 1)
     rms = np.empty(3)
@@ -915,12 +932,12 @@ def _pixel_solve(x, y, uv, counts, n, c, w, V, centroid, scale, steps, stride, l
         start += counts[e]
     rms.sort()
     if rms[2] > rms_ratio * rms[1]:
-        return False, V, fail, w, s2, 1.0
+        return False, V, fail, w, s2, 1.0, steps
     inflation = noise_inflation(uv, r, g, lags, L, min_pairs)
     try:
         Hi = np.linalg.inv(H)
     except Exception:  # noqa: BLE001 - Numba catches no narrower class
-        return False, V, fail, w, s2, inflation
+        return False, V, fail, w, s2, inflation, steps
     cov_p = inflation * s2 * np.ascontiguousarray(Hi[:6, :6])
     # the vertices (edges._vertices: vertex i on lines i + 1, i + 2, Cramer's rule) and
     # how the lines move them (photometric._vertex_gain)
@@ -931,7 +948,7 @@ def _pixel_solve(x, y, uv, counts, n, c, w, V, centroid, scale, steps, stride, l
         a, b, cc, d = n[j, 0], n[j, 1], n[k, 0], n[k, 1]
         det = a * d - b * cc
         if det == 0.0:
-            return False, V, fail, w, s2, inflation
+            return False, V, fail, w, s2, inflation, steps
         invs[i, 0, 0], invs[i, 0, 1] = d / det, -b / det
         invs[i, 1, 0], invs[i, 1, 1] = -cc / det, a / det
         oj = n[j, 0] * c[j, 0] + n[j, 1] * c[j, 1]
@@ -947,7 +964,7 @@ def _pixel_solve(x, y, uv, counts, n, c, w, V, centroid, scale, steps, stride, l
             for q in range(2):
                 G[2 * v + q, 2 * ln] -= invs[v, q, row] * sv
                 G[2 * v + q, 2 * ln + 1] += invs[v, q, row]
-    return True, V2, G @ cov_p @ G.T, w, s2, inflation
+    return True, V2, G @ cov_p @ G.T, w, s2, inflation, steps
 
 
 # ------------------------------------------------- a fine pass's lines (_edge_fit)

@@ -29,7 +29,7 @@ from visvec.detect.edges import (
     side_lengths,
     warm_up,
 )
-from visvec.detect.photometric import refine
+from visvec.detect.photometric import PhotometricFit, refine
 from visvec.errors import ConfigError
 from visvec.geometry import project_target
 from visvec.noise import LearnedCorrelation
@@ -88,6 +88,11 @@ SATURATED_LEVEL = 250.0
 CORNER_SIGMA_PX = 0.35
 # the pixel fit's vertices are taken when they agree with the edge lines' (see _pixel_fit)
 PIXEL_FIT_GATE_P = 1e-4
+# the run's blur width that starts the pixel fit (photometric.refine's ``blur``): the
+# median of the three edges' widths of each detection's pixel fit, averaged over the
+# frames with this forgetting factor (about ten frames); a fit that needed more than one
+# step from it (the blur changed: a refocus) replaces it
+BLUR_FORGET = 0.9
 
 
 # the (6,) covariance index of each identification's vertex order (x0, y0, x1, ...)
@@ -171,34 +176,36 @@ def _centre(p: np.ndarray) -> np.ndarray:
     return np.add.reduce(p, axis=0) / 3
 
 
-def _pixel_fit(image, fit, xy, cov, camera, shutter=None, rate_c=None):
-    """The vertices of the edge lines refined on the pixels (visvec.detect.photometric)
-    when the refinement agrees with them: the edge lines are robust (their profiles'
+def _pixel_fit(image, fit, xy, cov, camera, shutter=None, rate_c=None, blur=None):
+    """The vertices of the edge lines refined on the pixels (visvec.detect.photometric,
+    started from the run's blur width ``blur`` where there is one), and the fit, when
+    the refinement agrees with them: the edge lines are robust (their profiles'
     outliers left out, something in a window found), the pixel fit is not, so a pixel
     fit that moved the vertices by more than the lines' own covariance allows (chi-square,
     6 dof, p = 1e-4: a head in an edge's band, a light), or whose covariance is the wider
     of the two, is not taken, and the lines' vertices and covariance stand. Under a
     rolling ``shutter`` the pixels are taken to the centre row's exposure with the rate
     ``rate_c``; without a rate yet (a first frame) the lines stand, their covariance
-    widened for the rate they could not take out."""
+    widened for the rate they could not take out. The fit is None where the lines
+    stand."""
     if shutter is not None and rate_c is None:
-        return xy, cov
-    pf = refine(image, fit.normals, fit.offsets, fit.width, camera, shutter, rate_c)
+        return xy, cov, None
+    pf = refine(image, fit.normals, fit.offsets, fit.width, camera, shutter, rate_c, blur)
     if not pf.ok or not np.all(np.isfinite(pf.cov)):
-        return xy, cov
+        return xy, cov, None
     dv = (pf.xy - xy).ravel()
     try:
         chi2_ = float(dv @ np.linalg.solve(cov + pf.cov, dv))
     except np.linalg.LinAlgError:
-        return xy, cov
+        return xy, cov, None
     if not chi2_ < chi2_ppf(1.0 - PIXEL_FIT_GATE_P, 6):
-        return xy, cov
+        return xy, cov, None
     # and when it is the more precise: residuals with a structure of their own (a head
     # in a band) widen its covariance through their correlation (photometric's
     # _noise_inflation) beyond the lines'
     if not np.trace(pf.cov) < np.trace(cov):
-        return xy, cov
-    return pf.xy, pf.cov
+        return xy, cov, None
+    return pf.xy, pf.cov, pf
 
 
 class TriangleDetector:
@@ -281,6 +288,11 @@ class TriangleDetector:
         self._prev_points: np.ndarray | None = None
         self._last_width: np.ndarray | None = None
         self._fit_width: np.ndarray | None = None
+        # the run's blur width for the pixel fit (BLUR_FORGET), and the last verified
+        # candidate's pixel fit (None: the lines stood); a property of the lens and its
+        # focus, kept through reset
+        self._blur: float | None = None
+        self._pixel: PhotometricFit | None = None
         # the last detection came from the previous frame's vertices (small motion)
         self.last_was_tracked = False
         # the edge points' correlation along the edges, learned over the run's frames
@@ -440,10 +452,18 @@ class TriangleDetector:
         return det
 
     def _learn(self) -> None:
-        """The frame's edge points join the correlation learned over the run."""
+        """The frame's edge points join the correlation learned over the run; its pixel
+        fit's widths, the run's blur."""
         if self._lags is not None:
             sums, pairs = self._lags.tolist()
             self.correlation.add(sums, pairs, 3)
+        pf = self._pixel
+        if pf is not None:
+            w = float(np.median(pf.width))
+            if self._blur is None or pf.steps > 1:
+                self._blur = w
+            else:
+                self._blur = BLUR_FORGET * self._blur + (1.0 - BLUR_FORGET) * w
 
     # ------------------------------------------------------------------ steps
     def _brightness(self, image: np.ndarray) -> tuple[float, list[str]]:
@@ -523,6 +543,7 @@ class TriangleDetector:
     ) -> _Measured | str:
         """Step 1: the vertices from the edge lines (or the corners), or a reason."""
         cam, s = self.rig.camera, self.rig.detect
+        self._pixel = None
         # beyond the fold of a strong distortion's polynomial the model has no rays (a
         # calibration's fit extrapolated past the photos' corners): a triangle there
         # cannot be measured; whether it is the triangle, only its corners' angles as
@@ -572,7 +593,8 @@ class TriangleDetector:
             # beyond 5 sigma even on a yaw sweep, where the edge lines, which learn the
             # codec's correlation, do not; visvec.pipeline.triangle.codec_advice,
             # benchmarks/triangle_compression.py)
-            xy, cov = _pixel_fit(image, fit, xy, cov, cam, shutter, rate_c)
+            xy, cov, self._pixel = _pixel_fit(image, fit, xy, cov, cam, shutter, rate_c,
+                                              self._blur)  # fmt: skip
         return _Measured(
             xy, cam.distort(xy / cam.fx), cov, fit.contrast.min(), fit.outlier_fraction.max(),
             float(fit.vertex_gaps().max()), float(np.mean(fit.mid_level)), fit.shutter_gain,
