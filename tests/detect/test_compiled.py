@@ -169,8 +169,9 @@ def _as_python(kernel):
     inner = {n: getattr(_compiled, n) for n in ("_group_linear", "_levels_suspect",
                                                  "_level_lines", "_group_tls",
                                                  "_group_median", "_lag_sums",
-                                                 "_ndtr_with_bell", "_pixel_gn", "_strided",
-                                                 "noise_inflation")}  # fmt: skip
+                                                 "_phi_of", "_pixel_gn", "_strided",
+                                                 "noise_inflation", "_cover",
+                                                 "_band_pixels")}  # fmt: skip
 
     def run(*args):
         mp = pytest.MonkeyPatch()
@@ -372,7 +373,7 @@ def test_the_pixel_fits_kernels_load_with_a_rig_that_uses_it(unloadable, capsys)
     """A rig on the edge lines loads the edge fit's kernels only (a first run does not
     wait for the pixel fit's compilation); one with refine = "pixels" loads the pixel
     fit's too, and when those do not load the numpy path runs, said once."""
-    unloadable("band_pixels")
+    unloadable("band_lines")
     rig = load_rig(CONFIGS / "triangle.toml")
     TrianglePipeline(rig)
     assert E._warm == {"edges"} and _compiled.ON is True
@@ -491,15 +492,26 @@ def test_the_pixel_fit_compiled_or_not(pixel_fits, monkeypatch):
     bands = P._band(image, n, c, reach, clear, camera)
     monkeypatch.setattr(_compiled, "ON", False)
     assert _diff(bands, P._band(image, n, c, reach, clear, camera)) == 0.0
-    monkeypatch.setattr(_compiled, "band_pixels", _as_python(_compiled.band_pixels))
+    monkeypatch.setattr(_compiled, "band_lines", _as_python(_compiled.band_lines))
     monkeypatch.setattr(_compiled, "ON", True)
     assert _diff(bands, P._band(image, n, c, reach, clear, camera)) == 0.0
+    # and through a lens with distortion (the bands' corners through its polynomial)
+    lens = replace(camera, dist=np.array([-0.12, 0.03, 0.001, -0.002, 0.0]))
+    got = {}
+    for flag in (False, True):
+        monkeypatch.setattr(_compiled, "ON", flag)
+        got[flag] = P._band(image, n, c, reach, clear, lens)
+    assert len(got[True][1]) > 1000 and _diff(got[True], got[False]) == 0.0
+    monkeypatch.undo()
+    assert _diff(got[True], P._band(image, n, c, reach, clear, lens)) == 0.0
+    monkeypatch.setattr(_compiled, "ON", True)
     x, y, _, counts = bands
     args = (x, y, counts, n, c, w, V.mean(axis=0), 50.0, P.GN_STEPS)
-    fast = _compiled._pixel_gn(*args)
+    table = (P._PHI, P.PHI_RANGE, 1.0 / P.PHI_STEP)
+    fast = _compiled._pixel_gn(*args, *table)
     assert bool(fast[-1])
-    for as_python, pure in zip(_as_python(_compiled._pixel_gn)(*args), P._gauss_newton(*args),
-                               strict=True):  # fmt: skip
+    for as_python, pure in zip(_as_python(_compiled._pixel_gn)(*args, *table),
+                               P._gauss_newton(*args), strict=True):  # fmt: skip
         size = max(np.abs(np.asarray(pure, float)).max(), 1.0)
         assert np.abs(np.asarray(as_python, float) - np.asarray(pure, float)).max() <= 1e-9 * size
     # the whole solve: the first step on every other pixel of each band, then the checks,
@@ -523,7 +535,7 @@ def test_the_pixel_fit_compiled_or_not(pixel_fits, monkeypatch):
         for got in (_compiled.pixel_solve, _as_python(_compiled.pixel_solve)):
             fast = got(*args, P.GN_STEPS, P.FIRST_STRIDE, P._LAGS, P.NOISE_LAG_PX,
                        P.NOISE_MIN_PAIRS, P.EDGE_RMS_RATIO, warm, P.WIDTH_SETTLED,
-                       P.WARM_STEPS)  # fmt: skip
+                       P.WARM_STEPS, *table)  # fmt: skip
             assert fast[0] is True and pure[0] is True
             assert np.abs(fast[1] - pure[1]).max() < 1e-9
             assert np.abs(fast[2] - pure[2]).max() <= 1e-9 * np.abs(pure[2]).max()
@@ -538,7 +550,7 @@ def test_the_pixel_fit_compiled_or_not(pixel_fits, monkeypatch):
     pure = P._solve(*args)
     fast = _compiled.pixel_solve(*args, P.GN_STEPS, P.FIRST_STRIDE, P._LAGS, P.NOISE_LAG_PX,
                                  P.NOISE_MIN_PAIRS, P.EDGE_RMS_RATIO, False, P.WIDTH_SETTLED,
-                                 P.WARM_STEPS)  # fmt: skip
+                                 P.WARM_STEPS, *table)  # fmt: skip
     assert pure[0] is False and bool(fast[0]) is False
     assert np.array_equal(pure[1], V) and np.array_equal(fast[1], V)
 

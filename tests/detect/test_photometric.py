@@ -300,3 +300,24 @@ def test_the_bands_are_every_pixel_the_rule_takes(rig320, monkeypatch):
             assert np.abs(x - cam.undistort(uv.astype(float)) * cam.fx).max() < 1e-3
         tried.append(cam.has_distortion)
     assert tried.count(True) >= 2 and tried.count(False) >= 2
+
+
+def test_the_step_and_its_slope_from_the_table_are_the_normal_cdf_and_density():
+    """The pixel fit's Phi and phi (cubic Hermite between table nodes 1/16 apart) are
+    the standard normal CDF and density to 1e-7 everywhere, beyond the table's range
+    too; the compiled kernel's are the same numbers."""
+    from scipy.special import ndtr
+
+    from visvec.detect import _compiled
+    from visvec.detect import photometric as P
+
+    u = np.concatenate([np.linspace(-12.0, 12.0, 20001), [-8.0, 8.0, 0.0]])
+    step, slope = P._phi_of(u)
+    assert np.abs(step - ndtr(u)).max() < 1e-7
+    assert np.abs(slope - np.exp(-0.5 * u * u) / np.sqrt(2.0 * np.pi)).max() < 1e-7
+    # between the nodes the error is not zero: the table is interpolated, not looked up
+    assert np.abs(step - ndtr(u)).max() > 1e-10
+    kernel = getattr(_compiled._phi_of, "py_func", _compiled._phi_of)
+    for k in range(0, len(u), 997):
+        got = kernel(float(u[k]), P._PHI, P.PHI_RANGE, 1.0 / P.PHI_STEP)
+        assert got == (step[k], slope[k])

@@ -39,7 +39,7 @@ numba = None  # the module, once loaded
 ON = AVAILABLE
 
 # Abramowitz & Stegun, Handbook of Mathematical Functions (1964), Eq. 7.1.26, as
-# edges.erf_with_bell evaluates it (Horner, a5 first)
+# edges.erf_with_bell evaluates it (Horner, a5 first): the edge fit's step model
 _AS_P = 0.3275911
 _AS_A5 = 1.061405429
 _AS_A4 = -1.453152027
@@ -633,12 +633,14 @@ def _noise_inflation(uv, r, w, lags, L, min_pairs):
         u0, u1 = min(u0, uv[k, 0]), max(u1, uv[k, 0])
         v0, v1 = min(v0, uv[k, 1]), max(v1, uv[k, 1])
     width = u1 - u0 + 2 * L + 1
-    flat = np.empty(n, np.int64)
-    index = np.full((v1 - v0 + 2 * L + 1) * width, n, np.int32)
+    # unsigned cells, pixels and lags (a half-plane's offsets are all positive): Numba
+    # then indexes without checking for a negative index, which took 40 % of the sums
+    flat = np.empty(n, np.uint64)
+    index = np.full((v1 - v0 + 2 * L + 1) * width, n, np.uint32)
     for k in range(n):
         flat[k] = (uv[k, 1] - v0 + L) * width + (uv[k, 0] - u0 + L)
         index[flat[k]] = k
-    offsets = lags[:, 1] * width + lags[:, 0]
+    offsets = (lags[:, 1] * width + lags[:, 0]).astype(np.uint64)
     pairs, rr, ww = _lag_sums(index, flat, offsets, r, w)
     excess = 0.0
     scatter2 = 0.0
@@ -757,16 +759,69 @@ def _cover(q, lo0, lo1, hi0, hi1):
     return pts
 
 
-def _ndtr_with_bell(u, bell):
-    """The standard normal CDF at u to 1e-7 (Abramowitz & Stegun 7.1.26 at u / sqrt 2)
-    given ``bell`` = exp(-u^2 / 2), as photometric._ndtr_with_bell evaluates it."""
-    z = u / _SQRT_2
-    q = 1.0 / (abs(z) * _AS_P + 1.0)
-    y = 1.0 - ((((_AS_A5 * q + _AS_A4) * q + _AS_A3) * q + _AS_A2) * q + _AS_A1) * q * bell
-    return 0.5 * (1.0 + (y if z >= 0.0 else -y))
+def _band_lines(image, n, c, reach, clear, fx, fy, cx, cy, dist, last_col, last_row, grid,
+                gcx, gcy, aspect, lens):  # fmt: skip
+    """photometric._band compiled, without a rolling shutter: the three bands'
+    quadrilaterals from the lines n_i . (x - c_i) = 0 (photometric._meet), their corners
+    through the lens (camera.distort's polynomial), the box they span in the frame, the
+    pixels they cover (_cover) and those each edge's rule takes (_band_pixels). Returns
+    whether there were any, then _band_pixels' arrays."""
+    o = np.empty(3)
+    for i in range(3):
+        o[i] = n[i, 0] * c[i, 0] + n[i, 1] * c[i, 1]
+    k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
+    q = np.empty((12, 2))
+    for i in range(3):
+        j, k = (i + 1) % 3, (i + 2) % 3
+        for s, (sgn, other) in enumerate(((-1.0, j), (-1.0, k), (1.0, k), (1.0, j))):
+            oi = o[i] + sgn * (reach[i] + 1.5)
+            o2 = o[other] + clear[other]
+            det = n[i, 0] * n[other, 1] - n[i, 1] * n[other, 0]
+            x = (oi * n[other, 1] - o2 * n[i, 1]) / det / fx
+            y = (n[i, 0] * o2 - n[other, 0] * oi) / det / fx
+            r2 = x * x + y * y
+            radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+            xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+            yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+            q[4 * i + s, 0] = fx * xd + cx
+            q[4 * i + s, 1] = fy * yd + cy
+    empty = (np.empty((0, 2)), np.empty(0), np.empty((0, 2), np.int64), np.zeros(3, np.int64))
+    if not np.all(np.isfinite(q)):
+        return False, *empty
+    lo0 = max(math.floor(q[:, 0].min()) - 1, 0)
+    lo1 = max(math.floor(q[:, 1].min()) - 1, 0)
+    hi0 = min(math.ceil(q[:, 0].max()) + 1, last_col)
+    hi1 = min(math.ceil(q[:, 1].max()) + 1, last_row)
+    if hi0 <= lo0 or hi1 <= lo1:
+        return False, *empty
+    pts = _cover(q, lo0, lo1, hi0, hi1)
+    if len(pts) == 0:
+        return False, *empty
+    xs, ys, uv, counts = _band_pixels(pts, np.empty((0, 2)), grid, gcx, gcy, aspect, lens, image,
+                                      n, o, reach, clear)  # fmt: skip
+    return True, xs, ys, uv, counts
 
 
-def _pixel_gn(x, y, counts, n, c, w, centroid, scale, steps):
+def _phi_of(u, table, rng, inv_step):
+    """photometric._phi_of at one u: Phi(u) and phi(u) from ``table`` (photometric._PHI,
+    its nodes 1 / ``inv_step`` apart from -``rng``), the same expressions in the same
+    order."""
+    t = (min(max(u, -rng), rng) + rng) * inv_step
+    # (unsigned: Numba indexes the table without checking for a negative index)
+    i = min(np.uint64(t), np.uint64(table.shape[0] - 2))
+    f = t - i
+    f2 = f * f
+    f3 = f2 * f
+    h00 = 2.0 * f3 - 3.0 * f2 + 1.0
+    h10 = f3 - 2.0 * f2 + f
+    h01 = 3.0 * f2 - 2.0 * f3
+    h11 = f3 - f2
+    step = h00 * table[i, 0] + h10 * table[i, 1] + h01 * table[i + 1, 0] + h11 * table[i + 1, 1]
+    slope = h00 * table[i, 2] + h10 * table[i, 3] + h01 * table[i + 1, 2] + h11 * table[i + 1, 3]
+    return step, slope
+
+
+def _pixel_gn(x, y, counts, n, c, w, centroid, scale, steps, table, rng, inv_step):
     """photometric._gauss_newton compiled: the same model, parameters and steps; each
     edge's Jacobian (9, m_e) filled pixel by pixel, its normal equations by BLAS. The
     three edges' Jacobians lie one after another in one buffer, each C-contiguous, so
@@ -783,7 +838,7 @@ def _pixel_gn(x, y, counts, n, c, w, centroid, scale, steps):
     g_all = np.empty(m)
     u_all = np.empty(m)
     perp_all = np.empty(m)
-    bell_all = np.empty(m)
+    slope_all = np.empty(m)
     bounds = np.zeros(4, np.int64)
     for e in range(3):
         bounds[e + 1] = bounds[e] + counts[e]
@@ -809,11 +864,10 @@ def _pixel_gn(x, y, counts, n, c, w, centroid, scale, steps):
                 p = bounds[e] + k
                 rx, ry = x[p, 0] - cx, x[p, 1] - cy
                 u = (rx * nx + ry * ny) / we
-                bell = math.exp(-0.5 * u * u)
-                T = _ndtr_with_bell(u, bell)
+                T, slope = _phi_of(u, table, rng, inv_step)
                 u_all[p] = u
                 perp_all[p] = rx * -ny + ry * nx
-                bell_all[p] = bell
+                slope_all[p] = slope
                 Je[6, k] = T
                 Je[7, k] = T * Je[4, k]
                 Je[8, k] = T * Je[5, k]
@@ -840,7 +894,7 @@ def _pixel_gn(x, y, counts, n, c, w, centroid, scale, steps):
                 X, Y, T = Je[4, k], Je[5, k], Je[6, k]
                 C = level[3] + level[4] * X + level[5] * Y
                 r = y[p] - (level[0] + level[1] * X + level[2] * Y + T * C)
-                g = C * bell_all[p] / (_SQRT_2PI * we)
+                g = C * slope_all[p] / we
                 rss += r * r
                 r_all[p] = r
                 g_all[p] = g
@@ -891,13 +945,14 @@ def _strided(x, y, counts, stride):
 
 
 def _pixel_solve(x, y, uv, counts, n, c, w, V, centroid, scale, steps, stride, lags, L,
-                 min_pairs, rms_ratio, warm, settled, warm_steps):  # fmt: skip
+                 min_pairs, rms_ratio, warm, settled, warm_steps, table, rng,
+                 inv_step):  # fmt: skip
     """photometric._solve compiled: the same steps, checks, inflation and covariance."""
     fail = np.full((6, 6), np.nan)
     if warm:
         # from the run's blur: one step on every pixel, another while the last moved a
         # width by more than ``settled``, ``warm_steps`` at most
-        out = _pixel_gn(x, y, counts, n, c, w, centroid, scale, 1)
+        out = _pixel_gn(x, y, counts, n, c, w, centroid, scale, 1, table, rng, inv_step)
         steps = 1
         while steps < warm_steps and out[9]:
             moved = 0.0
@@ -906,17 +961,19 @@ def _pixel_solve(x, y, uv, counts, n, c, w, V, centroid, scale, steps, stride, l
             if moved <= settled:
                 break
             w = out[2]
-            out = _pixel_gn(x, y, counts, out[0], out[1], w, centroid, scale, 1)
+            out = _pixel_gn(x, y, counts, out[0], out[1], w, centroid, scale, 1, table, rng,
+                            inv_step)  # fmt: skip
             steps += 1
     else:
         if steps > 1 and stride > 1:
             xs, ys, cs = _strided(x, y, counts, stride)
-            first = _pixel_gn(xs, ys, cs, n, c, w, centroid, scale, steps - 1)
+            first = _pixel_gn(xs, ys, cs, n, c, w, centroid, scale, steps - 1, table, rng,
+                              inv_step)  # fmt: skip
             n, c, w = first[0], first[1], first[2]
             if not first[9]:
                 return False, V, fail, w, math.nan, 1.0, 0
             steps = 1
-        out = _pixel_gn(x, y, counts, n, c, w, centroid, scale, steps)
+        out = _pixel_gn(x, y, counts, n, c, w, centroid, scale, steps, table, rng, inv_step)
     n, c, w, _, H, _, rss, r, g, ok = out
     if not ok:
         return False, V, fail, w, math.nan, 1.0, steps
@@ -1218,7 +1275,10 @@ _lag_sums = _jit(_lag_sums, "_lag_sums")
 noise_inflation = _jit(_noise_inflation, "noise_inflation")
 band_pixels = _jit(_band_pixels, "band_pixels")
 cover = _jit(_cover, "cover")
-_ndtr_with_bell = _jit(_ndtr_with_bell, "_ndtr_with_bell")
+_cover = _jit(_cover, "_cover")
+_band_pixels = _jit(_band_pixels, "_band_pixels")
+band_lines = _jit(_band_lines, "band_lines")
+_phi_of = _jit(_phi_of, "_phi_of")
 _pixel_gn = _jit(_pixel_gn, "_pixel_gn")
 _strided = _jit(_strided, "_strided")
 pixel_solve = _jit(_pixel_solve, "pixel_solve")
