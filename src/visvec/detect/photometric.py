@@ -43,7 +43,6 @@ from dataclasses import dataclass
 from itertools import pairwise
 
 import numpy as np
-from scipy.special import ndtr
 
 from visvec.camera import CameraModel
 from visvec.detect import _compiled
@@ -342,7 +341,8 @@ def _phi_nodes() -> np.ndarray:
     """(N + 1, 4) per node u_i: Phi(u_i), h phi(u_i), phi(u_i), h phi'(u_i)."""
     u = np.linspace(-PHI_RANGE, PHI_RANGE, int(round(2.0 * PHI_RANGE / PHI_STEP)) + 1)
     p = np.exp(-0.5 * u * u) / _SQRT_2PI
-    return np.ascontiguousarray(np.column_stack([ndtr(u), PHI_STEP * p, p, -PHI_STEP * u * p]))
+    big = np.array([0.5 * math.erfc(-v / _SQRT_2) for v in u])  # (scipy not imported here)
+    return np.ascontiguousarray(np.column_stack([big, PHI_STEP * p, p, -PHI_STEP * u * p]))
 
 
 _PHI = _phi_nodes()
