@@ -27,6 +27,7 @@ microseconds more per frame than the plain run).
 from __future__ import annotations
 
 import argparse  # noqa: E402
+import re  # noqa: E402
 import time  # noqa: E402
 from dataclasses import replace  # noqa: E402
 
@@ -159,8 +160,8 @@ def main() -> None:
     res["tracking_to_aruco"] = round(float(np.median(per_repeat)), 2)
     if args.profile:
         res["profile_ms_per_frame"] = {m: profile(rig, images, m == "cold") for m in n_ok}
-    if not args.size and args.refine == "lines":
-        res["batch"] = batch_end_to_end(args.rig, pngs, args.repeats)
+    if not args.size:
+        res["batch"] = batch_end_to_end(args.rig, pngs, args.repeats, args.refine)
     dec = res["png_decode"]["median_ms"]
     for k in ("tracking", "cold"):
         res[k]["ratio_to_png_decode"] = round(res[k]["median_ms"] / dec, 2)
@@ -168,12 +169,13 @@ def main() -> None:
     print(save_json(name, res))
 
 
-def batch_end_to_end(rig_path: str, pngs, repeats: int) -> dict:
+def batch_end_to_end(rig_path: str, pngs, repeats: int, refine: str = "lines") -> dict:
     """`visvec batch FOLDER --rig RIG --out CSV` in this process (the interpreter's and
     the imports' start left out) on the recording written as PNG files, against reading
     and decoding the same files (cv2.imread, grey), each timed over the whole folder
     (the best of ``repeats`` runs): with the machine's cores (the folder is read by a
-    thread beside the processing) and pinned to one CPU."""
+    thread beside the processing) and pinned to one CPU. ``refine``: the rig's [detect]
+    refine (a copy of the rig file with it set)."""
     import os
     import tempfile
     from pathlib import Path
@@ -190,6 +192,13 @@ def batch_end_to_end(rig_path: str, pngs, repeats: int) -> dict:
         for i, p in enumerate(pngs):
             (folder / f"frame_{i:05d}.png").write_bytes(p.tobytes())
         files = sorted(folder.glob("*.png"))
+        if refine != "lines":
+            text = Path(rig_path).read_text()
+            if re.search(r'^refine = "\w+"', text, re.M) is None:
+                raise SystemExit(f"{rig_path}: no [detect] refine key to set to {refine}")
+            rig_path = str(Path(tmp) / "rig.toml")
+            Path(rig_path).write_text(re.sub(r'^refine = "\w+"', f'refine = "{refine}"', text,
+                                             flags=re.M))  # fmt: skip
         runner = CliRunner()
         for label, use in (("all_cpus", cpus), ("one_cpu", {min(cpus)})):
             os.sched_setaffinity(0, use)
