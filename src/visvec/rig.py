@@ -125,8 +125,8 @@ class DetectSettings:
     brightness_band : (lo, hi) grey levels; outside it a frame gets a brightness warning.
     min_contrast : least grey-level step between board and triangle to accept.
     refine : "lines" (edge-line fits, default), "pixels" (the lines, then the blurred
-        edges fitted to every pixel near them: at the Cramér-Rao bound, 0.7 ms a frame
-        more at 640x480 with the fast extra, 1.9 ms without) or "corners"
+        edges fitted to every pixel near them: at the Cramér-Rao bound, 1.35x the
+        lines' time a frame at 640x480 with the fast extra) or "corners"
         (cv2.cornerSubPix).
     pixel_sigma_floor : px, least per-point noise assumed in the covariance.
     sigma_scale : triangle: factor on the vertices' 1-sigma (1 = the edge-noise model
