@@ -69,7 +69,7 @@ def test_a_pixel_fit_that_disagrees_with_the_lines_is_not_taken(rig320):
     got, got_cov, taken = tri._pixel_fit(img, fit, far, cov, rig320.camera)
     np.testing.assert_array_equal(got, far)
     np.testing.assert_array_equal(got_cov, cov)
-    assert taken is None
+    assert taken is False
 
 
 def test_the_vertices_gain_is_the_lines_derivative():
@@ -186,7 +186,7 @@ def test_a_pixel_fit_wider_than_the_lines_is_not_taken(rig320, monkeypatch):
     got, got_cov, taken = tri._pixel_fit(img, fit, xy, cov, rig320.camera)
     np.testing.assert_array_equal(got, xy)
     np.testing.assert_array_equal(got_cov, cov)
-    assert taken is None  # nothing for the run's blur to learn from
+    assert taken is False  # nothing for the run's blur to learn from
 
 
 def test_the_runs_blur_starts_the_fit_and_follows_a_refocus(rig640, monkeypatch):
@@ -226,6 +226,12 @@ def test_the_runs_blur_starts_the_fit_and_follows_a_refocus(rig640, monkeypatch)
     assert 0.6 < blurs[3] < 0.75
     assert 1.4 < blurs[4] < 1.6
     assert np.abs(z).max() < 4.5
+    # a pixel fit not taken (the lines stand) clears the run's blur: the next fit starts
+    # from the lines' widths
+    monkeypatch.setattr(tri, "_pixel_fit", lambda *a: (a[2], a[3], False))
+    det.reset()
+    assert det.detect(render_frame(rig640, attitudes(1, 31)[0], Scene(), rng=2)).status is Status.OK
+    assert det._blur is None
     lines = TriangleDetector(rig640)
     img = render_frame(rig640, attitudes(1, 31)[0], Scene(), rng=1)
     assert lines.detect(img).status is Status.OK

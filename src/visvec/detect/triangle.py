@@ -91,7 +91,7 @@ PIXEL_FIT_GATE_P = 1e-4
 # the run's blur width that starts the pixel fit (photometric.refine's ``blur``): the
 # median of the three edges' widths of each detection's pixel fit, averaged over the
 # frames with this forgetting factor (about ten frames); a fit that needed more than one
-# step from it (the blur changed: a refocus) replaces it
+# step from it (the blur changed: a refocus) replaces it, and one not taken clears it
 BLUR_FORGET = 0.9
 
 
@@ -186,25 +186,25 @@ def _pixel_fit(image, fit, xy, cov, camera, shutter=None, rate_c=None, blur=None
     of the two, is not taken, and the lines' vertices and covariance stand. Under a
     rolling ``shutter`` the pixels are taken to the centre row's exposure with the rate
     ``rate_c``; without a rate yet (a first frame) the lines stand, their covariance
-    widened for the rate they could not take out. The fit is None where the lines
-    stand."""
+    widened for the rate they could not take out. The fit is False where it was made and
+    not taken, None where none was made."""
     if shutter is not None and rate_c is None:
         return xy, cov, None
     pf = refine(image, fit.normals, fit.offsets, fit.width, camera, shutter, rate_c, blur)
     if not pf.ok or not np.all(np.isfinite(pf.cov)):
-        return xy, cov, None
+        return xy, cov, False
     dv = (pf.xy - xy).ravel()
     try:
         chi2_ = float(dv @ np.linalg.solve(cov + pf.cov, dv))
     except np.linalg.LinAlgError:
-        return xy, cov, None
+        return xy, cov, False
     if not chi2_ < chi2_ppf(1.0 - PIXEL_FIT_GATE_P, 6):
-        return xy, cov, None
+        return xy, cov, False
     # and when it is the more precise: residuals with a structure of their own (a head
     # in a band) widen its covariance through their correlation (photometric's
     # _noise_inflation) beyond the lines'
     if not np.trace(pf.cov) < np.trace(cov):
-        return xy, cov, None
+        return xy, cov, False
     return pf.xy, pf.cov, pf
 
 
@@ -289,10 +289,10 @@ class TriangleDetector:
         self._last_width: np.ndarray | None = None
         self._fit_width: np.ndarray | None = None
         # the run's blur width for the pixel fit (BLUR_FORGET), and the last verified
-        # candidate's pixel fit (None: the lines stood); a property of the lens and its
-        # focus, kept through reset
+        # candidate's pixel fit (False: made and not taken, None: none made); a property
+        # of the lens and its focus, kept through reset
         self._blur: float | None = None
-        self._pixel: PhotometricFit | None = None
+        self._pixel: PhotometricFit | bool | None = None
         # the last detection came from the previous frame's vertices (small motion)
         self.last_was_tracked = False
         # the edge points' correlation along the edges, learned over the run's frames
@@ -458,7 +458,11 @@ class TriangleDetector:
             sums, pairs = self._lags.tolist()
             self.correlation.add(sums, pairs, 3)
         pf = self._pixel
-        if pf is not None:
+        if pf is False:
+            # a pixel fit not taken (a head in a band, or a start from a blur that no
+            # longer holds): the next one starts from the lines' widths and relearns it
+            self._blur = None
+        elif pf is not None:
             w = float(np.median(pf.width))
             if self._blur is None or pf.steps > 1:
                 self._blur = w
