@@ -156,9 +156,6 @@ class _IdealGrid:
         return (grid, *pinhole, True)
 
 
-_NO_XY = np.zeros((0, 2))
-
-
 def _unrolled(xy: np.ndarray, rows: np.ndarray, camera: CameraModel, roll) -> np.ndarray:
     """Normalised points seen at image ``rows`` taken to the centre row's exposure, for
     ``roll`` = (RollingShutter, the camera's rate (rad/s, camera axes))."""
@@ -297,10 +294,6 @@ def _band(image, n, c, reach, clear, camera, roll=None):
     pts = cover(q_px, int(lo[0]), int(lo[1]), int(hi[0]), int(hi[1]))
     if not len(pts):
         return None
-    if _compiled.ON and roll is None:  # the same pixels in the same order, compiled
-        reach, clear = np.asarray(reach, float), np.asarray(clear, float)
-        return _compiled.band_pixels(pts, _NO_XY, grid, cx, cy, aspect, lens, image, n, o,
-                                     reach, clear)  # fmt: skip
     # flat indices into the frame (one take is cheaper than a gather by row and column)
     flat = pts[:, 1] * camera.width + pts[:, 0]
     x = _pinhole(pts, cx, cy, aspect)

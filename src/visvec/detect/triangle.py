@@ -463,7 +463,7 @@ class TriangleDetector:
             # longer holds): the next one starts from the lines' widths and relearns it
             self._blur = None
         elif pf is not None:
-            w = float(np.median(pf.width))
+            w = sorted(pf.width.tolist())[1]  # the three edges' median
             if self._blur is None or pf.steps > 1:
                 self._blur = w
             else:
