@@ -73,6 +73,11 @@ class CameraModel:
         return bool(np.any(self.dist != 0.0))
 
     @cached_property
+    def _centre_focal(self) -> tuple[np.ndarray, np.ndarray]:
+        """[cx, cy] and [fx, fy] as arrays (made once, not on every undistort)."""
+        return np.array([self.cx, self.cy]), np.array([self.fx, self.fy])
+
+    @cached_property
     def field_r2(self) -> float:
         """The squared radius (normalised, undistorted) of the model's field: where the
         radial image radius r (1 + k1 r^2 + k2 r^4 + k3 r^6) first stops growing, the
@@ -163,8 +168,8 @@ class CameraModel:
         outside the model's field (no ray maps there, or only one beyond the fold)."""
         uv = np.asarray(uv, dtype=np.float64).reshape(-1, 1, 2)
         if not self.has_distortion:
-            out = (uv[:, 0, :] - [self.cx, self.cy]) / [self.fx, self.fy]
-            return out
+            c, f = self._centre_focal
+            return (uv[:, 0, :] - c) / f
         xy = cv2.undistortPoints(uv, self.K, self.dist).reshape(-1, 2)
         # OpenCV's fixed-point iteration stops early with strong distortion; finish with
         # Newton steps on distort(xy) = uv (analytic 2x2 Jacobian per point), until the

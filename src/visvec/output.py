@@ -242,7 +242,7 @@ def attitude_row(
     e = np.array(matrix_to_euler(sol.R_nb))
     J = euler_rates_from_body(*e)
     cov_e = J @ sol.cov_b @ J.T
-    sigma = np.sqrt(np.clip(np.diag(cov_e), 0.0, None))
+    sigma = np.sqrt(np.maximum(np.diag(cov_e), 0.0))
     return AttitudeRow(
         frame,
         time_s,

@@ -396,7 +396,7 @@ def _sample(
     edge t in [-1, 1] (M,), distance from the edge's first end (M,), values (M, S), and
     each edge's length (3,).
     """
-    if _compiled.ON and np.all(np.isfinite(corners)) and np.all(np.isfinite(trims)):
+    if _compiled.ON and np.isfinite(corners).all() and np.isfinite(trims).all():
         offs = np.arange(-half, half + 1e-9, step)
         bases, normals, gid, k, tt, along, map_x, map_y, length = _compiled.sample_geometry(
             corners, off, offs, trims, float(spacing), MAX_PROFILES_PER_EDGE
@@ -646,7 +646,7 @@ def _pass_window(npass: int, corners: np.ndarray, w_mid: float, half0: float, st
     trims = np.maximum(
         trim * sides.min(),
         (half + ext + 2.0 * w_mid + 0.5)
-        / np.sin(np.clip(corner_angles(corners, sides), 0.2, None)),
+        / np.sin(np.maximum(corner_angles(corners, sides), 0.2)),
     )
     spacing = SPARSE_SPACING_PX if npass == 0 else PROFILE_SPACING_PX
     return half, ext, trims, spacing
@@ -815,7 +815,7 @@ def fit_edges(
         )
         new = camera.distort(_vertices(normals_l, offsets)[0] / f)
         size = float(sides.max())
-        failed = not np.all(np.isfinite(new)) or np.abs(new - corners).max() > 0.25 * size + 3.0
+        failed = not np.isfinite(new).all() or np.abs(new - corners).max() > 0.25 * size + 3.0
         if npass == 0 and not failed:
             # a first pass only places the fine profiles: its lines' statistics are not
             # needed

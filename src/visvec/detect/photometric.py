@@ -174,7 +174,7 @@ def _pinhole(uv: np.ndarray, cx: float, cy: float, aspect: float) -> np.ndarray:
 def _intersections(n: np.ndarray, c: np.ndarray) -> tuple[np.ndarray, list | None]:
     """Vertices (3, 2) of the lines n_i . (x - c_i) = 0 (vertex i on lines i+1, i+2),
     and per vertex the inverse of its lines' 2x2 normal matrix (edges._vertices)."""
-    return _vertices(n, np.einsum("ij,ij->i", n, c))
+    return _vertices(n, np.add.reduce(n * c, axis=1))
 
 
 def _vertex_gain(n: np.ndarray, c: np.ndarray, V: np.ndarray, invs: list) -> np.ndarray:

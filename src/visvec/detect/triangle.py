@@ -191,7 +191,7 @@ def _pixel_fit(image, fit, xy, cov, camera, shutter=None, rate_c=None, blur=None
     if shutter is not None and rate_c is None:
         return xy, cov, None
     pf = refine(image, fit.normals, fit.offsets, fit.width, camera, shutter, rate_c, blur)
-    if not pf.ok or not np.all(np.isfinite(pf.cov)):
+    if not pf.ok or not np.isfinite(pf.cov).all():
         return xy, cov, False
     dv = (pf.xy - xy).ravel()
     try:
@@ -203,7 +203,7 @@ def _pixel_fit(image, fit, xy, cov, camera, shutter=None, rate_c=None, blur=None
     # and when it is the more precise: residuals with a structure of their own (a head
     # in a band) widen its covariance through their correlation (photometric's
     # _noise_inflation) beyond the lines'
-    if not np.trace(pf.cov) < np.trace(cov):
+    if not pf.cov.trace() < cov.trace():
         return xy, cov, False
     return pf.xy, pf.cov, pf
 
@@ -305,7 +305,7 @@ class TriangleDetector:
         self.inter_frame = False
 
     def _tracked_candidate(self, pts: np.ndarray) -> Candidate:
-        inside = bool(np.all(self.rig.camera.in_image(pts, 2.0)))
+        inside = bool(self.rig.camera.in_image(pts, 2.0).all())
         return Candidate(
             corners_px=pts,
             contour_px=pts,
@@ -517,14 +517,14 @@ class TriangleDetector:
         m = self._measure(image, cand, rate_c)
         if isinstance(m, str):
             return self._reject(m, warnings, mean, cand)
-        if not np.all(np.isfinite(m.xy)) or not side_lengths(m.xy).min() > 0.0:
+        if not np.isfinite(m.xy).all() or not side_lengths(m.xy).min() > 0.0:
             return self._reject("degenerate_triangle", warnings, mean, cand)
         m, seen, seen_angles = self._named(m)
         reason = self._shape_reason(m, seen, seen_angles) or self._usability_reason(image, cand, m)
         if reason:
             return self._reject(reason, warnings, mean, cand, m.pts_px)
         w = list(warnings)
-        if not np.all(cam.in_image(m.pts_px, BORDER_MARGIN_PX + 0.02 * cam.width)):
+        if not cam.in_image(m.pts_px, BORDER_MARGIN_PX + 0.02 * cam.width).all():
             w.append("near_fov_edge")
         consider, gain = self._shutter_consider(m, rate_c)
         self._lags = m.lags
@@ -601,8 +601,8 @@ class TriangleDetector:
                                               self._blur)  # fmt: skip
         return _Measured(
             xy, cam.distort(xy / cam.fx), cov, fit.contrast.min(), fit.outlier_fraction.max(),
-            float(fit.vertex_gaps().max()), float(np.mean(fit.mid_level)), fit.shutter_gain,
-            fit.lag_sums,
+            float(fit.vertex_gaps().max()), float(np.add.reduce(fit.mid_level)) / 3,
+            fit.shutter_gain, fit.lag_sums,
         )  # fmt: skip
 
     def _named(self, m: _Measured) -> tuple[_Measured, np.ndarray, np.ndarray]:
@@ -639,7 +639,7 @@ class TriangleDetector:
         """Step 4: it is the triangle's shape; can its image be trusted? In view,
         contrasted, unobstructed, not saturated, the whole region, a dark surround."""
         cam, s = self.rig.camera, self.rig.detect
-        if cand.touches_border or not np.all(cam.in_image(m.pts_px, 1.0)):
+        if cand.touches_border or not cam.in_image(m.pts_px, 1.0).all():
             return "partly_out_of_view"
         if m.contrast < s.min_contrast:
             return "low_contrast"
@@ -766,7 +766,7 @@ class TriangleDetector:
         area = abs(_signed_area(pts_px))
         if not abs(bright / max(area, 1.0) - 1.0) <= REGION_AREA_TOL:
             return "obstructed"
-        if not np.all(self.rig.camera.in_image(outer)):
+        if not self.rig.camera.in_image(outer).all():
             return None  # cannot tell near the image edge; other checks apply
         ring = np.zeros(roi.shape, np.uint8)
         cv2.fillPoly(ring, [polys[2]], 255)

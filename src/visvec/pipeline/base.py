@@ -3,13 +3,12 @@ the physically-possible tilt check, latency, the closing note on refused frames.
 
 from __future__ import annotations
 
+import math
 import time
 from collections import Counter
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import replace
 from typing import Generic, TypeVar
-
-import numpy as np
 
 from visvec.data import AttitudeSolution, Frame, Status
 from visvec.errors import ConfigError
@@ -180,7 +179,7 @@ class AttitudePipeline(Pipeline[DetT, AttitudeSolution]):
         return attitude_row(frame.index, frame.time_s, sol, status, warnings, latency_ms)
 
     def check_solution(self, status, sol, warnings):
-        tilt = np.degrees(np.arccos(np.clip(sol.R_nb[2, 2], -1.0, 1.0)))
+        tilt = math.degrees(math.acos(min(max(float(sol.R_nb[2, 2]), -1.0), 1.0)))
         if tilt > self.rig.max_tilt_deg:
             return Status.REJECTED, warnings + ("impossible_tilt",)
         return status, warnings
