@@ -8,6 +8,7 @@ maximally-stable-region search), then corners are looked for on it only.
 
 from __future__ import annotations
 
+import bisect
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
@@ -76,14 +77,20 @@ def enclosing_triangle(points: np.ndarray) -> np.ndarray | None:
 def _percentiles(image: np.ndarray, qs: tuple[float, ...]) -> np.ndarray:
     """np.percentile (linear interpolation) of a uint8 image, from its histogram (a
     cumulative count instead of a partial sort)."""
-    # cv2.calcHist counts in float32, exact to 2^24 pixels; 2-3x faster than np.bincount
+    # cv2.calcHist counts in float32, exact to 2^24 pixels; 2-3x faster than np.bincount.
+    # The quantiles from the 256 counts in Python's numbers (bisect_right is
+    # np.searchsorted's side="right"): the same values in 2/3 of the time
     cdf = np.cumsum(cv2.calcHist([image], [0], None, [256], [0, 256]).ravel().astype(np.int64))
-    n = int(cdf[-1])
-    pos = np.asarray(qs, float) / 100.0 * (n - 1)
-    k = pos.astype(int)
-    v = np.searchsorted(cdf, np.concatenate([k, np.minimum(k + 1, n - 1)]), side="right")
-    v0, v1 = v[: len(k)], v[len(k) :]
-    return v0 + (pos - k) * (v1 - v0)
+    cdf = cdf.tolist()
+    n = cdf[-1]
+    out = []
+    for q in qs:
+        pos = q / 100.0 * (n - 1)
+        k = int(pos)
+        v0 = bisect.bisect_right(cdf, k)
+        v1 = bisect.bisect_right(cdf, min(k + 1, n - 1))
+        out.append(v0 + (pos - k) * (v1 - v0))
+    return np.array(out)
 
 
 def shrink(image: np.ndarray, scale: int) -> np.ndarray:
