@@ -13,7 +13,9 @@ camera) by visvec.sim.lamps and processed by the same LampPipeline as `visvec ba
    then see only 5-10 lamps); and along the perimeter path at 30 fps with tracking and motion blur
    (10 ms exposure).
 3. Speed on one core: pipeline time per frame (decode excluded), tracking and lost in
-   space, best of 3.
+   space, best of 3; after each frame the ArUco tag of benchmarks/triangle_speed.py on
+   one of its own (_fiducial.Yardstick), whose median gives the lost-in-space time on
+   the machine the target was set on (its tag took _fiducial.REFERENCE_TAG_MS).
 4. Fusion: the mock-up still for 5 s, then pushed around the table for 120 s; frames at
    1.7 Hz through the pipeline become fixes available 0.6 s after exposure (the paper's
    delay); the IMU (100 Hz, the paper's accelerometer noise 0.002 m/s^2, biases, faults)
@@ -164,6 +166,10 @@ def tracking(rig, rng, n: int) -> tuple[dict, list[np.ndarray], float]:
 
 
 def speed(rig, frames: list[np.ndarray], lost: list[np.ndarray], dark: list[np.ndarray]) -> dict:
+    import _fiducial  # (numpy is in: _onecore came first)
+
+    yardstick = _fiducial.Yardstick()
+
     def best(imgs, reset):
         # steady state: the pipeline has seen the frames once (what it builds on first
         # need, the few-lamps triangles in view, 0.5 s, is not a per-frame cost)
@@ -174,18 +180,27 @@ def speed(rig, frames: list[np.ndarray], lost: list[np.ndarray], dark: list[np.n
         times = []
         for _ in range(3):
             pipe.reset()
-            t0 = time.perf_counter()
+            total = 0.0
             for i, img in enumerate(imgs):
                 if reset:
                     pipe.reset()
+                t0 = time.perf_counter()
                 pipe.process(Frame(i, i / rig.fps, img))
-            times.append((time.perf_counter() - t0) / len(imgs))
+                total += time.perf_counter() - t0
+                # the tag on one of its frames after each (the machine's speed, taken
+                # in the same stretch of the run)
+                yardstick.tick()
+            times.append(total / len(imgs))
         return min(times)
 
     tr, lis, lis_dark = best(frames, False), best(lost, True), best(dark, True)
+    # on the machine the targets were set on (its tag: _fiducial.REFERENCE_TAG_MS)
+    lis_ref = yardstick.reference_ms(lis * 1000)
     return {"tracking_ms": tr * 1000, "tracking_fixes_per_s": 1 / tr,
             "lost_in_space_ms": lis * 1000, "lost_in_space_fixes_per_s": 1 / lis,
-            "lost_in_space_two_thirds_dark_ms": lis_dark * 1000}  # fmt: skip
+            "lost_in_space_two_thirds_dark_ms": lis_dark * 1000,
+            "tag_ms": yardstick.tag_ms(), "lost_in_space_reference_ms": lis_ref,
+            "lost_in_space_reference_fixes_per_s": 1000 / lis_ref}  # fmt: skip
 
 
 # part 4's fixes stamped this late again (s)

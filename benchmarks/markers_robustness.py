@@ -7,7 +7,10 @@ Scenarios: clean; 1-4 reflections; 1-3 LEDs hidden (any, the reference LED inclu
 both. Per scenario: rows ok, ok rows beyond 3 sigma and beyond 0.05 deg (wrong), the
 reasons of the rows not ok, and the median time of a cold frame (one core). Then "tracked": a 55 Hz
 sweep (a yaw turn with tilts wobbling within 0.8 of max_tilt_deg per axis) processed in
-order, each frame with 0-3 reflections and 0-2 hidden LEDs drawn afresh.
+order, each frame with 0-3 reflections and 0-2 hidden LEDs drawn afresh; after each of
+its frames the ArUco tag of benchmarks/triangle_speed.py is timed on one of its own
+(_fiducial.Yardstick), and the tracked frame's median over the tag's gives its time on
+the machine the speed target was set on (whose tag took _fiducial.REFERENCE_TAG_MS).
 
     python benchmarks/markers_robustness.py [--frames 300]
 """
@@ -49,6 +52,9 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=300)
     args = ap.parse_args()
     _onecore.one_core()
+    import _fiducial  # after _onecore: it imports numpy
+
+    yardstick = _fiducial.Yardstick()
     rig = load_rig(CONFIGS / "markers.toml")
     n_leds = len(rig.target.points_b)
     results = {**run_record(), "frames": args.frames, "wrong_deg": WRONG_DEG}
@@ -68,6 +74,8 @@ def main() -> None:
             t = time.perf_counter()
             row = pipe.process(Frame(k, k / rig.fps, img))
             times.append(time.perf_counter() - t)
+            if kind == "tracked":
+                yardstick.tick()
             status.append(str(row.status))
             if not row.ok:
                 reasons[row.warnings[-1]] = reasons.get(row.warnings[-1], 0) + 1
@@ -87,6 +95,11 @@ def main() -> None:
             # a cold frame's, except in the tracked sequence
             "median_frame_ms": round(float(np.median(times)) * 1000, 1),
         }
+        if kind == "tracked":
+            ms = float(np.median(times)) * 1000
+            res["tag_ms"] = round(yardstick.tag_ms(), 2)
+            res["frame_to_tag"] = round(ms / yardstick.tag_ms(), 2)
+            res["reference_ms"] = round(yardstick.reference_ms(ms), 2)
         results[kind] = res
         print(kind, res)
     print(save_json("markers_robustness", results))

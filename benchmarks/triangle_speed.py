@@ -158,6 +158,9 @@ def main() -> None:
     res["cold_to_aruco_per_repeat"] = np.round(per_repeat, 2).tolist()
     per_repeat = np.array(res["tracking"]["repeat_medians_ms"]) / res["aruco"]["repeat_medians_ms"]
     res["tracking_to_aruco"] = round(float(np.median(per_repeat)), 2)
+    # the same on the machine the targets were set on (its tag: _fiducial.REFERENCE_TAG_MS)
+    for k in ("cold", "tracking"):
+        res[f"{k}_reference_ms"] = round(res[f"{k}_to_aruco"] * _fiducial.REFERENCE_TAG_MS, 2)
     if args.profile:
         res["profile_ms_per_frame"] = {m: profile(rig, images, m == "cold") for m in n_ok}
     if not args.size:
