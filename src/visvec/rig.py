@@ -125,7 +125,7 @@ class DetectSettings:
     brightness_band : (lo, hi) grey levels; outside it a frame gets a brightness warning.
     min_contrast : least grey-level step between board and triangle to accept.
     refine : "lines" (edge-line fits, default), "pixels" (the lines, then the blurred
-        edges fitted to every pixel near them: at the Cramér-Rao bound, 1.35x the
+        edges fitted to every pixel near them: at the Cramér-Rao bound, 1.33x the
         lines' time a frame at 640x480 with the fast extra) or "corners"
         (cv2.cornerSubPix).
     pixel_sigma_floor : px, least per-point noise assumed in the covariance.

@@ -201,7 +201,7 @@ def _accuracy(rig, n_frames: int, seed: int, scheduler: str | None, workers: int
             with_pixels = replace(rig, detect=replace(rig.detect, refine="pixels"))
             out_p = simulated_accuracy(with_pixels, n_frames, seed, pool, progress=bar.update)
             click.echo(
-                f'    with [detect] refine = "pixels" (1.35x the time a frame with the '
+                f'    with [detect] refine = "pixels" (1.33x the time a frame with the '
                 f"fast extra): ok {out_p.n_ok} of {out_p.n}{_figures(out_p)}"
             )
     click.echo(
