@@ -33,6 +33,7 @@ def _run(args, **kw):
     return subprocess.run([sys.executable, "-m", "visvec", *args], capture_output=True, **kw)
 
 
+@pytest.mark.slow  # 6 s: the default run stays under 5 minutes
 def test_file_names_that_are_not_utf8(tmp_path):
     """A recording folder, an image inside it, --overlay, --save-frames and simulate
     --out named with a byte that is not UTF-8: processed like any other, no crash."""
@@ -445,6 +446,7 @@ def test_calibrate_system_counts_a_duplicated_frame_once(tmp_path):
     assert b"frame 6: skipped (the same image as frame 2)" in r.stderr, r.stderr
 
 
+@pytest.mark.slow  # 6 s: the default run stays under 5 minutes
 def test_track_ends_on_every_signal_with_its_rows_counted(tmp_path):
     """SIGINT, SIGTERM, SIGHUP mid-run: exit 0, 'interrupted after N frames', and the
     output holds exactly N whole rows."""

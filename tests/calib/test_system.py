@@ -177,6 +177,7 @@ def test_inconsistent_observations_do_not_converge(mrig):
     assert not cal.converged or cal.rms_px > 100
 
 
+@pytest.mark.slow  # 5 s: the default run stays under 5 minutes
 def test_calibrate_system_cli(tmp_path, mrig):
     rng = np.random.default_rng(5)
     true = perturbed(mrig, rng)

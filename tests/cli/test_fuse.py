@@ -4,6 +4,7 @@ import csv
 import re
 
 import numpy as np
+import pytest
 from click.testing import CliRunner
 from fusion_cases import (
     planar_case,
@@ -37,6 +38,7 @@ def test_fuse_cli(tmp_path):
     assert r.exit_code == 2 and "--rest-s 9: the first 9 s do not look like rest" in r.output
 
 
+@pytest.mark.slow  # 7 s: the default run stays under 5 minutes
 def test_fuse_3d_through_the_cli(tmp_path):
     """`visvec fuse` on a triangle sweep's 3-D gyro and the camera's rows as fixes (from
     `visvec batch`): attitude rows at the IMU's rate, within 0.05 deg of the truth and

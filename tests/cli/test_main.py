@@ -39,6 +39,7 @@ def test_unopenable_sources_exit_3(tmp_path, what):
     assert str(path) in r.output
 
 
+@pytest.mark.slow  # 8 s: the default run stays under 5 minutes
 def test_a_reader_that_closes_the_pipe_ends_the_run_quietly(tmp_path):
     """`visvec batch ... | head -2`: the run ends with status 0 and no error message, and
     a calibration whose report is cut short has still written its file."""
