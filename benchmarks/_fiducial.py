@@ -21,7 +21,6 @@ from __future__ import annotations
 import math
 import time
 from concurrent.futures import ProcessPoolExecutor
-from pathlib import Path
 
 import cv2
 import numpy as np
@@ -31,6 +30,8 @@ from visvec.rotations import euler_to_matrix
 from visvec.sim.render import _ray_grid, _rays_at
 from visvec.sim.scene import Scene
 from visvec.sim.simulate import random_attitudes
+
+from _common import CONFIGS
 
 DICTIONARY = cv2.aruco.DICT_4X4_50
 TAG_ID = 0
@@ -177,6 +178,13 @@ def _rms(v: list[float]) -> float | None:
 REFERENCE_TAG_MS = 1.4
 
 
+def speed_sweep(frames: int) -> np.ndarray:
+    """(frames, 3) yaw, pitch, roll (rad) of benchmarks/triangle_speed.py's recording: a
+    sweep that turns 0.8 rev over 3x the frames (0.32 deg of yaw per frame at 300
+    frames, about 10 deg/s at 30 fps), tilts within 5 deg."""
+    return random_attitudes(3 * frames, 5.0, np.random.default_rng(3), "sweep")[:frames]
+
+
 class Yardstick:
     """The tag baseline as a measure of the machine's speed, for the benchmarks that do
     not render the tag's scene themselves (markers, lamps): call :meth:`tick` after each
@@ -184,9 +192,8 @@ class Yardstick:
     of benchmarks/triangle_speed.py in turn: its 640x480 sweep, every fifth attitude)."""
 
     def __init__(self, frames: int = 60):
-        rig = load_rig(Path(__file__).resolve().parents[1] / "configs" / "triangle.toml")
-        eul = random_attitudes(15 * frames, 5.0, np.random.default_rng(3), "sweep")
-        self.images = render_tags(rig, eul[: 5 * frames : 5], Scene())
+        rig = load_rig(CONFIGS / "triangle.toml")
+        self.images = render_tags(rig, speed_sweep(5 * frames)[::5], Scene())
         self.base = ArucoBaseline(rig, Scene())
         self.times: list[float] = []
         self.base.attitude(self.images[0])  # (OpenCV's first call allocates)

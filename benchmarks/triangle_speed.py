@@ -41,7 +41,6 @@ from visvec.detect import _compiled  # noqa: E402
 from visvec.pipeline import TrianglePipeline  # noqa: E402
 from visvec.rig import load_rig  # noqa: E402
 from visvec.sim.scene import Scene  # noqa: E402
-from visvec.sim.simulate import random_attitudes  # noqa: E402
 
 from _common import CONFIGS, add_refine_option, run_record, save_json  # noqa: E402
 
@@ -88,9 +87,7 @@ def main() -> None:
         )
         rig = replace(rig, camera=cam)
         name += f"_{w}x{h}"
-    # the sweep turns 0.8 rev over 3x the frames: 0.32 deg of yaw per frame, ~10 deg/s
-    eul = random_attitudes(3 * args.frames, 5.0, np.random.default_rng(3), "sweep")
-    eul = eul[: args.frames]
+    eul = _fiducial.speed_sweep(args.frames)
     cases = [Case(e, Scene(), k) for k, e in enumerate(eul)]
     images = render_cases(rig, cases)
     pngs = [cv2.imencode(".png", im)[1] for im in images]
