@@ -645,8 +645,7 @@ def _pass_window(npass: int, corners: np.ndarray, w_mid: float, half0: float, st
     sides = side_lengths(corners)
     trims = np.maximum(
         trim * sides.min(),
-        (half + ext + 2.0 * w_mid + 0.5)
-        / np.sin(np.maximum(corner_angles(corners, sides), 0.2)),
+        (half + ext + 2.0 * w_mid + 0.5) / np.sin(np.maximum(corner_angles(corners, sides), 0.2)),
     )
     spacing = SPARSE_SPACING_PX if npass == 0 else PROFILE_SPACING_PX
     return half, ext, trims, spacing
