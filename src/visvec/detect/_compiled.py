@@ -29,6 +29,8 @@ import threading
 
 import numpy as np
 
+from visvec.camera import _distorted
+
 PURE = os.environ.get("VISVEC_PURE", "").strip() not in ("", "0")
 # Numba is imported when a kernel is first called (_load), not with this module: its
 # import takes 0.2 s, which every command line paid, also those that run no triangle
@@ -779,10 +781,7 @@ def _band_lines(image, n, c, reach, clear, fx, fy, cx, cy, dist, last_col, last_
             det = n[i, 0] * n[other, 1] - n[i, 1] * n[other, 0]
             x = (oi * n[other, 1] - o2 * n[i, 1]) / det / fx
             y = (n[i, 0] * o2 - n[other, 0] * oi) / det / fx
-            r2 = x * x + y * y
-            radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-            xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-            yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+            xd, yd = distorted(x, y, k1, k2, p1, p2, k3)
             q[4 * i + s, 0] = fx * xd + cx
             q[4 * i + s, 1] = fy * yd + cy
     empty = (np.empty((0, 2)), np.empty(0), np.empty((0, 2), np.int64), np.zeros(3, np.int64))
@@ -1277,6 +1276,7 @@ band_pixels = _jit(_band_pixels, "band_pixels")
 cover = _jit(_cover, "cover")
 _cover = _jit(_cover, "_cover")
 _band_pixels = _jit(_band_pixels, "_band_pixels")
+distorted = _jit(_distorted, "distorted")
 band_lines = _jit(_band_lines, "band_lines")
 _phi_of = _jit(_phi_of, "_phi_of")
 _pixel_gn = _jit(_pixel_gn, "_pixel_gn")
