@@ -139,6 +139,7 @@ def test_jsonl_rows_are_json(tmp_path):
     assert json.loads(buf.getvalue()) == {"a": None, "b": None}
 
 
+@pytest.mark.slow  # 7-8 s: the default run stays under 5 minutes
 def test_outputs_never_destroy_inputs_or_each_other(tmp_path):
     """--out over the rig, into the recording, over a calibration's rig file, a URL
     scheme visvec does not speak, or a file another run is writing: refused (exit 2)

@@ -155,6 +155,7 @@ def rows_of(path: Path) -> list[dict]:
         return list(csv.DictReader(fh))
 
 
+@pytest.mark.slow  # 7-8 s: the default run stays under 5 minutes
 def test_server_serves_its_page_and_data_only(tmp_path):
     rec = recording(tmp_path / "rec")
     srv = Served(rec, tmp_path / "rows.csv")
