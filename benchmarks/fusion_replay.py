@@ -26,7 +26,7 @@ from live_soak import IMU_HZ, IMU_PPM, PATH, imu_samples, over_sigma
 
 from visvec.clocks import ClockTie
 from visvec.fuse.live import parse_fix
-from visvec.fuse.models import PlanarModel
+from visvec.fuse.planar import PlanarModel
 from visvec.fuse.replay import Fusion
 from visvec.sim.lamps import ImuModel
 

@@ -28,7 +28,7 @@ from visvec.bench.planar import (
     imu_along,
     late_fixes,
 )
-from visvec.fuse.models import PlanarModel
+from visvec.fuse.planar import PlanarModel
 from visvec.fuse.replay import Fusion, fuse
 
 from _common import run_record, save_json

@@ -7,7 +7,7 @@ import math
 import numpy as np
 
 from visvec.fuse.inputs import Fix, read_fixes, read_imu
-from visvec.fuse.models import PlanarModel
+from visvec.fuse.planar import PlanarModel
 from visvec.fuse.replay import fuse
 from visvec.output import PLANAR_COLUMNS
 from visvec.rotations import expmap, logmap

@@ -25,8 +25,9 @@ from visvec.data import AttitudeSolution, Detection, Frame, Status
 from visvec.detect import TriangleDetector
 from visvec.errors import ConfigError, InputFileError, SourceError, VisvecError
 from visvec.estimate import solve_full, solve_paper
+from visvec.fuse.attitude import AttitudeModel
 from visvec.fuse.inputs import Fix, read_fixes, read_imu
-from visvec.fuse.models import AttitudeModel, PlanarModel
+from visvec.fuse.planar import PlanarModel
 from visvec.fuse.replay import Fusion, fuse
 from visvec.output import ATTITUDE_COLUMNS, AttitudeRow
 from visvec.pipeline import (

@@ -84,7 +84,7 @@ def test_the_planar_learned_line_says_when_the_offset_is_not_learned_yet():
     from types import SimpleNamespace
 
     from visvec.cli.fuse import planar_learned_line
-    from visvec.fuse.models import PlanarModel
+    from visvec.fuse.planar import PlanarModel
 
     prior = PlanarModel().time_offset_sigma
     x = np.zeros(9)

@@ -16,8 +16,9 @@ from fusion_cases import (
     truth_table,
 )
 
+from visvec.fuse.attitude import AttitudeModel
 from visvec.fuse.inputs import Fix, ImuData
-from visvec.fuse.models import AttitudeModel, PlanarJitter, PlanarModel
+from visvec.fuse.planar import PlanarJitter, PlanarModel
 from visvec.fuse.replay import Limits, fuse
 from visvec.rotations import expmap, logmap
 from visvec.sim.lamps import ImuModel
@@ -279,7 +280,7 @@ def test_3d_a_burst_moves_the_attitude_not_the_gyro_calibration():
     offset take much less than a plain Kalman gain would give them, since the model has
     no account of a burst (a swing beyond the gyro's linear range)."""
     from visvec.chi2 import ppf
-    from visvec.fuse.models import BURST_P, NIS_P
+    from visvec.fuse.gate import BURST_P, NIS_P
 
     model = AttitudeModel(sample_s=0.01, jitter_sigma=0.0)
     fix0 = Fix(0.0, 0.0, np.eye(3), np.eye(3) * np.radians(0.1) ** 2, 0)

@@ -18,9 +18,10 @@ from visvec.bench.planar import (
     imu_along,
     late_fixes,
 )
+from visvec.fuse.align import ALIGN_WAIT_S
 from visvec.fuse.inputs import Fix, ImuData
-from visvec.fuse.models import PlanarModel
-from visvec.fuse.replay import ALIGN_WAIT_S, Fusion, fuse
+from visvec.fuse.planar import PlanarModel
+from visvec.fuse.replay import Fusion, fuse
 
 
 @pytest.mark.parametrize("late_s", [0.007, 0.1, 0.3])
@@ -181,4 +182,4 @@ def test_an_imu_without_fixes_keeps_only_its_history():
     eng = Fusion(PlanarModel(), history_s=2.0)
     out = list(fuse(imu, [], PlanarModel(), engine=eng))
     assert all(fs.state is None and "no_fix_yet" in fs.warnings for fs in out)
-    assert len(eng._ts) <= 2.0 / 0.01 + 2
+    assert len(eng.history) <= 2.0 / 0.01 + 2

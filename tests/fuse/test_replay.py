@@ -7,8 +7,9 @@ import numpy as np
 import pytest
 from fusion_cases import _err, _fixes, _sim3d, planar_case, truth_table
 
+from visvec.fuse.attitude import AttitudeModel
 from visvec.fuse.inputs import ImuData, read_fixes, read_imu
-from visvec.fuse.models import AttitudeModel, PlanarModel
+from visvec.fuse.planar import PlanarModel
 from visvec.fuse.replay import Limits, fuse
 from visvec.rotations import expmap, logmap
 
@@ -108,7 +109,7 @@ def test_3d_no_lock_out_after_a_bump_and_honest_sigma():
 def test_declip_restores_a_clipped_swing():
     """A clipped sine's flat top, rebuilt from two samples on either side, is closer
     to the truth than the flat top, and never inside the range."""
-    from visvec.fuse.replay import declip
+    from visvec.fuse.saturation import declip
 
     t = np.arange(0, 0.5, 0.01)
     v = 6.0 * np.sin(2 * np.pi * 1.3 * t)
@@ -174,5 +175,5 @@ def test_the_engines_state_after_a_step_cut_short(tmp_path):
                 eng.add_fix(fixes.pop(0))
             fs = eng.step(t, imu.gyro[j], imu.accel[j] if imu.accel is not None else None)
             last = fs.state if fs.state is not None else last
-    assert last is not None and eng._states[-1] is None
+    assert last is not None and eng.history.states[-1] is None
     assert eng.state is last

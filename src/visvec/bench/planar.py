@@ -11,7 +11,7 @@ from collections.abc import Callable, Iterable
 import numpy as np
 
 from visvec.fuse.inputs import Fix, ImuData
-from visvec.fuse.models import PlanarModel
+from visvec.fuse.planar import PlanarModel
 from visvec.sim.lamps import ImuModel, PerimeterPath
 
 LAP = PerimeterPath(lap_s=66.0)

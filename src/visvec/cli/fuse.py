@@ -15,9 +15,10 @@ from visvec.cli.progress import Work
 from visvec.cli.results import check_results, write_results
 from visvec.errors import ConfigError, InputFileError, NoOkRows
 from visvec.evaluate import error_stats, read_truth
+from visvec.fuse.attitude import AttitudeModel
 from visvec.fuse.inputs import read_fixes, read_imu
 from visvec.fuse.live import Reader, is_live, run_live
-from visvec.fuse.models import AttitudeModel, PlanarModel
+from visvec.fuse.planar import PlanarModel
 from visvec.fuse.replay import Fusion, Limits
 from visvec.fuse.replay import fuse as run_fusion
 from visvec.fuse.run import fused_rows, rest_biases
@@ -298,7 +299,7 @@ OFFSET_LEARNED_SHARE = 0.5
 
 
 def planar_learned_line(s, prior_s: float) -> str:
-    """What the planar Kalman filter learned (visvec.fuse.models.PlanarModel), with
+    """What the planar Kalman filter learned (visvec.fuse.planar.PlanarModel), with
     1-sigma: the fixes' time offset (``prior_s``: its prior sigma), the gyro's and the
     accelerometers' biases."""
     sd = np.sqrt(np.clip(np.diag(s.P), 0.0, None))
@@ -317,7 +318,7 @@ def planar_learned_line(s, prior_s: float) -> str:
 
 
 def learned_line(engine, s) -> str:
-    """What the 3-D filter learned of the gyro (model doc: visvec.fuse.models)."""
+    """What the 3-D filter learned of the gyro (model doc: visvec.fuse.attitude)."""
     qa, qw = s.noise.theta()
     per_sample = math.degrees(math.sqrt(qa / engine.model.sample_s))
     parts = [f"gyro noise {per_sample:.3g} deg/s per sample",
@@ -327,9 +328,9 @@ def learned_line(engine, s) -> str:
              f"scale factors {', '.join(f'{100 * k:+.2f}' for k in s.k)} %",
              f"bias {', '.join(f'{math.degrees(b):+.3f}' for b in s.b)} deg/s"]  # fmt: skip
     if engine.rest is not None:
-        parts.append(f"rest segment {engine.rest[2]} samples")
-    if np.any(np.isfinite(engine._ranges)):
-        rng = math.degrees(float(np.nanmax(engine._ranges)))
+        parts.append(f"rest segment {engine.rest.n} samples")
+    if np.any(np.isfinite(engine.saturation.ranges)):
+        rng = math.degrees(float(np.nanmax(engine.saturation.ranges)))
         parts.append(f"range {rng:.1f} deg/s, {engine.n_saturated} samples at it")
     return "visvec: learned: " + "; ".join(parts)
 

@@ -35,6 +35,7 @@ import numpy as np
 
 from visvec.clocks import ClockTie
 from visvec.errors import ConfigError, InputFileError
+from visvec.fuse.gate import warm_up
 from visvec.fuse.inputs import (
     ATTITUDE_FIX,
     ATTITUDE_IMU,
@@ -45,7 +46,6 @@ from visvec.fuse.inputs import (
     untimed,
 )
 from visvec.fuse.inputs import _fix_cov as fix_cov
-from visvec.fuse.models import warm_up
 from visvec.fuse.run import fused_rows
 from visvec.rotations import quat_to_matrix
 

@@ -25,8 +25,11 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from visvec.fuse.align import ALIGN_PRIOR_MIN, SHIFT_MAX, ClockAlignment
+from visvec.fuse.history import History
 from visvec.fuse.inputs import Fix, ImuData
-from visvec.fuse.models import ALIGN_TAU
+from visvec.fuse.rest import RestSegment, find_rest
+from visvec.fuse.saturation import Saturation
 
 MAX_REJECTED_IN_A_ROW = 3  # then the filter restarts from the latest fix
 # a model that estimates its fixes' time offset (PlanarModel.time_offset) has them applied
@@ -34,34 +37,6 @@ MAX_REJECTED_IN_A_ROW = 3  # then the filter restarts from the latest fix
 # replayed, once the estimate is known to SHIFT_SIGMA and has moved SHIFT_STEP from it
 SHIFT_STEP = 0.005  # s
 SHIFT_SIGMA = 0.005  # s
-SHIFT_MAX = ALIGN_TAU[1]  # s: the largest offset the alignment tries
-# the filter waits for the time offset's alignment (PlanarModel.align; Fusion._align):
-# at rest at most while its fixes span ALIGN_WAIT_S, not at all when they come fewer
-# than ALIGN_FEW_FIXES in that time (they could not align it); the prior on the offset
-# is then the alignment's sigma, at least ALIGN_PRIOR_MIN (that sigma is too small:
-# PlanarModel.align), within which the filter's first-order time shift holds
-ALIGN_WAIT_S = 4.0
-# a platform that moves this much over ALIGN_WAIT_S of fixes waits on for its alignment
-ALIGN_MOVING_MM = 10.0
-ALIGN_MOVING_DEG = 1.0
-ALIGN_EVERY_S = 0.25  # while it waits, it tries again this often
-ALIGN_FEW_FIXES = 10
-ALIGN_PRIOR_MIN = 0.02
-# an alignment is taken only when the ALIGN_CONFIRM tries before it (each ALIGN_EVERY_S
-# earlier, on nearly the same fixes) found it too, within ALIGN_AGREE of the larger of
-# their sigmas. Over a second or two of fixes a steady change of the turn rate confounds
-# the offset with the gyro's bias, and the fit's sigma does not hold what is left: a live
-# soak's start (benchmarks/live_soak.py) aligned 26.7 +- 4.0 ms on its first 1 s of fixes,
-# 11.8 +- 5.6 on 1.5 s, 7.3 +- 4.4 on 2 s, the offset 3.8 ms; started on the first, the
-# filter took the same fixes to 19.9 +- 3.5 ms and its first rows were 5 sigma off.
-# Confirmed, that run starts at 4.2 s, 4.0 +- 1.5 ms, no row beyond 4 sigma.
-# benchmarks/fusion_timing.py (offsets 7-300 ms, jitter 0 and 1 ms, five stretches of the
-# lap, 10 s each): unconfirmed, one run aligned 76 ms off and put 43 rows beyond 5 sigma
-# (7.9); confirmed, none beyond 5 (at most 3.8), 0.5 % of rows beyond 3 (0.9 %), the
-# start's median 2.6 s (2.3 s); but three runs with 1 ms of jitter on one stretch did
-# not start within their 10 s (rows aligning_clocks, not wrong ones)
-ALIGN_AGREE = 1.0
-ALIGN_CONFIRM = 1
 
 
 @dataclass(frozen=True)
@@ -86,41 +61,6 @@ class Limits:
     max_accel_mps2: float | None = 0.5
 
 
-SAT_MIN_DPS = 100.0  # a flat top below this is not a gyro's range
-SAT_BAND = 0.005  # readings within this share of the range are at it
-SAT_RUN = 3  # a flat top: this many samples in the band ...
-SAT_BEYOND = 0.1  # ... where the samples before point this far past it
-SAT_OTHER = 0.03  # an axis or side not yet seen clipped: another's level, less this
-SAT_SIGMA = 0.25  # 1-sigma of a saturated reading's reconstruction, in ranges (live)
-SAT_SIGMA_BOTH = 0.1  # ... once the samples after the flat top are in
-REST_MIN_S, REST_MAX_S = 0.3, 5.0  # a rest segment at the start: its length
-REST_BAND_DPS = 1.5  # a gyro at rest stays within this of its median
-
-
-def reading(mean: np.ndarray, rate: np.ndarray, sat: np.ndarray) -> np.ndarray:
-    """What a model's propagate takes as ``gyro``: (3, 3) rows: the interval's mean rate
-    (rad/s), its rate of change (rad/s^2) and the extra 1-sigma per axis of a
-    saturated reading (rad/s; 0 where the reading is within range)."""
-    return np.stack([mean, rate, sat])
-
-
-def declip(
-    t: np.ndarray, v: np.ndarray, known: np.ndarray, at: np.ndarray, rng: float, sign: float
-) -> np.ndarray:
-    """Values at times ``at`` of a signal clipped at +-``rng``, from a quadratic through
-    the unclipped samples (t[known], v[known]) on either side of the flat top (the
-    clipped-signal reconstruction of, e.g., Abel & Smith, "Restoring a clipped signal",
-    ICASSP 1991, with the simplest smooth model); never inside the range, never beyond
-    twice it."""
-    tk, vk = t[known], v[known]
-    deg = min(2, len(tk) - 1)
-    if deg < 1:
-        return np.full(len(at), sign * rng)
-    c = np.polyfit(tk - at[0], vk, deg)
-    est = np.polyval(c, at - at[0])
-    return sign * np.clip(sign * est, rng, 2.0 * rng)
-
-
 class Fusion:
     """The fusion engine, fed one event at a time: inertial samples in time order
     (`step`) and fixes when they become available (`add_fix`). Each `step` returns the
@@ -128,13 +68,14 @@ class Fusion:
     it (see the module docstring); a file replay and a live stream drive it alike.
 
     Beyond the replay it learns from the data as they come:
-    - a rest segment at the start (the gyro within 1.5 deg/s of its median for 0.3 s
-      or more before the first fix) gives the gyro's bias and white noise (a model
-      with ``with_rest``);
-    - a gyro at its range (a flat top: the largest reading seen, repeated) is
-      detected; the clipped samples are reconstructed (`declip`) with a sigma, live
-      from the samples before the flat top and again, with a replay, from both sides
-      once it ends; such rows carry ``gyro_saturated``.
+    - a rest segment at the start (visvec.fuse.rest: the gyro within 1.5 deg/s of its
+      median for 0.3 s or more before the first fix) gives the gyro's bias and white
+      noise (a model with ``with_rest``);
+    - a gyro at its range (visvec.fuse.saturation): the clipped samples are
+      reconstructed with a sigma, live from the samples before the flat top and again,
+      with a replay, from both sides once it ends; such rows carry ``gyro_saturated``;
+    - the fixes' clock against the IMU's (visvec.fuse.align), before a planar filter
+      starts.
 
     ``fix.time_s`` must be on the inertial samples' clock.
     """
@@ -144,14 +85,9 @@ class Fusion:
         self.model = model
         self.limits = limits or Limits()
         self.history_s = history_s
-        # buffers over the history window, parallel: sample time, raw gyro, whether it
-        # was at the range per axis, reading as used, state after it
-        self._ts: list[float] = []
-        self._raw: list[np.ndarray] = []
-        self._clip: list[np.ndarray] = []
-        self._gyro: list[np.ndarray] = []
-        self._acc: list[np.ndarray | None] = []
-        self._states: list[object | None] = []
+        self.history = History()
+        self.saturation = Saturation(self.history, gyro_range_dps)
+        self.clocks = ClockAlignment()
         self._known: list[tuple[float, int, Fix]] = []  # fixes known, by exposure time
         self._pending: list[Fix] = []  # fixes added since the last sample
         self.n_applied = 0
@@ -160,24 +96,26 @@ class Fusion:
         self._last_good = None  # the last good reading
         self._prev_a = None
         self._index = 0
-        # clip levels (rad/s) per axis, positive and negative side; nan: not known
-        self._ranges = np.full((3, 2), math.radians(gyro_range_dps) if gyro_range_dps
-                               else math.nan)  # fmt: skip
-        self._burst_end: int | None = None  # samples since a flat top ended
         self._initialised = False
-        self.rest = None  # (mean rad/s (3,), std rad/s (3,), n) once found
-        self.n_saturated = 0
+        self.rest: RestSegment | None = None
         self.shift = 0.0  # s: the fixes are applied this much before their stated time
-        # the time offset found before the start, (tau, sigma) s; (nan, nan) if none was
-        self.aligned: tuple[float, float] | None = None
-        self._align_next = -math.inf
-        self._align_tries: list[tuple[float, float] | None] = []  # the last tries' finds
+
+    @property
+    def aligned(self) -> tuple[float, float] | None:
+        """The time offset found before the start, (tau, sigma) s; (nan, nan) if none
+        was; None before the start."""
+        return self.clocks.aligned
+
+    @property
+    def n_saturated(self) -> int:
+        """How many samples had an axis at the gyro's range."""
+        return self.saturation.n_saturated
 
     @property
     def state(self):
         """The newest state of the samples kept (None before the first fix; a step cut
         short by Ctrl-C may have left its own sample's unfilled)."""
-        return next((s for s in reversed(self._states) if s is not None), None)
+        return next((s for s in reversed(self.history.states) if s is not None), None)
 
     def add_fix(self, fix: Fix) -> None:
         """A fix that has just become available; it is applied at the next sample."""
@@ -186,143 +124,10 @@ class Fusion:
     def gap(self) -> None:
         """The samples broke off: forget the history; the filter restarts at the next
         fix taken after the gap."""
-        for buf in (self._ts, self._raw, self._clip, self._gyro, self._acc, self._states,
-                    self._known):  # fmt: skip
-            buf.clear()
+        self.history.clear()
+        self._known.clear()
         self._last_good = self._prev_a = None
-        self._burst_end = None
-
-    def _level(self, ax: int, sign: float) -> float | None:
-        """The clip level of an axis on one side: its own once learned; before that, a
-        level learned on another axis or side less SAT_OTHER (a calibrated gyro's
-        levels differ by its offsets and scale factors); None while none is known."""
-        own = self._ranges[ax, 0 if sign >= 0 else 1]
-        if np.isfinite(own):
-            return float(own)
-        if np.any(np.isfinite(self._ranges)):
-            return float(np.nanmin(self._ranges)) * (1 - SAT_OTHER)
-        return None
-
-    def _clipped(self, g: np.ndarray) -> np.ndarray:
-        """Which axes of a raw reading (already in the buffer) sit at the gyro's range.
-        Unless given, each axis's level on each side is learned from its first flat
-        top: SAT_RUN samples within SAT_BAND of each other at SAT_MIN_DPS or more,
-        where the line through the SAT_RUN samples before them points at least
-        SAT_BEYOND past them at the run's middle (a smooth peak levels off before its
-        top; a clipped signal hits its flat top at full slope). A calibrated gyro's
-        clipped readings scatter a little with the other axes, hence the band."""
-        g = np.asarray(g, float)
-        n = len(self._raw)
-        need = 2 * SAT_RUN
-        if n >= need and not np.all(np.isfinite(self._ranges)):
-            for ax in range(3):
-                run = np.array([r[ax] for r in self._raw[n - SAT_RUN :]])
-                level = float(np.abs(run).max())
-                side = 0 if run[-1] >= 0 else 1
-                if (
-                    np.isfinite(self._ranges[ax, side])
-                    or level < math.radians(SAT_MIN_DPS)
-                    or not np.all(np.sign(run) == np.sign(run[-1]))
-                    or not np.all(np.abs(run) >= level * (1 - SAT_BAND))
-                ):
-                    continue
-                before = np.array([r[ax] for r in self._raw[n - need : n - SAT_RUN]])
-                tb = np.array(self._ts[n - need : n - SAT_RUN])
-                c = np.polyfit(tb - tb[-1], before, 1)
-                pred = abs(float(np.polyval(c, self._ts[n - 2] - tb[-1])))
-                if pred >= level * (1 + SAT_BEYOND):
-                    self._ranges[ax, side] = level
-                    for j in range(n - SAT_RUN, n - 1):
-                        self._clip[j] = self._clip[j].copy()
-                        self._clip[j][ax] = abs(self._raw[j][ax]) >= level * (1 - SAT_BAND)
-        out = np.zeros(3, bool)
-        for ax in range(3):
-            lvl = self._level(ax, g[ax])
-            out[ax] = lvl is not None and abs(g[ax]) >= lvl * (1 - SAT_BAND)
-        return out
-
-    def _make_reading(self, j: int, sat_sigma: np.ndarray) -> np.ndarray:
-        """The reading over the interval ending at sample j: the mean of its two ends
-        (trapezoid) and its rate of change."""
-        g = self._raw[j]
-        if j == 0:
-            return reading(g, np.zeros(3), sat_sigma)
-        dt = self._ts[j] - self._ts[j - 1]
-        g0 = self._raw[j - 1]
-        return reading(0.5 * (g + g0), (g - g0) / dt, sat_sigma)
-
-    def _reconstruct(self, last: int, both: bool) -> int | None:
-        """Reconstruct the clipped samples of the flat top that ends at or before
-        sample ``last`` (rewriting their readings); the first index rewritten."""
-        # only the flat top and the few samples on either side of it are looked at
-        beg_all = last
-        while beg_all > 0 and self._clip[beg_all - 1].any():
-            beg_all -= 1
-        lo, hi = max(0, beg_all - 4), min(len(self._ts), last + 4)
-        clip = np.array(self._clip[lo:hi])
-        ts = np.array(self._ts[lo:hi])
-        raw = np.array(self._raw[lo:hi])
-        loc = last - lo
-        first = None
-        excess = np.zeros(3)
-        lvl = np.zeros(3)
-        for ax in range(3):
-            c = clip[:, ax]
-            if not c[loc]:
-                continue
-            end = beg = loc
-            while beg > 0 and c[beg - 1]:
-                beg -= 1
-            before = np.arange(max(0, beg - 4), beg)
-            before = before[~c[before]]
-            after = np.arange(end + 1, min(len(c), end + 4)) if both else np.array([], int)
-            after = after[~c[after]] if len(after) else after
-            known = np.concatenate([before, after]).astype(int)
-            if len(known) == 0:
-                continue
-            at = np.arange(beg, end + 1)
-            sign = float(np.sign(raw[end, ax]))
-            lvl[ax] = self._level(ax, sign)
-            vals = declip(ts, raw[:, ax], known, ts[at], lvl[ax], sign)
-            # the farther the rebuilt peak reaches past the range, the less it is known
-            excess[ax] = float(np.abs(vals).max()) - lvl[ax]
-            for i, v in zip(at + lo, vals, strict=True):
-                self._raw[i] = self._raw[i].copy()
-                self._raw[i][ax] = v
-            first = beg + lo if first is None else min(first, beg + lo)
-        if first is None:
-            return None
-        # a reconstruction's error is much the same all through its flat top: the m-th
-        # interval of a flat top adds (2m - 1) sigma^2 dt^2, so that m of them add
-        # (m sigma dt)^2, as one error held for the whole flat top would
-        sig = np.maximum((SAT_SIGMA_BOTH if both else SAT_SIGMA) * lvl,
-                         (0.5 if both else 1.0) * excess)  # fmt: skip
-        run = np.zeros(3)
-        for j in range(first, min(len(self._ts), last + 2)):
-            hit = self._clip[j] | (self._clip[j - 1] if j > 0 else False)
-            run = np.where(hit, run + 1, 0)
-            s_ax = np.where(hit, sig * np.sqrt(np.maximum(2 * run - 1, 0)), 0.0)
-            self._gyro[j] = self._make_reading(j, s_ax)
-        return first
-
-    def _find_rest(self, t_end: float) -> None:
-        """The rest segment at the start of the buffer (the samples up to ``t_end``,
-        when the first fix arrives), if any."""
-        ts = np.array(self._ts)
-        n_max = int(np.searchsorted(ts, min(t_end, ts[0] + REST_MAX_S), side="right"))
-        if n_max < 10:
-            return
-        raw = np.array(self._raw[:n_max])
-        band = math.radians(REST_BAND_DPS)
-        med = np.median(raw[: max(10, n_max // 4)], axis=0)
-        out = np.nonzero(np.any(np.abs(raw - med) > band, axis=1))[0]
-        n = int(out[0]) if len(out) else n_max
-        if n < 10 or ts[n - 1] - ts[0] < REST_MIN_S:
-            return
-        seg = raw[:n]
-        self.rest = (seg.mean(axis=0), seg.std(axis=0, ddof=1), n)
-        if hasattr(self.model, "with_rest"):
-            self.model = self.model.with_rest(*self.rest)
+        self.saturation.reset()
 
     def step(self, t: float, g: np.ndarray, a: np.ndarray | None, *, gap: bool = False,
              index: int | None = None) -> FusedSample:  # fmt: skip
@@ -335,9 +140,10 @@ class Fusion:
         forgotten."""
         k = self._index if index is None else index
         self._index = k + 1
-        if self._ts and not gap and t <= self._ts[-1]:
+        h = self.history
+        if h.ts and not gap and t <= h.ts[-1]:
             # a clock that steps back: this sample is refused, the state stands
-            return FusedSample(k, t, self._states[-1], self.n_applied, ("imu_time_back",))
+            return FusedSample(k, t, h.states[-1], self.n_applied, ("imu_time_back",))
         warnings: list[str] = []
         if gap:
             warnings.append("imu_gap")
@@ -348,7 +154,7 @@ class Fusion:
         # sample, or the first one whose reading was rewritten)
         start = dirty
         if new:
-            start = min(start, bisect.bisect_left(self._ts, min(f.time_s for f in new)))
+            start = min(start, bisect.bisect_left(h.ts, min(f.time_s for f in new)))
         nis_new: list[float] = []
         if not self._replay(start, new, warnings, nis_new):
             if self._known and self.aligned is None:
@@ -369,7 +175,7 @@ class Fusion:
             warnings.append("filter_restarted")
         self._shift_fixes()
         self._forget(t)
-        st = self._states[-1]
+        st = h.states[-1]
         if getattr(st, "saturated", False) or clipped.any():
             warnings.append("gyro_saturated")
         if getattr(st, "disputed", False):
@@ -390,44 +196,25 @@ class Fusion:
         return g, a
 
     def _take_sample(self, t: float, g: np.ndarray, a: np.ndarray | None):
-        """Step 1b: buffer the sample; reconstruct the readings of a flat top (from
-        before it while it lasts, from both sides three samples after it ends). The
+        """Step 1b: buffer the sample and ask the saturation detector about it. The
         reading's clipped axes and the first buffered sample whose reading changed."""
-        ts, acc = self._ts, self._acc
-        ts.append(t)
-        self._raw.append(np.asarray(g, float))
-        self._clip.append(np.zeros(3, bool))
-        clipped = self._clip[-1] = self._clipped(g)
+        h = self.history
+        h.ts.append(t)
+        h.raw.append(np.asarray(g, float))
+        h.clip.append(np.zeros(3, bool))
         # the accelerometer over the interval: the mean of its two ends (trapezoid)
-        acc.append(0.5 * (a + self._prev_a) if a is not None and self._prev_a is not None
-                   else a)  # fmt: skip
+        h.acc.append(0.5 * (a + self._prev_a) if a is not None and self._prev_a is not None
+                     else a)  # fmt: skip
         self._prev_a = a
-        self._states.append(None)
-        j_new = len(ts) - 1
-        self._gyro.append(self._make_reading(j_new, np.zeros(3)))
-        dirty = j_new
-        if clipped.any():
-            self.n_saturated += 1
-            first = self._reconstruct(j_new, both=False)
-            if first is not None:
-                dirty = min(dirty, first)
-            self._burst_end = None
-        elif len(self._clip) > 1 and self._clip[-2].any():
-            self._burst_end = 0
-        if self._burst_end is not None:
-            self._burst_end += 1
-            if self._burst_end >= 3 or j_new == 0:
-                first = self._reconstruct(max(j_new - 3, 0), both=True)
-                if first is not None:
-                    dirty = min(dirty, first)
-                self._burst_end = None
-        return clipped, dirty
+        h.states.append(None)
+        h.gyro.append(h.reading(len(h.ts) - 1, np.zeros(3)))
+        return self.saturation.take()
 
     def _take_fixes(self, t: float, warnings: list[str]) -> list[Fix]:
         """Step 2: the fixes that reached us since the last sample, known from now on
         in exposure order; one older than the history or from the future is flagged
         and dropped."""
-        ts, new = self._ts, []
+        ts, new = self.history.ts, []
         pending, self._pending = self._pending, []
         for f in pending:
             if self.shift:
@@ -443,7 +230,8 @@ class Fusion:
                 nis_new: list[float]) -> bool:  # fmt: skip
         """Step 3: the states from sample ``start`` on, each known fix applied at its
         own exposure time; False while no fix has started the filter."""
-        ts, gyro, acc, states, known = self._ts, self._gyro, self._acc, self._states, self._known
+        h, known = self.history, self._known
+        ts, gyro, acc, states = h.ts, h.gyro, h.acc, h.states
         s = states[start - 1] if start > 0 else None
         if s is not None:
             t_s = ts[start - 1]
@@ -456,7 +244,9 @@ class Fusion:
                 if not self._align():
                     return False
                 self._initialised = True
-                self._find_rest(ts[-1])
+                self.rest = find_rest(ts, h.raw, ts[-1])
+                if self.rest is not None and hasattr(self.model, "with_rest"):
+                    self.model = self.model.with_rest(*self.rest)
                 init = known[0][2]
             s, t_s = self.model.init(init), init.time_s
             if any(init is f for f in new):
@@ -490,69 +280,24 @@ class Fusion:
         return True
 
     def _align(self) -> bool:
-        """Before the filter starts, with a model that can (PlanarModel.align): the
-        fixes' time offset from their poses against the IMU's. False while it waits;
-        once found, the fixes are applied shifted by it, and the model's prior on the
-        offset is its sigma (at least ALIGN_PRIOR_MIN).
-
-        It tries on the first ALIGN_WAIT_S of fixes, whenever they arrive (so that the
-        start does not depend on the order in which they came), and then, while the
-        platform moves, on the latest ALIGN_WAIT_S: a moving platform's rows with the
-        offset unknown would be wrong with a small sigma (a stream 300 ms late with
-        1 ms of jitter: rows 45 sigma off). It starts without when the platform is at
-        rest after ALIGN_WAIT_S (the offset does not matter then; the filter learns it
-        once it moves), or at once when the fixes come too sparse to align (fewer than
-        ALIGN_FEW_FIXES in ALIGN_WAIT_S: LuVeX's 1.7 Hz). An alignment is taken once the
-        try before it found the same (ALIGN_CONFIRM, ALIGN_AGREE)."""
-        align = getattr(self.model, "align", None)
-        known = self._known
-        if align is None or self.aligned is not None or not known:
-            return True
-        if self.model.time_offset_sigma <= 0.0:  # the offset is held (known)
-            self.aligned = (math.nan, math.nan)
-            return True
-        if self._ts[-1] < self._align_next:
+        """Before the filter starts: the fixes' time offset (visvec.fuse.align). False
+        while it waits; once found, the fixes are applied shifted by it, and the
+        model's prior on the offset is its sigma (at least ALIGN_PRIOR_MIN)."""
+        h = self.history
+        if not self.clocks.attempt(self.model, self._known, h.ts, h.gyro, h.acc):
             return False
-        self._align_next = self._ts[-1] + ALIGN_EVERY_S
-        waited = self._ts[-1] - known[0][0]
-        if waited / len(known) >= ALIGN_WAIT_S / ALIGN_FEW_FIXES:
-            self.aligned = (math.nan, math.nan)
-            return True
-        if waited < ALIGN_WAIT_S:
-            t0 = known[0][0]
-            fixes = [f for t, _, f in known if t <= t0 + ALIGN_WAIT_S]
-        else:
-            t1 = known[-1][0]
-            fixes = [f for t, _, f in known if t >= t1 - ALIGN_WAIT_S]
-        # with the samples they can reach
-        lo = bisect.bisect_left(self._ts, fixes[0].time_s - SHIFT_MAX - 0.05)
-        hi = bisect.bisect_right(self._ts, fixes[-1].time_s + 0.05)
-        ts = np.array(self._ts[lo:hi])
-        rate = np.array([g[0][2] for g in self._gyro[lo:hi]])
-        acc = self._acc[lo:hi]
-        accel = None if any(a is None for a in acc) else np.array(acc)
-        found = align(ts, rate, accel, fixes)
-        earlier = self._align_tries[-ALIGN_CONFIRM:] if ALIGN_CONFIRM else []
-        self._align_tries = [*earlier, found]
-        if found is not None and not _agree(found, earlier):
-            found = None  # not yet confirmed: as if none were found
-        if found is None:
-            if waited < ALIGN_WAIT_S or _moving(fixes):
-                return False
-            self.aligned = (math.nan, math.nan)
-            return True
-        tau, sigma = found
-        self.aligned = found
-        prior = max(sigma, -tau, ALIGN_PRIOR_MIN)
-        self.model = replace(self.model, time_offset_sigma=prior)
-        self._move_fixes(max(tau, 0.0))
+        tau, sigma = self.clocks.aligned or (math.nan, math.nan)
+        if math.isfinite(tau):
+            prior = max(sigma, -tau, ALIGN_PRIOR_MIN)
+            self.model = replace(self.model, time_offset_sigma=prior)
+            self._move_fixes(max(tau, 0.0))
         return True
 
     def _move_fixes(self, shift: float) -> None:
         """The known fixes applied ``shift`` before their stated time, as the fixes that
         come from now on (before the filter starts: nothing to replay)."""
         self.shift = shift
-        ts = self._ts
+        ts = self.history.ts
         moved = []
         for _, _, f in self._known:
             g = replace(f, time_s=f.time_s + f.shift - shift, shift=shift)
@@ -572,7 +317,7 @@ class Fusion:
         from the fix), so nothing is replayed: a shift costs nothing, whatever the
         estimate does."""
         offset = getattr(self.model, "time_offset", None)
-        st = self._states[-1] if self._states else None
+        st = self.history.states[-1] if self.history.states else None
         if offset is None or st is None:
             return
         tau, sigma = offset(st)
@@ -583,7 +328,8 @@ class Fusion:
     def _restart_on(self, latest: Fix) -> None:
         """Step 4: start again from ``latest`` (keeping what the model learned of the
         sensor, where it can) and replay the samples after it."""
-        ts, gyro, acc, states, model = self._ts, self._gyro, self._acc, self._states, self.model
+        h, model = self.history, self.model
+        ts, gyro, acc, states = h.ts, h.gyro, h.acc, h.states
         j0 = bisect.bisect_left(ts, latest.time_s)
         prior = states[j0 - 1] if j0 > 0 else None
         if prior is not None and hasattr(model, "reinit"):
@@ -603,29 +349,11 @@ class Fusion:
 
     def _forget(self, t: float) -> None:
         """Step 5: what is older than the history window goes."""
-        ts = self._ts
-        cut = bisect.bisect_left(ts, t - self.history_s)
+        h = self.history
+        cut = bisect.bisect_left(h.ts, t - self.history_s)
         if cut > 0:
-            for buf in (ts, self._raw, self._clip, self._gyro, self._acc, self._states):
-                del buf[:cut]
-            self._known[:] = [x for x in self._known if x[0] >= ts[0]]
-
-
-def _agree(found: tuple[float, float], earlier: list) -> bool:
-    """Whether an alignment (tau, sigma) is confirmed by the ALIGN_CONFIRM tries before
-    it (ALIGN_AGREE)."""
-    return len(earlier) >= ALIGN_CONFIRM and all(
-        e is not None and abs(found[0] - e[0]) <= ALIGN_AGREE * max(found[1], e[1]) for e in earlier
-    )
-
-
-def _moving(fixes: list[Fix]) -> bool:
-    """Whether planar fixes show the platform moving: their positions spread over
-    ALIGN_MOVING_MM or their headings over ALIGN_MOVING_DEG."""
-    v = np.array([f.value for f in fixes])
-    heading = np.unwrap(v[:, 2])
-    return bool(np.ptp(v[:, 0]) > ALIGN_MOVING_MM or np.ptp(v[:, 1]) > ALIGN_MOVING_MM
-                or np.ptp(heading) > math.radians(ALIGN_MOVING_DEG))  # fmt: skip
+            h.drop(cut)
+            self._known[:] = [x for x in self._known if x[0] >= h.ts[0]]
 
 
 def fuse(
