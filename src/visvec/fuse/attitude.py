@@ -109,6 +109,10 @@ FADE_NEW = 0.5
 NOISE_FORGET = 0.93  # per fix: the noise fit remembers about the last 15 fixes
 NOISE_PRIOR_FIXES = 3.0  # the prior counts as this many fixes
 N_STATE = 15
+# the error state's parts: attitude (body, rad), gyro bias (rad/s), misalignment (rad),
+# scale factors, time offset (s), clock jitter (s, considered) and clock rate (s/s)
+TH, BIAS, MIS, SCALE = slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 12)
+TAU, JIT, DRIFT = 12, 13, 14
 # two free-running clocks (the gyro's, the fixes') differ in rate, quartz oscillators by
 # tens of ppm: RepoIMU's gyro against its Vicon by about 100 ppm (the time offset fitted
 # per 15 s in hindsight grows from 2 to 8 ms over Test06's 90 s and from 1.5 to 9 ms
@@ -116,6 +120,29 @@ N_STATE = 15
 CLOCK_DRIFT_SIGMA = 2e-4  # s/s, the prior: 200 ppm
 CLOCK_DRIFT_WALK = 0.01  # the rate's random walk, in prior sigmas per sqrt(s)
 MAX_CLOCK_DRIFT = 1e-3
+
+
+def transition(s: AttitudeState, g: np.ndarray, gdot: np.ndarray, dt: float,
+               jitter_time: float) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """The body rate (rad/s, (3,)) over an interval of ``dt`` s and the error state's
+    transition F (15, 15), from the gyro's mean reading ``g`` (rad/s) and its rate of
+    change ``gdot`` (rad/s^2) with the state's calibration: w = R_m (1 + k)
+    (g + tau gdot - b), and F = I + (the error equation of the module doc) dt, its
+    attitude block the exact transition exp(-[w]x dt); the clock jitter decays over
+    ``jitter_time`` s and the time offset drifts with the clocks' rate difference."""
+    scale = 1.0 + s.k
+    gc = g + s.tau * gdot - s.b  # the reading corrected, in gyro axes
+    w = s.Rm @ (scale * gc)
+    RmS = s.Rm * scale
+    F = np.eye(N_STATE)
+    F[TH, TH] = expmap(-w * dt)  # exact transition of -[w]x
+    F[TH, BIAS] = -RmS * dt
+    F[TH, MIS] = -skew(w) * dt
+    F[TH, SCALE] = s.Rm * gc * dt
+    F[TH, TAU] = F[TH, JIT] = RmS @ gdot * dt
+    F[JIT, JIT] = math.exp(-dt / jitter_time)
+    F[TAU, DRIFT] = dt
+    return w, F
 
 
 @dataclass(frozen=True)
@@ -171,13 +198,13 @@ class AttitudeModel:
 
     def init(self, fix: Fix) -> AttitudeState:
         P = np.zeros((N_STATE, N_STATE))
-        P[0:3, 0:3] = self._fix_cov(fix)
-        P[13, 13] = self.jitter**2
-        P[14, 14] = self.clock_drift_sigma**2
-        P[3:6, 3:6] = np.eye(3) * self.gyro_bias_sigma**2
-        P[6:9, 6:9] = np.eye(3) * self.misalignment_sigma**2
-        P[9:12, 9:12] = np.eye(3) * self.scale_sigma**2
-        P[12, 12] = self.time_offset_sigma**2
+        P[TH, TH] = self._fix_cov(fix)
+        P[JIT, JIT] = self.jitter**2
+        P[DRIFT, DRIFT] = self.clock_drift_sigma**2
+        P[BIAS, BIAS] = np.eye(3) * self.gyro_bias_sigma**2
+        P[MIS, MIS] = np.eye(3) * self.misalignment_sigma**2
+        P[SCALE, SCALE] = np.eye(3) * self.scale_sigma**2
+        P[TAU, TAU] = self.time_offset_sigma**2
         b0 = np.array(self.gyro_bias0, float)
         noise = NoiseFit.prior(self.prior_theta())
         return AttitudeState(fix.value.copy(), b0, np.eye(3), np.zeros(3), 0.0, P, noise)
@@ -185,9 +212,9 @@ class AttitudeModel:
     def reinit(self, s: AttitudeState, fix: Fix) -> AttitudeState:
         """Start again from ``fix``'s attitude, keeping what was learned of the gyro."""
         P = s.P.copy()
-        P[0:3, :] = 0.0
-        P[:, 0:3] = 0.0
-        P[0:3, 0:3] = self._fix_cov(fix)
+        P[TH, :] = 0.0
+        P[:, TH] = 0.0
+        P[TH, TH] = self._fix_cov(fix)
         return AttitudeState(fix.value.copy(), s.b, s.Rm, s.k, s.tau, P, s.noise,
                              confirmed=False, drift=s.drift)  # fmt: skip
 
@@ -197,23 +224,12 @@ class AttitudeModel:
         return np.eye(3) * self.fix_sigma**2
 
     def propagate(self, s: AttitudeState, gyro: np.ndarray, accel, dt: float):
-        """``gyro`` is an engine.Reading's array: the interval's mean rate, its rate of
-        change and the extra 1-sigma per axis of a saturated (reconstructed) reading."""
+        """``gyro`` is a `visvec.fuse.saturation.reading`: the interval's mean rate, its
+        rate of change and the extra 1-sigma per axis of a saturated (reconstructed)
+        reading."""
         g, gdot, gsat = gyro
-        scale = 1.0 + s.k
-        wg = scale * (g + s.tau * gdot - s.b)  # scaled, in gyro axes
-        w = s.Rm @ wg
+        w, F = transition(s, g, gdot, dt, self.jitter_time)
         Rn = s.R @ expmap(w * dt)
-        F = np.eye(N_STATE)
-        F[0:3, 0:3] = expmap(-w * dt)  # exact transition of -[w]x
-        RmS = s.Rm * scale
-        F[0:3, 3:6] = -RmS * dt
-        F[0:3, 6:9] = -skew(w) * dt
-        F[0:3, 9:12] = s.Rm * (g + s.tau * gdot - s.b) * dt
-        F[0:3, 12] = F[0:3, 13] = RmS @ gdot * dt
-        fade_j = math.exp(-dt / self.jitter_time)
-        F[13, 13] = fade_j
-        F[12, 14] = dt  # the time offset drifts with the clocks' rate difference
         qa, qw = s.noise.theta() if self.learn_noise else self.prior_theta()
         # white: qa dt; rate-proportional, held since the last fix (an error of the
         # rate's size kappa |w|, the same through the interval): its variance
@@ -221,27 +237,38 @@ class AttitudeModel:
         A = s.acc[1]
         A1 = A + math.sqrt(float(w @ w)) * dt
         q = (qa * dt + qw * (A1 * A1 - A * A)) * s.fade
-        Q = np.zeros((N_STATE, N_STATE))
-        Q[13, 13] = self.jitter**2 * (1.0 - fade_j * fade_j)
-        Q[14, 14] = (CLOCK_DRIFT_WALK * self.clock_drift_sigma) ** 2 * dt
-        Q[0:3, 0:3] = np.eye(3) * q
+        Q = self.process_noise(s, q, gsat, dt)
         sat = bool(np.any(gsat > 0))
-        if sat:
-            # a saturated reading's error is the same all through the burst: count it
-            # as one (conservatively, the whole interval's worth at once)
-            Qs = RmS @ np.diag((gsat * dt) ** 2) @ RmS.T
-            Q[0:3, 0:3] += Qs
-        Q[3:6, 3:6] = np.eye(3) * self.gyro_bias_walk**2 * dt
         P = F @ s.P @ F.T + Q
-        acc = (s.acc[0] + dt, A1, s.acc[2] + float(np.trace(Q[0:3, 0:3])))
+        acc = (s.acc[0] + dt, A1, s.acc[2] + float(np.trace(Q[TH, TH])))
         return AttitudeState(Rn, s.b, s.Rm, s.k, s.tau + s.drift * dt, P, s.noise, acc,
                              s.saturated or sat, s.disputed, s.fade, s.confirmed,
                              s.drift)  # fmt: skip
 
+    def process_noise(self, s: AttitudeState, q: float, gsat: np.ndarray,
+                      dt: float) -> np.ndarray:  # fmt: skip
+        """The process noise Q (15, 15) over an interval of ``dt`` s: ``q`` (rad^2) per
+        attitude axis (the learned white and rate-proportional noise, faded), a
+        saturated reading's error ``gsat`` (rad/s per gyro axis, 0 where in range), the
+        bias's random walk, the clock jitter's Gauss-Markov increment and the clock
+        rate's random walk."""
+        fade_j = math.exp(-dt / self.jitter_time)
+        Q = np.zeros((N_STATE, N_STATE))
+        Q[JIT, JIT] = self.jitter**2 * (1.0 - fade_j * fade_j)
+        Q[DRIFT, DRIFT] = (CLOCK_DRIFT_WALK * self.clock_drift_sigma) ** 2 * dt
+        Q[TH, TH] = np.eye(3) * q
+        if np.any(gsat > 0):
+            # a saturated reading's error is the same all through the burst: count it
+            # as one (conservatively, the whole interval's worth at once)
+            RmS = s.Rm * (1.0 + s.k)
+            Q[TH, TH] += RmS @ np.diag((gsat * dt) ** 2) @ RmS.T
+        Q[BIAS, BIAS] = np.eye(3) * self.gyro_bias_walk**2 * dt
+        return Q
+
     def update(self, s: AttitudeState, fix: Fix) -> tuple[AttitudeState, bool, float]:
         R = self._fix_cov(fix)
         r = logmap(s.R.T @ fix.value)
-        S = s.P[0:3, 0:3] + R
+        S = s.P[TH, TH] + R
         nis = float(r @ np.linalg.solve(S, r))
         noise = self._learn(s, r, R, S)
         fade = self._fade(s.fade, nis)
@@ -252,7 +279,7 @@ class AttitudeModel:
             # agrees with this one is taken (no lock-out); the widening counts as noise
             # added, so that the next fix's noise sample stays unbiased.
             P = s.P.copy()
-            P[0:3, 0:3] += np.outer(r, r)
+            P[TH, TH] += np.outer(r, r)
             acc = (s.acc[0], s.acc[1], s.acc[2] + float(r @ r))
             return replace(s, P=P, noise=noise, acc=acc, disputed=True, fade=fade), False, nis
         P0 = s.P
@@ -265,25 +292,25 @@ class AttitudeModel:
             # scale, time offset) is not pulled by one disagreement it did not cause.
             q = max(0.0, (float(r @ r) - float(np.trace(S))) / 3.0)
             P0 = s.P.copy()
-            P0[0:3, 0:3] += q * np.eye(3)
-            S = P0[0:3, 0:3] + R
-        K = np.linalg.solve(S, P0[0:3, :]).T
-        K[13] = 0.0  # the jitter is considered, never estimated (Schmidt)
+            P0[TH, TH] += q * np.eye(3)
+            S = P0[TH, TH] + R
+        K = np.linalg.solve(S, P0[TH, :]).T
+        K[JIT] = 0.0  # the jitter is considered, never estimated (Schmidt)
         if s.saturated:
             # the interval held a reconstructed (clipped) reading, whose error is the
             # reconstruction's: the fix corrects the attitude, and the gyro's
             # calibration is, for this fix, considered (Schmidt), not estimated
-            K[3:] = 0.0
+            K[BIAS.start :] = 0.0
         dx = K @ r
         IKH = np.eye(N_STATE)
-        IKH[:, 0:3] -= K
+        IKH[:, TH] -= K
         P = IKH @ P0 @ IKH.T + K @ R @ K.T
-        Rn = s.R @ expmap(dx[0:3])
-        Rm = expmap(dx[6:9]) @ s.Rm
-        tau = float(np.clip(s.tau + dx[12], -0.1, 0.1))
-        gated = bool(np.sqrt(np.diag(s.P[0:3, 0:3])).max() <= CONFIRM_SIGMA)
-        drift = float(np.clip(s.drift + dx[14], -MAX_CLOCK_DRIFT, MAX_CLOCK_DRIFT))
-        return AttitudeState(Rn, s.b + dx[3:6], Rm, s.k + dx[9:12], tau, P, noise,
+        Rn = s.R @ expmap(dx[TH])
+        Rm = expmap(dx[MIS]) @ s.Rm
+        tau = float(np.clip(s.tau + dx[TAU], -0.1, 0.1))
+        gated = bool(np.sqrt(np.diag(s.P[TH, TH])).max() <= CONFIRM_SIGMA)
+        drift = float(np.clip(s.drift + dx[DRIFT], -MAX_CLOCK_DRIFT, MAX_CLOCK_DRIFT))
+        return AttitudeState(Rn, s.b + dx[BIAS], Rm, s.k + dx[SCALE], tau, P, noise,
                              acc0, fade=fade, confirmed=gated, drift=drift), True, nis  # fmt: skip
 
     @staticmethod
@@ -304,7 +331,7 @@ class AttitudeModel:
         if not self.learn_noise or s.saturated or s.acc[0] <= 0.0:
             return nf
         x = 3.0 * np.array([s.acc[0], s.acc[1] ** 2])
-        y = float(r @ r) - float(np.trace(R)) - float(np.trace(s.P[0:3, 0:3])) + s.acc[2]
+        y = float(r @ r) - float(np.trace(R)) - float(np.trace(s.P[TH, TH])) + s.acc[2]
         # a single wild fix (a glitch) counts at most as much as a fix at the gate
         y = min(y, nis_limit() / 3.0 * float(np.trace(S)))
         # var(y) = var(|r|^2) = 2 tr(S^2) for a Gaussian r
@@ -316,4 +343,4 @@ class AttitudeModel:
     @staticmethod
     def values(s: AttitudeState) -> tuple[np.ndarray, np.ndarray]:
         """R_NB and the body-axis attitude covariance (3, 3)."""
-        return s.R, s.P[0:3, 0:3]
+        return s.R, s.P[TH, TH]

@@ -91,6 +91,11 @@ JITTER_FORGET_SHORT = 0.9
 # the planar filter's states, and the lateness state's correlation time (s): the
 # hold-ups of a camera or its network seen last about a second
 N_PLANAR = 10
+# the state's parts: position (mm), velocity (mm/s), heading (rad), gyro bias (rad/s),
+# accelerometer biases (mm/s^2, body x, y), the fixes' time offset and lateness (s)
+X, Y, VX, VY, PSI, BG, BAX, BAY, TAU, LATE = range(N_PLANAR)
+POS, VEL, BA = slice(X, Y + 1), slice(VX, VY + 1), slice(BAX, BAY + 1)
+POSE = [X, Y, PSI]  # what a fix measures
 LATE_TIME_S = 1.0
 # a single fix counts at most as one whose projected innovation is this many of its
 # sigmas squared (a late frame is not jitter: it must not widen every fix after it)
@@ -179,6 +184,25 @@ class PlanarState:
     @property
     def disputed(self) -> bool:
         return self.dispute is not None
+
+
+def transition(an: np.ndarray, c: float, sn: float, dt: float) -> np.ndarray:
+    """The planar state's transition F (10, 10) over ``dt`` s: position from velocity
+    and acceleration, velocity from acceleration, both through the heading (``an``:
+    the acceleration in the lab, mm/s^2; ``c``, ``sn``: the cosine and sine of the
+    interval's mid-heading) and the accelerometers' biases; the heading from the gyro's
+    bias; the lateness's decay over LATE_TIME_S."""
+    F = np.eye(N_PLANAR)
+    F[X, VX] = F[Y, VY] = dt
+    dan = np.array([-an[1], an[0]])  # d(a_N)/d(psi)
+    F[POS, PSI] = 0.5 * dan * dt * dt
+    F[VEL, PSI] = dan * dt
+    Rz = np.array([[c, -sn], [sn, c]])
+    F[POS, BA] = -0.5 * Rz * dt * dt
+    F[VEL, BA] = -Rz * dt
+    F[PSI, BG] = -dt
+    F[LATE, LATE] = math.exp(-dt / LATE_TIME_S)
+    return F
 
 
 @dataclass(frozen=True)
@@ -374,7 +398,7 @@ class PlanarModel:
     @staticmethod
     def time_offset(s: PlanarState) -> tuple[float, float]:
         """The fixes' time offset and its 1-sigma (s)."""
-        return float(s.x[8]), math.sqrt(max(float(s.P[8, 8]), 0.0))
+        return float(s.x[TAU]), math.sqrt(max(float(s.P[TAU, TAU]), 0.0))
 
     def _fix_cov(self, fix: Fix) -> np.ndarray:
         if fix.cov is not None:
@@ -383,43 +407,47 @@ class PlanarModel:
         return np.diag([s_mm**2, s_mm**2, s_rad**2])
 
     def propagate(self, s: PlanarState, gyro: np.ndarray, accel: np.ndarray, dt: float):
+        """The state ``dt`` s later: the heading turned by the gyro's mean rate less its
+        bias, the body acceleration less its biases turned to the lab at the interval's
+        mid-heading and integrated (LuVeX's integration equations), the lateness
+        decayed (first-order Gauss-Markov over LATE_TIME_S)."""
         x = s.x
-        w = gyro[0][2] - x[5]  # the interval's mean rate (engine.Reading)
-        psi_mid = x[4] + 0.5 * w * dt
+        w = gyro[0][2] - x[BG]  # the interval's mean rate (saturation.reading)
+        psi_mid = x[PSI] + 0.5 * w * dt
         c, sn = math.cos(psi_mid), math.sin(psi_mid)
-        ab = accel * 1000.0 - x[6:8]  # mm/s^2, body
+        ab = accel * 1000.0 - x[BA]  # mm/s^2, body
         an = np.array([c * ab[0] - sn * ab[1], sn * ab[0] + c * ab[1]])
         xn = x.copy()
-        xn[0:2] = x[0:2] + x[2:4] * dt + 0.5 * an * dt * dt
-        xn[2:4] = x[2:4] + an * dt
-        xn[4] = x[4] + w * dt
+        xn[POS] = x[POS] + x[VEL] * dt + 0.5 * an * dt * dt
+        xn[VEL] = x[VEL] + an * dt
+        xn[PSI] = x[PSI] + w * dt
         phi = math.exp(-dt / LATE_TIME_S)  # the lateness: first-order Gauss-Markov
-        xn[9] = phi * x[9]
-        F = np.eye(N_PLANAR)
-        F[0, 2] = F[1, 3] = dt
-        dan = np.array([-an[1], an[0]])  # d(a_N)/d(psi)
-        F[0:2, 4] = 0.5 * dan * dt * dt
-        F[2:4, 4] = dan * dt
-        Rz = np.array([[c, -sn], [sn, c]])
-        F[0:2, 6:8] = -0.5 * Rz * dt * dt
-        F[2:4, 6:8] = -Rz * dt
-        F[4, 5] = -dt
-        qa = (self.accel_noise * dt) ** 2
-        Q = np.zeros((N_PLANAR, N_PLANAR))
-        Q[0, 0] = Q[1, 1] = qa * dt * dt / 4.0
-        Q[2, 2] = Q[3, 3] = qa
-        Q[0, 2] = Q[2, 0] = Q[1, 3] = Q[3, 1] = qa * dt / 2.0
-        Q[4, 4] = (self.gyro_noise * dt) ** 2
-        Q[5, 5] = self.gyro_bias_walk**2 * dt
-        Q[6, 6] = Q[7, 7] = self.accel_bias_walk**2 * dt
-        Q[8, 8] = self.time_offset_walk**2 * dt
-        F[9, 9] = phi
+        xn[LATE] = phi * x[LATE]
+        F = transition(an, c, sn, dt)
         lasting = s.jitter.lasting
-        Q[9, 9] = lasting * (1.0 - phi * phi)
+        Q = self.process_noise(dt, lasting)
         P = F @ s.P @ F.T + Q
-        P[9, 9] = max(P[9, 9], lasting)  # a lateness just found is not known in value
+        P[LATE, LATE] = max(P[LATE, LATE], lasting)  # a lateness just found is not known in value
         return PlanarState(xn, P, w, s.jitter, s.dispute, s.pending,
                            (float(an[0]), float(an[1])))  # fmt: skip
+
+    def process_noise(self, dt: float, lasting: float) -> np.ndarray:
+        """The process noise Q (10, 10) over an interval of ``dt`` s: the accelerometers'
+        white noise integrated into velocity and position, the gyro's into the heading,
+        the biases' and the time offset's random walks, and the lateness's Gauss-Markov
+        increment (``lasting``: its variance, s^2)."""
+        qa = (self.accel_noise * dt) ** 2
+        Q = np.zeros((N_PLANAR, N_PLANAR))
+        Q[X, X] = Q[Y, Y] = qa * dt * dt / 4.0
+        Q[VX, VX] = Q[VY, VY] = qa
+        Q[X, VX] = Q[VX, X] = Q[Y, VY] = Q[VY, Y] = qa * dt / 2.0
+        Q[PSI, PSI] = (self.gyro_noise * dt) ** 2
+        Q[BG, BG] = self.gyro_bias_walk**2 * dt
+        Q[BAX, BAX] = Q[BAY, BAY] = self.accel_bias_walk**2 * dt
+        Q[TAU, TAU] = self.time_offset_walk**2 * dt
+        phi = math.exp(-dt / LATE_TIME_S)
+        Q[LATE, LATE] = lasting * (1.0 - phi * phi)
+        return Q
 
     def update(self, s: PlanarState, fix: Fix) -> tuple[PlanarState, bool, float]:
         """The state after a fix, whether the fix was accepted, and its normalised
@@ -427,10 +455,10 @@ class PlanarModel:
         R0 = self._fix_cov(fix)
         x0 = s.x
         # the pose's rate: a timing error dt moves the fix by J dt
-        J = np.array([x0[2], x0[3], s.w])
+        J = np.array([x0[VX], x0[VY], s.w])
         if s.pending:
             return self._second(s, fix, R0), True, math.nan
-        idx = [0, 1, 4]
+        idx = POSE
         if self.method == "paper":
             x = s.x.copy()
             x[idx] = fix.value
@@ -446,10 +474,10 @@ class PlanarModel:
         # c_i c_j (P_a,a' P_tau,tau + P_a,tau P_tau,a')). While the offset is known to tens
         # of ms and the bias to tenths of a degree per second, they are what the first
         # order leaves out: 0.5 deg/s by 50 ms is 0.025 deg, eight heading fix sigmas
-        a = [2, 3, 5]
+        a = [VX, VY, BG]
         c = np.array([-1.0, -1.0, 1.0])
-        Pa = s.P[a, 8] + s.P[a, 9]
-        Poo = s.P[8, 8] + 2.0 * s.P[8, 9] + s.P[9, 9]
+        Pa = s.P[a, TAU] + s.P[a, LATE]
+        Poo = s.P[TAU, TAU] + 2.0 * s.P[TAU, LATE] + s.P[LATE, LATE]
         h = h + c * Pa
         R_nj = R0 + np.outer(c, c) * (s.P[np.ix_(a, a)] * Poo + np.outer(Pa, Pa))
         r = self._wrap(fix.value - h)
@@ -481,7 +509,7 @@ class PlanarModel:
         x = s.x + K @ r
         # the offset within what a camera can be late by (the alignment's range): beyond
         # it the filter has gone wrong, and the engine's shift follows the offset
-        x[8] = min(max(x[8], ALIGN_TAU[0]), ALIGN_TAU[1])
+        x[TAU] = min(max(x[TAU], ALIGN_TAU[0]), ALIGN_TAU[1])
         IKH = np.eye(N_PLANAR) - K @ H
         P = IKH @ s.P @ IKH.T + K @ R @ K.T  # Joseph form
         jitter = s.jitter
@@ -509,28 +537,28 @@ class PlanarModel:
         covariance gains J P_tt J^T with the cross terms J P_tt. From there the
         ordinary update is linearised at a known velocity."""
         H = np.zeros((3, N_PLANAR))  # the pose itself: the offset left out
-        H[0, 0] = H[1, 1] = H[2, 4] = 1.0
-        r = self._wrap(fix.value - s.x[[0, 1, 4]])
+        H[0, X] = H[1, Y] = H[2, PSI] = 1.0
+        r = self._wrap(fix.value - s.x[POSE])
         PHt = s.P @ H.T
-        J = np.array([s.x[2], s.x[3], s.w])
+        J = np.array([s.x[VX], s.x[VY], s.w])
         R = R0 + np.outer(J, J) * s.jitter.var
         for _ in range(2):
             # twice: the fixes' timing jitter moves them along the velocity, which only
             # this update tells (the first pass's velocity makes the second's J)
             K = np.linalg.solve(H @ PHt + R, PHt.T).T
-            K[8:] = 0.0
+            K[TAU:] = 0.0
             x = s.x + K @ r
-            J = np.array([x[2], x[3], s.w])
+            J = np.array([x[VX], x[VY], s.w])
             R = R0 + np.outer(J, J) * s.jitter.var
         IKH = np.eye(N_PLANAR) - K @ H
         P = IKH @ s.P @ IKH.T + K @ R @ K.T
         # the offset, coupled: the pose, velocity and heading at the stated time
         G = np.zeros(N_PLANAR)
-        G[[0, 1, 2, 3, 4]] = [x[2], x[3], s.an[0], s.an[1], s.w]
-        G[8] = 0.0
-        ptt = P[8, 8]
-        x[0:5] += G[0:5] * (x[8] - fix.shift)
-        cross = P[:, 8].copy()
+        G[[X, Y, VX, VY, PSI]] = [x[VX], x[VY], s.an[0], s.an[1], s.w]
+        G[TAU] = 0.0
+        ptt = P[TAU, TAU]
+        x[X : PSI + 1] += G[X : PSI + 1] * (x[TAU] - fix.shift)
+        cross = P[:, TAU].copy()
         P = P + np.outer(G, G) * ptt + np.outer(G, cross) + np.outer(cross, G)
         return PlanarState(x, P, s.w, s.jitter, None, False, s.an)
 
@@ -540,7 +568,7 @@ class PlanarModel:
         back to its prior (a filter that refused fixes in a row may have had it
         wrong), centred on the shift the fix is applied with."""
         n = self.init(fix)
-        keep = [5, 6, 7]
+        keep = [BG, BAX, BAY]
         P = n.P.copy()
         P[np.ix_(keep, keep)] = s.P[np.ix_(keep, keep)]
         x = n.x.copy()
@@ -555,18 +583,18 @@ class PlanarModel:
         before its stated time) and its derivatives by the state; ``w`` is the rate
         less the bias (w = gyro - b_g: d(-w tau)/d(b_g) = tau)."""
         # what is left of the offset (the fix was applied shifted), and the lateness
-        tau = x[8] + x[9] - shift
+        tau = x[TAU] + x[LATE] - shift
         # to second order in tau for the position (0.5 a tau^2 is 0.03 mm at 40 ms and
         # 35 mm/s^2, two lamp fix sigmas); the acceleration as the IMU measured it
         ax, ay = an
-        h = np.array([x[0] - x[2] * tau + 0.5 * ax * tau * tau,
-                      x[1] - x[3] * tau + 0.5 * ay * tau * tau,
-                      x[4] - w * tau])  # fmt: skip
+        h = np.array([x[X] - x[VX] * tau + 0.5 * ax * tau * tau,
+                      x[Y] - x[VY] * tau + 0.5 * ay * tau * tau,
+                      x[PSI] - w * tau])  # fmt: skip
         H = np.zeros((3, N_PLANAR))
-        H[0, 0] = H[1, 1] = H[2, 4] = 1.0
-        H[0, 2] = H[1, 3] = -tau
-        H[2, 5] = tau
-        H[:, 8] = H[:, 9] = [-x[2] + ax * tau, -x[3] + ay * tau, -w]
+        H[0, X] = H[1, Y] = H[2, PSI] = 1.0
+        H[0, VX] = H[1, VY] = -tau
+        H[2, BG] = tau
+        H[:, TAU] = H[:, LATE] = [-x[VX] + ax * tau, -x[VY] + ay * tau, -w]
         return h, H
 
     @staticmethod
@@ -578,15 +606,15 @@ class PlanarModel:
     @staticmethod
     def values(s: PlanarState) -> tuple[np.ndarray, np.ndarray]:
         """(x_mm, y_mm, heading rad) and their 1-sigma."""
-        v = s.x[[0, 1, 4]].copy()
+        v = s.x[POSE].copy()
         v[2] = (v[2] + math.pi) % (2 * math.pi) - math.pi
-        var = np.diag(s.P)[[0, 1, 4]]
+        var = np.diag(s.P)[POSE]
         if s.dispute is not None:
             var = var + np.diag(s.dispute)
         if s.pending:
             # from one fix: it is the pose tau before its stated time, and the velocity
             # is not known (PlanarModel._second)
-            ptt = s.P[8, 8] + 2.0 * s.P[8, 9] + s.P[9, 9]
-            var = var + ptt * np.array([s.x[2] ** 2 + s.P[2, 2], s.x[3] ** 2 + s.P[3, 3],
+            ptt = s.P[TAU, TAU] + 2.0 * s.P[TAU, LATE] + s.P[LATE, LATE]
+            var = var + ptt * np.array([s.x[VX] ** 2 + s.P[VX, VX], s.x[VY] ** 2 + s.P[VY, VY],
                                         s.w**2])  # fmt: skip
         return v, np.sqrt(np.clip(var, 0.0, None))
