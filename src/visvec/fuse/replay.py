@@ -185,10 +185,13 @@ class Fusion:
         return FusedSample(k, t, st, self.n_applied, tuple(warnings), tuple(nis_new))
 
     def _checked(self, g: np.ndarray, a: np.ndarray | None, warnings: list[str]):
-        """Step 1a: a faulty sample (beyond the limits) is replaced by the last good
-        one (or zeros) and flagged."""
-        if is_faulty(g, a, self.limits):
-            warnings.append("imu_fault")
+        """Step 1a: a faulty sample (beyond the limits, or beyond the gyro's declared
+        range: the declaration or the sample is wrong) is replaced by the last good one
+        (or zeros) and flagged."""
+        beyond = self.saturation.beyond(g)
+        self.saturation.n_beyond += beyond
+        if beyond or is_faulty(g, a, self.limits):
+            warnings.append("gyro_beyond_range" if beyond else "imu_fault")
             if self._last_good is not None:
                 return self._last_good
             return np.zeros(3), (np.zeros(2) if a is not None else None)

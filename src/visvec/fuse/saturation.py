@@ -19,12 +19,44 @@ if TYPE_CHECKING:
     from visvec.fuse.history import History
 
 SAT_MIN_DPS = 100.0  # a flat top below this is not a gyro's range
-SAT_BAND = 0.005  # readings within this share of the range are at it
-SAT_RUN = 3  # a flat top: this many samples in the band ...
-SAT_BEYOND = 0.1  # ... where the samples before point this far past it
-SAT_OTHER = 0.03  # an axis or side not yet seen clipped: another's level, less this
+SAT_BAND = 0.01  # readings within this share of the range are at it
 SAT_SIGMA = 0.25  # 1-sigma of a saturated reading's reconstruction, in ranges (live)
 SAT_SIGMA_BOTH = 0.1  # ... once the samples after the flat top are in
+# A range is learned (no range declared) only from evidence a gyro that does not clip
+# cannot produce (Saturation.clipped). A flat top starts where one step of SAT_ENTRY
+# noise-step sigmas or more (sqrt(2) sigma, sigma the gyro's sample noise) reaches
+# SAT_MIN_DPS or more, at the largest reading so far on that axis and side, and the
+# next SAT_RUN - 1 readings stay within SAT_BAND of it (a clipped signal meets its flat
+# top at full slope; a smooth peak levels off gradually, an air-bearing platform's
+# slews ramp); it lasts while they do. A range is the level of SAT_CONFIRM or more flat
+# tops that agree within SAT_BAND, still the record's extreme, whose steps (at least
+# SAT_STEPS of them) are quieter than the gyro's noise could be by chance: so many of
+# them within SAT_QUIET of a noise step's sigma (a white noise step is, with
+# probability p0 = erf(SAT_QUIET / sqrt(2)): 0.38) that a binomial(m, p0) count reaches
+# it with a probability below SAT_P (a sign test: robust to the few large steps where a
+# flat top starts or ends partly clipped). A gyro that turns at a steady rate (a slew at
+# a commanded rate, a free spin) carries its noise on every step; one that is clipped
+# reads its range, scattered only by its calibration's cross-axis terms (RepoIMU's
+# T-stick: steps of 0.0-0.3 deg/s where its noise steps by about 0.5). Checked on every
+# shared recording (benchmarks/fusion_recordings.py, tests/fuse/test_saturation.py): no
+# range on any BROAD trial nor on RepoIMU's trials that stay within range; RepoIMU
+# Test05 and Test10 found on x, on both sides
+SAT_RUN = 3
+SAT_ENTRY = 8.0
+SAT_CONFIRM = 2
+SAT_STEPS = 20
+SAT_QUIET = 0.5
+SAT_P = 1e-6
+# the gyro's sample noise (rad/s) per axis: every NOISE_EVERY samples, over the last
+# NOISE_SPAN, the median absolute second difference (Gaussian: 0.6745 sqrt(6) sigma) of
+# each NOISE_BLOCK samples that stay below SAT_MIN_DPS on that axis (no flat top there),
+# the quietest quarter's (the sensor's noise, not the motion's): the lower quartile of
+# the blocks (of all blocks when none stays below: a gyro that never rests; the
+# motion then widens it); no range is learned before NOISE_BLOCK samples
+NOISE_EVERY = 200
+NOISE_SPAN = 2000
+NOISE_BLOCK = 50
+NOISE_MIN_DPS = 0.05  # a quantised gyro's steps at rest may all be zero
 
 
 def reading(mean: np.ndarray, rate: np.ndarray, sat: np.ndarray) -> np.ndarray:
@@ -51,9 +83,28 @@ def declip(
     return sign * np.clip(sign * est, rng, 2.0 * rng)
 
 
+def binom_sf(k: int, m: int, p: float) -> float:
+    """The probability that a binomial(m, p) count is k or more."""
+    if k <= 0:
+        return 1.0
+    lp, lq = math.log(p), math.log1p(-p)
+    total = 0.0
+    for i in range(k, m + 1):
+        total += math.exp(math.lgamma(m + 1) - math.lgamma(i + 1) - math.lgamma(m - i + 1)
+                          + i * lp + (m - i) * lq)  # fmt: skip
+    return min(total, 1.0)
+
+
 class Saturation:
     """The gyro's clip levels (rad/s) per axis and side, and the flat tops found at
     them, on the engine's `History`.
+
+    A range is known, not guessed: declared (``gyro_range_dps``: `--gyro-range-dps`,
+    the rig's ``[imu] gyro_range_dps``, the IMU file's header), or learned on one axis
+    and side only from flat tops a gyro that does not clip cannot produce (`clipped`);
+    no axis takes another's level. A reading beyond a declared range (by more than
+    SAT_BAND) is beyond what the gyro can read: `beyond` says so, and the engine refuses
+    it.
 
     Parameters
     ----------
@@ -65,75 +116,158 @@ class Saturation:
 
     def __init__(self, history: History, gyro_range_dps: float | None = None) -> None:
         self.h = history
+        self.declared = math.radians(gyro_range_dps) if gyro_range_dps else None
         # clip levels (rad/s) per axis, positive and negative side; nan: not known
-        self.ranges = np.full((3, 2), math.radians(gyro_range_dps) if gyro_range_dps
-                              else math.nan)  # fmt: skip
+        self.ranges = np.full((3, 2), self.declared or math.nan)
         self._burst_end: int | None = None  # samples since a flat top ended
         self.n_saturated = 0
+        self.n_beyond = 0  # readings beyond the declared range
+        # per axis and side: the largest reading seen, and the flat tops' levels
+        self._extreme = np.zeros((3, 2))
+        self._tops: list[list[list]] = [[[], []] for _ in range(3)]  # (level, steps)
+        self._open: list[tuple | None] = [None, None, None]  # (side, level, last, steps)
+        self.learned: list[tuple[int, int, float]] = []  # (axis, side, level) as found
+        self._noise: np.ndarray | None = None  # rad/s per axis
+        self._noise_at = 0
+        self._found = False  # a range learned at the newest sample
 
     def reset(self) -> None:
         """The samples broke off (a gap): no flat top is open."""
         self._burst_end = None
+        self._open = [None, None, None]
 
     def level(self, ax: int, sign: float) -> float | None:
-        """The clip level of an axis on one side: its own once learned; before that, a
-        level learned on another axis or side less SAT_OTHER (a calibrated gyro's
-        levels differ by its offsets and scale factors); None while none is known."""
+        """The clip level of an axis on one side (rad/s), or None while none is
+        known."""
         own = self.ranges[ax, 0 if sign >= 0 else 1]
-        if np.isfinite(own):
-            return float(own)
-        if np.any(np.isfinite(self.ranges)):
-            return float(np.nanmin(self.ranges)) * (1 - SAT_OTHER)
-        return None
+        return float(own) if np.isfinite(own) else None
+
+    def beyond(self, g: np.ndarray) -> bool:
+        """Whether a reading lies beyond the declared range (by more than SAT_BAND)."""
+        return self.declared is not None and bool(
+            np.abs(np.asarray(g, float)).max() > self.declared * (1 + SAT_BAND)
+        )
+
+    def noise(self) -> np.ndarray | None:
+        """The gyro's sample noise per axis (rad/s; the comment of NOISE_EVERY ...
+        NOISE_BLOCK); None before it is known."""
+        h = self.h
+        self._noise_at += 1
+        if self._noise_at < NOISE_EVERY and self._noise is not None:
+            return self._noise
+        n = len(h.raw)
+        if n < 2 * NOISE_BLOCK:
+            return self._noise
+        self._noise_at = 0
+        m = min(n, NOISE_SPAN) // NOISE_BLOCK * NOISE_BLOCK
+        raw = np.array(h.raw[n - m :]).reshape(-1, NOISE_BLOCK, 3)
+        calm = np.abs(raw).max(axis=1) < math.radians(SAT_MIN_DPS)  # (blocks, 3)
+        d2 = np.abs(np.diff(raw, 2, axis=1))
+        sig = np.median(d2, axis=1) / (0.6745 * math.sqrt(6.0))  # (blocks, 3)
+        new = np.array([np.percentile(sig[calm[:, k], k] if calm[:, k].any() else sig[:, k], 25)
+                        for k in range(3)])  # fmt: skip
+        new = np.maximum(new, math.radians(NOISE_MIN_DPS))
+        self._noise = new
+        return self._noise
 
     def clipped(self, g: np.ndarray) -> np.ndarray:
-        """Which axes of a raw reading (already in the history) sit at the gyro's range.
-        Unless given, each axis's level on each side is learned from its first flat
-        top: SAT_RUN samples within SAT_BAND of each other at SAT_MIN_DPS or more,
-        where the line through the SAT_RUN samples before them points at least
-        SAT_BEYOND past them at the run's middle (a smooth peak levels off before its
-        top; a clipped signal hits its flat top at full slope). A calibrated gyro's
-        clipped readings scatter a little with the other axes, hence the band."""
+        """Which axes of a raw reading (the newest in the history) sit at the gyro's
+        range, learning a range from the evidence where none is known (the rule in
+        the comment of SAT_RUN ... SAT_P)."""
         h = self.h
         g = np.asarray(g, float)
         n = len(h.raw)
-        need = 2 * SAT_RUN
-        if n >= need and not np.all(np.isfinite(self.ranges)):
-            for ax in range(3):
-                run = np.array([r[ax] for r in h.raw[n - SAT_RUN :]])
-                level = float(np.abs(run).max())
-                side = 0 if run[-1] >= 0 else 1
-                if (
-                    np.isfinite(self.ranges[ax, side])
-                    or level < math.radians(SAT_MIN_DPS)
-                    or not np.all(np.sign(run) == np.sign(run[-1]))
-                    or not np.all(np.abs(run) >= level * (1 - SAT_BAND))
-                ):
-                    continue
-                before = np.array([r[ax] for r in h.raw[n - need : n - SAT_RUN]])
-                tb = np.array(h.ts[n - need : n - SAT_RUN])
-                c = np.polyfit(tb - tb[-1], before, 1)
-                pred = abs(float(np.polyval(c, h.ts[n - 2] - tb[-1])))
-                if pred >= level * (1 + SAT_BEYOND):
-                    self.ranges[ax, side] = level
-                    for j in range(n - SAT_RUN, n - 1):
-                        h.clip[j] = h.clip[j].copy()
-                        h.clip[j][ax] = abs(h.raw[j][ax]) >= level * (1 - SAT_BAND)
+        for ax in range(3):
+            side = 0 if g[ax] >= 0 else 1
+            self._extreme[ax, side] = max(self._extreme[ax, side], abs(g[ax]))
+        if not np.all(np.isfinite(self.ranges)):
+            noise = self.noise()
+            if noise is not None and n >= SAT_RUN + 2:
+                for ax in range(3):
+                    self._follow_top(ax, n, float(noise[ax]))
         out = np.zeros(3, bool)
         for ax in range(3):
             lvl = self.level(ax, g[ax])
             out[ax] = lvl is not None and abs(g[ax]) >= lvl * (1 - SAT_BAND)
         return out
 
+    def _follow_top(self, ax: int, n: int, sigma: float) -> None:
+        """The flat top of axis ``ax`` at the newest sample: one that goes on gains a
+        step, one that ends is weighed (`_weigh`), and a new one may start."""
+        raw = self.h.raw
+        x = raw[n - 1][ax]
+        top = self._open[ax]
+        if top is not None:
+            side, level0, prev, steps = top
+            sign = 1.0 if side == 0 else -1.0
+            v = sign * x
+            if v > 0 and abs(v - level0) <= SAT_BAND * level0:
+                steps.append(v - prev)
+                self._open[ax] = (side, max(level0, v), v, steps)
+                return
+            self._open[ax] = None
+            self._weigh(ax, side, level0, steps, sigma, n)
+        sign = 1.0 if raw[n - SAT_RUN][ax] >= 0 else -1.0
+        side = 0 if sign > 0 else 1
+        if np.isfinite(self.ranges[ax, side]):
+            return
+        a = [sign * raw[j][ax] for j in range(n - SAT_RUN - 1, n)]
+        level = a[1]
+        if (
+            level < math.radians(SAT_MIN_DPS)
+            or level - a[0] < SAT_ENTRY * math.sqrt(2.0) * sigma
+            or level < self._extreme[ax, side] * (1 - SAT_BAND)
+            or any(abs(v - level) > SAT_BAND * level for v in a[2:])
+        ):
+            return
+        self._open[ax] = (side, max(a[1:]), a[-1], [a[k + 1] - a[k] for k in range(1, len(a) - 1)])
+
+    def _weigh(self, ax: int, side: int, level: float, steps: list[float], sigma: float,
+               n: int) -> None:  # fmt: skip
+        """A flat top that ended: kept; the tops that agree with it on their level
+        become the range when their steps are too quiet for the gyro's noise (the rule
+        in the comment of SAT_RUN ... SAT_P). The history's readings at it are then
+        flagged (take() rebuilds them)."""
+        tops = self._tops[ax][side]
+        tops.append((level, steps))
+        agree = [(lv, st) for lv, st in tops if abs(lv - level) <= SAT_BAND * max(lv, level)]
+        m = sum(len(st) for _, st in agree)
+        if len(agree) < SAT_CONFIRM or m < SAT_STEPS:
+            return
+        top_level = max(lv for lv, _ in agree)
+        width = SAT_QUIET * math.sqrt(2.0) * sigma
+        quiet = sum(abs(d) <= width for _, st in agree for d in st)
+        p0 = math.erf(SAT_QUIET / math.sqrt(2.0))
+        if binom_sf(quiet, m, p0) >= SAT_P or self._extreme[ax, side] > top_level * (1 + SAT_BAND):
+            return
+        self.ranges[ax, side] = top_level
+        self.learned.append((ax, side, top_level))
+        sign = 1.0 if side == 0 else -1.0
+        h = self.h
+        for j in range(n):
+            if sign * h.raw[j][ax] >= top_level * (1 - SAT_BAND):
+                self.n_saturated += not h.clip[j].any()
+                h.clip[j] = h.clip[j].copy()
+                h.clip[j][ax] = True
+        self._found = True
+
     def take(self) -> tuple[np.ndarray, int]:
         """After the newest sample was added to the history (its clip flags not yet
         set): its clipped axes, and the first sample whose reading changed (the
         newest, or the start of a flat top reconstructed from before it while it lasts,
-        or from both sides three samples after it ends)."""
+        or from both sides three samples after it ends; all the flat tops kept, when a
+        range has just been learned)."""
         h = self.h
+        self._found = False
         clipped = h.clip[-1] = self.clipped(h.raw[-1])
         j_new = len(h.ts) - 1
         dirty = j_new
+        if self._found:
+            # a range just learned: the flat tops the history holds before this one
+            for last in self._top_ends(j_new):
+                first = self.reconstruct(last, both=True)
+                if first is not None:
+                    dirty = min(dirty, first)
         if clipped.any():
             self.n_saturated += 1
             first = self.reconstruct(j_new, both=False)
@@ -150,6 +284,19 @@ class Saturation:
                     dirty = min(dirty, first)
                 self._burst_end = None
         return clipped, dirty
+
+    def _top_ends(self, j_new: int) -> list[int]:
+        """The last samples of the flat tops flagged in the history that ended before
+        the newest sample's own (which take() reconstructs as it goes)."""
+        h = self.h
+        ends = []
+        j = j_new
+        while j > 0 and h.clip[j].any():
+            j -= 1  # the open flat top, if any
+        for i in range(j):
+            if h.clip[i].any() and not h.clip[i + 1].any():
+                ends.append(i)
+        return ends
 
     def reconstruct(self, last: int, both: bool) -> int | None:
         """Reconstruct the clipped samples of the flat top that ends at or before

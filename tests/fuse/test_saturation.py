@@ -1,0 +1,141 @@
+"""A gyro's range: known (declared) or learned only from what a clipping gyro shows;
+zero samples flagged on the shared gyros that do not clip."""
+
+import math
+
+import numpy as np
+import pytest
+from fusion_cases import _fixes, _sim3d
+
+from visvec.bench.recordings import (
+    BROAD_TRIALS,
+    REPOIMU_CLIPPING,
+    REPOIMU_TRIALS,
+    load,
+    shared_recordings,
+)
+from visvec.fuse.attitude import AttitudeModel
+from visvec.fuse.history import History
+from visvec.fuse.inputs import ImuData
+from visvec.fuse.replay import Fusion, Limits, fuse
+from visvec.fuse.saturation import Saturation
+
+from conftest import SHARED_DATA
+
+
+def _detect(t, gyro, gyro_range_dps=None, keep=1200):
+    """Every sample through a Saturation on a history of ``keep`` samples; its learned
+    levels (axis, side, deg/s) and how many samples it flagged."""
+    h = History()
+    sat = Saturation(h, gyro_range_dps)
+    flagged = 0
+    for k in range(len(t)):
+        h.ts.append(float(t[k]))
+        h.raw.append(np.asarray(gyro[k], float))
+        h.clip.append(np.zeros(3, bool))
+        h.acc.append(None)
+        h.states.append(None)
+        h.gyro.append(h.reading(len(h.ts) - 1, np.zeros(3)))
+        clipped, _ = sat.take()
+        flagged += bool(clipped.any())
+        if len(h) > keep:
+            h.drop(len(h) - keep)
+    return [(ax, side, math.degrees(v)) for ax, side, v in sat.learned], sat.n_saturated
+
+
+def _recordings(names):
+    out = [(k, p) for k, p in shared_recordings(SHARED_DATA) if p.stem.removeprefix("TStick_")
+           in names]  # fmt: skip
+    if not out:
+        pytest.skip("shared recordings not available")
+    return out
+
+
+NOT_CLIPPING = [n for n in REPOIMU_TRIALS if n not in REPOIMU_CLIPPING]
+
+
+@pytest.mark.parametrize("name", [*NOT_CLIPPING, BROAD_TRIALS[2], BROAD_TRIALS[0]])
+def test_no_range_is_learned_on_gyros_that_do_not_clip(name):
+    """RepoIMU's trials within its range and BROAD's fast rotation with breaks (to
+    1,352 deg/s, where the old flat-top rule learned 226 deg/s) and slow rotation: not one
+    sample flagged."""
+    ((ds, path),) = _recordings([name])
+    rec = load(ds, path)
+    learned, n = _detect(rec.t, rec.gyro)
+    assert learned == [] and n == 0
+
+
+@pytest.mark.slow  # 10 s: every shared BROAD trial
+@pytest.mark.parametrize("name", BROAD_TRIALS)
+def test_no_range_is_learned_on_any_broad_trial(name):
+    ((ds, path),) = _recordings([name])
+    rec = load(ds, path)
+    assert _detect(rec.t, rec.gyro) == ([], 0)
+
+
+def test_a_clipping_gyro_is_found_on_its_own_axis():
+    """RepoIMU's T-stick clips on x at about +416 and -422 deg/s (calibrated): Test05
+    (over a thousand clipped samples) gives both sides, Test10 (flat tops of 2-7
+    samples) the negative one (its positive side's steps are too noisy to prove a
+    clip: not learned, not guessed); on x alone, the clipped samples flagged."""
+    found = {}
+    for ds, path in _recordings(REPOIMU_CLIPPING):
+        rec = load(ds, path)
+        learned, n = _detect(rec.t, rec.gyro)
+        found[rec.name] = {(ax, side): v for ax, side, v in learned}
+        peak = -np.degrees(rec.gyro[:, 0])
+        assert n >= 0.8 * np.sum(peak > 0.99 * 421.0)
+    assert set(found["Test05_Trial2"]) == {(0, 0), (0, 1)}
+    assert set(found["Test10_Trial1"]) == {(0, 1)}
+    for levels in found.values():
+        assert 412.0 < levels.get((0, 0), 415.0) < 418.0 and 418.0 < levels[(0, 1)] < 424.0
+
+
+def _clipped_swing(axes=(0,)):
+    """``axes`` clipped at 250 deg/s (their readings identical at the range), the
+    others swinging to about 300 deg/s unclipped, after 3 s at rest (where the gyro's
+    noise is learned)."""
+    t, _, gyro, _ = _sim3d(amp=7.0, n=3300, speed=12.0, rest_s=3.0)
+    g = gyro.copy()
+    for ax in axes:
+        g[:, ax] = np.clip(g[:, ax], -np.radians(250.0), np.radians(250.0))
+    return t, g
+
+
+def test_no_axis_takes_another_s_range():
+    t, g = _clipped_swing()
+    assert np.degrees(np.abs(g[:, 1])).max() > 255.0  # y goes beyond x's range
+    learned, _ = _detect(t, g)
+    assert learned and all(ax == 0 for ax, _, _ in learned)
+    assert all(abs(v - 250.0) < 1.0 for _, _, v in learned)
+
+
+def test_repeated_slews_at_one_rate_are_not_a_range():
+    """A platform slewing again and again at one commanded rate (200 deg/s, reached
+    within one sample, held 1 s each time): a real gyro's noise rides on it, so no flat
+    top is taken for a range."""
+    rng = np.random.default_rng(5)
+    dt = 0.01
+    seg = np.r_[np.zeros(50), np.full(100, 200.0), np.zeros(50), np.full(100, -200.0)]
+    rate = np.tile(seg, 8)
+    t = np.arange(len(rate)) * dt
+    g = np.zeros((len(t), 3))
+    g[:, 2] = np.radians(rate + rng.normal(0, 0.3, len(t)))
+    g[:, :2] = np.radians(rng.normal(0, 0.3, (len(t), 2)))
+    assert _detect(t, g) == ([], 0)
+
+
+def test_a_declared_range_flags_at_once_and_refuses_readings_beyond_it():
+    """Declared (250 deg/s): the first flat top is flagged, with no learning; a reading
+    beyond the declaration is refused with a warning, not integrated."""
+    t, g = _clipped_swing(axes=(0, 1, 2))
+    first = int(np.argmax(np.degrees(np.abs(g[:, 0])) >= 249.9))
+    g[first + 400, 1] = np.radians(400.0)  # beyond the declared range
+    t_, R, _, rng = _sim3d(amp=7.0, n=3300, speed=12.0, rest_s=3.0)
+    imu = ImuData(t, g, None, np.arange(len(t)) + 2, (), 0.01)
+    eng = Fusion(AttitudeModel(sample_s=0.01), limits=Limits(2000.0, None), gyro_range_dps=250.0)
+    out = list(fuse(imu, _fixes(t, R, rng), None, engine=eng))
+    assert "gyro_saturated" in out[first].warnings or out[first].state is None
+    assert eng.saturation.learned == []
+    assert "gyro_beyond_range" in out[first + 400].warnings
+    assert sum("gyro_beyond_range" in x.warnings for x in out) == 1
