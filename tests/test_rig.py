@@ -257,3 +257,19 @@ def test_a_target_beyond_the_lens_models_field_is_refused(tmp_path):
     msg = str(exc.value)
     assert str(p) in msg and "[target] vertices_mm" in msg
     assert "beyond the lens model's field" in msg
+
+
+def test_the_imu_section_declares_the_gyro_range(tmp_path):
+    """[imu] gyro_range_dps: the gyro's range, from its datasheet; absent: None (learned
+    only from the evidence); not a positive finite number, or an unknown key: refused
+    naming the file and key."""
+    assert load_rig(write(tmp_path, GOOD)).imu.gyro_range_dps is None
+    rig = load_rig(write(tmp_path, GOOD + "\n[imu]\ngyro_range_dps = 2000\n"))
+    assert rig.imu.gyro_range_dps == 2000.0
+    bad_values = (("0", "expected a number > 0"), ("-5", "expected a number > 0"),
+                  ('"fast"', "expected a finite number"), ("nan", "finite number"))  # fmt: skip
+    for bad, words in bad_values:
+        with pytest.raises(ConfigError, match=rf"\[imu\] gyro_range_dps = .*{words}"):
+            load_rig(write(tmp_path, GOOD + f"\n[imu]\ngyro_range_dps = {bad}\n"))
+    with pytest.raises(ConfigError, match=r"\[imu\] unknown key\(s\) \['gyro_rang'\]"):
+        load_rig(write(tmp_path, GOOD + "\n[imu]\ngyro_rang = 2000\n"))

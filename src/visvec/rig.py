@@ -176,6 +176,16 @@ class CameraControls:
 
 
 @dataclass(frozen=True)
+class ImuSettings:
+    """What the IMU's description says (``[imu]``, all optional): the gyro's range
+    (deg/s, every axis), from its datasheet. A gyro's range is known, not guessed: without
+    it, visvec learns one only from flat tops no gyro that turns can produce
+    (visvec.fuse.saturation)."""
+
+    gyro_range_dps: float | None = None
+
+
+@dataclass(frozen=True)
 class Rig:
     """One setup: camera, mount, target and settings."""
 
@@ -198,6 +208,7 @@ class Rig:
     # its 1-sigma (ms), as `calibrate readout` measured it: the rows' sigma carries it
     readout_sigma_ms: float = 0.0
     controls: CameraControls = field(default_factory=CameraControls)
+    imu: ImuSettings = field(default_factory=ImuSettings)
     # whether the rig file (or a calibration) gave [platform] max_tilt_deg, or the default
     max_tilt_given: bool = True
     path: Path | None = None
@@ -384,7 +395,17 @@ def _rotation(sec: _Section, key: str) -> np.ndarray:
     return U @ Vt
 
 
-_SECTIONS = ("camera", "mount", "target", "platform", "detect", "zero_tilt", "source", "report")
+_SECTIONS = (
+    "camera",
+    "mount",
+    "target",
+    "platform",
+    "detect",
+    "zero_tilt",
+    "source",
+    "report",
+    "imu",
+)
 MADE_FOR_F_TOL = 0.02  # a calibration's camera: focal lengths within 2 % ...
 MADE_FOR_C_TOL = 0.02  # ... and the principal point within 2 % of the width
 
@@ -486,6 +507,9 @@ def rig_from_dict(
     else:
         target = _marker_target(tgt, mount, src)
     fields |= _platform_fields(section("platform"))
+    imu = section("imu")
+    fields["imu"] = ImuSettings(imu.number("gyro_range_dps", None, positive=True))
+    imu.check_unknown()
     rig = Rig(
         mount=mount,
         target=target,

@@ -15,11 +15,10 @@ from visvec.cli.progress import Work
 from visvec.cli.results import check_results, write_results
 from visvec.errors import ConfigError, InputFileError, NoOkRows
 from visvec.evaluate import error_stats, read_truth
-from visvec.fuse.attitude import AttitudeModel
 from visvec.fuse.inputs import read_fixes, read_imu
 from visvec.fuse.live import Reader, is_live, run_live
-from visvec.fuse.planar import PlanarModel
-from visvec.fuse.replay import Fusion, Limits
+from visvec.fuse.options import FusionOptions, engine_from_options, model_from_options
+from visvec.fuse.replay import Fusion
 from visvec.fuse.replay import fuse as run_fusion
 from visvec.fuse.run import fused_rows, rest_biases
 from visvec.output import AttitudeRow, PoseRow
@@ -43,8 +42,9 @@ from visvec.rotations import logmap
               show_default=True,
               help="Live: a source silent this long is reported (rows: fixes_silent).")  # fmt: skip
 @click.option("--gyro-range-dps", type=FiniteFloat(min=0, min_open=True), default=None,
-              help="The gyro's range: readings at it are saturated [learned from the "
-              "first flat top].")  # fmt: skip
+              help="The gyro's range (its datasheet's, every axis): readings at it are "
+              "saturated, readings beyond it refused [an IMU file's '# gyro_range_dps = N' "
+              "header; else learned only from flat tops a turning gyro cannot make].")  # fmt: skip
 @click.option("--out", default=None, type=click.Path(dir_okay=False),
               help="Output file, or udp://HOST:PORT for one datagram per row (default: "
               "stdout).")  # fmt: skip
@@ -99,6 +99,9 @@ def fuse(imu_path, fixes_path, follow, max_samples, silent_s, gyro_range_dps, ou
     ):
         if v is not None and not math.isfinite(v):
             raise click.BadParameter(f"{v}: expected a finite number", param_hint=name)
+    opts = FusionOptions(method, gyro_noise_dps, accel_noise_mps2, fix_sigma_deg,
+                         not no_misalignment, max_rate_dps, max_accel_mps2, clock_jitter_ms,
+                         gyro_range_dps, history_s)  # fmt: skip
     note_inputs(imu_path, fixes_path, truth)
     check_results(truth, errors, summary)
     if is_live(imu_path, follow) or is_live(fixes_path, follow):
@@ -107,27 +110,23 @@ def fuse(imu_path, fixes_path, follow, max_samples, silent_s, gyro_range_dps, ou
                                    "not live sources")  # fmt: skip
 
         def setup(planar: bool):
-            model, limits = fusion_model(planar, None, method, gyro_noise_dps, accel_noise_mps2,
-                                   fix_sigma_deg, no_misalignment, max_rate_dps,
-                                   max_accel_mps2, clock_jitter_ms)  # fmt: skip
-            eng = Fusion(model, limits=limits, history_s=history_s,
-                         gyro_range_dps=gyro_range_dps)  # fmt: skip
-            return eng, model
+            eng = engine(planar, None, opts)
+            return eng, eng.model
 
         _run_live(imu_path, fixes_path, follow, max_samples, silent_s, setup, out, fmt)
         return
     fixes = read_fixes(fixes_path)
     imu = read_imu(imu_path, planar=fixes.planar)
     _check_files(imu, fixes, imu_path, fixes_path)
-    model, limits = fusion_model(fixes.planar, imu.period_s, method, gyro_noise_dps,
-                           accel_noise_mps2, fix_sigma_deg, no_misalignment, max_rate_dps,
-                           max_accel_mps2, clock_jitter_ms)  # fmt: skip
+    opts = with_declared_range(opts, imu.gyro_range_dps, imu_path)
+    model, limits = options_model(fixes.planar, imu.period_s, opts)
     if fix_sigma_deg is not None:
         fixes = replace(fixes, fixes=tuple(replace(f, cov=None) for f in fixes.fixes))
     if rest_s > 0:
         model = _with_rest_biases(model, imu, rest_s, limits, fixes.planar)
-    engine = Fusion(model, limits=limits, history_s=history_s, gyro_range_dps=gyro_range_dps)
-    samples = run_fusion(imu, fixes.fixes, model, engine=engine)
+    engine_ = Fusion(model, limits=limits, history_s=history_s,
+                     gyro_range_dps=opts.gyro_range_dps)  # fmt: skip
+    samples = run_fusion(imu, fixes.fixes, model, engine=engine_)
     nis: list[float] = []
     last = [None]
 
@@ -156,7 +155,7 @@ def fuse(imu_path, fixes_path, follow, max_samples, silent_s, gyro_range_dps, ou
     )
     if len(nis) >= 5:
         click.echo(nis_line(nis, fixes.planar), err=True)
-    echo_learned(engine, last[0])
+    echo_learned(engine_, last[0])
     if rows and n_ok == 0:
         raise NoOkRows(f"none of the {len(rows)} inertial samples gave a fused row (no fix "
                        "could start the filter)")  # fmt: skip
@@ -245,29 +244,36 @@ def nis_line(nis: list[float], planar: bool) -> str:
             f"for a consistent filter){advice}")  # fmt: skip
 
 
-def fusion_model(planar, period_s, method, gyro_noise_dps, accel_noise_mps2, fix_sigma_deg,
-           no_misalignment, max_rate_dps, max_accel_mps2, clock_jitter_ms=None):  # fmt: skip
-    """The filter and the fault limits the options ask for."""
-    if planar:
-        if fix_sigma_deg is not None or no_misalignment or clock_jitter_ms is not None:
-            raise click.UsageError("--fix-sigma-deg, --clock-jitter-ms and --no-misalignment "
-                                   "apply to 3-D fixes")  # fmt: skip
-        model = PlanarModel(method=method, accel_noise=accel_noise_mps2 * 1000.0)
-        if gyro_noise_dps is not None:
-            model = replace(model, gyro_noise=math.radians(gyro_noise_dps))
-        return model, Limits(max_rate_dps or 50.0, max_accel_mps2)
-    if method != "kalman":
-        raise click.UsageError("--method paper applies to planar fixes")
-    model = AttitudeModel(misalignment_sigma=0.0 if no_misalignment else math.radians(5))
-    if period_s is not None:
-        model = replace(model, sample_s=period_s)
-    if gyro_noise_dps is not None:
-        model = replace(model, gyro_noise=math.radians(gyro_noise_dps))
-    if fix_sigma_deg is not None:
-        model = replace(model, fix_sigma=math.radians(fix_sigma_deg))
-    if clock_jitter_ms is not None:
-        model = replace(model, jitter_sigma=clock_jitter_ms / 1000.0)
-    return model, Limits(max_rate_dps or 2000.0, None)
+def options_model(planar: bool, period_s: float | None, opts: FusionOptions):
+    """The filter and fault limits the options ask for (model_from_options), an option
+    that does not apply refused as a usage error."""
+    try:
+        return model_from_options(planar, period_s, opts)
+    except ValueError as exc:
+        raise click.UsageError(f"{exc}") from None
+
+
+def engine(planar: bool, period_s: float | None, opts: FusionOptions) -> Fusion:
+    """The fusion engine the options ask for (engine_from_options), an option that does
+    not apply refused as a usage error."""
+    options_model(planar, period_s, opts)
+    return engine_from_options(planar, period_s, opts)
+
+
+def with_declared_range(opts: FusionOptions, declared: float | None, where: str,
+                        ) -> FusionOptions:  # fmt: skip
+    """The options with the gyro's range a description declares (an IMU file's header,
+    a rig's [imu]) where --gyro-range-dps gives none; said on stderr, and a
+    disagreement with the option too (the option wins)."""
+    if declared is None:
+        return opts
+    if opts.gyro_range_dps is None:
+        click.echo(f"visvec: {where}: gyro range {declared:g} deg/s (declared)", err=True)
+        return replace(opts, gyro_range_dps=declared)
+    if declared != opts.gyro_range_dps:
+        click.echo(f"visvec: --gyro-range-dps {opts.gyro_range_dps:g} overrides {where}'s "
+                   f"{declared:g} deg/s", err=True)  # fmt: skip
+    return opts
 
 
 def learned_of(engine, s=None) -> str | None:
@@ -329,10 +335,23 @@ def learned_line(engine, s) -> str:
              f"bias {', '.join(f'{math.degrees(b):+.3f}' for b in s.b)} deg/s"]  # fmt: skip
     if engine.rest is not None:
         parts.append(f"rest segment {engine.rest.n} samples")
-    if np.any(np.isfinite(engine.saturation.ranges)):
-        rng = math.degrees(float(np.nanmax(engine.saturation.ranges)))
-        parts.append(f"range {rng:.1f} deg/s, {engine.n_saturated} samples at it")
+    parts.append(range_words(engine.saturation))
     return "visvec: learned: " + "; ".join(parts)
+
+
+def range_words(sat) -> str:
+    """What the run knows of the gyro's range (visvec.fuse.saturation.Saturation)."""
+    if sat.declared is not None:
+        words = (f"gyro range {math.degrees(sat.declared):g} deg/s (declared), "
+                 f"{sat.n_saturated} samples at it")  # fmt: skip
+        if sat.n_beyond:
+            words += f", {sat.n_beyond} beyond it refused (gyro_beyond_range)"
+        return words
+    if not sat.learned:
+        return "gyro range not seen (no flat top of a clipping gyro; none assumed)"
+    levels = ", ".join(f"{'+' if side == 0 else '-'}{math.degrees(v):.1f} on {'xyz'[ax]}"
+                       for ax, side, v in sat.learned)  # fmt: skip
+    return f"gyro range learned from its flat tops: {levels} deg/s, {sat.n_saturated} samples at it"
 
 
 def live_summary(summary) -> str:
