@@ -14,6 +14,15 @@ Fusion, fed live (each IMU sample as it comes, each fix when it arrives):
 >>> engine = Fusion(AttitudeModel(sample_s=0.01))
 >>> engine.add_fix(fix)                       # doctest: +SKIP
 >>> state = engine.step(t, gyro_rad_s, None)  # doctest: +SKIP
+
+What `track --imu` does, scripted: a camera's rows as fixes (their full covariance
+kept), the engine from the options, fused rows from a recording:
+
+>>> opts = FusionOptions(gyro_range_dps=2000.0)
+>>> engine = engine_from_options(planar=False, period_s=0.01, opts=opts)
+>>> fixes = [f for f in map(lambda r: fix_from_row(r, False), rows) if f]  # doctest: +SKIP
+>>> out = list(fused_rows(fuse(read_imu("imu.csv", planar=False), fixes, None,
+...                            engine=engine), engine.model))  # doctest: +SKIP
 """
 
 from visvec.calib.camera import calibrate_camera
@@ -26,9 +35,11 @@ from visvec.detect import TriangleDetector
 from visvec.errors import ConfigError, InputFileError, SourceError, VisvecError
 from visvec.estimate import solve_full, solve_paper
 from visvec.fuse.attitude import AttitudeModel
-from visvec.fuse.inputs import Fix, read_fixes, read_imu
+from visvec.fuse.inputs import Fix, fix_from_row, read_fixes, read_imu
+from visvec.fuse.options import FusionOptions, engine_from_options, model_from_options
 from visvec.fuse.planar import PlanarModel
 from visvec.fuse.replay import Fusion, fuse
+from visvec.fuse.run import fused_rows
 from visvec.output import ATTITUDE_COLUMNS, AttitudeRow
 from visvec.pipeline import (
     LampPipeline,
@@ -50,8 +61,13 @@ __all__ = [
     "AttitudeModel",
     "Fix",
     "Fusion",
+    "FusionOptions",
     "PlanarModel",
+    "engine_from_options",
+    "fix_from_row",
     "fuse",
+    "fused_rows",
+    "model_from_options",
     "read_fixes",
     "read_imu",
     "AttitudeSolution",

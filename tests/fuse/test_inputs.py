@@ -1,5 +1,6 @@
 """The fusion's input files: a bad line is refused by its number."""
 
+import numpy as np
 import pytest
 from fusion_cases import write
 
@@ -58,3 +59,74 @@ def test_rows_read_late_are_no_fixes(tmp_path):
     keys = PLANAR_COLUMNS
     live = [dict(zip(keys, r.strip("\n").split(","), strict=False)) for r in rows]
     assert [parse_fix(r, planar=True) is None for r in live] == [False, True, False]
+
+
+def test_an_imu_file_s_header_declares_the_gyro_range(tmp_path):
+    """'# gyro_range_dps = N' before the header: read as the gyro's range; lines are
+    still numbered as in the file; a range that is not a positive finite number is
+    refused naming its line."""
+    good = "time_s,gx_dps,gy_dps,gz_dps\n0,0,0,0\n0.01,0,0,0\n"
+    body = good + "0.02,x,0,0\n"
+    with pytest.raises(InputFileError, match="line 6: gx_dps = 'x'"):
+        read_imu(write(tmp_path, "a.csv", "# BMI088\n# gyro_range_dps = 2000\n" + body), False)
+    imu = read_imu(write(tmp_path, "b.csv", "# gyro_range_dps: 2000\n" + good), False)
+    assert imu.gyro_range_dps == 2000.0 and imu.lines.tolist() == [3, 4]
+    assert read_imu(write(tmp_path, "c.csv", good), False).gyro_range_dps is None
+    for bad in ("0", "-250", "nan", "inf", "fast"):
+        with pytest.raises(InputFileError, match=f"line 2: gyro_range_dps = '{bad}'"):
+            read_imu(write(tmp_path, "d.csv", f"# IMU\n# gyro_range_dps = {bad}\n" + body), False)
+
+
+def _attitude_row(cov_euler_deg2):
+    from visvec.data import AttitudeSolution, Status
+    from visvec.output import attitude_row
+    from visvec.rotations import euler_to_matrix
+
+    R = euler_to_matrix(*np.radians([30.0, 10.0, -5.0]))
+    row = attitude_row(3, 1.5, AttitudeSolution(Status.OK, R_nb=R, cov_b=np.eye(3)),
+                       Status.OK, (), latency_ms=40.0)  # fmt: skip
+    from dataclasses import replace
+
+    sig = np.sqrt(np.diag(cov_euler_deg2))
+    return replace(row, cov=np.asarray(cov_euler_deg2), sigma_deg=sig), R
+
+
+COV_E = np.array([[0.04, -0.0116, 0.0], [-0.0116, 0.04, 0.001], [0.0, 0.001, 0.09]])  # deg^2
+
+
+def test_a_fix_from_a_row_keeps_its_full_covariance(tmp_path):
+    """The triangle's yaw-pitch correlation (-0.29 here) reaches the filter: in one
+    process (fix_from_row), from a file with --covariance columns (read_fixes) and from a
+    live text row (parse_fix), the same body-axis covariance; from sigmas alone it is
+    lost (the correlation is what differs)."""
+    import csv
+
+    from visvec.fuse.inputs import _fix_cov, fix_cov, fix_from_row
+    from visvec.fuse.live import parse_fix
+    from visvec.output import AttitudeRow
+
+    row, R = _attitude_row(COV_E)
+    want = fix_cov(COV_E, R, planar=False)
+    f = fix_from_row(row, planar=False)
+    np.testing.assert_allclose(f.cov, want, rtol=1e-12)
+    assert f.time_s == 1.5 and f.available_s == pytest.approx(1.54)
+    diag = _fix_cov(np.sqrt(np.diag(COV_E)), R, planar=False)
+    assert np.abs(diag - want).max() > 0.1 * np.abs(want).max()
+    cols = (*AttitudeRow.columns, *AttitudeRow.cov_columns())
+    d = {**row.as_dict(), **row.cov_dict()}
+    text = {k: "" if d[k] is None else str(d[k]) for k in cols}
+    p = tmp_path / "fixes.csv"
+    with open(p, "w", newline="") as fh:
+        wr = csv.DictWriter(fh, cols)
+        wr.writeheader()
+        wr.writerow(text)
+    np.testing.assert_allclose(read_fixes(p).fixes[0].cov, want, rtol=1e-5)
+    np.testing.assert_allclose(parse_fix(text, planar=False).cov, want, rtol=1e-5)
+    # a covariance that is none is refused, naming the line
+    text["cov_yaw_pitch"] = "0.5"
+    with open(p, "w", newline="") as fh:
+        wr = csv.DictWriter(fh, cols)
+        wr.writeheader()
+        wr.writerow(text)
+    with pytest.raises(InputFileError, match="line 2: the cov_\\* columns are not a covariance"):
+        read_fixes(p)

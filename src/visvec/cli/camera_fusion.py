@@ -8,12 +8,12 @@ from contextlib import ExitStack, nullcontext
 import click
 
 from visvec.cli.common import rows_out
-from visvec.cli.fuse import echo_learned, fusion_model, live_summary
+from visvec.cli.fuse import echo_learned, engine, live_summary, options_model, with_declared_range
 from visvec.errors import ConfigError, InputFileError
 from visvec.fuse.camera import CameraFixes
-from visvec.fuse.inputs import Fix, read_imu
-from visvec.fuse.live import Reader, parse_fix, run_live
-from visvec.fuse.replay import Fusion
+from visvec.fuse.inputs import Fix, fix_from_row, read_imu
+from visvec.fuse.live import Reader, run_live
+from visvec.fuse.options import FusionOptions
 from visvec.fuse.replay import fuse as run_fusion
 from visvec.fuse.run import fused_rows
 from visvec.output import AttitudeRow, PoseRow
@@ -50,10 +50,11 @@ def run_fused_camera(rig, frames, imu_src, method, out, fmt, camera_out, view=No
         raise click.BadParameter(str(exc), param_hint="--imu") from None
     pipe = make_pipeline(rig, method)
 
+    opts = FusionOptions(gyro_range_dps=rig.imu.gyro_range_dps)
+
     def setup(is_planar: bool):
-        model, limits = fusion_model(is_planar, None, "kalman", None, 0.002, None, False, None,
-                                     0.5)  # fmt: skip
-        return Fusion(model, limits=limits), model
+        eng = engine(is_planar, None, opts)
+        return eng, eng.model
 
     with ExitStack() as stack:
         cam_sink = None
@@ -106,17 +107,18 @@ def run_fused_batch(rig, frames, imu_path, method, out, fmt, camera_out) -> None
             row = pipe.process(frame)
             if sink is not None:
                 sink.write(row.as_dict())
-            if row.ok:
-                d = {k: ("" if v is None else str(v)) for k, v in row.as_dict().items()}
-                f = parse_fix(d, planar)
-                if f is not None:
-                    fixes.append(f)
+            f = fix_from_row(row, planar)  # its full covariance kept
+            if f is not None:
+                fixes.append(f)
     imu = read_imu(imu_path, planar=planar)
-    model, limits = fusion_model(planar, imu.period_s, "kalman", None, 0.002, None, False, None,
-                                 0.5)  # fmt: skip
+    opts = with_declared_range(FusionOptions(), rig.imu.gyro_range_dps, "the rig's [imu]")
+    opts = with_declared_range(opts, imu.gyro_range_dps, imu_path)
+    model, limits = options_model(planar, imu.period_s, opts)
     n = n_ok = 0
     with rows_out(out, fmt, PoseRow.columns if planar else AttitudeRow.columns) as sink:
-        for row in fused_rows(run_fusion(imu, fixes, model, limits=limits), model):
+        for row in fused_rows(
+            run_fusion(imu, fixes, model, limits=limits, gyro_range_dps=opts.gyro_range_dps), model
+        ):
             sink.write(row.as_dict())
             n += 1
             n_ok += int(row.ok)

@@ -79,8 +79,8 @@ class CameraFixes:
                 if row.ok and not frame.late:
                     # (late asked again: its reader may have learnt it since the row)
                     self.n_ok += 1
-                    d = {k: ("" if v is None else str(v)) for k, v in row.as_dict().items()}
-                    d["_host_exposure"] = t0 + (frame.time_s - first)
+                    # the row itself (its covariance whole), and its exposure on the host
+                    d = {"_row": row, "_host_exposure": t0 + (frame.time_s - first)}
                     self.events.put(Event("fix", "fix", time.monotonic(), d))
                 if self.watcher is not None:
                     self.watcher.see(frame, row, self.pipe)

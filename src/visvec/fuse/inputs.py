@@ -9,6 +9,8 @@ rows are used, and a fix becomes available at `time_s + latency_ms / 1000`.
 from __future__ import annotations
 
 import csv
+import functools
+import itertools
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -40,7 +42,8 @@ GAP_PERIODS = 3.0  # a step longer than this many median periods is a gap
 class ImuData:
     """Samples of an inertial file: ``t`` (n,) s; ``gyro`` (n, 3) rad/s (a planar IMU
     fills only z); ``accel`` (n, 2) m/s^2 in x, y, or None; ``lines`` the file line of
-    each sample; ``gaps`` the sample indices that start after a gap."""
+    each sample; ``gaps`` the sample indices that start after a gap; ``gyro_range_dps``
+    the gyro's range its header declares (``# gyro_range_dps = N``), if it does."""
 
     t: np.ndarray
     gyro: np.ndarray
@@ -49,6 +52,7 @@ class ImuData:
     gaps: tuple[int, ...]
     period_s: float
     path: Path | None = None
+    gyro_range_dps: float | None = None
 
     def __len__(self) -> int:
         return len(self.t)
@@ -65,24 +69,64 @@ def _number(row: dict, key: str, path: Path, line: int) -> float:
     return x
 
 
-def _open_csv(path: Path, what: str):
+def _optional(row: dict, path: Path, line: int, key: str) -> float | None:
+    """A column's number, None where it is empty or missing."""
+    return _number(row, key, path, line) if (row.get(key) or "").strip() else None
+
+
+def _open_csv(path: Path, what: str, comments: bool = False):
+    """The file, its CSV reader and columns; with ``comments``, also the ``key = value``
+    (or ``key: value``) lines starting with # before the header, and how many lines
+    they take."""
     try:
         fh = open(path, newline="", encoding="utf-8")  # noqa: SIM115
     except OSError as exc:
         raise InputFileError(f"{path}: cannot read the {what} ({exc.strerror})") from None
+    meta: dict[str, tuple[str, int]] = {}
+    skipped = 0
     try:
-        reader = csv.DictReader(fh)
+        lines = iter(fh)
+        first = next(lines, "")
+        while comments and first.startswith("#"):
+            skipped += 1
+            key, sep, value = first[1:].replace(":", "=", 1).partition("=")
+            if sep:
+                meta[key.strip()] = (value.strip(), skipped)
+            first = next(lines, "")
+        reader = csv.DictReader(itertools.chain([first], lines) if first else lines)
         cols = list(reader.fieldnames or [])
     except (UnicodeDecodeError, csv.Error):
         fh.close()
         raise InputFileError(f"{path}: not a UTF-8 CSV file: expected the {what}") from None
+    if comments:
+        return fh, reader, cols, meta, skipped
     return fh, reader, cols
 
 
-def _rows(reader, path: Path):
-    """(line, row) of a CSV reader; a byte that is not UTF-8 or a broken CSV line is
-    refused naming the file."""
-    it = enumerate(reader, start=2)
+# the IMU file's header lines (# key = value) that visvec reads
+IMU_HEADER_KEYS = ("gyro_range_dps",)
+
+
+def _imu_header(meta: dict[str, tuple[str, int]], path: Path) -> float | None:
+    """The gyro's range from the IMU file's header (# gyro_range_dps = N), if any: a
+    positive finite number, else refused naming the line."""
+    if "gyro_range_dps" not in meta:
+        return None
+    raw, line = meta["gyro_range_dps"]
+    try:
+        v = float(raw)
+    except ValueError:
+        v = math.nan
+    if not math.isfinite(v) or v <= 0:
+        raise InputFileError(f"{path}: line {line}: gyro_range_dps = {raw!r}: expected a "
+                             "positive finite number (deg/s)")  # fmt: skip
+    return v
+
+
+def _rows(reader, path: Path, skipped: int = 0):
+    """(line, row) of a CSV reader (``skipped`` comment lines before its header); a
+    byte that is not UTF-8 or a broken CSV line is refused naming the file."""
+    it = enumerate(reader, start=2 + skipped)
     while True:
         try:
             item = next(it)
@@ -107,8 +151,9 @@ def read_imu(path: str | Path, planar: bool) -> ImuData:
     """
     path = Path(path)
     need = ("time_s", *(PLANAR_IMU if planar else ATTITUDE_IMU))
-    fh, reader, cols = _open_csv(path, "inertial data")
+    fh, reader, cols, meta, skipped = _open_csv(path, "inertial data", comments=True)
     with fh:
+        gyro_range = _imu_header(meta, path)
         missing = [k for k in need if k not in cols]
         if missing:
             raise InputFileError(
@@ -117,7 +162,7 @@ def read_imu(path: str | Path, planar: bool) -> ImuData:
                 f"(found {','.join(cols) or 'no header'})"
             )
         t, g, a, lines = [], [], [], []
-        for line, row in _rows(reader, path):
+        for line, row in _rows(reader, path, skipped):
             ti = _number(row, "time_s", path, line)
             if t and ti <= t[-1]:
                 raise InputFileError(
@@ -145,6 +190,7 @@ def read_imu(path: str | Path, planar: bool) -> ImuData:
         gaps,
         period,
         path,
+        gyro_range,
     )
 
 
@@ -207,6 +253,7 @@ def read_fixes(path: str | Path) -> Fixes:
             else ("sigma_yaw_deg", "sigma_pitch_deg", "sigma_roll_deg")
         )
         has_sigma = all(k in cols for k in sig_cols)
+        has_cov = all(k in cols for k in cov_columns(planar))
         out, n = [], 0
         for line, row in _rows(reader, path):
             n += 1
@@ -233,7 +280,15 @@ def read_fixes(path: str | Path) -> Fixes:
                     )
                 value = quat_to_matrix(q / norm)
             cov = None
-            if has_sigma:
+            full = None
+            if has_cov:
+                try:
+                    full = row_cov(functools.partial(_optional, row, path, line), planar)
+                except ValueError as exc:
+                    raise InputFileError(f"{path}: line {line}: {exc}") from None
+            if full is not None:
+                cov = fix_cov(full, value, planar)
+            elif has_sigma:
                 s = np.array([_number(row, k, path, line) for k in sig_cols])
                 if np.any(s <= 0):
                     raise InputFileError(
@@ -244,13 +299,71 @@ def read_fixes(path: str | Path) -> Fixes:
     return Fixes(tuple(out), planar, n, path)
 
 
-def _fix_cov(s: np.ndarray, value: np.ndarray, planar: bool) -> np.ndarray:
+def fix_cov(cov: np.ndarray, value: np.ndarray, planar: bool) -> np.ndarray:
+    """A fix's covariance as the filters take it, from a row's covariance in its own
+    units (planar: x mm, y mm, heading deg; attitude: yaw, pitch, roll deg): planar in
+    mm and rad; attitude about the body axes (rad^2), d(euler) = J d(theta_body), so
+    cov_theta = J^-1 cov_euler J^-T. Near the Euler angles' singularity (|cos pitch| <
+    0.1) they say little: the largest variance on every axis."""
+    cov = np.asarray(cov, float)
     if planar:
-        return np.diag([s[0] ** 2, s[1] ** 2, math.radians(s[2]) ** 2])
-    # Euler-angle sigmas (yaw, pitch, roll) -> body-axis rotation covariance:
-    # d(euler) = J d(theta_body), so cov_theta = J^-1 diag(s^2) J^-T
+        d = np.array([1.0, 1.0, math.radians(1.0)])
+        return cov * np.outer(d, d)
+    c = np.radians(np.radians(cov))
     yaw, pitch, roll = matrix_to_euler(value)
-    if abs(math.cos(pitch)) < 0.1:  # near gimbal lock the Euler sigmas say little
-        return np.eye(3) * math.radians(float(s.max())) ** 2
+    if abs(math.cos(pitch)) < 0.1:
+        return np.eye(3) * float(np.linalg.eigvalsh(0.5 * (c + c.T)).max())
     Ji = np.linalg.inv(euler_rates_from_body(yaw, pitch, roll))
-    return Ji @ np.diag(np.radians(s) ** 2) @ Ji.T
+    return Ji @ c @ Ji.T
+
+
+def _fix_cov(s: np.ndarray, value: np.ndarray, planar: bool) -> np.ndarray:
+    """A fix's covariance from its row's three sigmas (fix_cov of their squares)."""
+    return fix_cov(np.diag(np.asarray(s, float) ** 2), value, planar)
+
+
+def cov_columns(planar: bool) -> tuple[str, ...]:
+    """The covariance columns of a fix's row (``--covariance``: the upper triangle)."""
+    from visvec.output import AttitudeRow, PoseRow
+
+    return (PoseRow if planar else AttitudeRow).cov_columns()
+
+
+def row_cov(get, planar: bool) -> np.ndarray | None:
+    """The full covariance a row's ``cov_*`` columns give (``get(name)`` their numbers,
+    None where a column is empty or missing), in the row's units; None unless all six
+    are there. ValueError if it is not a covariance (not positive definite)."""
+    vals = [get(k) for k in cov_columns(planar)]
+    if any(v is None for v in vals):
+        return None
+    c = np.zeros((3, 3))
+    k = 0
+    for i in range(3):
+        for j in range(i, 3):
+            c[i, j] = c[j, i] = vals[k]
+            k += 1
+    if not np.all(np.isfinite(c)) or np.linalg.eigvalsh(c).min() <= 0.0:
+        raise ValueError("the cov_* columns are not a covariance (positive definite)")
+    return c
+
+
+def fix_from_row(row, planar: bool) -> Fix | None:
+    """An ok row of visvec's (visvec.output.Row) as a fix, in one process: its full
+    covariance kept where it has one (the triangle's yaw-pitch correlation), its three
+    sigmas where not; available at its exposure plus its ``latency_ms``. None for a row
+    that is not ok or whose time is not its exposure's (UNTIMED)."""
+    if not row.ok or any(w in UNTIMED for w in row.warnings):
+        return None
+    if planar:
+        x, y, h = (float(v) for v in row.pose)
+        value = np.array([x, y, math.radians(h)])
+    else:
+        q = np.asarray(row.q_nb, float)
+        value = quat_to_matrix(q / np.linalg.norm(q))
+    cov = None
+    if row.cov is not None and np.all(np.isfinite(row.cov)):
+        cov = fix_cov(row.cov, value, planar)
+    elif np.all(np.isfinite(row.sigmas())) and np.all(row.sigmas() > 0):
+        cov = _fix_cov(row.sigmas(), value, planar)
+    t = float(row.time_s)
+    return Fix(t, t + max(float(row.latency_ms), 0.0) / 1000.0, value, cov, 0)

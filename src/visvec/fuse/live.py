@@ -43,9 +43,12 @@ from visvec.fuse.inputs import (
     PLANAR_IMU,
     STATUSES,
     Fix,
+    fix_cov,
+    fix_from_row,
+    row_cov,
     untimed,
 )
-from visvec.fuse.inputs import _fix_cov as fix_cov
+from visvec.fuse.inputs import _fix_cov as sigma_cov
 from visvec.fuse.run import fused_rows
 from visvec.rotations import quat_to_matrix
 
@@ -304,11 +307,14 @@ def parse_fix(row: dict, planar: bool) -> Fix | None:
         value = quat_to_matrix(q / norm)
         sig_cols = ("sigma_yaw_deg", "sigma_pitch_deg", "sigma_roll_deg")
     cov = None
-    if all((row.get(k) or "").strip() for k in sig_cols):
+    full = row_cov(lambda k: _num(row, k) if (row.get(k) or "").strip() else None, planar)
+    if full is not None:
+        cov = fix_cov(full, value, planar)
+    elif all((row.get(k) or "").strip() for k in sig_cols):
         s = np.array([_num(row, k) for k in sig_cols])
         if np.any(s <= 0):
             raise ValueError("sigma columns must be positive")
-        cov = fix_cov(s, value, planar)
+        cov = sigma_cov(s, value, planar)
     return Fix(t, t + lat / 1000.0, value, cov, 0)
 
 
@@ -457,7 +463,10 @@ class _LiveRun:
     def add_fix(self, row: dict, arrival: float) -> None:
         """A fix held until the IMU's clock reaches the time it became available."""
         try:
-            f = parse_fix(row, self.planar)
+            # this process's camera hands its row itself (fix_from_row: its full
+            # covariance kept); a stream's rows are text
+            f = fix_from_row(row["_row"], self.planar) if "_row" in row else \
+                parse_fix(row, self.planar)  # fmt: skip
         except ValueError as exc:
             self.bad("fix", str(exc))
             return
