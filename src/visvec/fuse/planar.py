@@ -180,6 +180,9 @@ class PlanarState:
     # not yet coupled to the pose (PlanarModel.update)
     pending: bool = False
     an: tuple[float, float] = (0.0, 0.0)  # the last interval's acceleration, lab (mm/s^2)
+    # the fixes' timing not yet known (s^2; PlanarModel.timing_spread_s squared): the
+    # pose's rate times it widens the rows' covariance
+    spread: float = 0.0
 
     @property
     def disputed(self) -> bool:
@@ -233,6 +236,9 @@ class PlanarModel:
     # network held up: tens to hundreds of ms) are refused while the IMU carries the
     # pose, rather than taken as the truth by a restart
     restart_after_s: float = 1.0
+    # the fixes' timing not known (s): the rows' covariance widened by the pose's rate
+    # times it (the provisional filter while the clocks align: Fusion.provisional)
+    timing_spread_s: float = 0.0
 
     planar = True
 
@@ -245,7 +251,8 @@ class PlanarModel:
         P = np.diag([R[0, 0], R[1, 1], self.velocity_sigma**2, self.velocity_sigma**2,
                      R[2, 2], self.gyro_bias_sigma**2, self.accel_bias_sigma**2,
                      self.accel_bias_sigma**2, self.time_offset_sigma**2, 0.0])  # fmt: skip
-        return PlanarState(x, P, jitter=PlanarJitter(self.jitter_sigma), pending=True)
+        return PlanarState(x, P, jitter=PlanarJitter(self.jitter_sigma), pending=True,
+                           spread=self.timing_spread_s**2)  # fmt: skip
 
     def align(self, ts: np.ndarray, rate: np.ndarray, accel: np.ndarray | None,
               fixes: list[Fix]) -> tuple[float, float] | None:  # fmt: skip
@@ -429,7 +436,7 @@ class PlanarModel:
         P = F @ s.P @ F.T + Q
         P[LATE, LATE] = max(P[LATE, LATE], lasting)  # a lateness just found is not known in value
         return PlanarState(xn, P, w, s.jitter, s.dispute, s.pending,
-                           (float(an[0]), float(an[1])))  # fmt: skip
+                           (float(an[0]), float(an[1])), s.spread)  # fmt: skip
 
     def process_noise(self, dt: float, lasting: float) -> np.ndarray:
         """The process noise Q (10, 10) over an interval of ``dt`` s: the accelerometers'
@@ -466,7 +473,7 @@ class PlanarModel:
             P[idx, :] = 0.0
             P[:, idx] = 0.0
             P[np.ix_(idx, idx)] = R0
-            return PlanarState(x, P, jitter=s.jitter), True, math.nan
+            return PlanarState(x, P, jitter=s.jitter, spread=s.spread), True, math.nan
         h, H = self._measure(x0, s.w, s.an, fix.shift)
         # the second-order terms of h's products (v tau, b_g tau): a Gaussian
         # second-order filter (Gelb, Applied Optimal Estimation, 1974, Sec. 6.1; for
@@ -515,7 +522,7 @@ class PlanarModel:
         jitter = s.jitter
         if self.learn_jitter:
             jitter = jitter.learn(r, S_nj, J)
-        return PlanarState(x, P, s.w, jitter), True, nis
+        return PlanarState(x, P, s.w, jitter, spread=s.spread), True, nis
 
     def _second(self, s: PlanarState, fix: Fix, R0: np.ndarray) -> PlanarState:
         """The second fix after a start: with the first, it gives the velocity, and only
@@ -560,7 +567,7 @@ class PlanarModel:
         x[X : PSI + 1] += G[X : PSI + 1] * (x[TAU] - fix.shift)
         cross = P[:, TAU].copy()
         P = P + np.outer(G, G) * ptt + np.outer(G, cross) + np.outer(cross, G)
-        return PlanarState(x, P, s.w, s.jitter, None, False, s.an)
+        return PlanarState(x, P, s.w, s.jitter, None, False, s.an, s.spread)
 
     def reinit(self, s: PlanarState, fix: Fix) -> PlanarState:
         """Start again from ``fix``'s pose (the velocity unknown again), keeping what was
@@ -573,7 +580,7 @@ class PlanarModel:
         P[np.ix_(keep, keep)] = s.P[np.ix_(keep, keep)]
         x = n.x.copy()
         x[keep] = s.x[keep]
-        return PlanarState(x, P, s.w, s.jitter, pending=True)
+        return PlanarState(x, P, s.w, s.jitter, pending=True, spread=s.spread)
 
     @staticmethod
     def _measure(
@@ -617,4 +624,9 @@ class PlanarModel:
             ptt = s.P[TAU, TAU] + 2.0 * s.P[TAU, LATE] + s.P[LATE, LATE]
             var = var + ptt * np.array([s.x[VX] ** 2 + s.P[VX, VX], s.x[VY] ** 2 + s.P[VY, VY],
                                         s.w**2])  # fmt: skip
+        if s.spread:
+            # fixes whose time offset is not known yet (Fusion, while the clocks align):
+            # the pose moves by its rate times an offset anywhere in the range
+            var = var + s.spread * np.array([s.x[VX] ** 2 + s.P[VX, VX],
+                                             s.x[VY] ** 2 + s.P[VY, VY], s.w**2])  # fmt: skip
         return v, np.sqrt(np.clip(var, 0.0, None))

@@ -28,6 +28,7 @@ import numpy as np
 from visvec.fuse.align import ALIGN_PRIOR_MIN, SHIFT_MAX, ClockAlignment
 from visvec.fuse.history import History
 from visvec.fuse.inputs import Fix, ImuData
+from visvec.fuse.planar import ALIGN_TAU
 from visvec.fuse.rest import RestSegment, find_rest
 from visvec.fuse.saturation import Saturation
 
@@ -37,6 +38,9 @@ MAX_REJECTED_IN_A_ROW = 3  # then the filter restarts from the latest fix
 # replayed, once the estimate is known to SHIFT_SIGMA and has moved SHIFT_STEP from it
 SHIFT_STEP = 0.005  # s
 SHIFT_SIGMA = 0.005  # s
+# while the clocks align, the fixes' time offset may be anywhere in the alignment's range
+# (visvec.fuse.planar.ALIGN_TAU): the provisional filter's timing sigma (Fusion._provisional)
+PROVISIONAL_TIMING_S = max(abs(x) for x in ALIGN_TAU)
 
 
 @dataclass(frozen=True)
@@ -99,6 +103,7 @@ class Fusion:
         self._initialised = False
         self.rest: RestSegment | None = None
         self.shift = 0.0  # s: the fixes are applied this much before their stated time
+        self._prov = None  # the provisional model while the clocks align (_provisional)
 
     @property
     def aligned(self) -> tuple[float, float] | None:
@@ -161,6 +166,8 @@ class Fusion:
                 warnings.append("aligning_clocks")
             self._forget(t)  # an IMU with no fix for hours keeps only its history
             return FusedSample(k, t, None, self.n_applied, (*warnings, "no_fix_yet"))
+        if self._prov is not None:
+            warnings.append("aligning_clocks")
         if (
             new
             and self._rejected_streak >= MAX_REJECTED_IN_A_ROW
@@ -235,6 +242,25 @@ class Fusion:
         own exposure time; False while no fix has started the filter."""
         h, known = self.history, self._known
         ts, gyro, acc, states = h.ts, h.gyro, h.acc, h.states
+        model = self.model
+        if not self._initialised and known:
+            if self._align():
+                # aligned (or no alignment needed): the filter itself, from the
+                # earliest fix known, whatever the provisional one did
+                self._initialised = True
+                self.rest = find_rest(ts, h.raw, ts[-1])
+                if self.rest is not None and hasattr(self.model, "with_rest"):
+                    self.model = self.model.with_rest(*self.rest)
+                model = self.model
+                if self._prov is not None:
+                    self._prov = None
+                    start = 0
+                    self.n_applied = 0
+                    new = [f for _, _, f in known]
+            else:
+                model = self._provisional()
+                if model is None:
+                    return False
         s = states[start - 1] if start > 0 else None
         if s is not None:
             t_s = ts[start - 1]
@@ -243,21 +269,12 @@ class Fusion:
             init = known[0][2] if known else None
             if init is None:
                 return False
-            if not self._initialised:
-                if not self._align():
-                    return False
-                self._initialised = True
-                self.rest = find_rest(ts, h.raw, ts[-1])
-                if self.rest is not None and hasattr(self.model, "with_rest"):
-                    self.model = self.model.with_rest(*self.rest)
-                init = known[0][2]
-            s, t_s = self.model.init(init), init.time_s
+            s, t_s = model.init(init), init.time_s
             if any(init is f for f in new):
                 self.n_applied += 1
             start = bisect.bisect_left(ts, t_s)
             for i in range(start):
                 states[i] = None
-        model = self.model
         for j in range(start, len(ts)):
             # every known fix with its exposure in (t_s, ts[j]], at its own time
             lo = bisect.bisect_right(known, (t_s, math.inf))
@@ -281,6 +298,21 @@ class Fusion:
                 t_s = ts[j]
             states[j] = s
         return True
+
+    def _provisional(self):
+        """While the clocks align (planar fixes whose time offset is not known yet):
+        the model the rows are fused with meanwhile, so that they need not wait. The
+        fixes count with a timing error anywhere in the alignment's range (their
+        jitter: PROVISIONAL_TIMING_S), the offset is not estimated, and each row's
+        covariance is widened by the pose's rate times that range
+        (PlanarModel.timing_spread_s): an honest row, warned aligning_clocks, until the
+        alignment replays the history with the filter itself. None for a model that
+        has no provisional form."""
+        if self._prov is None and hasattr(self.model, "timing_spread_s"):
+            self._prov = replace(self.model, time_offset_sigma=0.0, learn_jitter=False,
+                                 jitter_sigma=PROVISIONAL_TIMING_S,
+                                 timing_spread_s=PROVISIONAL_TIMING_S)  # fmt: skip
+        return self._prov
 
     def _align(self) -> bool:
         """Before the filter starts: the fixes' time offset (visvec.fuse.align). False
