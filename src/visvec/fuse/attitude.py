@@ -42,9 +42,10 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from visvec.chi2 import ppf as chi2_ppf
+from visvec.fuse import kernels
 from visvec.fuse.gate import BURST_P, nis_limit
 from visvec.fuse.inputs import Fix
-from visvec.rotations import expmap, logmap, skew
+from visvec.rotations import expmap, logmap
 
 
 @dataclass(frozen=True)
@@ -62,6 +63,14 @@ class NoiseFit:
         return cls(np.zeros((2, 2)), np.zeros(2), theta0)
 
     def theta(self) -> np.ndarray:
+        """(q_a, q_w), solved once per fit (a propagation asks for it every sample)."""
+        th = self.__dict__.get("_theta")
+        if th is None:
+            th = self._solve()
+            object.__setattr__(self, "_theta", th)
+        return th
+
+    def _solve(self) -> np.ndarray:
         # the prior: each parameter as known as from NOISE_PRIOR_FIXES fixes
         # (var(|r|^2) = 2 E(|r|^2)^2 each); it is not forgotten, so that a parameter
         # the motion does not show (q_w at rest) stays at its prior
@@ -129,20 +138,10 @@ def transition(s: AttitudeState, g: np.ndarray, gdot: np.ndarray, dt: float,
     change ``gdot`` (rad/s^2) with the state's calibration: w = R_m (1 + k)
     (g + tau gdot - b), and F = I + (the error equation of the module doc) dt, its
     attitude block the exact transition exp(-[w]x dt); the clock jitter decays over
-    ``jitter_time`` s and the time offset drifts with the clocks' rate difference."""
-    scale = 1.0 + s.k
-    gc = g + s.tau * gdot - s.b  # the reading corrected, in gyro axes
-    w = s.Rm @ (scale * gc)
-    RmS = s.Rm * scale
-    F = np.eye(N_STATE)
-    F[TH, TH] = expmap(-w * dt)  # exact transition of -[w]x
-    F[TH, BIAS] = -RmS * dt
-    F[TH, MIS] = -skew(w) * dt
-    F[TH, SCALE] = s.Rm * gc * dt
-    F[TH, TAU] = F[TH, JIT] = RmS @ gdot * dt
-    F[JIT, JIT] = math.exp(-dt / jitter_time)
-    F[TAU, DRIFT] = dt
-    return w, F
+    ``jitter_time`` s and the time offset drifts with the clock rate (kernels.transition,
+    the one implementation the propagation runs)."""
+    return kernels.transition(s.Rm, s.k, s.b, s.tau, np.asarray(g, float),
+                              np.asarray(gdot, float), dt, jitter_time)  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -226,21 +225,19 @@ class AttitudeModel:
     def propagate(self, s: AttitudeState, gyro: np.ndarray, accel, dt: float):
         """``gyro`` is a `visvec.fuse.saturation.reading`: the interval's mean rate, its
         rate of change and the extra 1-sigma per axis of a saturated (reconstructed)
-        reading."""
+        reading. The equations: kernels.propagate (transition, process_noise)."""
         g, gdot, gsat = gyro
-        w, F = transition(s, g, gdot, dt, self.jitter_time)
-        Rn = s.R @ expmap(w * dt)
         qa, qw = s.noise.theta() if self.learn_noise else self.prior_theta()
         # white: qa dt; rate-proportional, held since the last fix (an error of the
         # rate's size kappa |w|, the same through the interval): its variance
         # qw (integral of |w| dt)^2 grows by qw ((A + |w| dt)^2 - A^2)
-        A = s.acc[1]
-        A1 = A + math.sqrt(float(w @ w)) * dt
-        q = (qa * dt + qw * (A1 * A1 - A * A)) * s.fade
-        Q = self.process_noise(s, q, gsat, dt)
-        sat = bool(np.any(gsat > 0))
-        P = F @ s.P @ F.T + Q
-        acc = (s.acc[0] + dt, A1, s.acc[2] + float(np.trace(Q[TH, TH])))
+        Rn, P, A1, trq = kernels.propagate(
+            s.R, s.b, s.Rm, s.k, s.tau, s.P, g, gdot, gsat, dt, qa, qw, s.acc[1], s.fade,
+            self.jitter, self.jitter_time, (CLOCK_DRIFT_WALK * self.clock_drift_sigma) ** 2,
+            self.gyro_bias_walk**2,
+        )  # fmt: skip
+        sat = bool(gsat[0] > 0 or gsat[1] > 0 or gsat[2] > 0)
+        acc = (s.acc[0] + dt, A1, s.acc[2] + trq)
         return AttitudeState(Rn, s.b, s.Rm, s.k, s.tau + s.drift * dt, P, s.noise, acc,
                              s.saturated or sat, s.disputed, s.fade, s.confirmed,
                              s.drift)  # fmt: skip
@@ -251,19 +248,11 @@ class AttitudeModel:
         attitude axis (the learned white and rate-proportional noise, faded), a
         saturated reading's error ``gsat`` (rad/s per gyro axis, 0 where in range), the
         bias's random walk, the clock jitter's Gauss-Markov increment and the clock
-        rate's random walk."""
-        fade_j = math.exp(-dt / self.jitter_time)
-        Q = np.zeros((N_STATE, N_STATE))
-        Q[JIT, JIT] = self.jitter**2 * (1.0 - fade_j * fade_j)
-        Q[DRIFT, DRIFT] = (CLOCK_DRIFT_WALK * self.clock_drift_sigma) ** 2 * dt
-        Q[TH, TH] = np.eye(3) * q
-        if np.any(gsat > 0):
-            # a saturated reading's error is the same all through the burst: count it
-            # as one (conservatively, the whole interval's worth at once)
-            RmS = s.Rm * (1.0 + s.k)
-            Q[TH, TH] += RmS @ np.diag((gsat * dt) ** 2) @ RmS.T
-        Q[BIAS, BIAS] = np.eye(3) * self.gyro_bias_walk**2 * dt
-        return Q
+        rate's random walk (kernels.process_noise)."""
+        return kernels.process_noise(s.Rm * (1.0 + s.k), q, np.asarray(gsat, float), dt,
+                                     self.jitter, self.jitter_time,
+                                     (CLOCK_DRIFT_WALK * self.clock_drift_sigma) ** 2,
+                                     self.gyro_bias_walk**2)  # fmt: skip
 
     def update(self, s: AttitudeState, fix: Fix) -> tuple[AttitudeState, bool, float]:
         R = self._fix_cov(fix)
@@ -305,10 +294,10 @@ class AttitudeModel:
         IKH = np.eye(N_STATE)
         IKH[:, TH] -= K
         P = IKH @ P0 @ IKH.T + K @ R @ K.T
+        gated = bool(np.sqrt(np.diag(s.P[TH, TH])).max() <= CONFIRM_SIGMA)
         Rn = s.R @ expmap(dx[TH])
         Rm = expmap(dx[MIS]) @ s.Rm
         tau = float(np.clip(s.tau + dx[TAU], -0.1, 0.1))
-        gated = bool(np.sqrt(np.diag(s.P[TH, TH])).max() <= CONFIRM_SIGMA)
         drift = float(np.clip(s.drift + dx[DRIFT], -MAX_CLOCK_DRIFT, MAX_CLOCK_DRIFT))
         return AttitudeState(Rn, s.b + dx[BIAS], Rm, s.k + dx[SCALE], tau, P, noise,
                              acc0, fade=fade, confirmed=gated, drift=drift), True, nis  # fmt: skip

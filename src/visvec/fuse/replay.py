@@ -418,10 +418,15 @@ def fuse(
 
 
 def is_faulty(g: np.ndarray, a: np.ndarray | None, limits: Limits) -> bool:
-    if not np.all(np.isfinite(g)) or (a is not None and not np.all(np.isfinite(a))):
+    """Whether a sample is a fault: not finite, or beyond the limits."""
+    gl = [float(x) for x in g]
+    al = [float(x) for x in a] if a is not None else []
+    if not all(math.isfinite(x) for x in gl + al):
         return True
-    if limits.max_rate_dps is not None and np.degrees(np.abs(g)).max() > limits.max_rate_dps:
+    if limits.max_rate_dps is not None and (
+        max(abs(x) for x in gl) > math.radians(limits.max_rate_dps)
+    ):
         return True
-    if a is not None and limits.max_accel_mps2 is not None:
-        return bool(np.abs(a).max() > limits.max_accel_mps2)
+    if al and limits.max_accel_mps2 is not None:
+        return max(abs(x) for x in al) > limits.max_accel_mps2
     return False

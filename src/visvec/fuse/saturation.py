@@ -63,7 +63,11 @@ def reading(mean: np.ndarray, rate: np.ndarray, sat: np.ndarray) -> np.ndarray:
     """What a model's propagate takes as ``gyro``: (3, 3) rows: the interval's mean rate
     (rad/s), its rate of change (rad/s^2) and the extra 1-sigma per axis of a
     saturated reading (rad/s; 0 where the reading is within range)."""
-    return np.stack([mean, rate, sat])
+    out = np.empty((3, 3))
+    out[0] = mean
+    out[1] = rate
+    out[2] = sat
+    return out
 
 
 def declip(
@@ -130,6 +134,7 @@ class Saturation:
         self._noise: np.ndarray | None = None  # rad/s per axis
         self._noise_at = 0
         self._found = False  # a range learned at the newest sample
+        self._all_known = bool(np.all(np.isfinite(self.ranges)))
 
     def reset(self) -> None:
         """The samples broke off (a gap): no flat top is open."""
@@ -144,9 +149,10 @@ class Saturation:
 
     def beyond(self, g: np.ndarray) -> bool:
         """Whether a reading lies beyond the declared range (by more than SAT_BAND)."""
-        return self.declared is not None and bool(
-            np.abs(np.asarray(g, float)).max() > self.declared * (1 + SAT_BAND)
-        )
+        if self.declared is None:
+            return False
+        lim = self.declared * (1 + SAT_BAND)
+        return abs(float(g[0])) > lim or abs(float(g[1])) > lim or abs(float(g[2])) > lim
 
     def noise(self) -> np.ndarray | None:
         """The gyro's sample noise per axis (rad/s; the comment of NOISE_EVERY ...
@@ -175,21 +181,32 @@ class Saturation:
         range, learning a range from the evidence where none is known (the rule in
         the comment of SAT_RUN ... SAT_P)."""
         h = self.h
-        g = np.asarray(g, float)
+        gl = [float(x) for x in g]  # floats: a sample's checks in Python's arithmetic
         n = len(h.raw)
+        ext = self._extreme
         for ax in range(3):
-            side = 0 if g[ax] >= 0 else 1
-            self._extreme[ax, side] = max(self._extreme[ax, side], abs(g[ax]))
-        if not np.all(np.isfinite(self.ranges)):
+            side = 0 if gl[ax] >= 0 else 1
+            if abs(gl[ax]) > ext[ax, side]:
+                ext[ax, side] = abs(gl[ax])
+        if not self._all_known:
             noise = self.noise()
             if noise is not None and n >= SAT_RUN + 2:
+                low = math.radians(SAT_MIN_DPS)
                 for ax in range(3):
-                    self._follow_top(ax, n, float(noise[ax]))
+                    # a flat top starts (or goes on) only at SAT_MIN_DPS or more
+                    if self._open[ax] is not None or abs(gl[ax]) >= low:
+                        self._follow_top(ax, n, float(noise[ax]))
+            self._all_known = bool(np.all(np.isfinite(self.ranges)))
         out = np.zeros(3, bool)
-        for ax in range(3):
-            lvl = self.level(ax, g[ax])
-            out[ax] = lvl is not None and abs(g[ax]) >= lvl * (1 - SAT_BAND)
+        if self._any_known:
+            for ax in range(3):
+                lvl = self.level(ax, gl[ax])
+                out[ax] = lvl is not None and abs(gl[ax]) >= lvl * (1 - SAT_BAND)
         return out
+
+    @property
+    def _any_known(self) -> bool:
+        return self.declared is not None or bool(self.learned)
 
     def _follow_top(self, ax: int, n: int, sigma: float) -> None:
         """The flat top of axis ``ax`` at the newest sample: one that goes on gains a

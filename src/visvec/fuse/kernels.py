@@ -1,0 +1,149 @@
+"""The 3-D filter's propagation over one inertial interval, written once: compiled by
+Numba with the ``fast`` extra, run as numpy without it (or with ``VISVEC_PURE=1``).
+
+The equations and their sources are the 3-D filter's (visvec.fuse.attitude's module
+doc: Markley & Crassidis 2014, Eqs. 6.60-6.63, with the gyro's misalignment, scale
+factors, time offset, clock jitter and clock rate as states). A sample's propagation is
+the fusion's inner loop, replayed for every late fix: in numpy its sixty-odd small
+array operations take about 100 us, compiled a few (benchmarks/fusion_speed.py).
+
+Numba is imported on the first call, not with this module (the command line starts
+without it); every kernel is compiled then (or loaded from its cache), helpers first,
+so that the others compile against their dispatchers.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import threading
+
+import numpy as np
+
+from visvec.detect._compiled import AVAILABLE
+
+N_STATE = 15  # dtheta (3), bias (3), misalignment (3), scale (3), tau, jitter, clock rate
+
+
+def expmap3(x: float, y: float, z: float) -> np.ndarray:
+    """exp([w]x) of the rotation vector (x, y, z) (Rodrigues' formula; the series below
+    1e-8 rad), as visvec.rotations.expmap_xyz."""
+    t2 = x * x + y * y + z * z
+    if t2 < 1e-16:
+        a, b = 1.0, 0.5
+    else:
+        t = math.sqrt(t2)
+        a, b = math.sin(t) / t, (1.0 - math.cos(t)) / t2
+    R = np.empty((3, 3))
+    R[0, 0] = 1.0 - b * (y * y + z * z)
+    R[0, 1] = b * x * y - a * z
+    R[0, 2] = b * x * z + a * y
+    R[1, 0] = b * x * y + a * z
+    R[1, 1] = 1.0 - b * (x * x + z * z)
+    R[1, 2] = b * y * z - a * x
+    R[2, 0] = b * x * z - a * y
+    R[2, 1] = b * y * z + a * x
+    R[2, 2] = 1.0 - b * (x * x + y * y)
+    return R
+
+
+def transition(Rm, k, b, tau, g, gdot, dt, jitter_time):
+    """The body rate w (rad/s) over the interval and the error state's transition F
+    (15, 15): w = R_m (1 + k) (g + tau gdot - b); F = I + the error equation's matrix
+    times dt, its attitude block the exact exp(-[w]x dt); the clock jitter decays over
+    ``jitter_time``, the time offset drifts with the clock rate."""
+    scale = 1.0 + k
+    gc = g + tau * gdot - b  # the reading corrected, in gyro axes
+    w = Rm @ (scale * gc)
+    RmS = Rm * scale
+    F = np.eye(N_STATE)
+    F[0:3, 0:3] = expmap3(-w[0] * dt, -w[1] * dt, -w[2] * dt)
+    F[0:3, 3:6] = -RmS * dt
+    F[0, 7] = w[2] * dt  # -[w]x dt
+    F[0, 8] = -w[1] * dt
+    F[1, 6] = -w[2] * dt
+    F[1, 8] = w[0] * dt
+    F[2, 6] = w[1] * dt
+    F[2, 7] = -w[0] * dt
+    F[0:3, 9:12] = Rm * gc * dt
+    col = RmS @ gdot * dt
+    F[0:3, 12] = col
+    F[0:3, 13] = col
+    F[13, 13] = math.exp(-dt / jitter_time)
+    F[12, 14] = dt
+    return w, F
+
+
+def process_noise(RmS, q, gsat, dt, jitter, jitter_time, drift_walk2, bias_walk2):
+    """The process noise Q (15, 15) over ``dt``: ``q`` (rad^2) per attitude axis, a
+    saturated reading's error ``gsat`` (rad/s per gyro axis) through R_m (1 + k) =
+    ``RmS``, the bias's random walk (``bias_walk2``: rad^2/s^3), the clock jitter's
+    Gauss-Markov increment and the clock rate's random walk (``drift_walk2``: 1/s)."""
+    fade_j = math.exp(-dt / jitter_time)
+    Q = np.zeros((N_STATE, N_STATE))
+    Q[13, 13] = jitter * jitter * (1.0 - fade_j * fade_j)
+    Q[14, 14] = drift_walk2 * dt
+    for i in range(3):
+        Q[i, i] = q
+        Q[3 + i, 3 + i] = bias_walk2 * dt
+    if np.any(gsat > 0):
+        # a saturated reading's error is the same all through the burst: count it as
+        # one (conservatively, the whole interval's worth at once)
+        Q[0:3, 0:3] += RmS @ np.diag((gsat * dt) ** 2) @ RmS.T
+    return Q
+
+
+def propagate(R, b, Rm, k, tau, P, g, gdot, gsat, dt, qa, qw, A, fade, jitter, jitter_time,
+              drift_walk2, bias_walk2):  # fmt: skip
+    """One interval: the new attitude R_NB, covariance P, the turn since the last fix
+    ``A1`` (rad) and the attitude noise added (the trace of Q's attitude block). The
+    noise: white qa dt and rate-proportional qw ((A + |w| dt)^2 - A^2), held since the
+    last fix, times the fading factor."""
+    w, F = transition(Rm, k, b, tau, g, gdot, dt, jitter_time)
+    Rn = R @ expmap3(w[0] * dt, w[1] * dt, w[2] * dt)
+    A1 = A + math.sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2]) * dt
+    q = (qa * dt + qw * (A1 * A1 - A * A)) * fade
+    Q = process_noise(Rm * (1.0 + k), q, gsat, dt, jitter, jitter_time, drift_walk2,
+                      bias_walk2)  # fmt: skip
+    Pn = F @ P @ np.ascontiguousarray(F.T) + Q
+    return Rn, Pn, A1, Q[0, 0] + Q[1, 1] + Q[2, 2]
+
+
+# ------------------------------------------------------------------ compiled on demand
+_PY = {
+    "expmap3": expmap3,
+    "transition": transition,
+    "process_noise": process_noise,
+    "propagate": propagate,
+}  # fmt: skip  (helpers first: the others call them)
+_LOCK = threading.Lock()
+ON = AVAILABLE  # whether the compiled kernels run (off without Numba, VISVEC_PURE=1)
+
+
+def _compile() -> None:
+    """Compile every kernel (or load it from the cache), in _PY's order, each put in
+    its module name before the next is compiled."""
+    global ON
+    with _LOCK:
+        if globals()["propagate"] is not _lazy_propagate:
+            return
+        try:
+            import numba as nb
+
+            for name, f in _PY.items():
+                globals()[name] = nb.njit(cache=True, nogil=True)(f)
+        except ImportError as exc:
+            ON = False
+            for name, f in _PY.items():
+                globals()[name] = f
+            print(f"visvec: Numba did not import ({exc}); the fusion's numpy path runs",
+                  file=sys.stderr)  # fmt: skip
+
+
+def _lazy_propagate(*args):
+    _compile()
+    return globals()["propagate"](*args)
+
+
+if AVAILABLE:
+    propagate = _lazy_propagate  # noqa: F811  (the compiled kernel after the first call)
