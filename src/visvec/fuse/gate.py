@@ -15,9 +15,13 @@ BURST_P = 0.01
 
 def warm_up() -> None:
     """Compute (and cache) the chi-square quantiles the filters use, so that the import
-    they take (scipy.special: 0.5 s) does not fall on a live run's first fix."""
+    they take (scipy.special: 0.5 s) does not fall on a live run's first fix; and load
+    the 3-D filter's compiled propagation (visvec.fuse.kernels) for the same reason."""
+    from visvec.fuse import kernels
+
     nis_limit()
     chi2_ppf(1.0 - BURST_P, 3)
+    kernels.warm_up()
 
 
 def nis_limit() -> float:

@@ -140,6 +140,13 @@ def _compile() -> None:
                   file=sys.stderr)  # fmt: skip
 
 
+def warm_up() -> None:
+    """Compile the kernels (or load them from their cache) now, so that a live run's
+    first sample does not wait for it (half a second from the cache)."""
+    if globals()["propagate"] is _lazy_propagate:
+        _compile()
+
+
 def _lazy_propagate(*args):
     _compile()
     return globals()["propagate"](*args)
