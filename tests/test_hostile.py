@@ -482,3 +482,30 @@ def test_an_output_folder_that_cannot_be_made_is_refused(tmp_path):
         r = _run(["track", "--rig", str(RIG), "--camera", str(SAMPLE), opt, str(blocker),
                   "--out", str(tmp_path / "rows.csv")])  # fmt: skip
         assert r.returncode == 2 and opt.encode() in r.stderr and b"unexpected" not in r.stderr
+
+
+def test_one_run_s_outputs_never_share_a_path(tmp_path):
+    """Two outputs of one run at one path (--out and --errors, --out and --summary,
+    track --imu's --out and --camera-out, an output inside a folder output): refused
+    (exit 2) before any work, naming both options; nothing written."""
+    from conftest import run
+
+    out = tmp_path / "x.csv"
+    batch = ["batch", SAMPLE, "--rig", RIG, "--truth", SAMPLE / "truth.csv"]
+    cases = [
+        ([*batch, "--out", out, "--errors", out], "--errors", "--out"),
+        ([*batch, "--out", out, "--summary", out], "--summary", "--out"),
+        ([*batch, "--overlay", tmp_path / "o", "--out", tmp_path / "o" / "r.csv"], "--overlay",
+         "--out"),
+        (["track", "--rig", RIG, "--camera", SAMPLE, "--imu", "udp://127.0.0.1:9", "--out", out,
+          "--camera-out", out], "--camera-out", "--out"),
+        (["fuse", "--imu", out, "--fixes", out, "--out", tmp_path / "f.csv", "--errors",
+          tmp_path / "f.csv", "--truth", out], "--out", "--errors"),
+    ]  # fmt: skip
+    out.write_text("time_s,status\n")
+    for args, option, other in cases:
+        r = run(*args)
+        assert r.exit_code == 2, (args, r.output)
+        assert f"Invalid value for {option}" in r.output and f"also where {other} goes" in r.output
+    assert out.read_text() == "time_s,status\n"
+    assert not (tmp_path / "o").exists() and not (tmp_path / "f.csv").exists()

@@ -289,10 +289,12 @@ def _lock(fh) -> None:
 
 
 _INPUTS: list[Path] = []  # the files and folders this run reads
+_OUTPUTS: list[tuple[Path, str]] = []  # the outputs this run writes, and their options
 
 
 def forget_inputs() -> None:
     _INPUTS.clear()
+    _OUTPUTS.clear()
 
 
 def note_inputs(*paths) -> None:
@@ -309,7 +311,8 @@ def note_inputs(*paths) -> None:
 
 def check_output(path, option: str = "--out") -> None:
     """Refuse (exit 2, before any work) an output that is one of this run's inputs, or
-    lies inside an input folder (a replay of that folder would pick it up)."""
+    lies inside an input folder (a replay of that folder would pick it up), or shares
+    its path with another of the run's outputs (or holds it, or lies in it)."""
     if path is None:
         return
     p = Path(str(path))
@@ -332,6 +335,20 @@ def check_output(path, option: str = "--out") -> None:
                 f"{path}: inside the input folder {inp}; put outputs elsewhere",
                 param_hint=option,
             )
+    # one run's outputs each at a path of its own (--out rows.csv --errors rows.csv
+    # would leave the error table where the rows were; a folder output may not hold
+    # another output, nor lie in one)
+    for other, opt in _OUTPUTS:
+        if opt == option and other == target:
+            break  # the same output asked again (as it opens)
+        if other == target or other in target.parents or target in other.parents:
+            raise click.BadParameter(
+                f"{path}: also where {opt} goes; each output of a run needs a path of its "
+                "own",
+                param_hint=option,
+            )
+    else:
+        _OUTPUTS.append((target, option))
     # the nearest folder that exists must be a folder, and one this user may write in
     for parent in p.absolute().parents:
         if parent.exists():

@@ -10,7 +10,7 @@ from dataclasses import replace
 import click
 import numpy as np
 
-from visvec.cli.common import FiniteFloat, note_inputs, result_options, rows_out
+from visvec.cli.common import FiniteFloat, check_output, note_inputs, result_options, rows_out
 from visvec.cli.progress import Work
 from visvec.cli.results import check_results, write_results
 from visvec.errors import ConfigError, InputFileError, NoOkRows
@@ -104,6 +104,7 @@ def fuse(imu_path, fixes_path, follow, max_samples, silent_s, gyro_range_dps, ou
                          gyro_range_dps, history_s)  # fmt: skip
     note_inputs(imu_path, fixes_path, truth)
     check_results(truth, errors, summary)
+    check_output(out)
     if is_live(imu_path, follow) or is_live(fixes_path, follow):
         if truth or rest_s or errors or summary:
             raise click.UsageError("--truth, --errors, --summary and --rest-s apply to files, "

@@ -181,12 +181,30 @@ class PlanarState:
     pending: bool = False
     an: tuple[float, float] = (0.0, 0.0)  # the last interval's acceleration, lab (mm/s^2)
     # the fixes' timing not yet known (s^2; PlanarModel.timing_spread_s squared): the
-    # pose's rate times it widens the rows' covariance
+    # pose's rate times it widens the fixes' and the rows' covariance
     spread: float = 0.0
+    # while it is: the largest turn rate (rad/s) of the last timing_spread_s, and how
+    # long ago it was (a fix's heading lags by the turn over that window)
+    wmax: tuple[float, float] = (0.0, 0.0)
 
     @property
     def disputed(self) -> bool:
         return self.dispute is not None
+
+
+def _rate_bound(s: PlanarState) -> np.ndarray:
+    """The squared rates (mm/s, mm/s, rad/s) the pose may have changed at over the last
+    timing_spread_s, in any direction: the speed as estimated plus three of its sigmas
+    plus what the measured acceleration adds over that time, on both position axes (a
+    fix's timing error moves it along a velocity the filter may not know yet), and the
+    largest turn rate the gyro read over that time; what a timing error of 1 s moves a
+    fix by, squared, per axis (the provisional filter's while the clocks align:
+    PlanarModel.timing_spread_s)."""
+    sv = math.sqrt(max(s.P[VX, VX], s.P[VY, VY], 0.0))
+    speed = (math.hypot(s.x[VX], s.x[VY]) + 3.0 * sv
+             + math.hypot(s.an[0], s.an[1]) * math.sqrt(s.spread))  # fmt: skip
+    w = max(abs(s.w), s.wmax[0])
+    return np.array([speed * speed, speed * speed, w * w])
 
 
 def transition(an: np.ndarray, c: float, sn: float, dt: float) -> np.ndarray:
@@ -435,8 +453,13 @@ class PlanarModel:
         Q = self.process_noise(dt, lasting)
         P = F @ s.P @ F.T + Q
         P[LATE, LATE] = max(P[LATE, LATE], lasting)  # a lateness just found is not known in value
+        wmax = s.wmax
+        if s.spread:
+            peak, age = s.wmax
+            wmax = (abs(w), 0.0) if abs(w) >= peak or age + dt > math.sqrt(s.spread) else \
+                (peak, age + dt)  # fmt: skip
         return PlanarState(xn, P, w, s.jitter, s.dispute, s.pending,
-                           (float(an[0]), float(an[1])), s.spread)  # fmt: skip
+                           (float(an[0]), float(an[1])), s.spread, wmax)  # fmt: skip
 
     def process_noise(self, dt: float, lasting: float) -> np.ndarray:
         """The process noise Q (10, 10) over an interval of ``dt`` s: the accelerometers'
@@ -460,6 +483,8 @@ class PlanarModel:
         """The state after a fix, whether the fix was accepted, and its normalised
         innovation squared (NIS; chi-square with 3 dof when the filter is consistent)."""
         R0 = self._fix_cov(fix)
+        if s.spread:
+            R0 = R0 + np.diag(s.spread * _rate_bound(s))
         x0 = s.x
         # the pose's rate: a timing error dt moves the fix by J dt
         J = np.array([x0[VX], x0[VY], s.w])
@@ -473,7 +498,7 @@ class PlanarModel:
             P[idx, :] = 0.0
             P[:, idx] = 0.0
             P[np.ix_(idx, idx)] = R0
-            return PlanarState(x, P, jitter=s.jitter, spread=s.spread), True, math.nan
+            return PlanarState(x, P, jitter=s.jitter, spread=s.spread, wmax=s.wmax), True, math.nan
         h, H = self._measure(x0, s.w, s.an, fix.shift)
         # the second-order terms of h's products (v tau, b_g tau): a Gaussian
         # second-order filter (Gelb, Applied Optimal Estimation, 1974, Sec. 6.1; for
@@ -513,6 +538,10 @@ class PlanarModel:
             return replace(s, dispute=np.outer(r, r)), False, nis
         R = S - H @ PHt
         K = np.linalg.solve(S, PHt.T).T
+        if s.spread:
+            # fixes whose timing is not known yet: they correct the pose and velocity,
+            # the biases are considered (a lag taken for a bias would stay after it)
+            K[BG:] = 0.0
         x = s.x + K @ r
         # the offset within what a camera can be late by (the alignment's range): beyond
         # it the filter has gone wrong, and the engine's shift follows the offset
@@ -522,7 +551,7 @@ class PlanarModel:
         jitter = s.jitter
         if self.learn_jitter:
             jitter = jitter.learn(r, S_nj, J)
-        return PlanarState(x, P, s.w, jitter, spread=s.spread), True, nis
+        return PlanarState(x, P, s.w, jitter, spread=s.spread, wmax=s.wmax), True, nis
 
     def _second(self, s: PlanarState, fix: Fix, R0: np.ndarray) -> PlanarState:
         """The second fix after a start: with the first, it gives the velocity, and only
@@ -553,7 +582,7 @@ class PlanarModel:
             # twice: the fixes' timing jitter moves them along the velocity, which only
             # this update tells (the first pass's velocity makes the second's J)
             K = np.linalg.solve(H @ PHt + R, PHt.T).T
-            K[TAU:] = 0.0
+            K[BG if s.spread else TAU :] = 0.0
             x = s.x + K @ r
             J = np.array([x[VX], x[VY], s.w])
             R = R0 + np.outer(J, J) * s.jitter.var
@@ -567,7 +596,7 @@ class PlanarModel:
         x[X : PSI + 1] += G[X : PSI + 1] * (x[TAU] - fix.shift)
         cross = P[:, TAU].copy()
         P = P + np.outer(G, G) * ptt + np.outer(G, cross) + np.outer(cross, G)
-        return PlanarState(x, P, s.w, s.jitter, None, False, s.an, s.spread)
+        return PlanarState(x, P, s.w, s.jitter, None, False, s.an, s.spread, s.wmax)
 
     def reinit(self, s: PlanarState, fix: Fix) -> PlanarState:
         """Start again from ``fix``'s pose (the velocity unknown again), keeping what was
@@ -580,7 +609,7 @@ class PlanarModel:
         P[np.ix_(keep, keep)] = s.P[np.ix_(keep, keep)]
         x = n.x.copy()
         x[keep] = s.x[keep]
-        return PlanarState(x, P, s.w, s.jitter, pending=True, spread=s.spread)
+        return PlanarState(x, P, s.w, s.jitter, pending=True, spread=s.spread, wmax=s.wmax)
 
     @staticmethod
     def _measure(
@@ -627,6 +656,5 @@ class PlanarModel:
         if s.spread:
             # fixes whose time offset is not known yet (Fusion, while the clocks align):
             # the pose moves by its rate times an offset anywhere in the range
-            var = var + s.spread * np.array([s.x[VX] ** 2 + s.P[VX, VX],
-                                             s.x[VY] ** 2 + s.P[VY, VY], s.w**2])  # fmt: skip
+            var = var + s.spread * _rate_bound(s)
         return v, np.sqrt(np.clip(var, 0.0, None))

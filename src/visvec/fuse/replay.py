@@ -310,7 +310,6 @@ class Fusion:
         has no provisional form."""
         if self._prov is None and hasattr(self.model, "timing_spread_s"):
             self._prov = replace(self.model, time_offset_sigma=0.0, learn_jitter=False,
-                                 jitter_sigma=PROVISIONAL_TIMING_S,
                                  timing_spread_s=PROVISIONAL_TIMING_S)  # fmt: skip
         return self._prov
 
