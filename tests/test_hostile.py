@@ -509,3 +509,22 @@ def test_one_run_s_outputs_never_share_a_path(tmp_path):
         assert f"Invalid value for {option}" in r.output and f"also where {other} goes" in r.output
     assert out.read_text() == "time_s,status\n"
     assert not (tmp_path / "o").exists() and not (tmp_path / "f.csv").exists()
+
+
+def test_calibrating_from_frames_that_cannot_be_read_is_an_unreadable_source(tmp_path):
+    """calibrate zero-tilt on a folder of files that are no images: exit 3 (an
+    unreadable source, as the reference says), naming the folder, nothing written; a
+    folder where some frames are read and none is level is a failed calibration (not
+    3)."""
+    from conftest import run
+
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    for i in range(3):
+        (bad / f"f{i}.png").write_text("not an image")
+    out = tmp_path / "zero.toml"
+    r = run("calibrate", "zero-tilt", bad, "--rig", RIG, "--out", out)
+    assert r.exit_code == 3 and f"{bad}: none of the 3 frames could be read" in r.output
+    assert not out.exists()
+    r = run("calibrate", "zero-tilt", SAMPLE, "--rig", RIG, "--out", out)
+    assert r.exit_code != 3

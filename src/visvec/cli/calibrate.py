@@ -134,6 +134,7 @@ class _LevelFrames:
     names: list = field(default_factory=list)
     stop: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
     bad: int = 0
+    unreadable: int = 0  # of the skipped, those that could not be read at all
 
 
 def _level_frames(frames, sources, rig) -> _LevelFrames:
@@ -157,6 +158,7 @@ def _level_frames(frames, sources, rig) -> _LevelFrames:
                     stops.append(k)
                     continue
                 out.bad += 1
+                out.unreadable += row.status == "read_error"
                 why = (
                     frame.error or pipe.check_frame(frame) or "unreadable"
                     if row.status == "read_error"
@@ -164,6 +166,13 @@ def _level_frames(frames, sources, rig) -> _LevelFrames:
                 )
                 click.echo(f"{where}frame {frame.index}: skipped ({row.status}: {why})", err=True)
     out.stop = np.array(stops, int)
+    if out.bad and out.unreadable == out.bad and not out.dets:
+        # not one frame could be read: the source is unreadable (exit 3), not a
+        # calibration that failed
+        raise SourceError(
+            f"{', '.join(map(str, frames))}: none of the {out.bad} frames could be read "
+            "(the reasons above): expected images or a video of the rig's camera"
+        )
     return out
 
 
