@@ -369,6 +369,34 @@ def test_a_first_compilation_is_announced(monkeypatch, capsys):
     assert "compiling" not in capsys.readouterr().err
 
 
+def test_the_compilation_notice_is_said_only_without_a_cache(monkeypatch, capsys):
+    """With Numba's cache of the kernels there, a load however slow within
+    COMPILE_NOTICE_S (10 s: a busy machine loads in seconds) says nothing, as every
+    later `check` and `batch` is; without it, the notice comes at once (issue 59)."""
+    import time
+
+    monkeypatch.setattr(_compiled, "ON", True)
+    monkeypatch.setattr(E, "_warm", set())
+    E.warm_up()
+    capsys.readouterr()
+    assert E._kernels_cached()  # the cache the first warm_up left (or found)
+    slow = _compiled.readout_solve
+
+    def loading(*a):
+        time.sleep(2.0)  # longer than the old 1.5 s threshold
+        return slow(*a)
+
+    monkeypatch.setattr(_compiled, "readout_solve", loading)
+    monkeypatch.setattr(E, "_warm", set())
+    E.warm_up()
+    assert "compiling" not in capsys.readouterr().err
+    monkeypatch.setattr(_compiled, "readout_solve", slow)
+    monkeypatch.setattr(E, "_kernels_cached", lambda: False)
+    monkeypatch.setattr(E, "_warm", set())
+    E.warm_up()
+    assert capsys.readouterr().err.count("compiling the triangle's kernels") == 1
+
+
 def test_the_pixel_fits_kernels_load_with_a_rig_that_uses_it(unloadable, capsys):
     """A rig on the edge lines loads the edge fit's kernels only (a first run does not
     wait for the pixel fit's compilation); one with refine = "pixels" loads the pixel

@@ -856,13 +856,28 @@ def fit_edges(
 # the kernels loaded so far: "edges" (the edge fit's and the attitude fit's, every
 # triangle rig's), "pixels" (the pixel fit's)
 _warm: set[str] = set()
-# warm_up says it is compiling when loading the kernels takes longer than this (s)
-COMPILE_NOTICE_S = 1.5
+# warm_up says it is compiling at once when Numba has no cache of the kernels; with a
+# cache (loaded in one to three seconds, more on a busy machine), only if it takes longer
+# than this (s): a cache that no longer fits the code is compiled again
+COMPILE_NOTICE_S = 10.0
 
 
 def _compile_notice() -> None:
     print("visvec: compiling the triangle's kernels (the fast extra), once on this "
           "machine: about half a minute", file=sys.stderr, flush=True)  # fmt: skip
+
+
+def _kernels_cached() -> bool:
+    """Whether Numba's cache holds the triangle's kernels (its index files, beside the
+    module or under NUMBA_CACHE_DIR)."""
+    import glob
+    import os
+
+    here = os.path.dirname(_compiled.__file__)
+    places = [os.path.join(here, "__pycache__")]
+    if os.environ.get("NUMBA_CACHE_DIR"):
+        places.append(os.path.join(os.environ["NUMBA_CACHE_DIR"], "**"))
+    return any(glob.glob(os.path.join(p, "_compiled.*.nbi"), recursive=True) for p in places)
 
 
 def warm_up(pixel_fit: bool = False) -> None:
@@ -872,10 +887,11 @@ def warm_up(pixel_fit: bool = False) -> None:
     attitude fit of three points and its rolling-shutter evidence (visvec.estimate);
     with ``pixel_fit`` the pixel fit's too (visvec.detect.photometric: a rig with
     refine = "pixels"). A few milliseconds once they are loaded; the first time on a
-    machine about 25 s (30 s with the pixel fit), announced on stderr when it takes over
-    COMPILE_NOTICE_S; without Numba, nothing. Kernels that do not load (a Numba that
-    cannot compile here, no writable place for its cache: NUMBA_CACHE_DIR names one)
-    leave the numpy path on, with a line on stderr."""
+    machine about 25 s (30 s with the pixel fit), announced on stderr when Numba has no
+    cache of them (or loading takes over COMPILE_NOTICE_S); without Numba, nothing.
+    Kernels that do not load (a Numba that cannot compile here, no writable place for
+    its cache: NUMBA_CACHE_DIR names one) leave the numpy path on, with a line on
+    stderr."""
     todo = {"edges", "pixels"} if pixel_fit else {"edges"}
     todo -= _warm
     if not todo or not _compiled.ON:
@@ -888,9 +904,13 @@ def warm_up(pixel_fit: bool = False) -> None:
     cam = CameraModel(96, 96, 80.0, 80.0, 47.5, 47.5, np.zeros(5))
     # loaded from the cache in a fraction of a second; compiling takes long enough that
     # the operator is told why nothing happens
+    cached = _kernels_cached()
+    if not cached:
+        _compile_notice()  # said before the work, not raced against it
     notice = threading.Timer(COMPILE_NOTICE_S, _compile_notice)
     notice.daemon = True
-    notice.start()
+    if cached:
+        notice.start()
     try:
         fit = fit_edges(img, corners, cam)
         fit_edges(img, corners, cam, width=fit.width)
