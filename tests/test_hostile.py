@@ -394,6 +394,13 @@ def test_ctrl_c_on_simulate_says_the_folder_is_incomplete(tmp_path):
     finally:
         p.kill()
     assert p.returncode == 130 and b"incomplete" in err, err
+    # what it says to do works: the folder deleted, the same command makes it whole
+    assert f"delete {out} and run the same command again".encode() in err, err
+    import shutil
+
+    shutil.rmtree(out)
+    r = _run(["simulate", "--rig", str(RIG), "--out", str(out), "--frames", "3"])
+    assert r.returncode == 0 and len(list(out.glob("frame_*.png"))) == 3, r.stderr
 
 
 def test_small_ones(tmp_path):

@@ -307,10 +307,10 @@ def test_3d_a_burst_moves_the_attitude_not_the_gyro_calibration():
 
 def test_3d_a_glitched_fix_leaves_the_rows_honest_and_unconfirmed():
     """A fix 0.45 deg off (a motion capture's glitch: BROAD 18 at 154.2 s, 0.57 deg) on
-    a still platform, about 4.5 of its filter's sigmas: taken as a burst, the attitude goes to it, but the rows'
-    covariance holds both the filter's old attitude and the fix (each within 2-3 sigma
-    of the truth) and they say fix_unconfirmed until the next fix, which agrees with
-    the truth and ends it."""
+    a still platform, about 4.5 of its filter's sigmas: taken as a burst, the attitude
+    goes to it, but the rows' covariance holds both the filter's old attitude and the
+    fix (each within 2-3 sigma of the truth) and they say fix_unconfirmed until the next
+    fix, which agrees with the truth and ends it."""
     t = np.arange(1500) * 0.01
     R = [np.eye(3)] * len(t)
     rng = np.random.default_rng(2)

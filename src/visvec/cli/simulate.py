@@ -222,7 +222,9 @@ def simulate(
     except KeyboardInterrupt:
         click.echo(
             f"visvec: interrupted: the simulation in {out_dir} is incomplete (its truth.csv "
-            "lists the frames written); run it again to complete it",
+            "lists the frames written). A folder that holds a recording is never written "
+            f"over: to make it whole, delete {out_dir} and run the same command again, or "
+            "give a new --out folder",
             err=True,
         )
         sys.exit(130)
