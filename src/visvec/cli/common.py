@@ -343,8 +343,7 @@ def check_output(path, option: str = "--out") -> None:
             break  # the same output asked again (as it opens)
         if other == target or other in target.parents or target in other.parents:
             raise click.BadParameter(
-                f"{path}: also where {opt} goes; each output of a run needs a path of its "
-                "own",
+                f"{path}: also where {opt} goes; each output of a run needs a path of its own",
                 param_hint=option,
             )
     else:
