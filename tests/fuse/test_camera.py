@@ -36,7 +36,8 @@ def _track_live(tmp_path, rig, sim_args, n_frames, serve=False):
     proc = subprocess.Popen(
         [sys.executable, "-m", "visvec", "track", "--rig", str(rig), "--camera", str(rec),
          "--realtime", "--imu", f"udp://127.0.0.1:{port}", "--out", str(out), "--camera-out",
-         str(cam), *(["--serve", "0"] if serve else [])], stderr=subprocess.PIPE, text=True,
+         str(cam), *(["--serve", "0", "--keep-view"] if serve else [])], stderr=subprocess.PIPE,
+        text=True,
     )  # fmt: skip
     url = None
     try:

@@ -104,7 +104,7 @@ class Served:
     def __init__(self, rec: Path, out: Path, *extra: str):
         self.proc = subprocess.Popen(
             [sys.executable, "-m", "visvec", "batch", str(rec), "--rig", str(RIG),
-             "--out", str(out), "--serve", "0", *extra],
+             "--out", str(out), "--serve", "0", "--keep-view", *extra],
             stderr=subprocess.PIPE, text=True,
         )  # fmt: skip
         self.err: list[str] = []
@@ -343,3 +343,20 @@ def test_page_in_a_real_browser(tmp_path):
     finally:
         browser.quit()
         assert srv.stop() == 0
+
+
+def test_a_served_recording_ends_with_its_run(tmp_path):
+    """`batch REC --serve 0` without --keep-view: the run ends by itself (a script that
+    adds --serve is not held up), exit 0, the view said stopped, its port free again."""
+    rec = recording(tmp_path / "rec")
+    p = subprocess.run(
+        [sys.executable, "-m", "visvec", "batch", str(rec), "--rig", str(RIG), "--out",
+         str(tmp_path / "rows.csv"), "--serve", "0"], capture_output=True, text=True,
+        timeout=120,
+    )  # fmt: skip
+    assert p.returncode == 0, p.stderr
+    assert "and so has the live view" in p.stderr and "--keep-view" in p.stderr
+    url = p.stderr.split("live view at ")[1].split()[0]
+    port = int(url.rstrip("/").rsplit(":", 1)[1])
+    with socket.socket() as s:  # the port is free again
+        s.bind(("127.0.0.1", port))

@@ -164,14 +164,22 @@ def output_options(f):
         "(deg/s)^2 for rates; mm^2, mm deg, deg^2 for a planar pose).",
     )(f)
     f = click.option(
+        "--keep-view",
+        is_flag=True,
+        expose_value=False,
+        callback=lambda ctx, _p, v: ctx.meta.__setitem__("visvec.keep_view", v),
+        help="With --serve: at the run's end keep the page (showing that the run ended) "
+        "until Ctrl-C, instead of ending with the run.",
+    )(f)
+    f = click.option(
         "--serve",
         metavar="[HOST:]PORT",
         default=None,
         help="Show a live view in a web browser at http://HOST:PORT/ (HOST 127.0.0.1, "
         "this computer only, unless given; 0.0.0.0 for every network; PORT 0: any free "
         "port): the frame with its detection, the last row, the last minute's values and "
-        "set-up aids. A recording is then replayed at its own pace; at its end the page "
-        "stays until Ctrl-C.",
+        "set-up aids. A recording is then replayed at its own pace; the page ends with the "
+        "run (--keep-view keeps it).",
     )(f)
     f = click.option(
         "--max-frames",

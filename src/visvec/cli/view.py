@@ -34,11 +34,18 @@ def open_view(spec: str | None, rig, rig_path: str, method: str | None, source: 
 
 
 def linger(server) -> None:
-    """At the end of a run with a live view: the page stays (showing the run ended)
+    """At the end of a run with a live view: the server stops with the run (a script's
+    run ends), said on stderr; with --keep-view the page stays (showing the run ended)
     until Ctrl-C or SIGTERM, then the server stops."""
     if server is None:
         return
     server.state.close()
+    ctx = click.get_current_context(silent=True)
+    if ctx is None or not ctx.meta.get("visvec.keep_view"):
+        server.stop()
+        click.echo(f"visvec: the run has ended, and so has the live view at {server.url} "
+                   "(--keep-view keeps the page until Ctrl-C)", err=True)  # fmt: skip
+        return
     click.echo(f"visvec: the run has ended; the live view stays at {server.url} until Ctrl-C",
                err=True)  # fmt: skip
     try:
