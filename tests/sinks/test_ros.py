@@ -158,3 +158,41 @@ def test_overlay_frames_as_compressed_images(tmp_path):
     assert imgs[0][3].format == "jpeg" and pic.shape[:2] == (480, 640)
     r = run("batch", SAMPLES, "--rig", RIG, "--ros-images", "--out", tmp_path / "rows.csv")
     assert r.exit_code == 2 and not (tmp_path / "rows.csv").exists()
+
+
+def _decoded_by_mcap_ros2(path: Path) -> dict[str, int]:
+    """Messages per topic as the MCAP library's own ROS 2 decoder reads them (what
+    Foxglove and ROS 2's tools parse: ROS 2 message definitions)."""
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+
+    counts: dict[str, int] = {}
+    with open(path, "rb") as fh:
+        for _schema, channel, _msg, decoded in make_reader(
+            fh, decoder_factories=[DecoderFactory()]
+        ).iter_decoded_messages():
+            assert decoded is not None
+            counts[channel.topic] = counts.get(channel.topic, 0) + 1
+    return counts
+
+
+def test_ros2_files_are_read_by_the_mcap_ros2_decoder(tmp_path):
+    """The .mcap output and a rosbag2 folder's MCAP file carry ROS 2 message definitions
+    (std_msgs/Header's builtin_interfaces/Time stamp, not ROS 1's time): the MCAP
+    library's ROS 2 decoder reads every message, the same count rosbags reads."""
+    pytest.importorskip("mcap_ros2")
+    r = run("batch", SAMPLES, "--rig", RIG, "--out", tmp_path / "run.mcap")
+    assert r.exit_code == 0, r.output
+    counts = _decoded_by_mcap_ros2(tmp_path / "run.mcap")
+    assert counts == {t: sum(m[0] == t for m in messages(tmp_path / "run.mcap")) for t in counts}
+    assert counts["/visvec/attitude"] == 12 and counts["/visvec/status"] == 12
+    from mcap.reader import make_reader
+
+    with open(tmp_path / "run.mcap", "rb") as fh:
+        schemas = make_reader(fh).get_summary().schemas.values()
+    assert all(b"builtin_interfaces/Time stamp" in s.data for s in schemas if b"Header" in s.data)
+    bag = tmp_path / "bag"
+    r = run("batch", SAMPLES, "--rig", RIG, "--format", "rosbag2", "--out", bag)
+    assert r.exit_code == 0, r.output
+    (inner,) = bag.glob("*.mcap")
+    assert sum(_decoded_by_mcap_ros2(inner).values()) == 3 * 12

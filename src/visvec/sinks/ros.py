@@ -112,7 +112,9 @@ class McapSink:
 
     def _channel(self, topic: str, typename: str) -> int:
         if topic not in self.channels:
-            msgdef, _ = self.ts.generate_msgdef(typename)
+            # ROS 2 definitions (builtin_interfaces/Time stamp): rosbags writes ROS 1's
+            # unless asked, which ROS 2 readers (mcap-ros2-support) cannot parse
+            msgdef, _ = self.ts.generate_msgdef(typename, ros_version=2)
             schema = self.w.register_schema(typename, "ros2msg", msgdef.encode())
             self.channels[topic] = self.w.register_channel(topic, "cdr", schema)
         return self.channels[topic]
