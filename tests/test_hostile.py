@@ -535,3 +535,41 @@ def test_calibrating_from_frames_that_cannot_be_read_is_an_unreadable_source(tmp
     assert not out.exists()
     r = run("calibrate", "zero-tilt", SAMPLE, "--rig", RIG, "--out", out)
     assert r.exit_code != 3
+
+
+def test_fps_is_the_frame_interval_the_run_expects(tmp_path):
+    """`rate FOLDER --fps 10` on frames without their times, with a rig that names no fps
+    (30 by default): the star field expects 0.1 s between frames (was 1/30 s: every frame
+    a frame_jump, exit 4) and the rates are right; --fps must be a finite rate in
+    (0, 10000] (1e308 gave every time_s 0.0); a folder's own times (its truth.csv) are
+    used before --fps, and the run says so."""
+    import shutil
+
+    from conftest import run
+
+    star = ROOT / "configs" / "starfield.toml"
+    text = star.read_text()
+    assert "fps = 10.0" in text and "exposure_ms = 50.0" in text
+    rig = tmp_path / "nofps.toml"
+    rig.write_text(
+        text.replace("fps = 10.0\n", "").replace("exposure_ms = 50.0", "exposure_ms = 20.0")
+    )
+    sim = tmp_path / "sim"
+    assert run("simulate", "--rig", star, "--out", sim, "--frames", "6", "--case", "1",
+               "--fps", "10").exit_code == 0  # fmt: skip
+    bare = tmp_path / "bare"
+    bare.mkdir()
+    for f in sim.glob("frame_*.png"):
+        shutil.copy(f, bare)
+    out = tmp_path / "rates.csv"
+    r = run("rate", bare, "--rig", rig, "--fps", "10", "--truth", sim / "truth.csv", "--out", out)
+    assert r.exit_code == 0, r.output
+    rows = list(csv.DictReader(out.open()))
+    assert [x["status"] for x in rows[1:]] == ["ok"] * 5
+    assert abs(float(rows[-1]["time_s"]) - 0.5) < 1e-9
+    assert abs(float(rows[-1]["wx_dps"]) - 1.0) < 0.02  # case 1: 1 deg/s about x
+    for bad in ("1e308", "0", "-5", "nan", "inf"):
+        r = run("rate", bare, "--rig", rig, "--fps", bad)
+        assert r.exit_code == 2 and "--fps" in r.output, (bad, r.output)
+    r = run("batch", sim, "--rig", rig, "--fps", "1", "--out", tmp_path / "b.csv")
+    assert "has its own frame times (truth.csv): they are used, not --fps 1" in r.output

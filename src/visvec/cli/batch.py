@@ -3,12 +3,14 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import click
 
 from visvec.cli.camera_fusion import camera_out_option, check_fusable, run_fused_batch
 from visvec.cli.common import (
+    FPS_MAX,
     FiniteFloat,
     KindCommand,
     check_output,
@@ -51,9 +53,10 @@ from visvec.sources import open_source
 )
 @click.option(
     "--fps",
-    type=FiniteFloat(min=0, min_open=True),
+    type=FiniteFloat(min=0, max=FPS_MAX, min_open=True),
     default=None,
-    help="Frame rate (Hz) of a folder of frames without times.csv (default: the rig's fps).",
+    help="Frame rate (Hz) of a folder of frames without times.csv or truth.csv times "
+    "(default: the rig's fps); a folder's own times are used before it.",
 )
 @click.option(
     "--out-dir", type=click.Path(file_okay=False), default=None,
@@ -129,9 +132,7 @@ def run_batch(
     truth_rows = read_truth(truth, names) if truth else None
     view = open_view(serve, rig, rig_path, method, str(path))  # a bad port: before the frames
     src = open_source(path, fps=fps or rig.fps, max_frames=max_frames, retry_s=0.0)
-    if fps and getattr(src, "times", None):
-        click.echo(f"visvec: note: {path} has its own frame times (times.csv): --fps "
-                   f"{fps:g} is not used for them", err=True)  # fmt: skip
+    rig = with_fps(rig, src, fps, path)
     if view is not None:
         src = paced(src)
     # once the frames are found, before the first row (as `track` does)
@@ -204,10 +205,27 @@ class _Count:
         pass
 
 
+def with_fps(rig, src, fps: float | None, path, say: bool = True):
+    """The rig the run's pipeline is made with: at --fps where the frames are timed by
+    it (a folder without its own times), so that what expects the frame interval (the
+    star field's frame jumps and rates) expects that one; the rig as it is where the
+    source has its own times (a folder's times.csv or truth.csv), said on stderr."""
+    if not fps:
+        return rig
+    own = getattr(src, "times_from", None)
+    if own:
+        if say:
+            click.echo(f"visvec: note: {path} has its own frame times ({own}): they are "
+                       f"used, not --fps {fps:g}", err=True)  # fmt: skip
+        return rig
+    return replace(rig, fps=fps)
+
+
 def batch_one(task) -> dict:
     """One recording of :func:`run_many`: its rows written, their count and ok count."""
     rig, path, out, fmt, method, max_frames, covariance, fps = task
     src = open_source(path, fps=fps or rig.fps, max_frames=max_frames, retry_s=0.0)
+    rig = with_fps(rig, src, fps, path, say=False)
     count = _Count()
     run_frames(rig, src, out=out, fmt=fmt, method=method, overlay=None, max_frames=max_frames,
                watchers=[count], what=f"batch {Path(path).name}",

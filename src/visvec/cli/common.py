@@ -18,6 +18,9 @@ from visvec.pipeline.triangle import codec_advice
 from visvec.rig import Rig, load_rig
 from visvec.sinks import UdpStream, open_sink
 
+# the fastest frame rate an --fps may say (Hz): beyond it a frame's time rounds away
+FPS_MAX = 10000.0
+
 
 class FiniteFloat(click.FloatRange):
     """A number option (optionally within a range) that refuses NaN and infinity, which

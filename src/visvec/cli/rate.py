@@ -8,6 +8,7 @@ import click
 
 from visvec.cli.batch import run_batch
 from visvec.cli.common import (
+    FPS_MAX,
     FiniteFloat,
     KindCommand,
     check_output,
@@ -42,7 +43,7 @@ from visvec.estimate.rate import rate_budget
 )
 @click.option(
     "--fps",
-    type=FiniteFloat(min=0, min_open=True),
+    type=FiniteFloat(min=0, max=FPS_MAX, min_open=True),
     default=None,
     help="Frame rate (Hz): of a folder of frames without times.csv (default: the rig's "
     "fps), and for --budget (default: the rig's, else 10).",

@@ -135,11 +135,13 @@ class FolderSource:
         self.fps = fps
         self.times: dict[str, float] = {}
         self.unix: dict[str, float] = {}
+        self.times_from: str | None = None  # the sidecar the frames' times come from
         for name in SIDECARS:
             side = self.path / name
             if side.is_file():
                 self.times = read_sidecar(side, self.unix)
                 if self.times:
+                    self.times_from = name
                     break
 
     def __len__(self) -> int:
