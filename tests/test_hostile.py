@@ -573,3 +573,81 @@ def test_fps_is_the_frame_interval_the_run_expects(tmp_path):
         assert r.exit_code == 2 and "--fps" in r.output, (bad, r.output)
     r = run("batch", sim, "--rig", rig, "--fps", "1", "--out", tmp_path / "b.csv")
     assert "has its own frame times (truth.csv): they are used, not --fps 1" in r.output
+
+
+def _damaged(path, fourcc: str, how: str) -> int:
+    """The 12 sample frames written with ``fourcc`` (10 fps) to ``path`` (its suffix the
+    container), then damaged: "zeroed" (5,000 bytes in the middle zeroed), "truncated"
+    (the last 30 % cut), "no index" (an AVI's idx1 made unreadable), or "no index,
+    zeroed" (both)."""
+    import cv2
+
+    from visvec.imageio import read_image
+
+    names = sorted(SAMPLE.glob("*.png"))
+    w = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*fourcc), 10.0, (640, 480))
+    for n in names:
+        w.write(cv2.cvtColor(read_image(n, cv2.IMREAD_GRAYSCALE), cv2.COLOR_GRAY2BGR))
+    w.release()
+    data = bytearray(path.read_bytes())
+    if "no index" in how:
+        k = data.rfind(b"idx1")
+        assert k > 0
+        data[k : k + 4] = b"xxxx"
+    if "zeroed" in how:
+        mid = len(data) // 2
+        data[mid : mid + 5000] = bytes(5000)
+    if how == "truncated":
+        data = data[: int(len(data) * 0.7)]
+    path.write_bytes(bytes(data))
+    return len(names)
+
+
+def _rows_in_place(tmp_path, video) -> tuple[list[dict], str]:
+    """The rows of a damaged video; every ok row's yaw that of its own frame's truth."""
+    from conftest import run
+
+    out = tmp_path / f"{video.name}.csv"
+    r = run("batch", video, "--rig", RIG, "--out", out)
+    rows = list(csv.DictReader(open(out))) if out.exists() else []
+    truth = {int(t["frame"]): t for t in csv.DictReader(open(SAMPLE / "truth.csv"))}
+    for x in rows:
+        k = int(x["frame"])
+        assert abs(float(x["time_s"]) - k / 10.0) < 1e-6, x
+        if x["status"] == "ok":
+            d = (float(x["yaw_deg"]) - float(truth[k]["yaw_deg"]) + 180) % 360 - 180
+            assert abs(d) < 0.5, (video.name, k, d)  # an ok row is its own frame's
+    assert [int(x["frame"]) for x in rows] == list(range(len(rows)))
+    return rows, r.output
+
+
+def test_a_damaged_motion_jpeg_avi_keeps_its_rows_in_place(tmp_path):
+    """Issue 59's case: 5,000 bytes zeroed in the middle of an MJPG AVI lost a chunk, and
+    every later row carried the frame before's index and time (rows 6-10 held frames
+    7-11's attitudes, ok). Read by its index, the frame that cannot be decoded is its
+    own read_error row and every other row is its own frame's."""
+    video = tmp_path / "zeroed.avi"
+    n = _damaged(video, "MJPG", "zeroed")
+    rows, _ = _rows_in_place(tmp_path, video)
+    assert len(rows) == n
+    assert sum(x["status"] == "read_error" for x in rows) >= 1
+    assert sum(x["status"] == "ok" for x in rows) >= n - 2
+
+
+@pytest.mark.parametrize(
+    "fourcc, suffix, how",
+    [("MJPG", "avi", "truncated"), ("MJPG", "avi", "no index"),
+     ("MJPG", "avi", "no index, zeroed"), ("mp4v", "mp4", "zeroed"),
+     ("mp4v", "mp4", "truncated"), ("MJPG", "mkv", "zeroed"), ("MJPG", "mkv", "truncated")],
+)  # fmt: skip
+def test_damaged_containers_never_put_a_row_on_another_frame(tmp_path, fourcc, suffix, how):
+    """Damaged MJPG AVI, mp4v MP4 and MKV files (truncated, a zeroed span, an AVI's index
+    gone): whatever can be read is read, and no ok row claims another frame's index or
+    time; an AVI without its index whose data break off ends there, said."""
+    video = tmp_path / f"v.{suffix}"
+    _damaged(video, fourcc, how)
+    rows, out = _rows_in_place(tmp_path, video)
+    if how == "no index":
+        assert len(rows) == 12 and all(x["status"] == "ok" for x in rows)
+    if how == "no index, zeroed":
+        assert "cannot be placed" in out

@@ -12,6 +12,7 @@ from visvec.clocks import ClockTie
 from visvec.data import Frame
 from visvec.errors import SourceError
 from visvec.rig import CameraControls
+from visvec.sources.avi import read_avi_index
 from visvec.sources.controls import apply_controls, describe_controls
 from visvec.sources.folder import to_gray
 from visvec.sources.reader import Arrival, LiveReader
@@ -134,6 +135,12 @@ class VideoSource:
             raise SourceError(f"{spec}: cannot open the video or stream")
         src_fps = self.cap.get(cv2.CAP_PROP_FPS)
         self.fps = src_fps if src_fps and src_fps > 0 and not isinstance(spec, int) else fps
+        # a Motion-JPEG AVI file: read by its own index (visvec.sources.avi), so that
+        # a damaged stretch does not shift the frames after it onto others' numbers
+        self._avi = (read_avi_index(spec) if not self.live and str(spec).lower().endswith(".avi")
+                     else None)  # fmt: skip
+        if self._avi is not None:
+            self.fps = self._avi.fps
         self.max_frames = max_frames
         self._t0: float | None = None
         # a live source's own frame timestamps (CAP_PROP_POS_MSEC: V4L2's buffer time,
@@ -207,6 +214,9 @@ class VideoSource:
         return cap
 
     def __iter__(self) -> Iterator[Frame]:
+        if self._avi is not None:
+            yield from self._iter_avi()
+            return
         i = 0
         failed = 0  # frames of a file that could not be decoded, in a row
         try:
@@ -285,6 +295,51 @@ class VideoSource:
                 i += 1
         finally:
             self.cap.release()
+
+    def _iter_avi(self) -> Iterator[Frame]:
+        """A Motion-JPEG AVI's frames by its index: frame i at i / fps; one that cannot
+        be decoded a read error of its own; without an index, the frames after a chunk
+        that broke off are not placed, and the run ends there, said."""
+        avi = self._avi
+        self.cap.release()
+        n = len(avi) if self.max_frames is None else min(len(avi), self.max_frames)
+        if n == 0:
+            raise SourceError(f"{self.spec}: no frame of the video can be read")
+        failed = 0
+        with open(avi.path, "rb") as fh:
+            for i in range(n):
+                img = avi.image(i, fh)
+                if img is None:
+                    failed += 1
+                    if i == n - 1 and failed == n:
+                        raise SourceError(f"{self.spec}: no frame of the video can be read")
+                    yield Frame(i, i / avi.fps, None, f"{self.spec}#{i}",
+                                error=f"frame {i} of the video cannot be decoded")  # fmt: skip
+                    continue
+                if self.size is not None:
+                    self._check_size(img)
+                yield Frame(i, i / avi.fps, to_gray(img), f"{self.spec}#{i}",
+                            codec=self.codec)  # fmt: skip
+        if avi.cut:
+            # cut short: the frames the header counts beyond the data, each a row
+            for i in range(n, avi.total if self.max_frames is None else
+                           min(avi.total, self.max_frames)):  # fmt: skip
+                yield Frame(
+                    i,
+                    i / avi.fps,
+                    None,
+                    f"{self.spec}#{i}",
+                    error=f"frame {i} of the video is not in the file (cut short)",
+                )
+        elif avi.lost_from is not None and (self.max_frames is None or avi.lost_from < n):
+            _log.warning(
+                "%s: the file has no index and its data break off after frame %d: the "
+                "frames after it (%d by its header) cannot be placed; the run ends there",
+                self.spec, avi.lost_from - 1, avi.total,
+            )  # fmt: skip
+        elif len(avi) < avi.total and self.max_frames is None and avi.lost_from is None:
+            _log.warning("%s: %d of the %d frames its header counts are in the file (cut "
+                         "short?)", self.spec, len(avi), avi.total)  # fmt: skip
 
     def _read(self) -> Arrival:
         """The next frame: a live source's newest from its reader (stamped when it was
