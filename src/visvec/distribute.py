@@ -88,6 +88,23 @@ class TaskPool:
         return "this process"
 
     def __enter__(self) -> TaskPool:
+        # the workers started here do not take Ctrl-C themselves: a terminal sends it to
+        # every process of the group, and each worker printed its own traceback; this
+        # process ends the run (an ignored signal stays ignored in a child, through
+        # fork and exec)
+        import signal
+
+        try:
+            before = signal.signal(signal.SIGINT, signal.SIG_IGN)
+        except ValueError:  # not the main thread: nothing to set
+            before = None
+        try:
+            return self._start()
+        finally:
+            if before is not None:
+                signal.signal(signal.SIGINT, before)
+
+    def _start(self) -> TaskPool:
         if self.scheduler is not None:
             self._connect()
         elif self.local_dask and have_dask() and self.workers > 1:
@@ -152,9 +169,14 @@ class TaskPool:
             list(self._pool.map(import_module, [module] * self.workers))
 
     def __exit__(self, *exc) -> None:
-        self.close()
+        self.close(abort=exc[0] is not None and issubclass(exc[0], KeyboardInterrupt))
 
-    def close(self) -> None:
+    def close(self, abort: bool = False) -> None:
+        """Stop the workers; with ``abort`` (Ctrl-C), the local processes at once,
+        whatever task they are in (they do not take Ctrl-C themselves)."""
+        if abort and self._pool is not None:
+            for proc in list(getattr(self._pool, "_processes", {}).values()):
+                proc.terminate()
         if self._client is not None:
             self._client.close()
             self._client = None

@@ -4,6 +4,7 @@ on the rig and the camera."""
 import csv
 import json
 import shutil
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -371,3 +372,44 @@ def test_batch_of_an_mp4v_video_with_the_pixel_fit_says_it_measures_with_the_lin
     assert all("inter_frame_codec" in x["warnings"].split(";") for x in ok)
     assert "FMP4" not in out["mjpeg"][0] and "set aside" not in out["mjpeg"][0]
     assert not any("inter_frame_codec" in x["warnings"] for x in out["mjpeg"][1])
+
+
+@pytest.mark.slow  # 8-10 s: a local cluster started and interrupted
+def test_ctrl_c_on_many_recordings_names_each_incomplete_output(tmp_path):
+    """Ctrl-C, as a terminal sends it (to every process of the group), on `batch REC...
+    --out-dir DIR` with two workers: exit 130, no worker's traceback, a line for each
+    output that is not finished (was: exit 0, a 37-71-line traceback, nothing said)."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    frames = sorted(Path(SAMPLES).glob("*.png"))
+    recs = []
+    for k in range(4):
+        rec = tmp_path / f"rec{k}"
+        rec.mkdir()
+        for i in range(480):
+            (rec / f"frame_{i:04d}.png").symlink_to(frames[i % len(frames)])
+        recs.append(str(rec))
+    out = tmp_path / "out"
+    p = subprocess.Popen([sys.executable, "-m", "visvec", "batch", *recs, "--rig", str(RIG),
+                          "--out-dir", str(out), "--workers", "2"],
+                         stderr=subprocess.PIPE, text=True, start_new_session=True)  # fmt: skip
+    try:
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:
+            if any(f.stat().st_size > 2000 for f in out.glob("*.csv")):
+                break
+            time.sleep(0.05)
+        os.killpg(p.pid, signal.SIGINT)
+        _, err = p.communicate(timeout=60)
+    finally:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGKILL)
+    assert p.returncode == 130, err
+    assert "Traceback" not in err and "KeyboardInterrupt" not in err, err
+    named = [line for line in err.splitlines() if line.startswith("visvec: interrupted: ")]
+    assert named and all(("incomplete" in x or "not written" in x) for x in named), err
+    assert len(named) == len({x.split(": ")[2] for x in named})  # one line each

@@ -183,10 +183,27 @@ def run_many(rig, paths, out_dir, fmt, method, max_frames, covariance, fps, sche
              for p, n in zip(paths, names, strict=True)]  # fmt: skip
     for t in tasks:
         check_output(t[2])
-    with TaskPool(scheduler, workers) as pool:
-        click.echo(f"visvec: {len(tasks)} recordings on {pool.where}", err=True)
-        with Work("batch", len(tasks), unit="recording") as bar:
-            results = pool.map(batch_one, tasks, lambda i, r: bar.update(1))
+    finished: set[int] = set()
+
+    def done(i: int, r) -> None:
+        finished.add(i)
+        bar.update(1)
+
+    try:
+        with TaskPool(scheduler, workers) as pool:
+            click.echo(f"visvec: {len(tasks)} recordings on {pool.where}", err=True)
+            with Work("batch", len(tasks), unit="recording") as bar:
+                results = pool.map(batch_one, tasks, done)
+    except KeyboardInterrupt:
+        # each output not finished named on a line of its own; no worker's traceback
+        for i, t in enumerate(tasks):
+            if i in finished:
+                continue
+            o = Path(t[2])
+            rows = max(sum(1 for _ in open(o, errors="replace")) - 1, 0) if o.is_file() else 0
+            state = f"incomplete ({rows} rows)" if o.is_file() else "not written"
+            click.echo(f"visvec: interrupted: {o}: {state}", err=True)
+        raise SystemExit(130) from None
     for p, t, r in zip(paths, tasks, results, strict=True):
         click.echo(f"{p}: {r['ok']} ok of {r['rows']} rows -> {t[2]}")
 
