@@ -3,7 +3,7 @@
 0 success; 2 bad usage, rig or calibration file; 3 a source that cannot be opened or
 read at all; 4 a run that gave not one ok row; 1 an output that cannot be written, a
 refused calibration, or anything unexpected (one line, the traceback only with
---debug); 130 simulate stopped by Ctrl-C.
+--debug); 130 simulate, or batch over many recordings, stopped by Ctrl-C.
 """
 
 from __future__ import annotations
@@ -178,7 +178,8 @@ EXIT_CODES = (
     "Exit codes: 0 done (also after Ctrl-C, SIGTERM, SIGHUP); 2 a bad option, rig, "
     "calibration or data file, refused before any work; 3 a source that cannot be opened "
     "or read; 4 not one ok row; 1 an output that cannot be written, a refused "
-    "calibration, or an unexpected error; 130 simulate stopped by Ctrl-C."
+    "calibration, or an unexpected error; 130 simulate, or batch over many recordings, "
+    "stopped by Ctrl-C."
 )
 
 _register()
