@@ -90,15 +90,6 @@ def fuse(imu_path, fixes_path, follow, max_samples, silent_s, gyro_range_dps, ou
     """Fuse an IMU with late camera fixes: one row per inertial sample, causal (the row
     at time t uses the samples up to t and the fixes available by t). From files, or
     live from streams (stdin, UDP, a serial device, a file being written)."""
-    for v, name in (
-        (gyro_noise_dps, "--gyro-noise-dps"),
-        (accel_noise_mps2, "--accel-noise-mps2"),
-        (fix_sigma_deg, "--fix-sigma-deg"),
-        (clock_jitter_ms, "--clock-jitter-ms"),
-        (max_rate_dps, "--max-rate-dps"),
-    ):
-        if v is not None and not math.isfinite(v):
-            raise click.BadParameter(f"{v}: expected a finite number", param_hint=name)
     opts = FusionOptions(method, gyro_noise_dps, accel_noise_mps2, fix_sigma_deg,
                          not no_misalignment, max_rate_dps, max_accel_mps2, clock_jitter_ms,
                          gyro_range_dps, history_s)  # fmt: skip

@@ -45,7 +45,6 @@ LAB_FRAME = "visvec_lab"
 BODY_FRAME = "visvec_body"
 CAMERA_FRAME = "visvec_camera_optical_frame"
 UNKNOWN_COV = 1e9
-EULER = ("yaw_deg", "pitch_deg", "roll_deg")
 STATUS_KEYS = ("frame", "time_s", "warnings", "rms_px", "n_points", "latency_ms")
 
 
