@@ -182,6 +182,23 @@ from visvec.sim.stars import PAPER_CASES, StarScene, simulate_stars
     default=None,
     help="Frame rate of the rendered sequence (default: the rig's).",
 )
+@click.option(
+    "--webcam",
+    is_flag=True,
+    help="Triangle: the frames through a webcam's image chain (Bayer mosaic and "
+    "demosaicing, shot and read noise, vignetting, a breathing gain, chromatic aberration, "
+    "hot pixels, sRGB tone curve, Motion-JPEG at 85), each step at a usual webcam's "
+    "value (visvec.sim.webcam); --noise does not apply then.",
+)
+@click.option(
+    "--webcam-set",
+    "webcam_set",
+    multiple=True,
+    metavar="KEY=VALUE",
+    help="Triangle: set a step of the --webcam chain (repeatable; off switches one off): "
+    "vignetting, gain_sigma, electrons_at_white, read_noise_e, sensitivity_r, "
+    "sensitivity_b, bayer, chromatic_aberration, hot_pixels, srgb, jpeg_quality, seed.",
+)
 def simulate(
     rig_path,
     calibration,
@@ -210,15 +227,18 @@ def simulate(
     exposure_ms,
     yaw_rate_dps,
     fps,
+    webcam,
+    webcam_set,
 ):
     """Render frames of the rig's target at known attitudes (or, for a starfield rig, a
     sky turning at a known rate); write OUT/truth.csv."""
     camera_askew_deg = (*camera_askew_deg, camera_turn_deg)  # about b1, b2, and its axis
+    chain = _webcam_chain(webcam, webcam_set)
     try:
         _simulate(rig_path, calibration, out_dir, n_frames, seed, motion, max_tilt_deg, noise,
                   contrast, blur, exposure, lights, occluder, no_triangle, reflections,
                   target_offset_mm, target_height_mm, camera_askew_deg, case, rate_dps,
-                  spurious, imu, readout_ms, exposure_ms, yaw_rate_dps, fps)  # fmt: skip
+                  spurious, imu, readout_ms, exposure_ms, yaw_rate_dps, fps, chain)  # fmt: skip
     except KeyboardInterrupt:
         click.echo(
             f"visvec: interrupted: the simulation in {out_dir} is incomplete (its truth.csv "
@@ -228,6 +248,25 @@ def simulate(
             err=True,
         )
         sys.exit(130)
+
+
+def _webcam_chain(webcam: bool, settings: tuple[str, ...]):
+    """The webcam chain --webcam and --webcam-set ask for (None without them); a bad
+    KEY=VALUE refused before any frame."""
+    if not webcam and not settings:
+        return None
+    from visvec.sim.webcam import WebcamChain
+
+    pairs = {}
+    for item in settings:
+        key, sep, value = item.partition("=")
+        if not sep:
+            raise click.BadParameter(f"{item!r}: expected KEY=VALUE", param_hint="--webcam-set")
+        pairs[key.strip()] = value
+    try:
+        return WebcamChain().with_settings(pairs)
+    except ValueError as exc:
+        raise click.BadParameter(str(exc), param_hint="--webcam-set") from None
 
 
 def _check_timing(rig, motion, triangle_only, readout_ms, exposure_ms, yaw_rate_dps) -> None:
@@ -262,8 +301,10 @@ def _check_timing(rig, motion, triangle_only, readout_ms, exposure_ms, yaw_rate_
 def _simulate(rig_path, calibration, out_dir, n_frames, seed, motion, max_tilt_deg, noise,
               contrast, blur, exposure, lights, occluder, no_triangle, reflections,
               target_offset_mm, target_height_mm, camera_askew_deg, case, rate_dps, spurious,
-              imu, readout_ms, exposure_ms, yaw_rate_dps, fps) -> None:  # fmt: skip
+              imu, readout_ms, exposure_ms, yaw_rate_dps, fps, chain=None) -> None:  # fmt: skip
     rig = load(rig_path, calibration)
+    if chain is not None and rig.kind != "triangle":
+        raise click.UsageError("--webcam applies to triangle rigs only")
     lamp_only = spurious > 0 or motion in ("perimeter", "rest")
     if lamp_only and rig.kind != "lamps":
         raise click.UsageError("--spurious and --motion perimeter|rest apply to lamps rigs")
@@ -297,6 +338,7 @@ def _simulate(rig_path, calibration, out_dir, n_frames, seed, motion, max_tilt_d
         blur_sigma_px=blur,
         exposure=exposure,
         show_triangle=not no_triangle,
+        webcam=chain,
     )
     world = true_rig(rig, tuple(target_offset_mm), tuple(camera_askew_deg[:2]), target_height_mm,
                      camera_askew_deg[2])  # fmt: skip

@@ -18,6 +18,7 @@ from visvec.rig import Rig
 from visvec.rotations import expmap
 from visvec.shutter import row_times
 from visvec.sim.scene import Scene
+from visvec.sim.webcam import srgb_decode, through_webcam
 
 # labels of what a ray hits
 _CEILING, _BOARD, _TRIANGLE, _LIGHT, _OCCLUDER = 0, 1, 2, 3, 4
@@ -241,9 +242,12 @@ def render_clean(
 
 def _linear_scene(scene: Scene) -> Scene:
     """The scene with its output grey levels taken back through the tone curve to the
-    linear exposures that give them."""
+    linear exposures that give them (the webcam chain's sRGB curve, where it has one)."""
+    web = scene.webcam
 
     def lin(v: float) -> float:
+        if web is not None:
+            return 255.0 * srgb_decode(max(v, 0.0) / 255.0) if web.srgb else v
         return 255.0 * (max(v, 0.0) / 255.0) ** scene.tone_gamma
 
     board = lin(scene.board_level)
@@ -289,10 +293,13 @@ def render_frame(
     """
     rng = np.random.default_rng(rng)
     g = scene.tone_gamma
-    linear = scene if g == 1.0 else _linear_scene(scene)
+    linear = scene if g == 1.0 and scene.webcam is None else _linear_scene(scene)
     img = render_clean(rig, R_nb, linear, readout_ms, omega_b, exposure_ms) * scene.exposure
     if scene.blur_sigma_px > 0:
         img = cv2.GaussianBlur(img, (0, 0), scene.blur_sigma_px)
+    if scene.webcam is not None:
+        # a webcam's own chain: its noise, tone curve and compression (visvec.sim.webcam)
+        return through_webcam(img, scene.webcam, rng)
     if g != 1.0:
         # the tone curve, after the sensor clips (noise is output-referred here)
         img = 255.0 * (np.clip(img, 0.0, 255.0) / 255.0) ** (1.0 / g)

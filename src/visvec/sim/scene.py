@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from visvec.sim.webcam import WebcamChain
+
 
 @dataclass(frozen=True)
 class Light:
@@ -44,6 +46,9 @@ class Scene:
         linear exposure E (1: linear; about 2.2 for most webcams). The grey levels above
         (board, contrast, ceiling, lights, occluder) are those of the output; the optics
         (coverage, gradient, blur, exposure) act on the linear E.
+    webcam : a webcam's image chain (visvec.sim.webcam.WebcamChain: Bayer mosaic,
+        sensor noise, vignetting, gain, chromatic aberration, hot pixels, sRGB, JPEG)
+        in place of noise_sigma, shot_gain and tone_gamma; None: the plain render.
     """
 
     board_mm: tuple[float, float] = (1219.2, 914.4)
@@ -61,3 +66,4 @@ class Scene:
     occluder: Occluder | None = None
     supersample: int = 8
     tone_gamma: float = 1.0
+    webcam: WebcamChain | None = None
