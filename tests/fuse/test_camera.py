@@ -102,13 +102,21 @@ def test_track_with_imu_lamps_live(tmp_path):
     assert len(rows) > 0.9 * n_imu
     assert list(rows[0]) == list(PLANAR_COLUMNS)
     tt = truth_table(rec / "imu_truth.csv")
-    # the fusion starts once it has aligned the camera's clock with the IMU's (from
-    # their headings, 1-2 s: two tries in a row find the same offset); the rows before
-    # say so
-    first = next(i for i, r in enumerate(rows) if r["status"] == "ok")
+    # the filter itself starts once it has aligned the camera's clock with the IMU's
+    # (from their headings, 1-2 s: two tries in a row find the same offset); the rows
+    # before are provisional, from the first fix on: they say so, and their sigma holds
+    # their error (the pose's rate times the offsets the alignment allows)
+    first = next(i for i, r in enumerate(rows)
+                 if r["status"] == "ok" and "aligning_clocks" not in r["warnings"])  # fmt: skip
     assert 0 < first < 0.6 * len(rows)
     assert all("aligning_clocks" in r["warnings"] for r in rows[first - 10 : first])
-    ok = [r for r in rows if r["status"] == "ok"]
+    provisional = [r for r in rows[:first] if r["status"] == "ok"]
+    assert provisional  # the rows do not wait for the alignment
+    for r in provisional:
+        for k, col in ((0, "x"), (1, "y")):
+            err = abs(float(r[f"{col}_mm"]) - tt[int(r["frame"]), k])
+            assert err < 5.0 * float(r[f"sigma_{col}_mm"]), (r["frame"], col, err)
+    ok = [r for r in rows[first:] if r["status"] == "ok"]
     assert len(ok) > 0.95 * len(rows[first:])
     e = [math.hypot(float(r["x_mm"]) - tt[int(r["frame"]), 0],
                     float(r["y_mm"]) - tt[int(r["frame"]), 1]) for r in ok]  # fmt: skip
