@@ -68,6 +68,11 @@ PLANAR_COLUMNS = (
 )
 
 
+def _floats(a) -> list[float]:
+    """An array's values as Python floats (rounded and formatted faster than numpy's)."""
+    return np.asarray(a).tolist()
+
+
 @dataclass(frozen=True)
 class Row:
     """What every output row has; numeric fields are nan unless status is ok.
@@ -162,9 +167,13 @@ class AttitudeRow(Row):
     value_columns: ClassVar[tuple[str, ...]] = ATTITUDE_COLUMNS[3:6]
 
     def quantities(self) -> list[tuple[str, float, int]]:
-        out = [(k, v, 6) for k, v in zip(ATTITUDE_COLUMNS[3:6], self.euler_deg, strict=True)]
-        out += [(k, v, 9) for k, v in zip(ATTITUDE_COLUMNS[6:10], self.q_nb, strict=True)]
-        out += [(k, v, 6) for k, v in zip(ATTITUDE_COLUMNS[10:13], self.sigma_deg, strict=True)]
+        out = [
+            (k, v, 6) for k, v in zip(ATTITUDE_COLUMNS[3:6], _floats(self.euler_deg), strict=True)
+        ]
+        out += [(k, v, 9) for k, v in zip(ATTITUDE_COLUMNS[6:10], _floats(self.q_nb), strict=True)]
+        out += [
+            (k, v, 6) for k, v in zip(ATTITUDE_COLUMNS[10:13], _floats(self.sigma_deg), strict=True)
+        ]
         return out
 
     def values(self) -> np.ndarray:
@@ -185,8 +194,8 @@ class RateRow(Row):
     value_columns: ClassVar[tuple[str, ...]] = RATE_COLUMNS[3:6]
 
     def quantities(self) -> list[tuple[str, float, int]]:
-        out = [(k, v, 7) for k, v in zip(RATE_COLUMNS[3:6], self.w_dps, strict=True)]
-        out += [(k, v, 7) for k, v in zip(RATE_COLUMNS[6:9], self.sigma_dps, strict=True)]
+        out = [(k, v, 7) for k, v in zip(RATE_COLUMNS[3:6], _floats(self.w_dps), strict=True)]
+        out += [(k, v, 7) for k, v in zip(RATE_COLUMNS[6:9], _floats(self.sigma_dps), strict=True)]
         return out
 
     def values(self) -> np.ndarray:
@@ -208,8 +217,8 @@ class PoseRow(Row):
     value_columns: ClassVar[tuple[str, ...]] = PLANAR_COLUMNS[3:6]
 
     def quantities(self) -> list[tuple[str, float, int]]:
-        out = [(k, v, 4) for k, v in zip(PLANAR_COLUMNS[3:6], self.pose, strict=True)]
-        out += [(k, v, 5) for k, v in zip(PLANAR_COLUMNS[6:9], self.sigma, strict=True)]
+        out = [(k, v, 4) for k, v in zip(PLANAR_COLUMNS[3:6], _floats(self.pose), strict=True)]
+        out += [(k, v, 5) for k, v in zip(PLANAR_COLUMNS[6:9], _floats(self.sigma), strict=True)]
         return out
 
     def values(self) -> np.ndarray:

@@ -54,12 +54,15 @@ def euler_to_matrices(yaw: np.ndarray, pitch: np.ndarray, roll: np.ndarray) -> n
 
 
 def matrix_to_euler(R_nb: np.ndarray) -> tuple[float, float, float]:
-    """(yaw, pitch, roll) in radians of a rotation matrix; yaw in (-pi, pi]."""
-    pitch = float(np.arcsin(np.clip(-R_nb[2, 0], -1.0, 1.0)))
-    yaw = float(np.arctan2(R_nb[1, 0], R_nb[0, 0]))
-    roll = float(np.arctan2(R_nb[2, 1], R_nb[2, 2]))
-    if yaw <= -np.pi:
-        yaw += 2 * np.pi
+    """(yaw, pitch, roll) in radians of a rotation matrix; yaw in (-pi, pi]. (The math
+    module's functions on the matrix's floats: a fifth of numpy's time on scalars, the
+    same values to the last bit or two.)"""
+    (r00, _, _), (r10, _, _), (r20, r21, r22) = np.asarray(R_nb, float).tolist()
+    pitch = math.asin(min(max(-r20, -1.0), 1.0))
+    yaw = math.atan2(r10, r00)
+    roll = math.atan2(r21, r22)
+    if yaw <= -math.pi:
+        yaw += 2 * math.pi
     return yaw, pitch, roll
 
 
@@ -100,51 +103,25 @@ def matrix_to_quat(R: np.ndarray) -> np.ndarray:
 
     Shepperd's method: pick the largest of the four squared components to divide by.
     """
-    tr = R[0, 0] + R[1, 1] + R[2, 2]
-    cand = np.array([tr, R[0, 0], R[1, 1], R[2, 2]])
-    i = int(np.argmax(cand))
+    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = np.asarray(R, float).tolist()
+    tr = r00 + r11 + r22
+    cand = (tr, r00, r11, r22)
+    i = max(range(4), key=cand.__getitem__)  # the first of equals, as np.argmax
     if i == 0:
-        w = 0.5 * np.sqrt(1.0 + tr)
-        q = np.array(
-            [
-                w,
-                (R[2, 1] - R[1, 2]) / (4 * w),
-                (R[0, 2] - R[2, 0]) / (4 * w),
-                (R[1, 0] - R[0, 1]) / (4 * w),
-            ]
-        )
+        w = 0.5 * math.sqrt(1.0 + tr)
+        q = [w, (r21 - r12) / (4 * w), (r02 - r20) / (4 * w), (r10 - r01) / (4 * w)]
     elif i == 1:
-        x = 0.5 * np.sqrt(1.0 + 2 * R[0, 0] - tr)
-        q = np.array(
-            [
-                (R[2, 1] - R[1, 2]) / (4 * x),
-                x,
-                (R[0, 1] + R[1, 0]) / (4 * x),
-                (R[0, 2] + R[2, 0]) / (4 * x),
-            ]
-        )
+        x = 0.5 * math.sqrt(1.0 + 2 * r00 - tr)
+        q = [(r21 - r12) / (4 * x), x, (r01 + r10) / (4 * x), (r02 + r20) / (4 * x)]
     elif i == 2:
-        y = 0.5 * np.sqrt(1.0 + 2 * R[1, 1] - tr)
-        q = np.array(
-            [
-                (R[0, 2] - R[2, 0]) / (4 * y),
-                (R[0, 1] + R[1, 0]) / (4 * y),
-                y,
-                (R[1, 2] + R[2, 1]) / (4 * y),
-            ]
-        )
+        y = 0.5 * math.sqrt(1.0 + 2 * r11 - tr)
+        q = [(r02 - r20) / (4 * y), (r01 + r10) / (4 * y), y, (r12 + r21) / (4 * y)]
     else:
-        z = 0.5 * np.sqrt(1.0 + 2 * R[2, 2] - tr)
-        q = np.array(
-            [
-                (R[1, 0] - R[0, 1]) / (4 * z),
-                (R[0, 2] + R[2, 0]) / (4 * z),
-                (R[1, 2] + R[2, 1]) / (4 * z),
-                z,
-            ]
-        )
-    q /= np.linalg.norm(q)
-    return -q if q[0] < 0 else q
+        z = 0.5 * math.sqrt(1.0 + 2 * r22 - tr)
+        q = [(r10 - r01) / (4 * z), (r02 + r20) / (4 * z), (r12 + r21) / (4 * z), z]
+    qa = np.array(q)
+    qa /= np.linalg.norm(qa)
+    return -qa if qa[0] < 0 else qa
 
 
 def quat_to_matrix(q: np.ndarray) -> np.ndarray:
