@@ -106,3 +106,20 @@ def test_a_wrong_transition_would_be_found():
     finally:
         attitude.transition = orig
     assert not np.all(r2 <= r1 / 3.0 + 1e-8)
+
+
+def test_warm_up_loads_the_propagation_for_the_first_fix():
+    """A live run's first fix must not wait for Numba (half a second from its cache):
+    warm_up calls the kernels with a filter's argument types, so the code for them is
+    there, and a filter's own call adds no other."""
+    from visvec.fuse import kernels
+    from visvec.fuse.gate import warm_up
+
+    warm_up()
+    if not kernels.ON or not hasattr(kernels.propagate, "signatures"):
+        pytest.skip("the numpy path: nothing to load")
+    before = len(kernels.propagate.signatures)
+    assert before >= 1
+    m, s = _state(np.random.default_rng(0))
+    m.propagate(s, np.stack([np.ones(3), np.zeros(3), np.zeros(3)]), None, 0.01)
+    assert len(kernels.propagate.signatures) == before

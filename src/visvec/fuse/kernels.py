@@ -142,9 +142,16 @@ def _compile() -> None:
 
 def warm_up() -> None:
     """Compile the kernels (or load them from their cache) now, so that a live run's
-    first sample does not wait for it (half a second from the cache)."""
+    first fix does not wait for it (half a second from the cache): Numba makes a
+    kernel's code for the argument types of its first call, so they are called once,
+    with the types a filter gives them."""
     if globals()["propagate"] is _lazy_propagate:
         _compile()
+    z3, eye, P = np.zeros(3), np.eye(3), np.eye(N_STATE)
+    propagate(eye, z3, eye, z3, 0.0, P, z3, z3, z3, 0.01, 1e-6, 1e-6, 0.0, 1.0, 0.01, 0.2,
+              1e-8, 1e-8)  # fmt: skip
+    transition(eye, z3, z3, 0.0, z3, z3, 0.01, 0.2)
+    process_noise(eye, 1e-6, z3, 0.01, 0.01, 0.2, 1e-8, 1e-8)
 
 
 def _lazy_propagate(*args):
