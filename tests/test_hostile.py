@@ -591,7 +591,10 @@ def _damaged(path, fourcc: str, how: str) -> int:
     w.release()
     data = bytearray(path.read_bytes())
     if "no index" in how:
-        k = data.rfind(b"idx1")
+        # the container's index: an AVI's idx1, an MP4's moov (its sample table), an
+        # MKV's Cues element (ID 1C 53 BB 6B)
+        tag = {".avi": b"idx1", ".mp4": b"moov", ".mkv": b"\x1c\x53\xbb\x6b"}[path.suffix]
+        k = data.rfind(tag)
         assert k > 0
         data[k : k + 4] = b"xxxx"
     if "zeroed" in how:
@@ -638,16 +641,20 @@ def test_a_damaged_motion_jpeg_avi_keeps_its_rows_in_place(tmp_path):
     "fourcc, suffix, how",
     [("MJPG", "avi", "truncated"), ("MJPG", "avi", "no index"),
      ("MJPG", "avi", "no index, zeroed"), ("mp4v", "mp4", "zeroed"),
-     ("mp4v", "mp4", "truncated"), ("MJPG", "mkv", "zeroed"), ("MJPG", "mkv", "truncated")],
+     ("mp4v", "mp4", "truncated"), ("mp4v", "mp4", "no index"), ("MJPG", "mkv", "zeroed"),
+     ("MJPG", "mkv", "truncated"), ("MJPG", "mkv", "no index")],
 )  # fmt: skip
 def test_damaged_containers_never_put_a_row_on_another_frame(tmp_path, fourcc, suffix, how):
-    """Damaged MJPG AVI, mp4v MP4 and MKV files (truncated, a zeroed span, an AVI's index
-    gone): whatever can be read is read, and no ok row claims another frame's index or
-    time; an AVI without its index whose data break off ends there, said."""
+    """Damaged MJPG AVI, mp4v MP4 and MKV files (truncated, a zeroed span, the index
+    gone): whatever can be read is read (an MP4 without its sample table cannot be: a
+    source that cannot be opened), and no ok row claims another frame's index or time;
+    an AVI without its index whose data break off ends there, said."""
     video = tmp_path / f"v.{suffix}"
     _damaged(video, fourcc, how)
     rows, out = _rows_in_place(tmp_path, video)
-    if how == "no index":
+    if how == "no index" and suffix == "avi":
         assert len(rows) == 12 and all(x["status"] == "ok" for x in rows)
+    if how == "no index" and suffix == "mp4":
+        assert rows == [] and "cannot open the video" in out
     if how == "no index, zeroed":
         assert "cannot be placed" in out
