@@ -637,6 +637,7 @@ def test_a_damaged_motion_jpeg_avi_keeps_its_rows_in_place(tmp_path):
     assert sum(x["status"] == "ok" for x in rows) >= n - 2
 
 
+@pytest.mark.slow  # 6 s in all: the default run keeps the AVI case above
 @pytest.mark.parametrize(
     "fourcc, suffix, how",
     [("MJPG", "avi", "truncated"), ("MJPG", "avi", "no index"),
