@@ -21,30 +21,9 @@ import threading
 import numpy as np
 
 from visvec.detect._compiled import AVAILABLE
+from visvec.rotations import expmap_xyz  # compiled beside the kernels that call it
 
 N_STATE = 15  # dtheta (3), bias (3), misalignment (3), scale (3), tau, jitter, clock rate
-
-
-def expmap3(x: float, y: float, z: float) -> np.ndarray:
-    """exp([w]x) of the rotation vector (x, y, z) (Rodrigues' formula; the series below
-    1e-8 rad), as visvec.rotations.expmap_xyz."""
-    t2 = x * x + y * y + z * z
-    if t2 < 1e-16:
-        a, b = 1.0, 0.5
-    else:
-        t = math.sqrt(t2)
-        a, b = math.sin(t) / t, (1.0 - math.cos(t)) / t2
-    R = np.empty((3, 3))
-    R[0, 0] = 1.0 - b * (y * y + z * z)
-    R[0, 1] = b * x * y - a * z
-    R[0, 2] = b * x * z + a * y
-    R[1, 0] = b * x * y + a * z
-    R[1, 1] = 1.0 - b * (x * x + z * z)
-    R[1, 2] = b * y * z - a * x
-    R[2, 0] = b * x * z - a * y
-    R[2, 1] = b * y * z + a * x
-    R[2, 2] = 1.0 - b * (x * x + y * y)
-    return R
 
 
 def transition(Rm, k, b, tau, g, gdot, dt, jitter_time):
@@ -57,7 +36,7 @@ def transition(Rm, k, b, tau, g, gdot, dt, jitter_time):
     w = Rm @ (scale * gc)
     RmS = Rm * scale
     F = np.eye(N_STATE)
-    F[0:3, 0:3] = expmap3(-w[0] * dt, -w[1] * dt, -w[2] * dt)
+    F[0:3, 0:3] = expmap_xyz(-w[0] * dt, -w[1] * dt, -w[2] * dt)
     F[0:3, 3:6] = -RmS * dt
     F[0, 7] = w[2] * dt  # -[w]x dt
     F[0, 8] = -w[1] * dt
@@ -100,7 +79,7 @@ def propagate(R, b, Rm, k, tau, P, g, gdot, gsat, dt, qa, qw, A, fade, jitter, j
     noise: white qa dt and rate-proportional qw ((A + |w| dt)^2 - A^2), held since the
     last fix, times the fading factor."""
     w, F = transition(Rm, k, b, tau, g, gdot, dt, jitter_time)
-    Rn = R @ expmap3(w[0] * dt, w[1] * dt, w[2] * dt)
+    Rn = R @ expmap_xyz(w[0] * dt, w[1] * dt, w[2] * dt)
     A1 = A + math.sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2]) * dt
     q = (qa * dt + qw * (A1 * A1 - A * A)) * fade
     Q = process_noise(Rm * (1.0 + k), q, gsat, dt, jitter, jitter_time, drift_walk2,
@@ -111,7 +90,7 @@ def propagate(R, b, Rm, k, tau, P, g, gdot, gsat, dt, qa, qw, A, fade, jitter, j
 
 # ------------------------------------------------------------------ compiled on demand
 _PY = {
-    "expmap3": expmap3,
+    "expmap_xyz": expmap_xyz,
     "transition": transition,
     "process_noise": process_noise,
     "propagate": propagate,
