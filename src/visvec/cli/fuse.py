@@ -248,8 +248,10 @@ def options_model(planar: bool, period_s: float | None, opts: FusionOptions):
 def engine(planar: bool, period_s: float | None, opts: FusionOptions) -> Fusion:
     """The fusion engine the options ask for (engine_from_options), an option that does
     not apply refused as a usage error."""
-    options_model(planar, period_s, opts)
-    return engine_from_options(planar, period_s, opts)
+    try:
+        return engine_from_options(planar, period_s, opts)
+    except ValueError as exc:
+        raise click.UsageError(f"{exc}") from None
 
 
 def with_declared_range(opts: FusionOptions, declared: float | None, where: str,

@@ -242,18 +242,6 @@ class AttitudeModel:
                              s.saturated or sat, s.disputed, s.fade, s.confirmed,
                              s.drift)  # fmt: skip
 
-    def process_noise(self, s: AttitudeState, q: float, gsat: np.ndarray,
-                      dt: float) -> np.ndarray:  # fmt: skip
-        """The process noise Q (15, 15) over an interval of ``dt`` s: ``q`` (rad^2) per
-        attitude axis (the learned white and rate-proportional noise, faded), a
-        saturated reading's error ``gsat`` (rad/s per gyro axis, 0 where in range), the
-        bias's random walk, the clock jitter's Gauss-Markov increment and the clock
-        rate's random walk (kernels.process_noise)."""
-        return kernels.process_noise(s.Rm * (1.0 + s.k), q, np.asarray(gsat, float), dt,
-                                     self.jitter, self.jitter_time,
-                                     (CLOCK_DRIFT_WALK * self.clock_drift_sigma) ** 2,
-                                     self.gyro_bias_walk**2)  # fmt: skip
-
     def update(self, s: AttitudeState, fix: Fix) -> tuple[AttitudeState, bool, float]:
         R = self._fix_cov(fix)
         r = logmap(s.R.T @ fix.value)

@@ -103,10 +103,6 @@ def _open_csv(path: Path, what: str, comments: bool = False):
     return fh, reader, cols
 
 
-# the IMU file's header lines (# key = value) that visvec reads
-IMU_HEADER_KEYS = ("gyro_range_dps",)
-
-
 def _imu_header(meta: dict[str, tuple[str, int]], path: Path) -> float | None:
     """The gyro's range from the IMU file's header (# gyro_range_dps = N), if any: a
     positive finite number, else refused naming the line."""

@@ -47,6 +47,7 @@ SAT_CONFIRM = 2
 SAT_STEPS = 20
 SAT_QUIET = 0.5
 SAT_P = 1e-6
+SAT_TOPS_KEPT = 200  # the flat tops weighed, per axis and side: the latest
 # the gyro's sample noise (rad/s) per axis: every NOISE_EVERY samples, over the last
 # NOISE_SPAN, the median absolute second difference (Gaussian: 0.6745 sqrt(6) sigma) of
 # each NOISE_BLOCK samples that stay below SAT_MIN_DPS on that axis (no flat top there),
@@ -196,7 +197,6 @@ class Saturation:
                     # a flat top starts (or goes on) only at SAT_MIN_DPS or more
                     if self._open[ax] is not None or abs(gl[ax]) >= low:
                         self._follow_top(ax, n, float(noise[ax]))
-            self._all_known = bool(np.all(np.isfinite(self.ranges)))
         out = np.zeros(3, bool)
         if self._any_known:
             for ax in range(3):
@@ -247,6 +247,7 @@ class Saturation:
         flagged (take() rebuilds them)."""
         tops = self._tops[ax][side]
         tops.append((level, steps))
+        del tops[:-SAT_TOPS_KEPT]  # a run of hours keeps the evidence of its latest
         agree = [(lv, st) for lv, st in tops if abs(lv - level) <= SAT_BAND * max(lv, level)]
         m = sum(len(st) for _, st in agree)
         if len(agree) < SAT_CONFIRM or m < SAT_STEPS:
@@ -259,6 +260,7 @@ class Saturation:
             return
         self.ranges[ax, side] = top_level
         self.learned.append((ax, side, top_level))
+        self._all_known = bool(np.all(np.isfinite(self.ranges)))
         sign = 1.0 if side == 0 else -1.0
         h = self.h
         for j in range(n):

@@ -17,6 +17,7 @@ errors in their places.
 
 from __future__ import annotations
 
+import mmap
 import struct
 from dataclasses import dataclass
 from pathlib import Path
@@ -73,17 +74,27 @@ def read_avi_index(path: str | Path) -> AviFrames | None:
     header that does not parse): OpenCV reads those."""
     path = Path(path)
     try:
-        data = path.read_bytes()
-    except OSError:
+        # mapped, not read: a recording may be gigabytes, of which only the headers
+        # and the index are looked at here
+        with open(path, "rb") as fh, mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ) as data:
+            return _parse(path, data)
+    except (OSError, ValueError):  # (an empty file cannot be mapped)
         return None
+
+
+def _parse(path: Path, data) -> AviFrames | None:
+    """read_avi_index on the file's bytes ``data``."""
     if len(data) < 12 or data[:4] != b"RIFF" or data[8:12] != b"AVI ":
         return None
+    riff_end = 8 + struct.unpack("<I", data[4:8])[0]
+    if data[riff_end : riff_end + 4] == b"RIFF":
+        return None  # an OpenDML (AVI 2.0) file of several RIFF parts: OpenCV reads it
     movi = idx1 = None
     rate = scale = None
     total = 0
     mjpg = False
     try:
-        for cid, start, size in _chunks(data, 12, len(data)):
+        for cid, start, size in _chunks(data, 12, riff_end):
             if cid == b"LIST" and data[start : start + 4] == b"movi":
                 movi = (start, start + size)  # start: the 'movi' fourcc
             elif cid == b"LIST" and data[start : start + 4] == b"hdrl":
@@ -92,6 +103,8 @@ def read_avi_index(path: str | Path) -> AviFrames | None:
                         total = struct.unpack("<I", data[s2 + 16 : s2 + 20])[0]
                     if c2 == b"LIST" and data[s2 : s2 + 4] == b"strl":
                         for c3, s3, _z3 in _chunks(data, s2 + 4, s2 + z2):
+                            if c3 == b"indx":
+                                return None  # an OpenDML index: OpenCV reads it
                             if c3 == b"strh" and data[s3 : s3 + 4] == b"vids" and rate is None:
                                 mjpg = data[s3 + 4 : s3 + 8].upper() in (b"MJPG", b"AVRN")
                                 scale, rate = struct.unpack("<II", data[s3 + 20 : s3 + 28])
