@@ -32,6 +32,7 @@ from visvec.evaluate import error_stats, read_truth
 from visvec.fuse.camera import paced
 from visvec.pipeline import make_pipeline
 from visvec.sources import open_source
+from visvec.sources.folder import FolderSource
 
 
 @click.command(cls=KindCommand)
@@ -200,8 +201,7 @@ def run_many(rig, paths, out_dir, fmt, method, max_frames, covariance, fps, sche
             if i in finished:
                 continue
             o = Path(t[2])
-            rows = max(sum(1 for _ in open(o, errors="replace")) - 1, 0) if o.is_file() else 0
-            state = f"incomplete ({rows} rows)" if o.is_file() else "not written"
+            state = f"incomplete ({_rows_in(o)} rows)" if o.is_file() else "not written"
             click.echo(f"visvec: interrupted: {o}: {state}", err=True)
         raise SystemExit(130) from None
     for p, t, r in zip(paths, tasks, results, strict=True):
@@ -222,14 +222,24 @@ class _Count:
         pass
 
 
+def _rows_in(path: Path) -> int:
+    """The rows a CSV or JSON-lines output holds (its lines less a CSV's header)."""
+    with open(path, errors="replace") as fh:
+        n = sum(1 for _ in fh)
+    return max(n - (path.suffix == ".csv"), 0)
+
+
 def with_fps(rig, src, fps: float | None, path, say: bool = True):
     """The rig the run's pipeline is made with: at --fps where the frames are timed by
     it (a folder without its own times), so that what expects the frame interval (the
     star field's frame jumps and rates) expects that one; the rig as it is where the
-    source has its own times (a folder's times.csv or truth.csv), said on stderr."""
+    source has its own times (a folder's times.csv or truth.csv, a video's container),
+    said on stderr."""
     if not fps:
         return rig
     own = getattr(src, "times_from", None)
+    if own is None and not isinstance(src, FolderSource):
+        own = "the video's own"  # a video's frames are timed by its container
     if own:
         if say:
             click.echo(f"visvec: note: {path} has its own frame times ({own}): they are "

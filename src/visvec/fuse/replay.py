@@ -302,12 +302,12 @@ class Fusion:
     def _provisional(self):
         """While the clocks align (planar fixes whose time offset is not known yet):
         the model the rows are fused with meanwhile, so that they need not wait. The
-        fixes count with a timing error anywhere in the alignment's range (their
-        jitter: PROVISIONAL_TIMING_S), the offset is not estimated, and each row's
-        covariance is widened by the pose's rate times that range
-        (PlanarModel.timing_spread_s): an honest row, warned aligning_clocks, until the
-        alignment replays the history with the filter itself. None for a model that
-        has no provisional form."""
+        fixes' timing may be off by anything in the alignment's range
+        (PROVISIONAL_TIMING_S): the offset is not estimated, each fix's covariance and
+        each row's are widened by that range times the rates the pose may have changed
+        at (PlanarModel.timing_spread_s), and the biases are considered, not estimated:
+        an honest row, warned aligning_clocks, until the alignment replays the history
+        with the filter itself. None for a model that has no provisional form."""
         if self._prov is None and hasattr(self.model, "timing_spread_s"):
             self._prov = replace(self.model, time_offset_sigma=0.0, learn_jitter=False,
                                  timing_spread_s=PROVISIONAL_TIMING_S)  # fmt: skip
