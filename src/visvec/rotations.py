@@ -106,7 +106,7 @@ def matrix_to_quat(R: np.ndarray) -> np.ndarray:
     (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = np.asarray(R, float).tolist()
     tr = r00 + r11 + r22
     cand = (tr, r00, r11, r22)
-    i = max(range(4), key=cand.__getitem__)  # the first of equals, as np.argmax
+    i = cand.index(max(cand))  # the first of equals, as np.argmax
     if i == 0:
         w = 0.5 * math.sqrt(1.0 + tr)
         q = [w, (r21 - r12) / (4 * w), (r02 - r20) / (4 * w), (r10 - r01) / (4 * w)]
@@ -119,9 +119,10 @@ def matrix_to_quat(R: np.ndarray) -> np.ndarray:
     else:
         z = 0.5 * math.sqrt(1.0 + 2 * r22 - tr)
         q = [(r10 - r01) / (4 * z), (r02 + r20) / (4 * z), (r12 + r21) / (4 * z), z]
-    qa = np.array(q)
-    qa /= np.linalg.norm(qa)
-    return -qa if qa[0] < 0 else qa
+    n = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+    if q[0] < 0:
+        n = -n
+    return np.array([q[0] / n, q[1] / n, q[2] / n, q[3] / n])
 
 
 def quat_to_matrix(q: np.ndarray) -> np.ndarray:
@@ -149,9 +150,16 @@ def euler_rates_from_body(yaw: float, pitch: float, roll: float) -> np.ndarray:
     outside an air bearing's range.
     """
     del yaw
+    j01, j02, j11, j12, j21, j22 = euler_jacobian_terms(pitch, roll)
+    return np.array([[0.0, j01, j02], [0.0, j11, j12], [1.0, j21, j22]])
+
+
+def euler_jacobian_terms(pitch: float, roll: float) -> tuple[float, ...]:
+    """The entries of :func:`euler_rates_from_body` that are not 0 or 1: J[0, 1],
+    J[0, 2], J[1, 1], J[1, 2], J[2, 1], J[2, 2] (its first column is (0, 0, 1))."""
     sr, cr = math.sin(roll), math.cos(roll)
     tp, ip = math.tan(pitch), 1.0 / math.cos(pitch)
-    return np.array([[0.0, sr * ip, cr * ip], [0.0, cr, -sr], [1.0, sr * tp, cr * tp]])
+    return sr * ip, cr * ip, cr, -sr, sr * tp, cr * tp
 
 
 def logmap(R: np.ndarray) -> np.ndarray:

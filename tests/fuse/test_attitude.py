@@ -23,18 +23,15 @@ from visvec.rotations import expmap, logmap
 def _state(rng):
     m = AttitudeModel()
     s = m.init(Fix(0.0, 0.0, expmap(rng.normal(0, 1, 3)), None, 0))
-    from dataclasses import replace
-
-    return m, replace(s, b=rng.normal(0, 0.02, 3), Rm=expmap(rng.normal(0, 0.03, 3)),
-                      k=rng.normal(0, 0.01, 3), tau=0.004, drift=1e-4)  # fmt: skip
+    return m, s._replace(b=rng.normal(0, 0.02, 3), Rm=expmap(rng.normal(0, 0.03, 3)),
+                         k=rng.normal(0, 0.01, 3), tau=0.004, drift=1e-4)  # fmt: skip
 
 
 def _perturbed(s, dx):
     """The true state that the error dx (15,) describes about the estimate s."""
-    from dataclasses import replace
-
-    return replace(s, R=s.R @ expmap(dx[TH]), b=s.b + dx[BIAS], Rm=expmap(dx[MIS]) @ s.Rm,
-                   k=s.k + dx[SCALE], tau=s.tau + dx[TAU], drift=s.drift + dx[DRIFT])  # fmt: skip
+    return s._replace(R=s.R @ expmap(dx[TH]), b=s.b + dx[BIAS], Rm=expmap(dx[MIS]) @ s.Rm,
+                      k=s.k + dx[SCALE], tau=s.tau + dx[TAU],
+                      drift=s.drift + dx[DRIFT])  # fmt: skip
 
 
 def _error(s, t):
@@ -123,3 +120,29 @@ def test_warm_up_loads_the_propagation_for_the_first_fix():
     m, s = _state(np.random.default_rng(0))
     m.propagate(s, np.stack([np.ones(3), np.zeros(3), np.zeros(3)]), None, 0.01)
     assert len(kernels.propagate.signatures) == before
+
+
+@pytest.mark.parametrize("saturated_at", [None, 3])
+def test_a_run_of_samples_gives_the_states_one_by_one_gives(saturated_at):
+    """A replay propagates its runs of stored samples in one call (propagate_run): the
+    states must be those of propagate on each interval in turn, to the bit (the fused
+    rows may not depend on how the samples were grouped)."""
+    rng = np.random.default_rng(4)
+    m, s = _state(rng)
+    s = s._replace(acc=(0.3, 0.02, 1e-6), fade=1.7)
+    n = 7
+    G = np.zeros((n, 3, 3))
+    G[:, 0] = rng.normal(0, 2.0, (n, 3))
+    G[:, 1] = rng.normal(0, 20.0, (n, 3))
+    if saturated_at is not None:
+        G[saturated_at, 2] = [0.0, 0.4, 0.0]
+    dts = list(rng.uniform(0.002, 0.004, n))
+    run = m.propagate_run(s, list(G), dts)
+    one = s
+    for i in range(n):
+        one = m.propagate(one, G[i], None, dts[i])
+        got = run[i]
+        for name in ("R", "P", "b", "Rm", "k"):
+            assert np.array_equal(getattr(got, name), getattr(one, name)), (i, name)
+        assert (got.tau, got.acc, got.saturated) == (one.tau, one.acc, one.saturated), i
+    assert run[-1].saturated is (saturated_at is not None)

@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
+from typing import NamedTuple
 
 import numpy as np
 
@@ -81,8 +82,10 @@ class NoiseFit:
         return np.maximum(th, [0.01 * self.theta0[0], RATE_NOISE_FLOOR**2])
 
 
-@dataclass(frozen=True)
-class AttitudeState:
+class AttitudeState(NamedTuple):
+    """The 3-D filter's state after a sample (immutable: the engine keeps one per
+    sample; a NamedTuple, as a 1 kHz IMU makes thousands a second, each replayed)."""
+
     R: np.ndarray  # R_NB
     b: np.ndarray  # gyro bias, rad/s, gyro axes
     Rm: np.ndarray  # gyro axes -> body axes
@@ -223,24 +226,45 @@ class AttitudeModel:
         return np.eye(3) * self.fix_sigma**2
 
     def propagate(self, s: AttitudeState, gyro: np.ndarray, accel, dt: float):
-        """``gyro`` is a `visvec.fuse.saturation.reading`: the interval's mean rate, its
+        """``gyro`` is a `visvec.fuse.history.History.reading`: the interval's mean rate, its
         rate of change and the extra 1-sigma per axis of a saturated (reconstructed)
         reading. The equations: kernels.propagate (transition, process_noise)."""
-        g, gdot, gsat = gyro
         qa, qw = s.noise.theta() if self.learn_noise else self.prior_theta()
         # white: qa dt; rate-proportional, held since the last fix (an error of the
         # rate's size kappa |w|, the same through the interval): its variance
         # qw (integral of |w| dt)^2 grows by qw ((A + |w| dt)^2 - A^2)
         Rn, P, A1, trq = kernels.propagate(
-            s.R, s.b, s.Rm, s.k, s.tau, s.P, g, gdot, gsat, dt, qa, qw, s.acc[1], s.fade,
-            self.jitter, self.jitter_time, (CLOCK_DRIFT_WALK * self.clock_drift_sigma) ** 2,
+            s.R, s.b, s.Rm, s.k, s.tau, s.P, gyro, dt, qa, qw, s.acc[1], s.fade, self.jitter,
+            self.jitter_time, (CLOCK_DRIFT_WALK * self.clock_drift_sigma) ** 2,
             self.gyro_bias_walk**2,
         )  # fmt: skip
-        sat = bool(gsat[0] > 0 or gsat[1] > 0 or gsat[2] > 0)
+        sat = s.saturated or bool((gyro[2] > 0).any())
         acc = (s.acc[0] + dt, A1, s.acc[2] + trq)
-        return AttitudeState(Rn, s.b, s.Rm, s.k, s.tau + s.drift * dt, P, s.noise, acc,
-                             s.saturated or sat, s.disputed, s.fade, s.confirmed,
-                             s.drift)  # fmt: skip
+        return AttitudeState(Rn, s.b, s.Rm, s.k, s.tau + s.drift * dt, P, s.noise, acc, sat,
+                             s.disputed, s.fade, s.confirmed, s.drift)  # fmt: skip
+
+    def propagate_run(self, s: AttitudeState, gyros: list[np.ndarray], dts: list[float],
+                      ) -> list[AttitudeState]:  # fmt: skip
+        """The states after each of consecutive intervals with no fix between them:
+        `propagate` on each in turn, in one compiled call (kernels.propagate_run; a
+        replay runs through hundreds of stored samples after each late fix)."""
+        qa, qw = s.noise.theta() if self.learn_noise else self.prior_theta()
+        G = np.array(gyros, float)
+        Rs, Ps, As, trqs, taus = kernels.propagate_run(
+            s.R, s.b, s.Rm, s.k, s.tau, s.drift, s.P, G, np.array(dts, float), qa, qw,
+            s.acc[1], s.acc[2], s.fade, self.jitter, self.jitter_time,
+            (CLOCK_DRIFT_WALK * self.clock_drift_sigma) ** 2, self.gyro_bias_walk**2,
+        )  # fmt: skip
+        sat = (np.cumsum((G[:, 2] > 0).any(axis=1)) > 0).tolist()
+        t0 = s.acc[0]
+        out = []
+        for i, (dt, tau, A, trq) in enumerate(zip(dts, taus.tolist(), As.tolist(),
+                                                  trqs.tolist(), strict=True)):  # fmt: skip
+            t0 = t0 + dt
+            out.append(AttitudeState(Rs[i], s.b, s.Rm, s.k, tau, Ps[i], s.noise, (t0, A, trq),
+                                     s.saturated or sat[i], s.disputed, s.fade, s.confirmed,
+                                     s.drift))  # fmt: skip
+        return out
 
     def update(self, s: AttitudeState, fix: Fix) -> tuple[AttitudeState, bool, float]:
         R = self._fix_cov(fix)
@@ -258,7 +282,7 @@ class AttitudeModel:
             P = s.P.copy()
             P[TH, TH] += np.outer(r, r)
             acc = (s.acc[0], s.acc[1], s.acc[2] + float(r @ r))
-            return replace(s, P=P, noise=noise, acc=acc, disputed=True, fade=fade), False, nis
+            return s._replace(P=P, noise=noise, acc=acc, disputed=True, fade=fade), False, nis
         P0 = s.P
         if nis > chi2_ppf(1.0 - BURST_P, 3):
             # taken, but far off: the gyro erred in a burst the model does not hold (a

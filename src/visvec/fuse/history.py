@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from visvec.fuse.saturation import reading
-
 
 class History:
     """Parallel lists over the history window, one entry per inertial sample: its time
@@ -38,12 +36,21 @@ class History:
         for buf in self._lists():
             del buf[:cut]
 
-    def reading(self, j: int, sat_sigma: np.ndarray) -> np.ndarray:
-        """The reading over the interval ending at sample j: the mean of its two ends
-        (trapezoid) and its rate of change."""
+    def reading(self, j: int, sat_sigma: np.ndarray | float) -> np.ndarray:
+        """The reading over the interval ending at sample j, as a model's propagate
+        takes it: (3, 3) rows: the mean of its two ends (trapezoid, rad/s), its rate of
+        change (rad/s^2) and the extra 1-sigma per axis of a saturated (reconstructed)
+        reading (rad/s; 0 where the reading is within range)."""
         g = self.raw[j]
+        out = np.empty((3, 3))
         if j == 0:
-            return reading(g, np.zeros(3), sat_sigma)
-        dt = self.ts[j] - self.ts[j - 1]
-        g0 = self.raw[j - 1]
-        return reading(0.5 * (g + g0), (g - g0) / dt, sat_sigma)
+            out[0] = g
+            out[1] = 0.0
+        else:
+            g0 = self.raw[j - 1]
+            np.add(g, g0, out=out[0])
+            out[0] *= 0.5
+            np.subtract(g, g0, out=out[1])
+            out[1] /= self.ts[j] - self.ts[j - 1]
+        out[2] = sat_sigma
+        return out

@@ -72,12 +72,15 @@ def process_noise(RmS, q, gsat, dt, jitter, jitter_time, drift_walk2, bias_walk2
     return Q
 
 
-def propagate(R, b, Rm, k, tau, P, g, gdot, gsat, dt, qa, qw, A, fade, jitter, jitter_time,
-              drift_walk2, bias_walk2):  # fmt: skip
-    """One interval: the new attitude R_NB, covariance P, the turn since the last fix
-    ``A1`` (rad) and the attitude noise added (the trace of Q's attitude block). The
-    noise: white qa dt and rate-proportional qw ((A + |w| dt)^2 - A^2), held since the
-    last fix, times the fading factor."""
+def propagate(R, b, Rm, k, tau, P, G, dt, qa, qw, A, fade, jitter, jitter_time, drift_walk2,
+              bias_walk2):  # fmt: skip
+    """One interval, its reading G (3, 3) (`History.reading`: the mean rate g, its
+    rate of change gdot, a saturated reading's extra sigma gsat): the new attitude
+    R_NB, covariance P, the turn since the last fix ``A1`` (rad) and the attitude noise
+    added (the trace of Q's attitude block). The noise: white qa dt and
+    rate-proportional qw ((A + |w| dt)^2 - A^2), held since the last fix, times the
+    fading factor."""
+    g, gdot, gsat = G[0], G[1], G[2]
     w, F = transition(Rm, k, b, tau, g, gdot, dt, jitter_time)
     Rn = R @ expmap_xyz(w[0] * dt, w[1] * dt, w[2] * dt)
     A1 = A + math.sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2]) * dt
@@ -88,12 +91,41 @@ def propagate(R, b, Rm, k, tau, P, g, gdot, gsat, dt, qa, qw, A, fade, jitter, j
     return Rn, Pn, A1, Q[0, 0] + Q[1, 1] + Q[2, 2]
 
 
+def propagate_run(R, b, Rm, k, tau, drift, P, G, dts, qa, qw, A, trq, fade, jitter,
+                  jitter_time, drift_walk2, bias_walk2):  # fmt: skip
+    """`propagate` over consecutive intervals with no fix between them (a replay's
+    run of stored samples): G (n, 3, 3) the readings (`History.reading` each), dts
+    (n,) the intervals; the time offset drifts by ``drift`` dt each. Returns the
+    attitude (n, 3, 3), covariance (n, 15, 15), turn since the fix (n,), attitude noise
+    added since the fix (n,) and time offset (n,) after each interval: the states one
+    call of `propagate` per interval gives, to the bit."""
+    n = dts.shape[0]
+    Rs = np.empty((n, 3, 3))
+    Ps = np.empty((n, N_STATE, N_STATE))
+    As = np.empty(n)
+    trqs = np.empty(n)
+    taus = np.empty(n)
+    for i in range(n):
+        dt = dts[i]
+        R, P, A, q = propagate(R, b, Rm, k, tau, P, G[i], dt, qa, qw, A, fade, jitter,
+                               jitter_time, drift_walk2, bias_walk2)  # fmt: skip
+        trq = trq + q
+        tau = tau + drift * dt
+        Rs[i] = R
+        Ps[i] = P
+        As[i] = A
+        trqs[i] = trq
+        taus[i] = tau
+    return Rs, Ps, As, trqs, taus
+
+
 # ------------------------------------------------------------------ compiled on demand
 _PY = {
     "expmap_xyz": expmap_xyz,
     "transition": transition,
     "process_noise": process_noise,
     "propagate": propagate,
+    "propagate_run": propagate_run,
 }  # fmt: skip  (helpers first: the others call them)
 _LOCK = threading.Lock()
 ON = AVAILABLE  # whether the compiled kernels run (off without Numba, VISVEC_PURE=1)
@@ -127,8 +159,10 @@ def warm_up() -> None:
     if globals()["propagate"] is _lazy_propagate:
         _compile()
     z3, eye, P = np.zeros(3), np.eye(3), np.eye(N_STATE)
-    propagate(eye, z3, eye, z3, 0.0, P, z3, z3, z3, 0.01, 1e-6, 1e-6, 0.0, 1.0, 0.01, 0.2,
-              1e-8, 1e-8)  # fmt: skip
+    propagate(eye, z3, eye, z3, 0.0, P, np.zeros((3, 3)), 0.01, 1e-6, 1e-6, 0.0, 1.0, 0.01,
+              0.2, 1e-8, 1e-8)  # fmt: skip
+    propagate_run(eye, z3, eye, z3, 0.0, 0.0, P, np.zeros((2, 3, 3)), np.full(2, 0.01), 1e-6,
+                  1e-6, 0.0, 0.0, 1.0, 0.01, 0.2, 1e-8, 1e-8)  # fmt: skip
     transition(eye, z3, z3, 0.0, z3, z3, 0.01, 0.2)
     process_noise(eye, 1e-6, z3, 0.01, 0.01, 0.2, 1e-8, 1e-8)
 
@@ -138,5 +172,11 @@ def _lazy_propagate(*args):
     return globals()["propagate"](*args)
 
 
+def _lazy_propagate_run(*args):
+    _compile()
+    return globals()["propagate_run"](*args)
+
+
 if AVAILABLE:
     propagate = _lazy_propagate  # noqa: F811  (the compiled kernel after the first call)
+    propagate_run = _lazy_propagate_run  # noqa: F811

@@ -35,7 +35,7 @@ class FusionModel(Protocol):
         s : state
             The state at the interval's start.
         gyro : ndarray, shape (3, 3)
-            ``visvec.fuse.saturation.reading``: the interval's mean rate (rad/s), its
+            ``visvec.fuse.history.History.reading``: the interval's mean rate (rad/s), its
             rate of change (rad/s^2) and a saturated reading's extra 1-sigma (rad/s).
         accel : ndarray, shape (2,), or None
             The accelerometers' mean reading over the interval (m/s^2, body x, y).

@@ -437,7 +437,7 @@ class PlanarModel:
         mid-heading and integrated (LuVeX's integration equations), the lateness
         decayed (first-order Gauss-Markov over LATE_TIME_S)."""
         x = s.x
-        w = gyro[0][2] - x[BG]  # the interval's mean rate (saturation.reading)
+        w = gyro[0][2] - x[BG]  # the interval's mean rate (History.reading)
         psi_mid = x[PSI] + 0.5 * w * dt
         c, sn = math.cos(psi_mid), math.sin(psi_mid)
         ab = accel * 1000.0 - x[BA]  # mm/s^2, body

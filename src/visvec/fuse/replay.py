@@ -30,9 +30,12 @@ from visvec.fuse.history import History
 from visvec.fuse.inputs import Fix, ImuData
 from visvec.fuse.planar import ALIGN_TAU
 from visvec.fuse.rest import RestSegment, find_rest
-from visvec.fuse.saturation import Saturation
+from visvec.fuse.saturation import NOT_CLIPPED, Saturation
 
 MAX_REJECTED_IN_A_ROW = 3  # then the filter restarts from the latest fix
+# a replay's run of this many samples or more with no fix among them goes to the model's
+# propagate_run where it has one (one compiled call; the same states as one by one)
+RUN_MIN = 4
 # a model that estimates its fixes' time offset (PlanarModel.time_offset) has them applied
 # at their stated time less the offset as last set: set again, and the history
 # replayed, once the estimate is known to SHIFT_SIGMA and has moved SHIFT_STEP from it
@@ -183,7 +186,7 @@ class Fusion:
         self._shift_fixes()
         self._forget(t)
         st = h.states[-1]
-        if getattr(st, "saturated", False) or clipped.any():
+        if getattr(st, "saturated", False) or clipped is not NOT_CLIPPED:
             warnings.append("gyro_saturated")
         if getattr(st, "disputed", False):
             warnings.append("fix_disputed")
@@ -211,13 +214,13 @@ class Fusion:
         h = self.history
         h.ts.append(t)
         h.raw.append(np.asarray(g, float))
-        h.clip.append(np.zeros(3, bool))
+        h.clip.append(NOT_CLIPPED)
         # the accelerometer over the interval: the mean of its two ends (trapezoid)
         h.acc.append(0.5 * (a + self._prev_a) if a is not None and self._prev_a is not None
                      else a)  # fmt: skip
         self._prev_a = a
         h.states.append(None)
-        h.gyro.append(h.reading(len(h.ts) - 1, np.zeros(3)))
+        h.gyro.append(h.reading(len(h.ts) - 1, 0.0))
         return self.saturation.take()
 
     def _take_fixes(self, t: float, warnings: list[str]) -> list[Fix]:
@@ -275,9 +278,20 @@ class Fusion:
             start = bisect.bisect_left(ts, t_s)
             for i in range(start):
                 states[i] = None
-        for j in range(start, len(ts)):
+        run = getattr(model, "propagate_run", None)
+        n = len(ts)
+        j = start
+        while j < n:
             # every known fix with its exposure in (t_s, ts[j]], at its own time
             lo = bisect.bisect_right(known, (t_s, math.inf))
+            if run is not None and ts[j] > t_s:
+                # the samples before the next fix's exposure, in one call
+                end = n if lo == len(known) else bisect.bisect_left(ts, known[lo][0], j, n)
+                if end - j >= RUN_MIN:
+                    dts = [ts[i] - (ts[i - 1] if i > j else t_s) for i in range(j, end)]
+                    states[j:end] = run(s, gyro[j:end], dts)
+                    s, t_s, j = states[end - 1], ts[end - 1], end
+                    continue
             hi = bisect.bisect_right(known, (ts[j], math.inf))
             for f_t, _, f in known[lo:hi]:
                 s = model.propagate(s, gyro[j], acc[j], f_t - t_s)
@@ -297,6 +311,7 @@ class Fusion:
                 s = model.propagate(s, gyro[j], acc[j], ts[j] - t_s)
                 t_s = ts[j]
             states[j] = s
+            j += 1
         return True
 
     def _provisional(self):
@@ -387,7 +402,8 @@ class Fusion:
         cut = bisect.bisect_left(h.ts, t - self.history_s)
         if cut > 0:
             h.drop(cut)
-            self._known[:] = [x for x in self._known if x[0] >= h.ts[0]]
+            if self._known and self._known[0][0] < h.ts[0]:
+                self._known[:] = [x for x in self._known if x[0] >= h.ts[0]]
 
 
 def fuse(
@@ -418,13 +434,17 @@ def fuse(
 
 def is_faulty(g: np.ndarray, a: np.ndarray | None, limits: Limits) -> bool:
     """Whether a sample is a fault: not finite, or beyond the limits."""
-    gl = [float(x) for x in g]
-    al = [float(x) for x in a] if a is not None else []
-    if not all(math.isfinite(x) for x in gl + al):
+    g0, g1, g2 = g.tolist() if isinstance(g, np.ndarray) else (float(x) for x in g)
+    if not (math.isfinite(g0) and math.isfinite(g1) and math.isfinite(g2)):
         return True
     if limits.max_rate_dps is not None and (
-        max(abs(x) for x in gl) > math.radians(limits.max_rate_dps)
+        max(abs(g0), abs(g1), abs(g2)) > math.radians(limits.max_rate_dps)
     ):
+        return True
+    if a is None:
+        return False
+    al = [float(x) for x in a]
+    if not all(math.isfinite(x) for x in al):
         return True
     if al and limits.max_accel_mps2 is not None:
         return max(abs(x) for x in al) > limits.max_accel_mps2

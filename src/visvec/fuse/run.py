@@ -6,10 +6,11 @@ import math
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
-from visvec.data import AttitudeSolution, Status
+from visvec.data import Status
 from visvec.fuse.inputs import ImuData
 from visvec.fuse.replay import FusedSample, Limits, is_faulty
 from visvec.output import PoseRow, Row, attitude_row
@@ -61,6 +62,16 @@ def rest_biases(imu: ImuData, duration_s: float, limits: Limits | None = None) -
     return RestBiases(g, a, n, duration_s)
 
 
+class _Solution(NamedTuple):
+    """What attitude_row reads of an AttitudeSolution, for a fused state (a row of a
+    1 kHz IMU builds no more than it needs)."""
+
+    R_nb: np.ndarray
+    cov_b: np.ndarray
+    n_points: int
+    rms_px: float = math.nan
+
+
 def fused_rows(samples: Iterator[FusedSample], model) -> Iterator[Row]:
     """Rows of fused samples: planar pose or attitude, like the fixes; ``latency_ms`` is
     the time spent on the sample (its propagation and any replay)."""
@@ -88,5 +99,5 @@ def fused_rows(samples: Iterator[FusedSample], model) -> Iterator[Row]:
             )  # fmt: skip
         else:
             R, cov = model.values(fs.state)
-            sol = AttitudeSolution(Status.OK, R_nb=R, cov_b=cov, n_points=fs.n_fixes)
-            yield attitude_row(fs.index, fs.time_s, sol, Status.OK, fs.warnings, latency_ms)
+            yield attitude_row(fs.index, fs.time_s, _Solution(R, cov, fs.n_fixes), Status.OK,
+                               fs.warnings, latency_ms)  # fmt: skip

@@ -58,17 +58,10 @@ NOISE_EVERY = 200
 NOISE_SPAN = 2000
 NOISE_BLOCK = 50
 NOISE_MIN_DPS = 0.05  # a quantised gyro's steps at rest may all be zero
-
-
-def reading(mean: np.ndarray, rate: np.ndarray, sat: np.ndarray) -> np.ndarray:
-    """What a model's propagate takes as ``gyro``: (3, 3) rows: the interval's mean rate
-    (rad/s), its rate of change (rad/s^2) and the extra 1-sigma per axis of a
-    saturated reading (rad/s; 0 where the reading is within range)."""
-    out = np.empty((3, 3))
-    out[0] = mean
-    out[1] = rate
-    out[2] = sat
-    return out
+# a reading with no axis at the range: one shared flag array, never written (a reading
+# flagged later gets its own copy)
+NOT_CLIPPED = np.zeros(3, bool)
+NOT_CLIPPED.flags.writeable = False
 
 
 def declip(
@@ -197,12 +190,13 @@ class Saturation:
                     # a flat top starts (or goes on) only at SAT_MIN_DPS or more
                     if self._open[ax] is not None or abs(gl[ax]) >= low:
                         self._follow_top(ax, n, float(noise[ax]))
+        if not self._any_known:
+            return NOT_CLIPPED
         out = np.zeros(3, bool)
-        if self._any_known:
-            for ax in range(3):
-                lvl = self.level(ax, gl[ax])
-                out[ax] = lvl is not None and abs(gl[ax]) >= lvl * (1 - SAT_BAND)
-        return out
+        for ax in range(3):
+            lvl = self.level(ax, gl[ax])
+            out[ax] = lvl is not None and abs(gl[ax]) >= lvl * (1 - SAT_BAND)
+        return out if out.any() else NOT_CLIPPED
 
     @property
     def _any_known(self) -> bool:
@@ -224,17 +218,18 @@ class Saturation:
                 return
             self._open[ax] = None
             self._weigh(ax, side, level0, steps, sigma, n)
-        sign = 1.0 if raw[n - SAT_RUN][ax] >= 0 else -1.0
+        x0 = float(raw[n - SAT_RUN][ax])
+        sign = 1.0 if x0 >= 0 else -1.0
         side = 0 if sign > 0 else 1
-        if np.isfinite(self.ranges[ax, side]):
+        level = sign * x0
+        # the cheap tests first: most readings are no flat top's start
+        if level < math.radians(SAT_MIN_DPS) or level < self._extreme[ax, side] * (1 - SAT_BAND):
+            return
+        if math.isfinite(self.ranges[ax, side]):
             return
         a = [sign * raw[j][ax] for j in range(n - SAT_RUN - 1, n)]
-        level = a[1]
-        if (
-            level < math.radians(SAT_MIN_DPS)
-            or level - a[0] < SAT_ENTRY * math.sqrt(2.0) * sigma
-            or level < self._extreme[ax, side] * (1 - SAT_BAND)
-            or any(abs(v - level) > SAT_BAND * level for v in a[2:])
+        if level - a[0] < SAT_ENTRY * math.sqrt(2.0) * sigma or any(
+            abs(v - level) > SAT_BAND * level for v in a[2:]
         ):
             return
         self._open[ax] = (side, max(a[1:]), a[-1], [a[k + 1] - a[k] for k in range(1, len(a) - 1)])
@@ -287,13 +282,13 @@ class Saturation:
                 first = self.reconstruct(last, both=True)
                 if first is not None:
                     dirty = min(dirty, first)
-        if clipped.any():
+        if clipped is not NOT_CLIPPED:
             self.n_saturated += 1
             first = self.reconstruct(j_new, both=False)
             if first is not None:
                 dirty = min(dirty, first)
             self._burst_end = None
-        elif len(h.clip) > 1 and h.clip[-2].any():
+        elif len(h.clip) > 1 and h.clip[-2] is not NOT_CLIPPED and h.clip[-2].any():
             self._burst_end = 0
         if self._burst_end is not None:
             self._burst_end += 1
