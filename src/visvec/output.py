@@ -122,29 +122,30 @@ class Row:
         """1-sigma of :meth:`values` where the row has one."""
         raise NotImplementedError
 
-    def as_dict(self) -> dict[str, object]:
-        """Column name -> value; None for the empty numeric fields of a non-ok row."""
-        d: dict[str, object] = {
-            "frame": self.frame,
-            "time_s": round(self.time_s, 6),
-            "status": self.status.value,
-        }
+    def fields(self) -> list[object]:
+        """The row's values in column order (``columns``), rounded as written; None for
+        the empty numeric fields of a non-ok row."""
         isfinite = math.isfinite
+        out: list[object] = [self.frame, round(self.time_s, 6), self.status.value]
         if self.status is Status.OK:
-            for k, v, nd in self.quantities():
-                d[k] = round(v, nd) if isfinite(v) else None
+            out += [round(v, nd) if isfinite(v) else None for _, v, nd in self.quantities()]
             rms = float(self.rms_px)
-            d["rms_px"] = round(rms, 4) if isfinite(rms) else None
+            out.append(round(rms, 4) if isfinite(rms) else None)
         else:
-            for k, _, _ in self.quantities():
-                d[k] = None
-            d["rms_px"] = None
-        d["n_points"] = self.n_points
-        d["latency_ms"] = round(self.latency_ms, 3)
+            out += [None] * (len(self.columns) - 7)
         w = self.warnings
-        d["warnings"] = (w[0] if len(w) == 1 else ";".join(dict.fromkeys(w))) if w else ""
-        d["time_unix"] = round(self.time_unix, 6) if isfinite(self.time_unix) else None
-        return d
+        out += [
+            self.n_points,
+            round(self.latency_ms, 3),
+            (w[0] if len(w) == 1 else ";".join(dict.fromkeys(w))) if w else "",
+            round(self.time_unix, 6) if isfinite(self.time_unix) else None,
+        ]
+        return out
+
+    def as_dict(self) -> dict[str, object]:
+        """Column name -> value (`fields`); None for the empty numeric fields of a
+        non-ok row."""
+        return dict(zip(self.columns, self.fields(), strict=True))
 
     @classmethod
     def cov_columns(cls) -> tuple[str, ...]:

@@ -18,6 +18,7 @@ from visvec.fuse.replay import fuse as run_fusion
 from visvec.fuse.run import fused_rows
 from visvec.output import AttitudeRow, PoseRow
 from visvec.pipeline import make_pipeline
+from visvec.sinks import row_writer
 
 camera_out_option = click.option(
     "--camera-out",
@@ -116,10 +117,11 @@ def run_fused_batch(rig, frames, imu_path, method, out, fmt, camera_out) -> None
     model, limits = options_model(planar, imu.period_s, opts)
     n = n_ok = 0
     with rows_out(out, fmt, PoseRow.columns if planar else AttitudeRow.columns) as sink:
+        write = row_writer(sink)
         for row in fused_rows(
             run_fusion(imu, fixes, model, limits=limits, gyro_range_dps=opts.gyro_range_dps), model
         ):
-            sink.write(row.as_dict())
+            write(row)
             n += 1
             n_ok += int(row.ok)
     click.echo(f"visvec: {n} inertial samples, {n_ok} fused; {len(fixes)} ok fixes", err=True)

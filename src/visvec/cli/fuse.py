@@ -23,6 +23,7 @@ from visvec.fuse.replay import fuse as run_fusion
 from visvec.fuse.run import fused_rows, rest_biases
 from visvec.output import AttitudeRow, PoseRow
 from visvec.rotations import logmap
+from visvec.sinks import row_writer
 
 
 @click.command()
@@ -132,8 +133,9 @@ def fuse(imu_path, fixes_path, follow, max_samples, silent_s, gyro_range_dps, ou
     rows = []
     columns = PoseRow.columns if fixes.planar else AttitudeRow.columns
     with rows_out(out, fmt, columns) as sink, Work("fuse", len(imu.t), unit="sample") as bar:
+        write = row_writer(sink)
         for row in fused_rows(tap(samples), model):
-            sink.write(row.as_dict())
+            write(row)
             rows.append(row)
             bar.update(1)
     n_ok = sum(r.ok for r in rows)

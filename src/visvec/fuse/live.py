@@ -51,6 +51,7 @@ from visvec.fuse.inputs import (
 from visvec.fuse.inputs import _fix_cov as sigma_cov
 from visvec.fuse.run import fused_rows
 from visvec.rotations import quat_to_matrix
+from visvec.sinks import row_writer
 
 SERIAL_RETRY_S = 1.0
 QUIET_END_S = 0.5  # the camera has ended and the IMU said nothing for this long: stop
@@ -497,6 +498,7 @@ class _LiveRun:
         self.engine, self.model = self.setup(planar)
         self.summary.engine = self.engine
         self.sink = self.open_rows(planar)
+        self.write = row_writer(self.sink)
         return True
 
     def sample(self, ev: Event) -> bool:
@@ -527,7 +529,7 @@ class _LiveRun:
         row = next(fused_rows(iter([fs]), self.model))
         latency = (time.monotonic() - ev.arrival) * 1000.0
         row = replace(row, latency_ms=latency)
-        self.sink.write(row.as_dict())
+        self.write(row)
         self.summary.samples += 1
         self.summary.ok += int(row.ok)
         self.summary.latencies_ms.add(latency)

@@ -1,6 +1,6 @@
 """Where rows go: CSV or JSON lines, flushed row by row, to a file, stdout or UDP
 (writers), or ROS 2 messages in an MCAP file (ros)."""
 
-from visvec.sinks.writers import CsvSink, JsonlSink, UdpStream, open_sink
+from visvec.sinks.writers import CsvSink, JsonlSink, UdpStream, open_sink, row_writer
 
-__all__ = ["CsvSink", "JsonlSink", "UdpStream", "open_sink"]
+__all__ = ["CsvSink", "JsonlSink", "UdpStream", "open_sink", "row_writer"]
