@@ -15,6 +15,7 @@ machine whose speed drifts during the run slows them alike.
     python benchmarks/triangle_speed.py --size 1920x1080   # an HD webcam, same field
     python benchmarks/triangle_speed.py --refine pixels    # with the pixel fit
     python benchmarks/triangle_speed.py --pair   # lines and pixel fit in turn: their ratio
+    python benchmarks/triangle_speed.py --motion random  # every track lost: a new attitude
     VISVEC_PURE=1 python benchmarks/triangle_speed.py     # without the compiled kernels
 
 ``--size WxH`` puts the rig's lens on a sensor of that size with the same horizontal
@@ -58,6 +59,13 @@ def main() -> None:
         default=5,
         help="the tag baseline on every n-th attitude (its frames render slowly)",
     )
+    ap.add_argument(
+        "--motion",
+        choices=["sweep", "random"],
+        default="sweep",
+        help="random: every frame at a new random attitude (yaw anywhere, tilts within 5 "
+        "deg), so that every frame in sequence is a lost track and a search ('lost')",
+    )
     add_refine_option(ap)
     ap.add_argument(
         "--pair",
@@ -87,7 +95,13 @@ def main() -> None:
         )
         rig = replace(rig, camera=cam)
         name += f"_{w}x{h}"
-    eul = _fiducial.speed_sweep(args.frames)
+    if args.motion == "random":
+        from visvec.sim.simulate import random_attitudes
+
+        eul = random_attitudes(args.frames, 5.0, np.random.default_rng(3), "random")
+        name += "_random"
+    else:
+        eul = _fiducial.speed_sweep(args.frames)
     cases = [Case(e, Scene(), k) for k, e in enumerate(eul)]
     images = render_cases(rig, cases)
     pngs = [cv2.imencode(".png", im)[1] for im in images]
@@ -110,8 +124,10 @@ def main() -> None:
         # the edge fit's compiled kernels (the fast extra; VISVEC_PURE=1 turns them off)
         "compiled_kernels": _compiled.ON,
     }
-    times = {"tracking": [], "cold": [], "png_decode": [], "aruco": [], "aruco_subpix": []}
-    n_ok = {"tracking": 0, "cold": 0}
+    # in sequence: tracking on the sweep; on random attitudes every frame's track is lost
+    seq = "lost" if args.motion == "random" else "tracking"
+    times = {seq: [], "cold": [], "png_decode": [], "aruco": [], "aruco_subpix": []}
+    n_ok = {seq: 0, "cold": 0}
     for _ in range(args.repeats):
         pipes = {mode: TrianglePipeline(rig) for mode in n_ok}
         # frame by frame, each method in turn: a machine whose speed drifts during the
@@ -153,17 +169,22 @@ def main() -> None:
     per_repeat = np.array(res["cold"]["repeat_medians_ms"]) / res["aruco"]["repeat_medians_ms"]
     res["cold_to_aruco"] = round(float(np.median(per_repeat)), 2)
     res["cold_to_aruco_per_repeat"] = np.round(per_repeat, 2).tolist()
-    per_repeat = np.array(res["tracking"]["repeat_medians_ms"]) / res["aruco"]["repeat_medians_ms"]
-    res["tracking_to_aruco"] = round(float(np.median(per_repeat)), 2)
+    per_repeat = np.array(res[seq]["repeat_medians_ms"]) / res["aruco"]["repeat_medians_ms"]
+    res[f"{seq}_to_aruco"] = round(float(np.median(per_repeat)), 2)
+    res[f"{seq}_to_aruco_per_repeat"] = np.round(per_repeat, 2).tolist()
+    if seq == "lost":
+        # a lost track's frame against a cold one, each repeat's medians
+        per_repeat = np.array(res["lost"]["repeat_medians_ms"]) / res["cold"]["repeat_medians_ms"]
+        res["lost_to_cold_per_repeat"] = np.round(per_repeat, 2).tolist()
     # the same on the machine the targets were set on (its tag: _fiducial.REFERENCE_TAG_MS)
-    for k in ("cold", "tracking"):
+    for k in ("cold", seq):
         res[f"{k}_reference_ms"] = round(res[f"{k}_to_aruco"] * _fiducial.REFERENCE_TAG_MS, 2)
     if args.profile:
         res["profile_ms_per_frame"] = {m: profile(rig, images, m == "cold") for m in n_ok}
     if not args.size:
         res["batch"] = batch_end_to_end(args.rig, pngs, args.repeats, args.refine)
     dec = res["png_decode"]["median_ms"]
-    for k in ("tracking", "cold"):
+    for k in (seq, "cold"):
         res[k]["ratio_to_png_decode"] = round(res[k]["median_ms"] / dec, 2)
     print(res)
     print(save_json(name, res))
@@ -176,6 +197,7 @@ def batch_end_to_end(rig_path: str, pngs, repeats: int, refine: str = "lines") -
     (the best of ``repeats`` runs): with the machine's cores (the folder is read by a
     thread beside the processing) and pinned to one CPU. ``refine``: the rig's [detect]
     refine (a copy of the rig file with it set)."""
+    import csv
     import os
     import tempfile
     from pathlib import Path
@@ -203,6 +225,7 @@ def batch_end_to_end(rig_path: str, pngs, repeats: int, refine: str = "lines") -
         for label, use in (("all_cpus", cpus), ("one_cpu", {min(cpus)})):
             os.sched_setaffinity(0, use)
             best_batch = best_decode = float("inf")
+            frame_ms = []  # each run's median frame (its rows' latency_ms)
             try:
                 for _ in range(repeats):
                     t = time.perf_counter()
@@ -215,12 +238,18 @@ def batch_end_to_end(rig_path: str, pngs, repeats: int, refine: str = "lines") -
                     best_batch = min(best_batch, time.perf_counter() - t)
                     if r.exit_code != 0:
                         raise RuntimeError(r.output)
+                    with open(Path(tmp) / "rows.csv") as fh:
+                        lat = [float(row["latency_ms"]) for row in csv.DictReader(fh)]
+                    frame_ms.append(float(np.median(lat)))
             finally:
                 os.sched_setaffinity(0, cpus)
             n = len(pngs)
             out[label] = {"cpus": len(use), "batch_ms_per_frame": round(best_batch / n * 1000, 3),
                           "read_decode_ms_per_frame": round(best_decode / n * 1000, 3),
-                          "ratio": round(best_batch / best_decode, 2)}  # fmt: skip
+                          "ratio": round(best_batch / best_decode, 2),
+                          # a frame's own time (its processing, beside the folder's
+                          # reading thread where there are two CPUs): each run's median
+                          "frame_ms_medians": np.round(frame_ms, 3).tolist()}  # fmt: skip
     return out
 
 

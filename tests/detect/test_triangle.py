@@ -450,3 +450,29 @@ def test_real_photos_without_a_triangle_are_never_ok(request, rig_name):
         row = pipe.process(Frame(k, 0.0, img))
         assert not row.ok, f.name
         assert row.status in (Status.NO_TARGET, Status.REJECTED), (f.name, row.status)
+
+
+def test_a_lost_track_goes_to_the_search_without_the_edge_fit(rig640, monkeypatch):
+    """A frame whose triangle jumped (a new attitude) is seen not to be where the last
+    frame's vertices put it before the edge fit is run there (a failed fit costs about
+    a third of a cold frame): the detection is the cold search's, its edge fit run once;
+    a tracked frame still takes the tracked path."""
+    import visvec.detect.triangle as tri
+
+    calls = []
+    fit = tri.fit_edges
+    monkeypatch.setattr(tri, "fit_edges", lambda *a, **k: calls.append(1) or fit(*a, **k))
+    det = TriangleDetector(rig640)
+    a = render_frame(rig640, euler_to_matrix(0.3, 0.02, -0.01), Scene(), rng=0)
+    b = render_frame(rig640, euler_to_matrix(0.31, 0.021, -0.01), Scene(), rng=1)
+    jump = render_frame(rig640, euler_to_matrix(2.4, -0.03, 0.04), Scene(), rng=2)
+    assert det.detect(a).status is Status.OK
+    calls.clear()
+    assert det.detect(b).status is Status.OK and det.last_was_tracked
+    assert len(calls) == 1  # the tracked fit, taken
+    calls.clear()
+    got = det.detect(jump)
+    assert got.status is Status.OK and not det.last_was_tracked
+    assert len(calls) == 1  # the search's fit only: the tracked one was not run
+    cold = TriangleDetector(rig640).detect(jump)
+    np.testing.assert_allclose(got.points_px, cold.points_px, atol=1e-9)

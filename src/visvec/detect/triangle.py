@@ -151,6 +151,10 @@ def _masked_mean(image: np.ndarray, mask255: np.ndarray) -> float:
     return cv2.sumElems(image & mask255)[0] / n if n else 0.0
 
 
+# the 3x3 neighbourhood of a pixel (rows, columns), for TriangleDetector._still_there
+_LOOK_DV, _LOOK_DU = np.mgrid[-1:2, -1:2].reshape(2, 9)
+
+
 @dataclass(frozen=True)
 class _Measured:
     """A candidate's measured vertices: undistorted (xy, px at fx) and in the image
@@ -299,6 +303,9 @@ class TriangleDetector:
         # (a video codec's, a camera's smoothing): it widens the edge lines' covariance
         self.correlation = LearnedCorrelation()
         self._lags: np.ndarray | None = None  # the last verified detection's lag sums
+        # the grey level halfway between the triangle and its surround, at the last
+        # verified detection (the tracked frame's quick look, _still_there)
+        self._mid_level: float | None = None
         # the frame came through a codec that predicts frames from earlier ones
         # (visvec.data.inter_frame of its Frame.codec, set by the pipeline): the pixel
         # fit is not taken (see _measure)
@@ -353,6 +360,45 @@ class TriangleDetector:
         self._last_points = None
         self._prev_points = None
         self._last_width = None
+        self._mid_level = None
+
+    def _still_there(self, image: np.ndarray, pts: np.ndarray) -> bool:
+        """A quick look before a tracked frame's edge fit: is the triangle still where
+        ``pts`` (the predicted vertices) put it? Its inside (the centroid and three
+        points 60 % of the way to the vertices) brighter than the last frame's mid
+        level, and outside it (two or more of the edges' midpoints pushed out by a fifth
+        of the inscribed radius, at least 3 px) darker, each a 3x3 mean. A frame whose
+        triangle jumped (a new attitude, a dropped stretch of frames) skips the fit that
+        would fail (about a third of a cold frame) and goes to the search at once; a
+        look it cannot take (points out of the image, no level yet) lets the fit
+        decide."""
+        level = self._mid_level
+        if level is None:
+            return True
+        (ax, ay), (bx, by), (cx, cy) = pts.tolist()
+        gx, gy = (ax + bx + cx) / 3.0, (ay + by + cy) / 3.0
+        look = [(gx, gy)] + [(gx + 0.6 * (x - gx), gy + 0.6 * (y - gy))
+                             for x, y in ((ax, ay), (bx, by), (cx, cy))]  # fmt: skip
+        sides = (
+            math.hypot(bx - ax, by - ay)
+            + math.hypot(cx - bx, cy - by)
+            + math.hypot(ax - cx, ay - cy)
+        )
+        area = 0.5 * abs((bx - ax) * (cy - ay) - (cx - ax) * (by - ay))
+        push = max(3.0, 0.2 * 2.0 * area / max(sides, 1e-9))  # a fifth of the inradius
+        for (px, py), (qx, qy) in (((ax, ay), (bx, by)), ((bx, by), (cx, cy)),
+                                   ((cx, cy), (ax, ay))):  # fmt: skip
+            mx, my = 0.5 * (px + qx), 0.5 * (py + qy)
+            dx, dy = mx - gx, my - gy
+            n = max(math.hypot(dx, dy), 1e-9)
+            look.append((mx + push * dx / n, my + push * dy / n))
+        uv = np.rint(np.array(look)).astype(np.intp)
+        h, w = image.shape[:2]
+        if not (uv.min() >= 1 and uv[:, 0].max() < w - 1 and uv[:, 1].max() < h - 1):
+            return True
+        # each point's 3x3 mean, in one gather
+        vals = image[uv[:, 1, None] + _LOOK_DV, uv[:, 0, None] + _LOOK_DU].mean(axis=1).tolist()
+        return min(vals[:4]) > level and sum(x < level for x in vals[4:]) >= 2
 
     # ------------------------------------------------------------------ public
     def detect(self, image: np.ndarray, omega_c: np.ndarray | None = None) -> Detection:
@@ -374,8 +420,12 @@ class TriangleDetector:
             pred = self._last_points
             if self._prev_points is not None:
                 pred = 2.0 * self._last_points - self._prev_points  # constant velocity
-            det = self._verify(image, self._tracked_candidate(pred), warnings, mean, rate_c)
-            if det.status is Status.OK:
+            det = (
+                self._verify(image, self._tracked_candidate(pred), warnings, mean, rate_c)
+                if self._still_there(image, pred)
+                else None
+            )
+            if det is not None and det.status is Status.OK:
                 self._prev_points, self._last_points = self._last_points, det.points_px
                 self._last_width = self._fit_width
                 self.last_was_tracked = True
@@ -528,6 +578,7 @@ class TriangleDetector:
             w.append("near_fov_edge")
         consider, gain = self._shutter_consider(m, rate_c)
         self._lags = m.lags
+        self._mid_level = m.level_mid
         return Detection(
             Status.OK,
             points_px=m.pts_px,
