@@ -26,7 +26,7 @@ from visvec.cli.common import (
 from visvec.cli.frames import run_frames
 from visvec.cli.progress import Work
 from visvec.cli.results import check_results, write_results
-from visvec.cli.view import linger, open_view
+from visvec.cli.view import linger, open_foxglove, open_view
 from visvec.distribute import TaskPool
 from visvec.evaluate import error_stats, read_truth
 from visvec.fuse.camera import paced
@@ -132,7 +132,13 @@ def run_batch(
     names = make_pipeline(rig, method).row_type.value_columns
     truth_rows = read_truth(truth, names) if truth else None
     view = open_view(serve, rig, rig_path, method, str(path))  # a bad port: before the frames
-    src = open_source(path, fps=fps or rig.fps, max_frames=max_frames, retry_s=0.0)
+    fox = open_foxglove(rig, method)
+    try:
+        src = open_source(path, fps=fps or rig.fps, max_frames=max_frames, retry_s=0.0)
+    except BaseException:
+        if fox is not None:
+            fox.live.close()
+        raise
     rig = with_fps(rig, src, fps, path)
     if view is not None:
         src = paced(src)
@@ -149,7 +155,7 @@ def run_batch(
             overlay=overlay,
             max_frames=max_frames,
             keep_rows=truth_rows is not None or summary is not None,
-            watchers=[view.state] if view is not None else None,
+            watchers=[w for w in (view.state if view is not None else None, fox) if w],
             what=what,
             covariance=covariance,
             ros_images=ros_images,

@@ -151,8 +151,8 @@ def _format_available(ctx, param, value):
 
 
 def output_options(f):
-    """--out, --format, --method, --overlay, --max-frames, --serve, --covariance,
-    --ros-images."""
+    """--out, --format, --method, --overlay, --max-frames, --serve, --foxglove,
+    --covariance, --ros-images."""
     f = click.option(
         "--ros-images",
         is_flag=True,
@@ -165,6 +165,26 @@ def output_options(f):
         help="Add the values' full 3x3 covariance to each row (its upper triangle, "
         "cov_<a>_<b>, in the values' units squared: deg^2 for yaw, pitch, roll; "
         "(deg/s)^2 for rates; mm^2, mm deg, deg^2 for a planar pose).",
+    )(f)
+    f = click.option(
+        "--foxglove-image-hz",
+        type=FiniteFloat(min=0),
+        default=5.0,
+        show_default=True,
+        expose_value=False,
+        callback=lambda ctx, _p, v: ctx.meta.__setitem__("visvec.foxglove_image_hz", v),
+        help="With --foxglove: frames with their detection drawn, at most this many a "
+        "second (0: none).",
+    )(f)
+    f = click.option(
+        "--foxglove",
+        metavar="[HOST:]PORT",
+        default=None,
+        expose_value=False,
+        callback=lambda ctx, _p, v: ctx.meta.__setitem__("visvec.foxglove", v),
+        help="Publish the rows live to Foxglove: a Foxglove WebSocket server on "
+        "HOST:PORT (HOST 127.0.0.1 unless given) with the channels an --out *.mcap file "
+        'holds, as they are made (pip install "visvec[foxglove]").',
     )(f)
     f = click.option(
         "--keep-view",

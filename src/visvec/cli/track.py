@@ -18,7 +18,7 @@ from visvec.cli.common import (
     rig_options,
 )
 from visvec.cli.frames import run_frames
-from visvec.cli.view import linger, open_view
+from visvec.cli.view import linger, open_foxglove, open_view
 from visvec.errors import SourceError
 from visvec.fuse.camera import paced
 from visvec.sources import open_source
@@ -95,6 +95,7 @@ def track(
         click.echo(f"visvec: connecting to {u.scheme}://{u.hostname}{port}", err=True)
     # bound before the camera opens: a port in use is refused first (exit 2)
     view = open_view(serve, rig, rig_path, method, _shown(spec))
+    fox = open_foxglove(rig, method) if imu_src is None else None
     try:
         src = open_source(
             spec if isinstance(spec, int) else str(spec),
@@ -105,6 +106,8 @@ def track(
             controls=rig.controls,
         )
     except SourceError as exc:
+        if fox is not None:
+            fox.live.close()
         raise SourceError(f"{exc}{_advice(spec)}") from None
     # what a camera runs with, and the settings it refused or that move the measurement
     for line in getattr(src, "settings", []):
@@ -138,7 +141,7 @@ def track(
             what="track",
             covariance=covariance,
             ros_images=ros_images,
-            watchers=[view.state] if view is not None else None,
+            watchers=[w for w in (view.state if view is not None else None, fox) if w],
         )
     finally:
         note_passed_over(source)

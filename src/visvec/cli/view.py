@@ -55,3 +55,56 @@ def linger(server) -> None:
         pass
     finally:
         server.stop()
+
+
+class FoxgloveWatcher:
+    """A `track`, `batch` or `rate` run's rows (and overlays) published to Foxglove
+    (visvec.sinks.foxglove.FoxgloveLive) after each row is written."""
+
+    def __init__(self, live, rig):
+        self.live = live
+        self.rig = rig
+
+    def see(self, frame, row, pipe) -> None:
+        image = None
+        if frame.image is not None and self.live.image_due(frame.time_s):
+            img, det, rig = frame.image, pipe.last_detection, self.rig
+
+            def image():
+                import cv2
+
+                from visvec.overlay import draw_overlay
+
+                ok, buf = cv2.imencode(".jpg", draw_overlay(img, det, row, rig),
+                                       [cv2.IMWRITE_JPEG_QUALITY, 85])  # fmt: skip
+                return buf.tobytes() if ok else None
+
+        self.live.publish(row.as_dict(), image)
+
+    def close(self) -> None:
+        self.live.close()
+        dropped = f", {self.live.dropped} dropped while a client fell behind" if \
+            self.live.dropped else ""  # fmt: skip
+        click.echo(f"visvec: Foxglove: {self.live.published} rows published{dropped}; "
+                   f"the server at ws://{self.live.host}:{self.live.port} has stopped",
+                   err=True)  # fmt: skip
+
+
+def open_foxglove(rig, method: str | None, topic_prefix: str = "/visvec"):
+    """The Foxglove publisher of --foxglove (a FoxgloveWatcher), serving before the
+    source opens (a port in use: exit 2), or None without the option. Said on stderr
+    with its address."""
+    ctx = click.get_current_context(silent=True)
+    spec = ctx.meta.get("visvec.foxglove") if ctx is not None else None
+    if spec is None:
+        return None
+    from visvec.sinks.foxglove import FoxgloveLive, parse_address
+
+    host, port = parse_address(spec)
+    row_type = make_pipeline(rig, method).row_type
+    live = FoxgloveLive(host, port, row_type.columns, str(rig.path or ""), topic_prefix,
+                        ctx.meta.get("visvec.foxglove_image_hz", 5.0))  # fmt: skip
+    live.advertise(image=live.image_hz > 0)
+    click.echo(f"visvec: Foxglove live at ws://{host}:{live.port} (open it in Foxglove: "
+               "Open connection, Foxglove WebSocket)", err=True)  # fmt: skip
+    return FoxgloveWatcher(live, rig)

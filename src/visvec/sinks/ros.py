@@ -46,6 +46,15 @@ BODY_FRAME = "visvec_body"
 CAMERA_FRAME = "visvec_camera_optical_frame"
 UNKNOWN_COV = 1e9
 STATUS_KEYS = ("frame", "time_s", "warnings", "rms_px", "n_points", "latency_ms")
+# (topic, message type) of each kind of row's value, of every row's status, of the overlay
+TOPICS = {
+    "attitude": (("/visvec/attitude", "sensor_msgs/msg/Imu"),
+                 ("/visvec/attitude/quaternion", "geometry_msgs/msg/QuaternionStamped")),
+    "rate": (("/visvec/rate", "geometry_msgs/msg/TwistWithCovarianceStamped"),),
+    "pose": (("/visvec/pose", "geometry_msgs/msg/PoseWithCovarianceStamped"),),
+}  # fmt: skip
+STATUS_TOPIC = ("/visvec/status", "diagnostic_msgs/msg/DiagnosticArray")
+OVERLAY_TOPIC = ("/visvec/overlay/compressed", "sensor_msgs/msg/CompressedImage")
 
 
 def _need():
@@ -74,14 +83,129 @@ def euler_cov_to_rotation_cov(yaw, pitch, sigmas_rad) -> np.ndarray:
     return J @ np.diag(np.square(sigmas_rad)) @ J.T
 
 
-class McapSink:
+class RosMessages:
+    """Rows (as dicts of their columns) as the ROS 2 messages of the module doc, handed
+    to ``_put(topic, typename, message, stamp_ns)``: the one description of what each
+    row becomes, for a file (McapSink) and a live server (visvec.sinks.foxglove)."""
+
+    def __init__(self, columns, rig_name: str = ""):
+        _, self.ts = _need()
+        self.t0 = time.time()
+        self.rig_name = rig_name
+        self.kind = ("attitude" if "yaw_deg" in columns else "rate" if "wx_dps" in columns
+                     else "pose")  # fmt: skip
+        self.n = 0
+
+    def _put(self, topic: str, typename: str, msg, stamp_ns: int) -> None:
+        raise NotImplementedError
+
+    def _stamp(self, time_s: float):
+        """The stamp (ns) and the builtin_interfaces Time of a row's ``time_s``."""
+        ns = int(round((self.t0 + float(time_s)) * 1e9))
+        T = self.ts.types
+        return ns, T["builtin_interfaces/msg/Time"](sec=ns // 1_000_000_000,
+                                                     nanosec=ns % 1_000_000_000)  # fmt: skip
+
+    def messages(self, row: dict) -> None:
+        """The row's value (an ok row) and its status, each to ``_put``."""
+        ns, stamp = self._stamp(row["time_s"])
+        T = self.ts.types
+
+        def header(frame):
+            return T["std_msgs/msg/Header"](stamp=stamp, frame_id=frame)
+
+        ok = row["status"] == "ok"
+        if ok:
+            self._value(row, header, T, ns)
+        self._status(row, header, T, ns, ok)
+        self.n += 1
+
+    def image_message(self, time_s: float, jpeg: bytes) -> None:
+        """A frame with its detection drawn, as ``/visvec/overlay/compressed``
+        (``sensor_msgs/msg/CompressedImage``, JPEG, ``frame_id`` the camera's optical
+        frame), stamped as the frame's row."""
+        ns, stamp = self._stamp(time_s)
+        T = self.ts.types
+        msg = T["sensor_msgs/msg/CompressedImage"](
+            header=T["std_msgs/msg/Header"](stamp=stamp, frame_id=CAMERA_FRAME),
+            format="jpeg", data=np.frombuffer(jpeg, np.uint8),
+        )  # fmt: skip
+        self._put(*OVERLAY_TOPIC, msg, ns)
+
+    def _value(self, row, header, T, ns) -> None:
+        V3, Q = T["geometry_msgs/msg/Vector3"], T["geometry_msgs/msg/Quaternion"]
+        if self.kind == "attitude":
+            q = Q(x=float(row["qx"]), y=float(row["qy"]), z=float(row["qz"]), w=float(row["qw"]))
+            sig = np.radians(
+                [float(row[f"sigma_{k}"]) for k in ("yaw_deg", "pitch_deg", "roll_deg")]
+            )
+            cov = euler_cov_to_rotation_cov(math.radians(float(row["yaw_deg"])),
+                                            math.radians(float(row["pitch_deg"])), sig)  # fmt: skip
+            unknown = np.zeros(9)
+            unknown[0] = -1.0
+            imu = T["sensor_msgs/msg/Imu"](
+                header=header(BODY_FRAME), orientation=q,
+                orientation_covariance=cov.ravel().astype(np.float64),
+                angular_velocity=V3(x=0.0, y=0.0, z=0.0), angular_velocity_covariance=unknown,
+                linear_acceleration=V3(x=0.0, y=0.0, z=0.0),
+                linear_acceleration_covariance=unknown.copy(),
+            )  # fmt: skip
+            self._put(*TOPICS["attitude"][0], imu, ns)
+            qs = T["geometry_msgs/msg/QuaternionStamped"](header=header(LAB_FRAME), quaternion=q)
+            self._put(*TOPICS["attitude"][1], qs, ns)
+        elif self.kind == "rate":
+            w = np.radians([float(row[k]) for k in ("wx_dps", "wy_dps", "wz_dps")])
+            s = np.radians([float(row[f"sigma_{k}"]) for k in ("wx_dps", "wy_dps", "wz_dps")])
+            cov = np.zeros((6, 6))
+            cov[:3, :3] = np.eye(3) * UNKNOWN_COV
+            cov[3:, 3:] = np.diag(s**2)
+            tw = T["geometry_msgs/msg/TwistWithCovariance"](
+                twist=T["geometry_msgs/msg/Twist"](linear=V3(x=0.0, y=0.0, z=0.0),
+                                                   angular=V3(x=w[0], y=w[1], z=w[2])),
+                covariance=cov.ravel(),
+            )  # fmt: skip
+            msg = T["geometry_msgs/msg/TwistWithCovarianceStamped"](header=header(CAMERA_FRAME),
+                                                                   twist=tw)  # fmt: skip
+            self._put(*TOPICS["rate"][0], msg, ns)
+        else:
+            h = math.radians(float(row["heading_deg"]))
+            cov = np.zeros((6, 6))
+            cov[0, 0] = (float(row["sigma_x_mm"]) / 1000.0) ** 2
+            cov[1, 1] = (float(row["sigma_y_mm"]) / 1000.0) ** 2
+            cov[5, 5] = math.radians(float(row["sigma_heading_deg"])) ** 2
+            pose = T["geometry_msgs/msg/Pose"](
+                position=T["geometry_msgs/msg/Point"](x=float(row["x_mm"]) / 1000.0,
+                                                      y=float(row["y_mm"]) / 1000.0, z=0.0),
+                orientation=Q(x=0.0, y=0.0, z=math.sin(h / 2), w=math.cos(h / 2)),
+            )  # fmt: skip
+            msg = T["geometry_msgs/msg/PoseWithCovarianceStamped"](
+                header=header(LAB_FRAME),
+                pose=T["geometry_msgs/msg/PoseWithCovariance"](pose=pose, covariance=cov.ravel()),
+            )  # fmt: skip
+            self._put(*TOPICS["pose"][0], msg, ns)
+
+    def _status(self, row, header, T, ns, ok) -> None:
+        KV = T["diagnostic_msgs/msg/KeyValue"]
+        warnings = str(row.get("warnings") or "")
+        level = (0 if not warnings else 1) if ok else 2
+        values = [KV(key=k, value="" if row.get(k) is None else str(row.get(k)))
+                  for k in STATUS_KEYS]  # fmt: skip
+        st = T["diagnostic_msgs/msg/DiagnosticStatus"](
+            level=level, name="visvec", message=str(row["status"]),
+            hardware_id=self.rig_name, values=values,
+        )  # fmt: skip
+        arr = T["diagnostic_msgs/msg/DiagnosticArray"](header=header(LAB_FRAME), status=[st])
+        self._put(*STATUS_TOPIC, arr, ns)
+
+
+class McapSink(RosMessages):
     """Rows (as dicts of their columns) to ROS 2 messages in an MCAP file, or with
     ``bag`` in a ROS 2 bag folder (rosbags' writer, MCAP storage: `ros2 bag play DIR`;
     its index and metadata.yaml are written when the run ends)."""
 
     def __init__(self, path: str, columns, rig_name: str = "", bag: bool = False):
-        Writer, ts = _need()
-        self.ts = ts
+        Writer, _ = _need()
+        super().__init__(columns, rig_name)
         self.path = path
         self.bag = None
         self.fh = None
@@ -102,12 +226,7 @@ class McapSink:
                 raise OutputError(f"{path}: cannot write ({exc.strerror})") from None
             self.w = Writer(self.fh, use_chunking=False)
             self.w.start(profile="ros2", library="visvec")
-        self.t0 = time.time()
-        self.rig_name = rig_name
-        self.kind = ("attitude" if "yaw_deg" in columns else "rate" if "wx_dps" in columns
-                     else "pose")  # fmt: skip
         self.channels: dict[str, int] = {}
-        self.n = 0
 
     def _channel(self, topic: str, typename: str) -> int:
         if topic not in self.channels:
@@ -130,110 +249,22 @@ class McapSink:
                            publish_time=stamp_ns)  # fmt: skip
 
     def write(self, row: dict) -> None:
-        t = self.t0 + float(row["time_s"])
-        ns = int(round(t * 1e9))
-        T = self.ts.types
-        stamp = T["builtin_interfaces/msg/Time"](sec=ns // 1_000_000_000,
-                                                  nanosec=ns % 1_000_000_000)  # fmt: skip
-
-        def header(frame):
-            return T["std_msgs/msg/Header"](stamp=stamp, frame_id=frame)
-
-        ok = row["status"] == "ok"
         try:
-            if ok:
-                self._value(row, header, T, ns)
-            self._status(row, header, T, ns, ok)
+            self.messages(row)
             if self.fh is not None:
                 self.fh.flush()
         except OSError as exc:
             raise OutputError(f"{self.path}: cannot write ({exc.strerror or exc}); it holds "
                               f"{self.n} rows") from None  # fmt: skip
-        self.n += 1
-
-    def _value(self, row, header, T, ns) -> None:
-        V3, Q = T["geometry_msgs/msg/Vector3"], T["geometry_msgs/msg/Quaternion"]
-        if self.kind == "attitude":
-            q = Q(x=float(row["qx"]), y=float(row["qy"]), z=float(row["qz"]), w=float(row["qw"]))
-            sig = np.radians(
-                [float(row[f"sigma_{k}"]) for k in ("yaw_deg", "pitch_deg", "roll_deg")]
-            )
-            cov = euler_cov_to_rotation_cov(math.radians(float(row["yaw_deg"])),
-                                            math.radians(float(row["pitch_deg"])), sig)  # fmt: skip
-            unknown = np.zeros(9)
-            unknown[0] = -1.0
-            imu = T["sensor_msgs/msg/Imu"](
-                header=header(BODY_FRAME), orientation=q,
-                orientation_covariance=cov.ravel().astype(np.float64),
-                angular_velocity=V3(x=0.0, y=0.0, z=0.0), angular_velocity_covariance=unknown,
-                linear_acceleration=V3(x=0.0, y=0.0, z=0.0),
-                linear_acceleration_covariance=unknown.copy(),
-            )  # fmt: skip
-            self._put("/visvec/attitude", "sensor_msgs/msg/Imu", imu, ns)
-            qs = T["geometry_msgs/msg/QuaternionStamped"](header=header(LAB_FRAME), quaternion=q)
-            self._put("/visvec/attitude/quaternion", "geometry_msgs/msg/QuaternionStamped", qs, ns)
-        elif self.kind == "rate":
-            w = np.radians([float(row[k]) for k in ("wx_dps", "wy_dps", "wz_dps")])
-            s = np.radians([float(row[f"sigma_{k}"]) for k in ("wx_dps", "wy_dps", "wz_dps")])
-            cov = np.zeros((6, 6))
-            cov[:3, :3] = np.eye(3) * UNKNOWN_COV
-            cov[3:, 3:] = np.diag(s**2)
-            tw = T["geometry_msgs/msg/TwistWithCovariance"](
-                twist=T["geometry_msgs/msg/Twist"](linear=V3(x=0.0, y=0.0, z=0.0),
-                                                   angular=V3(x=w[0], y=w[1], z=w[2])),
-                covariance=cov.ravel(),
-            )  # fmt: skip
-            msg = T["geometry_msgs/msg/TwistWithCovarianceStamped"](header=header(CAMERA_FRAME),
-                                                                   twist=tw)  # fmt: skip
-            self._put("/visvec/rate", "geometry_msgs/msg/TwistWithCovarianceStamped", msg, ns)
-        else:
-            h = math.radians(float(row["heading_deg"]))
-            cov = np.zeros((6, 6))
-            cov[0, 0] = (float(row["sigma_x_mm"]) / 1000.0) ** 2
-            cov[1, 1] = (float(row["sigma_y_mm"]) / 1000.0) ** 2
-            cov[5, 5] = math.radians(float(row["sigma_heading_deg"])) ** 2
-            pose = T["geometry_msgs/msg/Pose"](
-                position=T["geometry_msgs/msg/Point"](x=float(row["x_mm"]) / 1000.0,
-                                                      y=float(row["y_mm"]) / 1000.0, z=0.0),
-                orientation=Q(x=0.0, y=0.0, z=math.sin(h / 2), w=math.cos(h / 2)),
-            )  # fmt: skip
-            msg = T["geometry_msgs/msg/PoseWithCovarianceStamped"](
-                header=header(LAB_FRAME),
-                pose=T["geometry_msgs/msg/PoseWithCovariance"](pose=pose, covariance=cov.ravel()),
-            )  # fmt: skip
-            self._put("/visvec/pose", "geometry_msgs/msg/PoseWithCovarianceStamped", msg, ns)
 
     def image(self, time_s: float, jpeg: bytes) -> None:
-        """A frame with its detection drawn, as ``/visvec/overlay/compressed``
-        (``sensor_msgs/msg/CompressedImage``, JPEG, ``frame_id`` the camera's optical
-        frame), stamped as the frame's row."""
-        ns = int(round((self.t0 + float(time_s)) * 1e9))
-        T = self.ts.types
-        stamp = T["builtin_interfaces/msg/Time"](sec=ns // 1_000_000_000,
-                                                  nanosec=ns % 1_000_000_000)  # fmt: skip
-        msg = T["sensor_msgs/msg/CompressedImage"](
-            header=T["std_msgs/msg/Header"](stamp=stamp, frame_id=CAMERA_FRAME),
-            format="jpeg", data=np.frombuffer(jpeg, np.uint8),
-        )  # fmt: skip
+        """A frame with its detection drawn (`RosMessages.image_message`)."""
         try:
-            self._put("/visvec/overlay/compressed", "sensor_msgs/msg/CompressedImage", msg, ns)
+            self.image_message(time_s, jpeg)
             if self.fh is not None:
                 self.fh.flush()
         except OSError as exc:
             raise OutputError(f"{self.path}: cannot write ({exc.strerror or exc})") from None
-
-    def _status(self, row, header, T, ns, ok) -> None:
-        KV = T["diagnostic_msgs/msg/KeyValue"]
-        warnings = str(row.get("warnings") or "")
-        level = (0 if not warnings else 1) if ok else 2
-        values = [KV(key=k, value="" if row.get(k) is None else str(row.get(k)))
-                  for k in STATUS_KEYS]  # fmt: skip
-        st = T["diagnostic_msgs/msg/DiagnosticStatus"](
-            level=level, name="visvec", message=str(row["status"]),
-            hardware_id=self.rig_name, values=values,
-        )  # fmt: skip
-        arr = T["diagnostic_msgs/msg/DiagnosticArray"](header=header(LAB_FRAME), status=[st])
-        self._put("/visvec/status", "diagnostic_msgs/msg/DiagnosticArray", arr, ns)
 
     def close(self) -> None:
         if self.bag is not None:
