@@ -2,6 +2,7 @@
 
 import csv
 import math
+import time
 
 import numpy as np
 import pytest
@@ -17,7 +18,7 @@ from visvec.output import PLANAR_COLUMNS
 from visvec.rotations import logmap
 
 
-def _track_live(tmp_path, rig, sim_args, n_frames, serve=False):
+def _track_live(tmp_path, rig, sim_args, n_frames, serve=False, foxglove=None):
     """`track --imu` on a simulated recording played at its own pace, the recording's
     imu.csv sent over UDP at its real rate by this thread: (fused rows, camera rows,
     IMU samples sent, stderr). With ``serve``, a live view too: the stderr has the
@@ -36,8 +37,9 @@ def _track_live(tmp_path, rig, sim_args, n_frames, serve=False):
     proc = subprocess.Popen(
         [sys.executable, "-m", "visvec", "track", "--rig", str(rig), "--camera", str(rec),
          "--realtime", "--imu", f"udp://127.0.0.1:{port}", "--out", str(out), "--camera-out",
-         str(cam), *(["--serve", "0", "--keep-view"] if serve else [])], stderr=subprocess.PIPE,
-        text=True,
+         str(cam), *(["--serve", "0", "--keep-view"] if serve else []),
+         *(["--foxglove", "127.0.0.1:0"] if foxglove is not None else [])],
+        stderr=subprocess.PIPE, text=True,
     )  # fmt: skip
     url = None
     try:
@@ -48,6 +50,12 @@ def _track_live(tmp_path, rig, sim_args, n_frames, serve=False):
             line = proc.stderr.readline()
             if "live view at " in line:
                 url = line.split("live view at ")[1].strip()
+            if foxglove is not None and "Foxglove live at ws://" in line:
+                # a client that subscribes to every channel as it is advertised
+                from foxglove_client import Client
+
+                fox_port = int(line.split("ws://127.0.0.1:")[1].split()[0])
+                foxglove.append(Client(fox_port, auto=True))
             got |= {w for w in ("listening", "first frame") if w in line}
             if "first frame" in line:
                 # the camera's first frame on this machine's monotonic clock: the IMU
@@ -220,3 +228,38 @@ def test_a_frame_found_late_after_its_row_is_no_fix():
             fixes.append(e)
     assert [r["warnings"] for r in sink.rows] == ["", "read_late", "", ""]
     assert len(fixes) == 2 and cam.n_ok == 2
+
+
+@pytest.mark.slow  # 8 s
+def test_track_with_imu_in_foxglove(tmp_path):
+    """`track --imu --foxglove`: a Foxglove client sees the fused rows under /visvec and
+    the camera's under /visvec/camera, each message its row's (the CSV outputs)."""
+    pytest.importorskip("foxglove")
+    pytest.importorskip("websockets")
+    from conftest import ROOT
+
+    clients: list = []
+    rows, cam_rows, n_imu, rec, err = _track_live(
+        tmp_path, ROOT / "configs" / "triangle.toml", ["--motion", "sweep"], 45, foxglove=clients
+    )
+    time.sleep(0.3)
+    (client,) = clients
+    client.close()
+    assert "Foxglove /visvec: " in err and "Foxglove /visvec/camera: " in err
+    topics = {ch["topic"] for ch in client.channels.values()}
+    assert {"/visvec/attitude", "/visvec/status", "/visvec/camera/attitude",
+            "/visvec/camera/status", "/visvec/camera/overlay/compressed"} <= topics  # fmt: skip
+    for topic, table in (("/visvec", rows), ("/visvec/camera", cam_rows)):
+        by_frame = {int(r["frame"]): r for r in table}
+        st = client.decoded(topic + "/status", "diagnostic_msgs/msg/DiagnosticArray")
+        imu = client.decoded(topic + "/attitude", "sensor_msgs/msg/Imu")
+        assert len(st) > 0.5 * len(table), (topic, len(st), len(table))
+        frames = [int({kv.key: kv.value for kv in a.status[0].values}["frame"]) for a in st]
+        assert [a.status[0].message for a in st] == [by_frame[f]["status"] for f in frames]
+        ok = [f for f, a in zip(frames, st, strict=True) if a.status[0].message == "ok"]
+        assert len(imu) == len(ok) > 0
+        for f, m in zip(ok, imu, strict=True):
+            q = m.orientation
+            np.testing.assert_allclose(
+                [q.w, q.x, q.y, q.z], [float(by_frame[f][k]) for k in ("qw", "qx", "qy", "qz")]
+            )

@@ -7,12 +7,9 @@ test."""
 from __future__ import annotations
 
 import csv
-import json
 import socket
-import struct
 import subprocess
 import sys
-import threading
 import time
 
 import numpy as np
@@ -22,70 +19,12 @@ pytest.importorskip("foxglove")
 pytest.importorskip("rosbags")
 pytest.importorskip("websockets")
 
+from foxglove_client import Client
+
 from conftest import ROOT, run
 
 RIG = ROOT / "configs" / "triangle.toml"
 SAMPLES = ROOT / "data" / "sample_frames"
-
-
-class Client:
-    """A Foxglove WebSocket client: the channels advertised, and the messages of those
-    it subscribed to, decoded, in a thread of its own (``read=False``: a client that
-    subscribes and never reads, as a stalled viewer does)."""
-
-    def __init__(self, port: int, read: bool = True):
-        from websockets.sync.client import connect
-
-        self._conn = connect(f"ws://127.0.0.1:{port}", subprotocols=["foxglove.sdk.v1"],
-                             open_timeout=10)  # fmt: skip
-        self.ws = self._conn.__enter__()
-        self.channels: dict[int, dict] = {}
-        self.subs: dict[int, dict] = {}
-        self.got: list[tuple[str, int, bytes]] = []  # topic, log time, payload
-        self.read = read
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
-        self._thread.start()
-
-    def _run(self) -> None:
-        from websockets.exceptions import ConnectionClosed
-
-        while not self._stop.is_set():
-            if not self.read and self.subs:
-                time.sleep(0.05)
-                continue
-            try:
-                m = self.ws.recv(timeout=0.2)
-            except TimeoutError:
-                continue
-            except ConnectionClosed:
-                return
-            if isinstance(m, str):
-                msg = json.loads(m)
-                if msg["op"] == "advertise":
-                    for ch in msg["channels"]:
-                        self.channels[ch["id"]] = ch
-                continue
-            if m[0] == 1:  # message data: opcode, subscription, log time, payload
-                sub, t = struct.unpack_from("<IQ", m, 1)
-                self.got.append((self.subs[sub]["topic"], t, bytes(m[13:])))
-
-    def subscribe_all(self, wait_for: int) -> None:
-        deadline = time.monotonic() + 10
-        while len(self.channels) < wait_for and time.monotonic() < deadline:
-            time.sleep(0.02)
-        assert len(self.channels) >= wait_for, self.channels
-        subs = []
-        for k, (cid, ch) in enumerate(sorted(self.channels.items()), start=1):
-            self.subs[k] = ch
-            subs.append({"id": k, "channelId": cid})
-        self.ws.send(json.dumps({"op": "subscribe", "subscriptions": subs}))
-        time.sleep(0.3)  # the server has taken the subscription
-
-    def close(self) -> None:
-        self._stop.set()
-        self._thread.join(timeout=2)
-        self._conn.__exit__(None, None, None)
 
 
 def _rows(n: int = 6) -> list[dict]:
@@ -108,11 +47,12 @@ def test_rows_reach_a_subscribed_client_as_the_mcap_output_holds_them(tmp_path):
     from rosbags.typesys import Stores, get_typestore
 
     from visvec.output import ATTITUDE_COLUMNS
-    from visvec.sinks.foxglove import FoxgloveLive
+    from visvec.sinks.foxglove import FoxgloveLive, FoxgloveServer
     from visvec.sinks.ros import McapSink
 
     rows = _rows()
-    live = FoxgloveLive("127.0.0.1", 0, ATTITUDE_COLUMNS, "rig.toml")
+    server = FoxgloveServer("127.0.0.1", 0)
+    live = FoxgloveLive(server, ATTITUDE_COLUMNS, "rig.toml")
     live.advertise()
     client = Client(live.port)
     try:
@@ -128,6 +68,7 @@ def test_rows_reach_a_subscribed_client_as_the_mcap_output_holds_them(tmp_path):
     finally:
         client.close()
         live.close()
+        server.stop()
     # the same rows through the MCAP output, with the same start time
     mcap = tmp_path / "run.mcap"
     sink = McapSink(str(mcap), ATTITUDE_COLUMNS, "rig.toml")
@@ -165,9 +106,10 @@ def test_rows_reach_a_subscribed_client_as_the_mcap_output_holds_them(tmp_path):
 
 def test_nothing_is_encoded_while_no_client_watches():
     from visvec.output import ATTITUDE_COLUMNS
-    from visvec.sinks.foxglove import FoxgloveLive
+    from visvec.sinks.foxglove import FoxgloveLive, FoxgloveServer
 
-    live = FoxgloveLive("127.0.0.1", 0, ATTITUDE_COLUMNS)
+    server = FoxgloveServer("127.0.0.1", 0)
+    live = FoxgloveLive(server, ATTITUDE_COLUMNS)
     live.advertise()
     try:
         made = []
@@ -176,6 +118,7 @@ def test_nothing_is_encoded_while_no_client_watches():
         time.sleep(0.3)
     finally:
         live.close()
+        server.stop()
     assert live.published == 0 and made == []
 
 

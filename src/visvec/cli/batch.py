@@ -138,6 +138,7 @@ def run_batch(
     except BaseException:
         if fox is not None:
             fox.live.close()
+            fox.live.srv.stop()
         raise
     rig = with_fps(rig, src, fps, path)
     if view is not None:

@@ -9,6 +9,7 @@ import click
 
 from visvec.cli.common import rows_out
 from visvec.cli.fuse import echo_learned, engine, live_summary, options_model, with_declared_range
+from visvec.cli.view import foxglove_live, open_foxglove, say_published
 from visvec.errors import ConfigError, InputFileError
 from visvec.fuse.camera import CameraFixes
 from visvec.fuse.inputs import Fix, fix_from_row, read_imu
@@ -19,6 +20,7 @@ from visvec.fuse.run import fused_rows
 from visvec.output import AttitudeRow, PoseRow
 from visvec.pipeline import make_pipeline
 from visvec.sinks import row_writer
+from visvec.sinks.foxglove import Published
 
 camera_out_option = click.option(
     "--camera-out",
@@ -40,8 +42,11 @@ def _planar(rig) -> bool:
     return rig.kind == "lamps"
 
 
-def run_fused_camera(rig, frames, imu_src, method, out, fmt, camera_out, view=None) -> None:
-    """Camera in a thread, IMU read in another, fused rows written by this one."""
+def run_fused_camera(rig, frames, imu_src, method, out, fmt, camera_out, view=None,
+                     fox_server=None) -> None:  # fmt: skip
+    """Camera in a thread, IMU read in another, fused rows written by this one. With
+    ``fox_server`` (--foxglove), the fused rows published under /visvec and the
+    camera's under /visvec/camera."""
     planar = _planar(rig)
     events: queue.Queue = queue.Queue()
     imu = Reader("imu", imu_src, events)
@@ -64,11 +69,21 @@ def run_fused_camera(rig, frames, imu_src, method, out, fmt, camera_out, view=No
                 rows_out(camera_out, fmt, pipe.row_type.columns, "--camera-out")
             )
         state = view.state if view is not None else None
-        camera = CameraFixes(frames, pipe, events, cam_sink, watcher=state)
+        fox_cam = (open_foxglove(rig, method, "/visvec/camera", fox_server)
+                   if fox_server is not None else None)  # fmt: skip
+        if fox_server is not None:
+            stack.callback(fox_server.stop)
+            stack.callback(fox_cam.close)
+        watchers = [w for w in (state, fox_cam) if w is not None]
+        camera = CameraFixes(frames, pipe, events, cam_sink, watcher=_Watchers(watchers))
 
         def open_rows(is_planar: bool):
             cols = PoseRow.columns if is_planar else AttitudeRow.columns
             sink = stack.enter_context(rows_out(out, fmt, cols))
+            if fox_server is not None:
+                live = foxglove_live(fox_server, cols, rig, image=False)
+                stack.callback(say_published, live, False)
+                sink = Published(sink, live)
             return sink if state is None else _Shown(sink, state)
 
         summary = run_live(imu, camera, setup, open_rows, kind=planar, end_with_fixes=True,
@@ -91,6 +106,20 @@ class _Shown:
     def write(self, row: dict) -> None:
         self.sink.write(row)
         self.state.fused(row)
+
+    def write_row(self, row) -> None:
+        self.write(row.as_dict())
+
+
+class _Watchers:
+    """The camera's watchers (the live view, Foxglove), each seeing every frame."""
+
+    def __init__(self, watchers):
+        self.watchers = watchers
+
+    def see(self, frame, row, pipe) -> None:
+        for w in self.watchers:
+            w.see(frame, row, pipe)
 
 
 def run_fused_batch(rig, frames, imu_path, method, out, fmt, camera_out) -> None:

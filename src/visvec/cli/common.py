@@ -150,6 +150,22 @@ def _format_available(ctx, param, value):
     return value
 
 
+def foxglove_option(f):
+    """--foxglove [HOST:]PORT, kept in the context's meta (visvec.cli.view)."""
+    return click.option(
+        "--foxglove",
+        metavar="[HOST:]PORT",
+        default=None,
+        expose_value=False,
+        callback=lambda ctx, _p, v: ctx.meta.__setitem__("visvec.foxglove", v),
+        help="Publish the rows live to Foxglove: a Foxglove WebSocket server on "
+        "HOST:PORT (HOST 127.0.0.1 unless given; PORT 0: any free port) with the "
+        "channels an --out *.mcap file holds, as they are made (pip install "
+        '"visvec[foxglove]"). With an IMU: the fused rows under /visvec, the camera\'s '
+        "under /visvec/camera.",
+    )(f)
+
+
 def output_options(f):
     """--out, --format, --method, --overlay, --max-frames, --serve, --foxglove,
     --covariance, --ros-images."""
@@ -176,16 +192,7 @@ def output_options(f):
         help="With --foxglove: frames with their detection drawn, at most this many a "
         "second (0: none).",
     )(f)
-    f = click.option(
-        "--foxglove",
-        metavar="[HOST:]PORT",
-        default=None,
-        expose_value=False,
-        callback=lambda ctx, _p, v: ctx.meta.__setitem__("visvec.foxglove", v),
-        help="Publish the rows live to Foxglove: a Foxglove WebSocket server on "
-        "HOST:PORT (HOST 127.0.0.1 unless given) with the channels an --out *.mcap file "
-        'holds, as they are made (pip install "visvec[foxglove]").',
-    )(f)
+    f = foxglove_option(f)
     f = click.option(
         "--keep-view",
         is_flag=True,

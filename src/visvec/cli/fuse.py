@@ -10,9 +10,17 @@ from dataclasses import replace
 import click
 import numpy as np
 
-from visvec.cli.common import FiniteFloat, check_output, note_inputs, result_options, rows_out
+from visvec.cli.common import (
+    FiniteFloat,
+    check_output,
+    foxglove_option,
+    note_inputs,
+    result_options,
+    rows_out,
+)
 from visvec.cli.progress import Work
 from visvec.cli.results import check_results, write_results
+from visvec.cli.view import foxglove_live, foxglove_server, say_published
 from visvec.errors import ConfigError, InputFileError, NoOkRows
 from visvec.evaluate import error_stats, read_truth
 from visvec.fuse.inputs import read_fixes, read_imu
@@ -24,6 +32,7 @@ from visvec.fuse.run import fused_rows, rest_biases
 from visvec.output import AttitudeRow, PoseRow
 from visvec.rotations import logmap
 from visvec.sinks import row_writer
+from visvec.sinks.foxglove import Published
 
 
 @click.command()
@@ -84,6 +93,7 @@ from visvec.sinks import row_writer
 @click.option("--truth", default=None, type=click.Path(dir_okay=False),
               help="Truth per inertial sample (frame = sample index): print error "
               "statistics.")  # fmt: skip
+@foxglove_option
 @result_options
 def fuse(imu_path, fixes_path, follow, max_samples, silent_s, gyro_range_dps, out, fmt, method,
          rest_s, max_rate_dps, max_accel_mps2, gyro_noise_dps, accel_noise_mps2, fix_sigma_deg,
@@ -108,6 +118,11 @@ def fuse(imu_path, fixes_path, follow, max_samples, silent_s, gyro_range_dps, ou
 
         _run_live(imu_path, fixes_path, follow, max_samples, silent_s, setup, out, fmt)
         return
+    if click.get_current_context().meta.get("visvec.foxglove") is not None:
+        raise click.UsageError(
+            "--foxglove applies to live sources (a stream, --follow); a file's fused rows: "
+            "--out run.mcap, then open it in Foxglove"
+        )
     fixes = read_fixes(fixes_path)
     imu = read_imu(imu_path, planar=fixes.planar)
     _check_files(imu, fixes, imu_path, fixes_path)
@@ -374,12 +389,19 @@ def _run_live(imu_src, fixes_src, follow, max_samples, silent_s, setup, out, fmt
             raise click.BadParameter(str(exc), param_hint="--imu" if r.name == "imu" else
                                      "--fixes") from None  # fmt: skip
     with ExitStack() as stack:
+        fox = foxglove_server()  # a port in use: exit 2, before the streams are read
+        if fox is not None:
+            stack.callback(fox.stop)
 
         def open_rows(planar: bool):
             # opened once the kind is known (the first rows say it)
-            return stack.enter_context(
-                rows_out(out, fmt, PoseRow.columns if planar else AttitudeRow.columns)
-            )
+            cols = PoseRow.columns if planar else AttitudeRow.columns
+            sink = stack.enter_context(rows_out(out, fmt, cols))
+            if fox is None:
+                return sink
+            live = foxglove_live(fox, cols, None, image=False)
+            stack.callback(say_published, live, False)
+            return Published(sink, live)
 
         summary = run_live(*readers, setup, open_rows, max_samples=max_samples,
                            silent_s=silent_s, echo=lambda m: click.echo(m, err=True))  # fmt: skip

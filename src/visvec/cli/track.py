@@ -18,7 +18,7 @@ from visvec.cli.common import (
     rig_options,
 )
 from visvec.cli.frames import run_frames
-from visvec.cli.view import linger, open_foxglove, open_view
+from visvec.cli.view import foxglove_server, linger, open_foxglove, open_view
 from visvec.errors import SourceError
 from visvec.fuse.camera import paced
 from visvec.sources import open_source
@@ -95,7 +95,10 @@ def track(
         click.echo(f"visvec: connecting to {u.scheme}://{u.hostname}{port}", err=True)
     # bound before the camera opens: a port in use is refused first (exit 2)
     view = open_view(serve, rig, rig_path, method, _shown(spec))
-    fox = open_foxglove(rig, method) if imu_src is None else None
+    if imu_src is None:
+        fox, fox_server = open_foxglove(rig, method), None
+    else:
+        fox, fox_server = None, foxglove_server()
     try:
         src = open_source(
             spec if isinstance(spec, int) else str(spec),
@@ -108,6 +111,9 @@ def track(
     except SourceError as exc:
         if fox is not None:
             fox.live.close()
+            fox.live.srv.stop()
+        if fox_server is not None:
+            fox_server.stop()
         raise SourceError(f"{exc}{_advice(spec)}") from None
     # what a camera runs with, and the settings it refused or that move the measurement
     for line in getattr(src, "settings", []):
@@ -127,7 +133,7 @@ def track(
         src = paced(src)
     try:
         if imu_src is not None:
-            run_fused_camera(rig, src, imu_src, method, out, fmt, camera_out, view)
+            run_fused_camera(rig, src, imu_src, method, out, fmt, camera_out, view, fox_server)
             return
         run_frames(
             rig,

@@ -61,9 +61,10 @@ class FoxgloveWatcher:
     """A `track`, `batch` or `rate` run's rows (and overlays) published to Foxglove
     (visvec.sinks.foxglove.FoxgloveLive) after each row is written."""
 
-    def __init__(self, live, rig):
+    def __init__(self, live, rig, stop_server: bool = True):
         self.live = live
         self.rig = rig
+        self.stop_server = stop_server
 
     def see(self, frame, row, pipe) -> None:
         image = None
@@ -82,29 +83,53 @@ class FoxgloveWatcher:
         self.live.publish(row.as_dict(), image)
 
     def close(self) -> None:
-        self.live.close()
-        dropped = f", {self.live.dropped} dropped while a client fell behind" if \
-            self.live.dropped else ""  # fmt: skip
-        click.echo(f"visvec: Foxglove: {self.live.published} rows published{dropped}; "
-                   f"the server at ws://{self.live.host}:{self.live.port} has stopped",
-                   err=True)  # fmt: skip
+        say_published(self.live, self.stop_server)
 
 
-def open_foxglove(rig, method: str | None, topic_prefix: str = "/visvec"):
-    """The Foxglove publisher of --foxglove (a FoxgloveWatcher), serving before the
-    source opens (a port in use: exit 2), or None without the option. Said on stderr
-    with its address."""
+def foxglove_server():
+    """The Foxglove server of --foxglove, serving (a port in use: exit 2, before any
+    source opens), or None without the option. Said on stderr with its address."""
     ctx = click.get_current_context(silent=True)
     spec = ctx.meta.get("visvec.foxglove") if ctx is not None else None
     if spec is None:
         return None
-    from visvec.sinks.foxglove import FoxgloveLive, parse_address
+    from visvec.sinks.foxglove import FoxgloveServer, parse_address
 
-    host, port = parse_address(spec)
-    row_type = make_pipeline(rig, method).row_type
-    live = FoxgloveLive(host, port, row_type.columns, str(rig.path or ""), topic_prefix,
-                        ctx.meta.get("visvec.foxglove_image_hz", 5.0))  # fmt: skip
-    live.advertise(image=live.image_hz > 0)
-    click.echo(f"visvec: Foxglove live at ws://{host}:{live.port} (open it in Foxglove: "
-               "Open connection, Foxglove WebSocket)", err=True)  # fmt: skip
-    return FoxgloveWatcher(live, rig)
+    server = FoxgloveServer(*parse_address(spec))
+    click.echo(f"visvec: Foxglove live at {server.url} (in Foxglove: Open connection, "
+               "Foxglove WebSocket)", err=True)  # fmt: skip
+    return server
+
+
+def foxglove_live(server, columns, rig, topic_prefix: str = "/visvec", image: bool = True):
+    """A publisher of rows of ``columns`` on ``server`` (foxglove_server), its channels
+    advertised at once; the overlay's at --foxglove-image-hz where ``image``."""
+    from visvec.sinks.foxglove import FoxgloveLive
+
+    ctx = click.get_current_context(silent=True)
+    hz = ctx.meta.get("visvec.foxglove_image_hz", 5.0) if ctx is not None and image else 0.0
+    live = FoxgloveLive(server, columns, str(rig.path or "") if rig is not None else "",
+                        topic_prefix, hz)  # fmt: skip
+    live.advertise(image=hz > 0)
+    return live
+
+
+def say_published(live, stop_server: bool = True) -> None:
+    """The end of a publisher (and of its server): what it published, said."""
+    live.close()
+    if stop_server:
+        live.srv.stop()
+    dropped = f", {live.dropped} dropped while a client fell behind" if live.dropped else ""
+    click.echo(f"visvec: Foxglove {live.prefix}: {live.published} rows published{dropped}"
+               + ("; the server has stopped" if stop_server else ""), err=True)  # fmt: skip
+
+
+def open_foxglove(rig, method: str | None, topic_prefix: str = "/visvec", server=None):
+    """The Foxglove publisher of a frame loop (a FoxgloveWatcher: on ``server``, or on
+    a server of --foxglove started here), or None without the option."""
+    own = server is None
+    server = foxglove_server() if own else server
+    if server is None:
+        return None
+    live = foxglove_live(server, make_pipeline(rig, method).row_type.columns, rig, topic_prefix)
+    return FoxgloveWatcher(live, rig, stop_server=own)

@@ -54,27 +54,42 @@ def _need():
     return foxglove
 
 
-class FoxgloveLive(RosMessages):
-    """A Foxglove WebSocket server on (host, port) publishing rows of ``columns`` as
-    the MCAP output's messages, and overlay frames. ``topic_prefix`` puts the topics
-    under another root (the camera's own rows beside fused ones: ``/visvec/camera``).
+class FoxgloveServer:
+    """A Foxglove WebSocket server on (host, port), started here (a port in use: a
+    ConfigError, exit 2, before any source opens), with a context of its own (channels
+    of another server never mix in); `FoxgloveLive` publishes on it."""
 
-    The server starts here, before any frame: a port in use is a ConfigError (exit 2).
-    """
-
-    def __init__(self, host: str, port: int, columns, rig_name: str = "",
-                 topic_prefix: str = "/visvec", image_hz: float = 5.0):  # fmt: skip
+    def __init__(self, host: str, port: int):
         fg = _need()
-        super().__init__(columns, rig_name)
-        self._fg = fg
-        self.prefix = topic_prefix.rstrip("/")
-        self.image_hz = image_hz
-        self.ctx = fg.Context()  # its own: channels of another server never mix in
+        self.fg = fg
+        self.ctx = fg.Context()
         try:
             self.server = fg.start_server(name="visvec", host=host, port=port, context=self.ctx)
         except Exception as exc:  # noqa: BLE001 - the SDK's own error names the cause
             raise ConfigError(f"--foxglove {host}:{port}: cannot serve there ({exc})") from None
         self.host, self.port = host, self.server.port
+
+    @property
+    def url(self) -> str:
+        return f"ws://{self.host}:{self.port}"
+
+    def stop(self) -> None:
+        self.server.stop()
+
+
+class FoxgloveLive(RosMessages):
+    """Rows of ``columns`` published on ``server`` as the MCAP output's messages, and
+    overlay frames. ``topic_prefix`` puts the topics under another root (the camera's
+    own rows beside the fused ones: ``/visvec/camera``)."""
+
+    def __init__(self, server: FoxgloveServer, columns, rig_name: str = "",
+                 topic_prefix: str = "/visvec", image_hz: float = 5.0):  # fmt: skip
+        super().__init__(columns, rig_name)
+        self.srv = server
+        self._fg, self.ctx = server.fg, server.ctx
+        self.host, self.port = server.host, server.port
+        self.prefix = topic_prefix.rstrip("/")
+        self.image_hz = image_hz
         self._channels: dict[str, object] = {}
         self._queue: collections.deque = collections.deque(maxlen=QUEUE_ROWS)
         self._wake = threading.Event()
@@ -86,9 +101,10 @@ class FoxgloveLive(RosMessages):
         self._thread.start()
 
     # ------------------------------------------------------------ the sensor's side
-    def publish(self, row: dict, image=None) -> None:
-        """Queue a row (its columns) and, optionally, ``image()``: a callable that makes
-        its overlay's JPEG bytes, called on the publishing thread when an image is due
+    def publish(self, row, image=None) -> None:
+        """Queue a row (a dict of its columns, or a `visvec.output.Row`, made into one on
+        the publishing thread) and, optionally, ``image()``: a callable that makes its
+        overlay's JPEG bytes, called on the publishing thread when an image is due
         (``image_hz``) and a client watches. Returns at once."""
         if len(self._queue) == self._queue.maxlen:
             self.dropped += 1
@@ -107,7 +123,8 @@ class FoxgloveLive(RosMessages):
         return True
 
     def close(self) -> None:
-        """Publish what is queued (for up to a second), then stop the server."""
+        """Publish what is queued (for up to a second), then stop publishing (the
+        server stops with its owner: `FoxgloveServer.stop`)."""
         deadline = time.monotonic() + 1.0
         while self._queue and time.monotonic() < deadline:
             self._wake.set()
@@ -115,7 +132,6 @@ class FoxgloveLive(RosMessages):
         self._stop.set()
         self._wake.set()
         self._thread.join(timeout=2.0)
-        self.server.stop()
 
     # ------------------------------------------------------------ the thread's side
     def _run(self) -> None:
@@ -126,7 +142,7 @@ class FoxgloveLive(RosMessages):
                 row, image = self._queue.popleft()
                 if not self._watched():
                     continue
-                self.messages(row)
+                self.messages(row if isinstance(row, dict) else row.as_dict())
                 if image is not None:
                     jpeg = image()
                     if jpeg is not None:
@@ -162,3 +178,23 @@ class FoxgloveLive(RosMessages):
         with ``image``)."""
         for topic, typename in (*TOPICS[self.kind], STATUS_TOPIC, *((OVERLAY_TOPIC,) * image)):
             self._channel(topic, typename)
+
+
+class Published:
+    """A row sink whose rows are also published (`FoxgloveLive.publish`) after they
+    are written: a live fusion's rows (`fuse`, `track --imu`)."""
+
+    def __init__(self, sink, live: FoxgloveLive):
+        from visvec.sinks.writers import row_writer
+
+        self.sink = sink
+        self.live = live
+        self._write_row = row_writer(sink)
+
+    def write(self, row: dict) -> None:
+        self.sink.write(row)
+        self.live.publish(row)
+
+    def write_row(self, row) -> None:
+        self._write_row(row)
+        self.live.publish(row)
