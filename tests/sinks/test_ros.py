@@ -111,6 +111,7 @@ def test_mcap_without_its_libraries_is_refused_before_any_frame(tmp_path, monkey
     assert not (tmp_path / "run.mcap").exists()
 
 
+@pytest.mark.slow  # 4-5 s: the default run stays near 3 minutes
 def test_fused_rows_as_ros2_messages(tmp_path):
     lamps = ROOT / "configs" / "lamps.toml"
     rec = tmp_path / "rec"

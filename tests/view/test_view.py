@@ -345,6 +345,7 @@ def test_page_in_a_real_browser(tmp_path):
         assert srv.stop() == 0
 
 
+@pytest.mark.slow  # 6 s: the default run stays near 3 minutes
 def test_a_served_recording_ends_with_its_run(tmp_path):
     """`batch REC --serve 0` without --keep-view: the run ends by itself (a script that
     adds --serve is not held up), exit 0, the view said stopped, its port free again."""
