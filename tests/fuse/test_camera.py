@@ -18,7 +18,7 @@ from visvec.output import PLANAR_COLUMNS
 from visvec.rotations import logmap
 
 
-def _track_live(tmp_path, rig, sim_args, n_frames, serve=False, foxglove=None):
+def _track_live(tmp_path, rig, sim_args, n_frames, serve=False, foxglove=None, extra=()):
     """`track --imu` on a simulated recording played at its own pace, the recording's
     imu.csv sent over UDP at its real rate by this thread: (fused rows, camera rows,
     IMU samples sent, stderr). With ``serve``, a live view too: the stderr has the
@@ -38,7 +38,7 @@ def _track_live(tmp_path, rig, sim_args, n_frames, serve=False, foxglove=None):
         [sys.executable, "-m", "visvec", "track", "--rig", str(rig), "--camera", str(rec),
          "--realtime", "--imu", f"udp://127.0.0.1:{port}", "--out", str(out), "--camera-out",
          str(cam), *(["--serve", "0", "--keep-view"] if serve else []),
-         *(["--foxglove", "127.0.0.1:0"] if foxglove is not None else [])],
+         *(["--foxglove", "127.0.0.1:0"] if foxglove is not None else []), *extra],
         stderr=subprocess.PIPE, text=True,
     )  # fmt: skip
     url = None
@@ -263,3 +263,89 @@ def test_track_with_imu_in_foxglove(tmp_path):
             np.testing.assert_allclose(
                 [q.w, q.x, q.y, q.z], [float(by_frame[f][k]) for k in ("qw", "qx", "qy", "qz")]
             )
+
+
+def _same_but_latency(a: list[dict], b: list[dict]) -> None:
+    assert len(a) == len(b) > 0
+    for x, y in zip(a, b, strict=True):
+        x, y = dict(x), dict(y)
+        x.pop("latency_ms"), y.pop("latency_ms")
+        assert x == y, (x, y)
+
+
+@pytest.mark.slow  # 8 s
+def test_a_recorded_live_run_replays_to_its_own_rows(tmp_path):
+    """`track --imu --record DIR` on a camera stream with an IMU over UDP keeps the run;
+    `batch DIR` gives its fused rows and its camera's rows again, every column but
+    latency_ms; a replay with another rig says so before the first row, and a folder
+    that holds a recording is not recorded over."""
+    from conftest import ROOT, run
+
+    rig = ROOT / "configs" / "triangle.toml"
+    rec = tmp_path / "flight"
+    rows, cam_rows, n_imu, _, err = _track_live(
+        tmp_path, rig, ["--motion", "sweep", "--yaw-rate-dps", "20"], 45,
+        extra=["--record", str(rec)],
+    )  # fmt: skip
+    assert f"recorded in {rec}" in err
+    for name in ("rig.toml", "recording.json", "events.jsonl", "imu.csv", "times.csv",
+                 "rows.csv", "camera.csv"):  # fmt: skip
+        assert (rec / name).is_file(), name
+    assert len(list(rec.glob("frame_*.png"))) == len(cam_rows)
+    replay, cam_replay = tmp_path / "replay.csv", tmp_path / "replay_camera.csv"
+    r = run("batch", rec, "--rig", rig, "--out", replay, "--camera-out", cam_replay)
+    assert r.exit_code == 0, r.output
+    assert "not the one recorded" not in r.output
+
+    def rows_of(p):
+        with open(p) as fh:
+            return list(csv.DictReader(fh))
+
+    _same_but_latency(rows_of(cam_replay), cam_rows)
+    _same_but_latency(rows_of(replay), rows)
+    _same_but_latency(rows_of(rec / "rows.csv"), rows)
+    # another rig: said before the first row
+    other = tmp_path / "other.toml"
+    other.write_text(rig.read_text().replace("fps = 30.0", "fps = 25.0"))
+    r = run("batch", rec, "--rig", other, "--out", tmp_path / "other.csv")
+    assert r.exit_code == 0 and "is not the one recorded" in r.output, r.output
+    # a folder that holds a recording: refused before the camera opens
+    r = run(
+        "track",
+        "--rig",
+        rig,
+        "--camera",
+        tmp_path / "rec",
+        "--record",
+        rec,
+        "--out",
+        tmp_path / "x.csv",
+    )
+    assert r.exit_code == 2 and "already holds a recording" in r.output
+
+
+def test_a_recorded_camera_run_replays_to_its_own_rows(tmp_path):
+    """`track --record DIR` without an IMU: the frames with their times, numbers and
+    read-late flags, the rig, the rows; `batch DIR` gives the run's rows again."""
+    from conftest import ROOT, run
+
+    rig = ROOT / "configs" / "triangle.toml"
+    sim = tmp_path / "sim"
+    assert run("simulate", "--rig", rig, "--out", sim, "--frames", 20, "--motion",
+               "sweep").exit_code == 0  # fmt: skip
+    rec, live, replay = tmp_path / "flight", tmp_path / "live.csv", tmp_path / "replay.csv"
+    r = run("track", "--rig", rig, "--camera", sim, "--record", rec, "--out", live)
+    assert r.exit_code == 0, r.output
+    assert (rec / "recording.json").is_file() and (rec / "rig.toml").read_bytes() == (
+        rig.read_bytes()
+    )
+    r = run("batch", rec, "--rig", rig, "--out", replay)
+    assert r.exit_code == 0, r.output
+
+    def rows_of(p):
+        with open(p) as fh:
+            return list(csv.DictReader(fh))
+
+    assert len(rows_of(live)) == 20
+    _same_but_latency(rows_of(replay), rows_of(live))
+    _same_but_latency(rows_of(rec / "rows.csv"), rows_of(live))

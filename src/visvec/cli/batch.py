@@ -8,7 +8,8 @@ from pathlib import Path
 
 import click
 
-from visvec.cli.camera_fusion import camera_out_option, check_fusable, run_fused_batch
+from visvec import recording
+from visvec.cli.camera_fusion import camera_out_option, check_fusable, replay_fused, run_fused_batch
 from visvec.cli.common import (
     FPS_MAX,
     FiniteFloat,
@@ -99,6 +100,22 @@ def batch(paths, rig_path, calibration, truth, imu_path, fps, out_dir, scheduler
     check_output(overlay, "--overlay")
     check_output(camera_out, "--camera-out")
     check_results(truth, errors, summary, imu_path)
+    if recording.is_recording(path):
+        # a `track --record` recording: said first if this rig is not the one recorded
+        for what in recording.differences(path, rig_path, calibration):
+            click.echo(f"visvec: warning: {path} is a recording of a live run; {what}: the "
+                       "rows will differ from the run's", err=True)  # fmt: skip
+        if recording.manifest(path).get("imu"):
+            given = [name for name, v in (("--imu", imu_path), ("--truth", truth),
+                                          ("--overlay", overlay), ("--serve", serve),
+                                          ("--errors", errors), ("--summary", summary),
+                                          ("--max-frames", max_frames)) if v]  # fmt: skip
+            if given:
+                raise click.UsageError(f"{', '.join(given)}: not with the replay of a fused "
+                                       f"run (its IMU is in {path})")  # fmt: skip
+            check_fusable(rig, None, None)
+            replay_fused(rig, path, method, out, fmt, camera_out)
+            return
     if imu_path is not None:
         check_fusable(rig, overlay, None)
         if serve:

@@ -39,7 +39,9 @@ class FrameRecorder:
         check_new_recording(self.dir)
         make_folder(self.dir, "--save-frames")
         self._times = open(self.dir / "times.csv", "w", newline="")  # noqa: SIM115
-        self._times.write("file,time_s,time_unix\n")
+        # frame: its number in the run; late: read late (its row warned read_late, no
+        # fix): a replay (`batch DIR`) gives the run's rows
+        self._times.write("file,time_s,time_unix,frame,late\n")
 
     def see(self, frame: Frame, row: Row, pipe: Pipeline) -> None:
         if frame.image is None:
@@ -48,11 +50,28 @@ class FrameRecorder:
         if not write_image(self.dir / name, frame.image):
             raise click.ClickException(f"{self.dir / name}: cannot write the frame")
         unix = "" if frame.time_unix is None else f"{frame.time_unix:.6f}"
-        self._times.write(f"{name},{frame.time_s:.6f},{unix}\n")
+        # time_s to the last bit: a replay times its frames as the run did
+        self._times.write(f"{name},{frame.time_s!r},{unix},{frame.index},{int(frame.late)}\n")
         self._times.flush()
 
     def close(self) -> None:
         self._times.close()
+
+
+class RowRecorder:
+    """Each row, as written, into a recording's rows.csv (`track --record`)."""
+
+    def __init__(self, path: Path, columns):
+        from visvec.sinks.writers import CsvSink, row_writer
+
+        self.fh = open(path, "w", newline="", encoding="utf-8")  # noqa: SIM115
+        self.write = row_writer(CsvSink(self.fh, columns))
+
+    def see(self, frame: Frame, row: Row, pipe: Pipeline) -> None:
+        self.write(row)
+
+    def close(self) -> None:
+        self.fh.close()
 
 
 class RosImages:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import click
 
+from visvec import recording
 from visvec.cli.camera_fusion import camera_out_option, check_fusable, run_fused_camera
 from visvec.cli.common import (
     FiniteFloat,
@@ -57,14 +58,23 @@ from visvec.sources import open_source
 )
 @camera_out_option
 @click.option(
+    "--record",
+    type=click.Path(file_okay=False),
+    default=None,
+    metavar="DIR",
+    help="Keep the run as a recording in this new folder: the frames (lossless) with "
+    "their times, the IMU's rows as they came (with --imu), the rig and calibration "
+    "files, the rows. `visvec batch DIR --rig RIG` replays it to the same rows.",
+)
+@click.option(
     "--realtime",
     is_flag=True,
     help="Deliver a recording's frames at their own pace, as a camera would (a replay).",
 )
 @output_options
 def track(
-    rig_path, calibration, camera, retry_s, save_frames, imu_src, camera_out, realtime, out,
-    fmt, method, overlay, max_frames, serve, covariance, ros_images
+    rig_path, calibration, camera, retry_s, save_frames, imu_src, camera_out, record, realtime,
+    out, fmt, method, overlay, max_frames, serve, covariance, ros_images
 ):  # fmt: skip
     """Stream one attitude row per frame, flushed row by row, until the source ends,
     --max-frames, or Ctrl-C. With --imu, stream fused rows at the IMU's rate."""
@@ -83,6 +93,15 @@ def track(
     spec = camera if camera is not None else rig.device
     if spec is None:
         raise click.UsageError("no --camera given and the rig's [camera] has no device")
+    if record:
+        if save_frames:
+            raise click.UsageError("--record keeps the frames itself: not with --save-frames")
+        check_output(record, "--record")
+        check_new_recording(record, "--record")  # before the camera is opened
+        if recording.is_recording(record):
+            raise click.BadParameter(f"{record} already holds a recording: give a new folder "
+                                     "for each recording", param_hint="--record")  # fmt: skip
+        recording.start(record, rig_path, calibration, str(spec), imu_src)
     if isinstance(spec, str) and "://" in spec:
         # said before connecting: a rig file's device can point anywhere
         from urllib.parse import urlsplit
@@ -133,7 +152,8 @@ def track(
         src = paced(src)
     try:
         if imu_src is not None:
-            run_fused_camera(rig, src, imu_src, method, out, fmt, camera_out, view, fox_server)
+            run_fused_camera(rig, src, imu_src, method, out, fmt, camera_out, view, fox_server,
+                             record)  # fmt: skip
             return
         run_frames(
             rig,
@@ -143,15 +163,35 @@ def track(
             method=method,
             overlay=overlay,
             max_frames=max_frames,
-            save_frames=save_frames,
+            save_frames=save_frames or record,
             what="track",
             covariance=covariance,
             ros_images=ros_images,
-            watchers=[w for w in (view.state if view is not None else None, fox) if w],
+            watchers=[
+                w
+                for w in (
+                    view.state if view is not None else None,
+                    fox,
+                    _row_recorder(record, rig, method),
+                )
+                if w
+            ],
         )
     finally:
         note_passed_over(source)
         linger(view)
+
+
+def _row_recorder(record, rig, method):
+    """The recording's rows.csv (--record without --imu), or None."""
+    if not record:
+        return None
+    from pathlib import Path
+
+    from visvec.cli.frames import RowRecorder
+    from visvec.pipeline import make_pipeline
+
+    return RowRecorder(Path(record) / "rows.csv", make_pipeline(rig, method).row_type.columns)
 
 
 def note_passed_over(src) -> None:

@@ -371,9 +371,115 @@ class LiveSummary:
     engine: object = None  # the fusion engine, once the first inertial row made it
 
 
+class EventLog:
+    """What a live fusion took, in order, as JSON lines (``events.jsonl`` of `track
+    --record`): each event with the moment it was taken (``n``, time.monotonic()): an
+    inertial row as it came, a fix of this process's camera by its frame number and
+    exposure (its row is the replayed frame's), a stream's fix as it came, the notes,
+    malformed rows and ends, and every idle tenth of a second (``tick``). `replay_live`
+    gives the run's rows again from it."""
+
+    FLUSH_EVERY = 200  # events (and at every tick): a crash loses at most these
+
+    def __init__(self, path):
+        import json
+
+        self._dumps = json.dumps
+        self.fh = open(path, "w", encoding="utf-8")  # noqa: SIM115 - closed by close()
+        self._n = 0
+
+    def start(self, now: float) -> None:
+        self._put({"k": "start", "n": now})
+
+    def event(self, ev: Event | None, now: float) -> None:
+        if ev is None:
+            self._put({"k": "tick", "n": now})
+            self.fh.flush()
+            return
+        d = {"k": ev.kind, "n": now, "s": ev.source, "a": ev.arrival}
+        if ev.row is not None and "_row" in ev.row:
+            d["frame"] = ev.row["_row"].frame
+            d["x"] = ev.row["_host_exposure"]
+        elif ev.row is not None:
+            d["row"] = ev.row
+        if ev.text:
+            d["text"] = ev.text
+        self._put(d)
+
+    def _put(self, d: dict) -> None:
+        self.fh.write(self._dumps(d) + "\n")
+        self._n += 1
+        if self._n % self.FLUSH_EVERY == 0:
+            self.fh.flush()
+
+    def close(self) -> None:
+        self.fh.close()
+
+
+def read_event_log(path) -> list[dict]:
+    """The events of an EventLog, in order.
+
+    Raises
+    ------
+    InputFileError
+        A line that is not a JSON object with ``k`` and ``n``, naming it.
+    """
+    import json
+
+    out = []
+    with open(path, encoding="utf-8") as fh:
+        for line_no, line in enumerate(fh, start=1):
+            if not line.strip():
+                continue
+            try:
+                d = json.loads(line)
+                float(d["n"]), str(d["k"])
+            except (ValueError, KeyError, TypeError):
+                raise InputFileError(f"{path}: line {line_no}: not an event of a recording "
+                                     "(a JSON object with k and n)") from None  # fmt: skip
+            out.append(d)
+    return out
+
+
+def replay_live(events: list[dict], frame_rows: dict, setup, open_rows, *, silent_s: float = 2.0,
+                echo=print, kind: bool | None = None, end_with_fixes: bool = False,
+                sources: tuple[str, str] = ("imu", "camera")) -> LiveSummary:  # fmt: skip
+    """A live fusion again from its EventLog: every event given to the same loop at the
+    moment it was taken, the camera's fixes the rows ``frame_rows`` (frame number ->
+    Row) of its frames processed again; the fused rows are the run's (but latency_ms,
+    the time this replay spent on them)."""
+
+    class _Source:
+        def __init__(self, source):
+            self.source = source
+
+    start = next((e["n"] for e in events if e["k"] == "start"), events[0]["n"] if events else 0.0)
+    run = _LiveRun(_Source(sources[0]), _Source(sources[1]), setup, open_rows, silent_s, echo,
+                   kind, end_with_fixes, now=start)  # fmt: skip
+    warm_up()
+    for e in events:
+        k = e["k"]
+        if k == "start":
+            continue
+        if k == "tick":
+            ev = None
+        elif k == "fix" and "frame" in e:
+            row = frame_rows.get(int(e["frame"]))
+            if row is None:
+                raise InputFileError(f"frame {e['frame']}: a fix of the recording whose frame "
+                                     "is not in it")  # fmt: skip
+            ev = Event("fix", e["s"], e["a"], {"_row": row, "_host_exposure": e["x"]})
+        else:
+            ev = Event(k, e.get("s", ""), e.get("a", e["n"]), e.get("row"), e.get("text", ""))
+        if not run.take(ev, now=e["n"]):
+            break
+    return run.summary
+
+
 def run_live(imu: Reader, fixes, setup, open_rows, *, max_samples: int | None = None,
              silent_s: float = 2.0, echo=print, kind: bool | None = None,
-             end_with_fixes: bool = False) -> LiveSummary:  # fmt: skip
+             end_with_fixes: bool = False,
+             record: EventLog | None = None) -> LiveSummary:  # fmt: skip
     """Fuse two live sources until the inertial source ends, ``max_samples`` rows, or
     Ctrl-C. ``setup(planar)`` gives (engine, model) once the first inertial row tells
     the kind; ``open_rows(planar)`` a sink with ``write(row)``; every row is written
@@ -381,8 +487,11 @@ def run_live(imu: Reader, fixes, setup, open_rows, *, max_samples: int | None = 
     ``silent_s`` is said once on stderr (and, for the fixes, on every row:
     ``fixes_silent``), and again when it is back. ``end_with_fixes`` (a camera in this
     process): the run also ends once the fixes' source has ended and the IMU has
-    been quiet for QUIET_END_S."""
+    been quiet for QUIET_END_S. ``record``: every event taken, and when, to an
+    EventLog (`replay_live` gives the rows again)."""
     run = _LiveRun(imu, fixes, setup, open_rows, silent_s, echo, kind, end_with_fixes)
+    if record is not None:
+        record.start(run.started)
     # what the filters import on their first fix (scipy.special, half a second), here,
     # before any row waits on it
     warm_up()
@@ -394,7 +503,10 @@ def run_live(imu: Reader, fixes, setup, open_rows, *, max_samples: int | None = 
                 ev = imu.events.get(timeout=0.1)
             except queue.Empty:
                 ev = None
-            if not run.take(ev):
+            now = time.monotonic()
+            if record is not None:
+                record.event(ev, now)
+            if not run.take(ev, now):
                 break
             if max_samples is not None and run.summary.samples >= max_samples:
                 break
@@ -409,7 +521,8 @@ def run_live(imu: Reader, fixes, setup, open_rows, *, max_samples: int | None = 
 class _LiveRun:
     """The state of a live fusion and what each event does to it (run_live)."""
 
-    def __init__(self, imu, fixes, setup, open_rows, silent_s, echo, kind, end_with_fixes):
+    def __init__(self, imu, fixes, setup, open_rows, silent_s, echo, kind, end_with_fixes,
+                 now: float | None = None):  # fmt: skip
         self.imu, self.setup, self.open_rows = imu, setup, open_rows
         self.silent_s, self.echo, self.kind = silent_s, echo, kind
         self.end_with_fixes = end_with_fixes
@@ -419,14 +532,16 @@ class _LiveRun:
         self.held: list = []  # fixes that arrived before the IMU's clock reached their latency
         self.tie = ClockTie()  # host time (time.monotonic) minus IMU time
         self.fixes_ended = False
-        now = time.monotonic()
+        now = time.monotonic() if now is None else now
+        self.started = now
         self.last = {"imu": now, "fix": now}
         self.silent = {"imu": False, "fix": False}
         self.source_of = {"imu": imu.source, "fix": getattr(fixes, "source", "camera")}
 
-    def take(self, ev: Event | None) -> bool:
-        """Handle one event (None: nothing came for 0.1 s); False ends the run."""
-        now = time.monotonic()
+    def take(self, ev: Event | None, now: float | None = None) -> bool:
+        """Handle one event (None: nothing came for 0.1 s) at ``now`` (time.monotonic()
+        unless a replay gives the moment it was taken); False ends the run."""
+        now = time.monotonic() if now is None else now
         for src in ("imu", "fix"):
             if not self.silent[src] and now - self.last[src] > self.silent_s:
                 self.silent[src] = True

@@ -127,6 +127,22 @@ def row_writer(sink):
     return own if own is not None else (lambda row: sink.write(row.as_dict()))
 
 
+class Tee:
+    """Rows to several sinks in turn (a run's output and its recording's copy)."""
+
+    def __init__(self, *sinks):
+        self.sinks = sinks
+        self._rows = [row_writer(k) for k in sinks]
+
+    def write(self, row: dict) -> None:
+        for k in self.sinks:
+            k.write(row)
+
+    def write_row(self, row) -> None:
+        for w in self._rows:
+            w(row)
+
+
 class JsonlSink:
     """One JSON object per line, same keys as the CSV columns; null for empty fields."""
 

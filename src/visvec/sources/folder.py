@@ -6,6 +6,7 @@ import csv
 import math
 import os
 import re
+import threading
 from collections import deque
 from collections.abc import Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -50,10 +51,13 @@ def to_gray(image: np.ndarray) -> np.ndarray:
     return image
 
 
-def read_sidecar(path: Path, unix: dict[str, float] | None = None) -> dict[str, float]:
+def read_sidecar(path: Path, unix: dict[str, float] | None = None,
+                 live: dict[str, tuple[int, bool]] | None = None) -> dict[str, float]:  # fmt: skip
     """file name -> time_s from a CSV with columns ``file`` and ``time_s``; with a
     ``time_unix`` column too (as `track --save-frames` writes it), file name ->
-    time_unix into ``unix`` where it is a finite number.
+    time_unix into ``unix`` where it is a finite number; with ``frame`` and ``late``
+    columns (`track --record`), file name -> (the frame's number in the live run,
+    whether it was read late) into ``live``.
 
     Raises
     ------
@@ -96,6 +100,12 @@ def read_sidecar(path: Path, unix: dict[str, float] | None = None) -> dict[str, 
                         u = math.nan
                     if math.isfinite(u):
                         unix[row["file"]] = u
+                if live is not None and (row.get("frame") or "").strip():
+                    try:
+                        live[row["file"]] = (int(row["frame"]), row.get("late", "").strip() == "1")
+                    except ValueError:
+                        raise InputFileError(f"{path}: line {line}: frame = {row['frame']!r}, "
+                                             "expected a whole number") from None  # fmt: skip
         except UnicodeDecodeError:
             raise InputFileError(f"{path}: not a UTF-8 text file") from None
         except csv.Error as exc:
@@ -135,11 +145,14 @@ class FolderSource:
         self.fps = fps
         self.times: dict[str, float] = {}
         self.unix: dict[str, float] = {}
+        # a live run's recording (`track --record`): each file's frame number in the
+        # run and whether it was read late, so that a replay's rows are the run's
+        self.live: dict[str, tuple[int, bool]] = {}
         self.times_from: str | None = None  # the sidecar the frames' times come from
         for name in SIDECARS:
             side = self.path / name
             if side.is_file():
-                self.times = read_sidecar(side, self.unix)
+                self.times = read_sidecar(side, self.unix, self.live)
                 if self.times:
                     self.times_from = name
                     break
@@ -150,10 +163,17 @@ class FolderSource:
     def _frame(self, i: int, f: Path) -> Frame:
         t = self.times.get(f.name, i / self.fps)
         u = self.unix.get(f.name)
+        late = None
+        if f.name in self.live:
+            i, was_late = self.live[f.name]
+            if was_late:
+                late = threading.Event()
+                late.set()
         img, why = read_image_why(f)
         if img is None:
-            return Frame(i, t, None, f.name, error=f"{f.name}: {why}", time_unix=u)
-        return Frame(i, t, to_gray(img), f.name, time_unix=u)
+            return Frame(i, t, None, f.name, error=f"{f.name}: {why}", time_unix=u,
+                         read_late=late)  # fmt: skip
+        return Frame(i, t, to_gray(img), f.name, time_unix=u, read_late=late)
 
     def __iter__(self) -> Iterator[Frame]:
         """The frames in order. The next PREFETCH files are read and decoded by a
