@@ -158,8 +158,8 @@ def run_batch(
             fox.live.srv.stop()
         raise
     rig = with_fps(rig, src, fps, path)
-    if view is not None:
-        src = paced(src)
+    if view is not None or fox is not None:
+        src = paced(src)  # watched: at its own pace
     # once the frames are found, before the first row (as `track` does)
     note_uncalibrated(rig)
     note_codec(rig, src)

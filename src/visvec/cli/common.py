@@ -162,7 +162,7 @@ def foxglove_option(f):
         "HOST:PORT (HOST 127.0.0.1 unless given; PORT 0: any free port) with the "
         "channels an --out *.mcap file holds, as they are made (pip install "
         '"visvec[foxglove]"). With an IMU: the fused rows under /visvec, the camera\'s '
-        "under /visvec/camera.",
+        "under /visvec/camera. A recording is then replayed at its own pace.",
     )(f)
 
 
