@@ -1,6 +1,7 @@
 """The command line's contract (visvec.cli.main): exit codes, one-line errors, a closed
 pipe, Ctrl-C, help."""
 
+import re
 from pathlib import Path
 
 import cv2
@@ -151,3 +152,24 @@ def test_version_says_which_path_the_triangle_runs(monkeypatch):
     assert "in numpy (VISVEC_PURE is set)" in run("--version").output
     monkeypatch.setattr(_compiled, "PURE", False)
     assert 'pip install "visvec[fast]"' in run("--version").output
+
+
+def test_each_command_lists_the_exit_codes_and_estimators_it_has():
+    """A command's help ends with the exit codes it can give, not every command's; `rate`
+    lists the starfield's estimators only."""
+
+    def codes(*cmd):
+        text = " ".join(run(*cmd, "--help").output.split())
+        tail = text[text.index("Exit codes:") :]
+        return {int(c) for c in re.findall(r"(?:^Exit codes: |; )(\d+) ", tail)}
+
+    assert codes("track") == {0, 1, 2, 3, 4}
+    assert codes("batch") == {0, 1, 2, 3, 4, 130}
+    assert codes("simulate") == {0, 1, 2, 130}
+    assert codes("plot") == codes("check") == {0, 1, 2}
+    assert codes("calibrate", "zero-tilt") == {0, 1, 2, 3}
+    assert codes() == {0, 1, 2, 3, 4, 130}  # the group's own help: every one
+    rate = " ".join(run("rate", "--help").output.split())
+    assert "[poisson|crassidis]" in rate and "pnp-" not in rate
+    track = " ".join(run("track", "--help").output.split())
+    assert "pnp-ippe" in track and "130" not in track

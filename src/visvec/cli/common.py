@@ -13,7 +13,7 @@ import click
 
 from visvec.data import inter_frame
 from visvec.errors import ConfigError
-from visvec.pipeline import METHODS
+from visvec.pipeline import METHODS, RATE_METHODS
 from visvec.pipeline.triangle import codec_advice
 from visvec.rig import Rig, load_rig
 from visvec.sinks import UdpStream, open_sink
@@ -166,9 +166,12 @@ def foxglove_option(f):
     )(f)
 
 
-def output_options(f):
+def output_options(f=None, *, rates: bool = False):
     """--out, --format, --method, --overlay, --max-frames, --serve, --foxglove,
-    --covariance, --ros-images."""
+    --covariance, --ros-images (``@output_options``; ``@output_options(rates=True)``
+    for `rate`, whose --method lists the starfield's estimators)."""
+    if f is None:
+        return lambda g: output_options(g, rates=rates)
     f = click.option(
         "--ros-images",
         is_flag=True,
@@ -223,14 +226,23 @@ def output_options(f):
         default=None,
         help="Write each frame with the detection drawn on it to this folder.",
     )(f)
-    f = click.option(
-        "--method",
-        type=click.Choice(METHODS),
-        default=None,
-        help="Estimator. Triangle: 'full' (default; camera model, lever arm) or 'paper'; "
-        "markers: 'full' (default) or a PnP baseline; starfield: 'poisson' (default) or "
-        "'crassidis'.",
-    )(f)
+    if rates:
+        method = click.option(
+            "--method",
+            type=click.Choice(RATE_METHODS),
+            default=None,
+            help="Estimator: 'poisson' (default) or 'crassidis'.",
+        )
+    else:
+        method = click.option(
+            "--method",
+            type=click.Choice(METHODS),
+            default=None,
+            help="Estimator, by the rig's kind. Triangle: 'full' (default; camera model, "
+            "lever arm) or 'paper'; markers: 'full' (default) or a PnP baseline (pnp-*); "
+            "lamps: 'full'; starfield: 'poisson' (default) or 'crassidis' (as `rate`).",
+        )
+    f = method(f)
     f = click.option(
         "--format",
         "fmt",

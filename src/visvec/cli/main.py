@@ -165,22 +165,61 @@ def _register() -> None:
     cli.add_command(fuse.fuse)
     cli.add_command(check.check)
     cli.add_command(plot.plot)
-    # every command's help ends with the exit codes
-    todo = list(cli.commands.values())
+    # every command's help ends with the exit codes it can give
+    cli.epilog = exit_codes(None)
+    todo = [(name, cmd) for name, cmd in cli.commands.items()]
     while todo:
-        cmd = todo.pop()
-        cmd.epilog = EXIT_CODES
+        name, cmd = todo.pop()
         if isinstance(cmd, click.Group):
-            todo += list(cmd.commands.values())
+            cmd.epilog = exit_codes(name)
+            todo += [(name, sub) for sub in cmd.commands.values()]
+        else:
+            cmd.epilog = exit_codes(name)
 
 
-EXIT_CODES = (
-    "Exit codes: 0 done (also after Ctrl-C, SIGTERM, SIGHUP); 2 a bad option, rig, "
-    "calibration or data file, refused before any work; 3 a source that cannot be opened "
-    "or read; 4 not one ok row; 1 an output that cannot be written, a refused "
-    "calibration, or an unexpected error; 130 simulate, or batch over many recordings, "
-    "stopped by Ctrl-C."
-)
+# what each exit code means (the module doc), and which a command can give
+CODE_TEXT = {
+    0: "0 done",
+    2: "2 a bad option, rig, calibration or data file, refused before any work",
+    3: "3 a source that cannot be opened or read",
+    4: "4 not one ok row",
+    1: "1 an output that cannot be written, or an unexpected error",
+    130: "130 stopped by Ctrl-C",
+}
+COMMAND_CODES = {
+    "track": (0, 2, 3, 4, 1),
+    "batch": (0, 2, 3, 4, 1, 130),
+    "rate": (0, 2, 3, 4, 1),
+    "fuse": (0, 2, 4, 1),
+    "calibrate": (0, 2, 3, 1),
+    "simulate": (0, 2, 1, 130),
+    "montecarlo": (0, 2, 1, 130),
+}
+
+
+# a command's own wording of a code
+CODE_OWN = {
+    ("track", 0): "0 done (also after Ctrl-C, SIGTERM, SIGHUP)",
+    ("rate", 0): "0 done (also after Ctrl-C, SIGTERM, SIGHUP)",
+    ("fuse", 0): "0 done (also after Ctrl-C, SIGTERM, SIGHUP)",
+    ("batch", 0): "0 done (one recording: also after Ctrl-C, SIGTERM, SIGHUP)",
+    ("batch", 130): "130 several recordings (--out-dir) stopped by Ctrl-C",
+    ("simulate", 130): "130 stopped by Ctrl-C (the recording is incomplete)",
+    ("calibrate", 1): "1 an output that cannot be written, a refused calibration, or an "
+    "unexpected error",
+    (None, 0): "0 done (track, batch, rate, fuse: also after Ctrl-C, SIGTERM, SIGHUP)",
+    (None, 1): "1 an output that cannot be written, a refused calibration, or an unexpected error",
+    (None, 130): "130 simulate, montecarlo, or batch over several recordings, stopped by Ctrl-C",
+}
+
+
+def exit_codes(command: str | None) -> str:
+    """The help's closing line: the exit codes ``command`` can give (every one for the
+    group's own help)."""
+    codes = COMMAND_CODES.get(command, (0, 2, 1)) if command else tuple(CODE_TEXT)
+    parts = [CODE_OWN.get((command, c), CODE_TEXT[c]) for c in codes]
+    return "Exit codes: " + "; ".join(parts) + "."
+
 
 _register()
 

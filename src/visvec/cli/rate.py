@@ -77,7 +77,7 @@ from visvec.estimate.rate import rate_budget
     help="Budget: rate about the boresight (for the full Eq. 26).",
 )
 @result_options
-@output_options
+@output_options(rates=True)
 def rate(
     path, rig_path, calibration, truth, budget, ifov_deg, fps, stars, pixels_per_star,
     off_boresight_deg, rate_dps, errors, summary, out, fmt, method, overlay, max_frames, serve,
