@@ -126,8 +126,9 @@ def test_help_groups_the_options_of_each_kind():
     after the options for all; every option described; no range shown as None."""
     text = run("simulate", "--help").output
     heads = [line for line in text.splitlines() if line.endswith("options:") or line == "Options:"]
-    assert heads == ["Options:", "Triangle options:", "Markers options:", "Starfield options:",
-                     "Lamps options:"]  # fmt: skip
+    assert heads == ["Input options:", "Rig options:", "Output options:", "Fusion options:",
+                     "Triangle options:", "Markers options:", "Starfield options:",
+                     "Lamps options:", "Options:"]  # fmt: skip
     tri = text.split("Triangle options:")[1].split("Markers options:")[0]
     assert "--blur" in tri and "--readout-ms" in tri and "--spurious" not in tri
     assert "--spurious" in text.split("Lamps options:")[1]
@@ -135,6 +136,16 @@ def test_help_groups_the_options_of_each_kind():
     rate = run("rate", "--help").output
     assert "[required unless --budget]" in " ".join(rate.split())
     assert "--budget options:" in rate
+    # track's options by what they are about
+    track = run("track", "--help").output
+
+    def under(head, text=track):
+        return text.split(head)[1].split("options:")[0]
+
+    assert "--rig" in under("Rig options:") and "--serve" in under("Live view options:")
+    assert "--foxglove" in under("Live view options:") and "--imu" in under("Fusion options:")
+    assert "--record" in under("Output options:") and "--camera " in under("Input options:")
+    assert "--gyro-range-dps" in under("Fusion options:", run("fuse", "--help").output)
 
 
 def test_version_says_which_path_the_triangle_runs(monkeypatch):

@@ -44,9 +44,29 @@ class FiniteFloat(click.FloatRange):
 KIND_PREFIXES = ("Triangle", "Markers", "Starfield", "Lamps", "Budget")
 
 
+# the headings a command's --help puts its options under, by what they are about (the
+# options of one kind go under that kind's heading, after these)
+OPTION_GROUPS = {
+    "Input options": ("--camera", "--retry-s", "--realtime", "--fps", "--follow", "--fixes",
+                      "--max-frames", "--max-samples", "--silent-s"),
+    "Rig options": ("--rig", "--calibration"),
+    "Estimator options": ("--method",),
+    "Output options": ("--out", "--format", "--covariance", "--ros-images", "--overlay",
+                       "--save-frames", "--record", "--camera-out", "--out-dir", "--truth",
+                       "--errors", "--summary"),
+    "Live view options": ("--serve", "--keep-view", "--foxglove", "--foxglove-image-hz"),
+    "Fusion options": ("--imu", "--gyro-range-dps", "--rest-s", "--max-rate-dps",
+                       "--max-accel-mps2", "--gyro-noise-dps", "--accel-noise-mps2",
+                       "--fix-sigma-deg", "--clock-jitter-ms", "--no-misalignment",
+                       "--history-s"),
+}  # fmt: skip
+_GROUP_OF = {opt: head for head, opts in OPTION_GROUPS.items() for opt in opts}
+
+
 class KindCommand(click.Command):
-    """A command whose --help groups the options that apply to one target kind (their
-    help starts "Triangle:", "Lamps:", ...) under that kind's heading."""
+    """A command whose --help groups its options: by what they are about
+    (OPTION_GROUPS), and those that apply to one target kind (their help starts
+    "Triangle:", "Lamps:", ...) under that kind's heading."""
 
     def format_options(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
         groups: dict[str, list[tuple[str, str]]] = {}
@@ -54,7 +74,8 @@ class KindCommand(click.Command):
             rec = param.get_help_record(ctx)
             if rec is None:
                 continue
-            head = "Options"
+            names = [o for o in getattr(param, "opts", ()) if o.startswith("--")]
+            head = next((_GROUP_OF[o] for o in names if o in _GROUP_OF), "Options")
             text = rec[1]
             for k in KIND_PREFIXES:
                 if text.startswith(k + ":"):
@@ -63,7 +84,9 @@ class KindCommand(click.Command):
                     rec = (rec[0], rest[:1].upper() + rest[1:])
                     break
             groups.setdefault(head, []).append(rec)
-        order = ["Options", *(f"{k} options" for k in KIND_PREFIXES[:-1]), "--budget options"]
+        # (what fits no heading, --help among it, last)
+        order = [*OPTION_GROUPS, *(f"{k} options" for k in KIND_PREFIXES[:-1]),
+                 "--budget options", "Options"]  # fmt: skip
         for head, recs in sorted(groups.items(), key=lambda kv: order.index(kv[0])):
             with formatter.section(head):
                 formatter.write_dl(recs)

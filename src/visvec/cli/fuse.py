@@ -12,6 +12,7 @@ import numpy as np
 
 from visvec.cli.common import (
     FiniteFloat,
+    KindCommand,
     check_output,
     foxglove_option,
     note_inputs,
@@ -35,7 +36,7 @@ from visvec.sinks import row_writer
 from visvec.sinks.foxglove import Published
 
 
-@click.command()
+@click.command(cls=KindCommand)
 @click.option("--imu", "imu_path", required=True, metavar="SOURCE",
               help="Inertial rows: time_s and gz_dps,ax_mps2,ay_mps2 (planar) or "
               "gx_dps,gy_dps,gz_dps (3-D). SOURCE: a CSV file, - (stdin), udp://HOST:PORT "
