@@ -349,3 +349,20 @@ def test_a_recorded_camera_run_replays_to_its_own_rows(tmp_path):
     assert len(rows_of(live)) == 20
     _same_but_latency(rows_of(replay), rows_of(live))
     _same_but_latency(rows_of(rec / "rows.csv"), rows_of(live))
+
+
+def test_a_recording_is_begun_only_once_the_camera_opens(tmp_path):
+    """A camera that cannot be opened (exit 3) leaves no recording: the same --record
+    folder is taken on the next try."""
+    from conftest import ROOT, run
+
+    rig = ROOT / "configs" / "triangle.toml"
+    rec = tmp_path / "flight"
+    r = run("track", "--rig", rig, "--camera", tmp_path / "no_such.avi", "--record", rec)
+    assert r.exit_code == 3
+    assert not (rec / "recording.json").exists()
+    sim = tmp_path / "sim"
+    assert run("simulate", "--rig", rig, "--out", sim, "--frames", 3).exit_code == 0
+    r = run("track", "--rig", rig, "--camera", sim, "--record", rec, "--out", tmp_path / "r.csv")
+    assert r.exit_code == 0, r.output
+    assert (rec / "recording.json").is_file() and len(list(rec.glob("frame_*.png"))) == 3

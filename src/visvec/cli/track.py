@@ -101,7 +101,6 @@ def track(
         if recording.is_recording(record):
             raise click.BadParameter(f"{record} already holds a recording: give a new folder "
                                      "for each recording", param_hint="--record")  # fmt: skip
-        recording.start(record, rig_path, calibration, str(spec), imu_src)
     if isinstance(spec, str) and "://" in spec:
         # said before connecting: a rig file's device can point anywhere
         from urllib.parse import urlsplit
@@ -134,6 +133,10 @@ def track(
         if fox_server is not None:
             fox_server.stop()
         raise SourceError(f"{exc}{_advice(spec)}") from None
+    if record:
+        # begun once the camera is open: a camera that cannot be opened leaves no
+        # recording behind (the same folder can be given again)
+        recording.start(record, rig_path, calibration, str(spec), imu_src)
     # what a camera runs with, and the settings it refused or that move the measurement
     for line in getattr(src, "settings", []):
         click.echo(f"visvec: {line}", err=True)
