@@ -138,6 +138,22 @@ def _rows(reader, path: Path, skipped: int = 0):
 def read_imu(path: str | Path, planar: bool) -> ImuData:
     """Read an inertial CSV for planar (gz, ax, ay) or 3-D (gx, gy, gz) fusion.
 
+    Parameters
+    ----------
+    path : str or Path
+        CSV with ``time_s`` (any clock, increasing) and ``gz_dps, ax_mps2, ay_mps2``
+        (planar) or ``gx_dps, gy_dps, gz_dps`` (3-D, deg/s about the body axes); a
+        ``# gyro_range_dps = N`` line before the header declares the gyro's range.
+    planar : bool
+        Which columns to read.
+
+    Returns
+    -------
+    ImuData
+        ``t`` (n,) s, ``gyro`` (n, 3) rad/s, ``accel`` (n, 2) m/s^2 or None, the
+        median ``period_s``, the indices of ``gaps`` (a step over three periods) and
+        the declared ``gyro_range_dps`` (None if not).
+
     Raises
     ------
     InputFileError
@@ -192,12 +208,28 @@ def read_imu(path: str | Path, planar: bool) -> ImuData:
 
 @dataclass(frozen=True)
 class Fix:
-    """One ok fix: exposure time ``time_s``, ``available_s`` when it reached the
-    fusion, ``value`` (x_mm, y_mm, heading rad) or R_NB (3, 3), ``cov`` (3, 3) in mm and
-    rad (planar) or rad in body axes (attitude), or None where the file has no sigma
-    columns, and its file ``line``. ``shift``: how much earlier than its stated time
-    the fusion applies it (its time offset as the fusion then knew it; ``time_s`` is
-    then the stated time less ``shift``)."""
+    """One ok fix: a camera's measurement for the fusion.
+
+    Attributes
+    ----------
+    time_s : float
+        The exposure's time (s), on the IMU's clock.
+    available_s : float
+        When it reached the fusion (s, the same clock): the exposure plus the camera's
+        latency.
+    value : ndarray
+        Planar: (3,) x_mm, y_mm, heading (rad). Attitude: R_NB, (3, 3).
+    cov : ndarray, shape (3, 3), or None
+        Its covariance: mm^2, mm rad, rad^2 (planar); rad^2 about the body axes
+        (attitude). None where the file has no sigma columns (the filter's fix sigma
+        then).
+    line : int
+        Its line in the file it came from (0 for a row made in this process).
+    shift : float
+        How much earlier than its stated time the fusion applies it (s; its time
+        offset as the fusion then knew it; ``time_s`` is then the stated time less
+        ``shift``).
+    """
 
     time_s: float
     available_s: float
@@ -219,6 +251,20 @@ class Fixes:
 
 def read_fixes(path: str | Path) -> Fixes:
     """Read visvec output rows as fixes (planar pose or attitude, by the header).
+
+    Parameters
+    ----------
+    path : str or Path
+        A CSV or JSON-lines file of visvec rows (`track`, `batch` output): each ok row
+        a fix at its ``time_s``, available ``latency_ms`` later; its covariance from
+        the ``cov_*`` columns where the file has them (``--covariance``), else from
+        its sigmas.
+
+    Returns
+    -------
+    Fixes
+        ``fixes`` (tuple of Fix), whether they are ``planar``, and how many rows the
+        file held.
 
     Raises
     ------
@@ -344,10 +390,28 @@ def row_cov(get, planar: bool) -> np.ndarray | None:
 
 
 def fix_from_row(row, planar: bool) -> Fix | None:
-    """An ok row of visvec's (visvec.output.Row) as a fix, in one process: its full
-    covariance kept where it has one (the triangle's yaw-pitch correlation), its three
-    sigmas where not; available at its exposure plus its ``latency_ms``. None for a row
-    that is not ok or whose time is not its exposure's (UNTIMED)."""
+    """An ok row of visvec's as a fix, in one process.
+
+    Its full covariance is kept where it has one (the triangle's yaw-pitch
+    correlation), its three sigmas where not; it is available at its exposure plus its
+    ``latency_ms``.
+
+    Parameters
+    ----------
+    row : visvec.output.Row
+        A pipeline's row (AttitudeRow for attitude, PoseRow for planar).
+    planar : bool
+        True for a pose fix (x_mm, y_mm, heading), False for an attitude one.
+
+    Returns
+    -------
+    Fix or None
+        None for a row that is not ok, or whose time is not its exposure's (UNTIMED).
+
+    Examples
+    --------
+    >>> fixes = [f for row in rows if (f := fix_from_row(row, planar=False))]
+    """
     if not row.ok or any(w in UNTIMED for w in row.warnings):
         return None
     if planar:

@@ -123,7 +123,35 @@ def model_from_options(planar: bool, period_s: float | None, opts: FusionOptions
 
 
 def engine_from_options(planar: bool, period_s: float | None, opts: FusionOptions) -> Fusion:
-    """The fusion engine with the filter the options ask for (model_from_options)."""
+    """The fusion engine with the filter the options ask for (model_from_options).
+
+    Parameters
+    ----------
+    planar : bool
+        True: the planar filter (x, y, heading with a yaw gyro and two
+        accelerometers); False: the 3-D attitude filter.
+    period_s : float or None
+        The IMU's sample period (s), where known (it sets the white noise's
+        correlation time and the clock jitter's prior); None: the filter's default.
+    opts : FusionOptions
+        What `visvec fuse` takes as options (gyro noise, gyro range, history, ...).
+
+    Returns
+    -------
+    Fusion
+        Fed inertial samples (`Fusion.step`) and fixes (`Fusion.add_fix`) in their
+        order of arrival; its ``model`` gives the rows (`fused_rows`).
+
+    Raises
+    ------
+    ValueError
+        An option that does not apply to the kind of filter, or out of range.
+
+    Examples
+    --------
+    >>> eng = engine_from_options(False, 1 / 286, FusionOptions(gyro_range_dps=2000))
+    >>> rows = list(fused_rows(fuse(imu, fixes, None, engine=eng), eng.model))
+    """
     model, limits = model_from_options(planar, period_s, opts)
     return Fusion(model, limits=limits, history_s=opts.history_s,
                   gyro_range_dps=opts.gyro_range_dps)  # fmt: skip

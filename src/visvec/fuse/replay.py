@@ -417,7 +417,31 @@ def fuse(
     engine: Fusion | None = None,
 ) -> Iterator[FusedSample]:
     """Fused states at every inertial sample of a recording, causally: each fix is
-    given to the engine at the first sample at or after its ``available_s``."""
+    given to the engine at the first sample at or after its ``available_s``.
+
+    Parameters
+    ----------
+    imu : ImuData
+        The inertial samples (`read_imu`): times (s), gyro (rad/s), accelerometers
+        (m/s^2, planar), gaps.
+    fixes : sequence of Fix
+        The camera's fixes (`read_fixes`, `fix_from_row`), in any order.
+    model : the filter (AttitudeModel, PlanarModel), or None with ``engine``
+    limits : Limits, optional
+        Readings beyond these are faults (not integrated).
+    history_s : float
+        The inertial history kept for late fixes (s).
+    gyro_range_dps : float, optional
+        The gyro's range (deg/s), where known: readings at it are saturated.
+    engine : Fusion, optional
+        An engine made already (`engine_from_options`); ``model`` is then its own.
+
+    Yields
+    ------
+    FusedSample
+        The state after each sample (``state`` None before the first fix), the fixes
+        applied so far and the sample's warnings; `fused_rows` makes them rows.
+    """
     if engine is None:
         engine = Fusion(model, limits=limits, history_s=history_s, gyro_range_dps=gyro_range_dps)
     arrivals = sorted(fixes, key=lambda f: (f.available_s, f.time_s))

@@ -73,8 +73,23 @@ class _Solution(NamedTuple):
 
 
 def fused_rows(samples: Iterator[FusedSample], model) -> Iterator[Row]:
-    """Rows of fused samples: planar pose or attitude, like the fixes; ``latency_ms`` is
-    the time spent on the sample (its propagation and any replay)."""
+    """Rows of fused samples: planar pose or attitude, like the fixes.
+
+    Parameters
+    ----------
+    samples : iterator of FusedSample
+        The engine's states (`fuse`, or `Fusion.step` live).
+    model : AttitudeModel or PlanarModel
+        The engine's filter (``engine.model``).
+
+    Yields
+    ------
+    AttitudeRow or PoseRow
+        One per sample: yaw, pitch, roll (deg) and q_NB with their sigmas (deg) and
+        covariance (deg^2), or x, y (mm) and heading (deg) with theirs; ``latency_ms``
+        the time spent on the sample (its propagation and any replay); ``no_target``
+        before the first fix.
+    """
     it = iter(samples)
     while True:
         t0 = time.perf_counter()

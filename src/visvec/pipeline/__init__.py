@@ -21,7 +21,28 @@ DEFAULT_METHODS = {"triangle": "full", "markers": "full", "starfield": "poisson"
 
 
 def make_pipeline(rig: Rig, method: str | None = None) -> Pipeline:
-    """The pipeline for the rig's target kind (``method`` None: the kind's default)."""
+    """The pipeline for the rig's target kind.
+
+    Parameters
+    ----------
+    rig : Rig
+        A loaded rig (`load_rig`), its calibration files applied.
+    method : str, optional
+        The estimator: triangle 'full' (default) or 'paper'; markers 'full' (default)
+        or a PnP baseline ('pnp-*'); starfield 'poisson' (default) or 'crassidis';
+        lamps 'full'. None: the kind's default.
+
+    Returns
+    -------
+    Pipeline
+        ``process(frame)`` gives one row per frame (AttitudeRow, RateRow or PoseRow),
+        never raising on a frame's content.
+
+    Examples
+    --------
+    >>> pipe = make_pipeline(load_rig("configs/triangle.toml"))
+    >>> rows = [pipe.process(frame) for frame in open_source("data/sample_frames")]
+    """
     method = method or DEFAULT_METHODS.get(rig.kind, "full")
     if rig.kind == "triangle":
         return TrianglePipeline(rig, method)

@@ -20,6 +20,34 @@ def open_source(
 ):
     """A camera index ("0"), a folder of images, a single image, a video file or a URL.
 
+    Parameters
+    ----------
+    spec : str or int
+        What to open: a camera index, a folder (its images in natural order, times
+        from a ``times.csv`` beside them), an image, a video, or an ``http://`` or
+        ``rtsp://`` stream.
+    fps : float
+        The frame rate (Hz) a source without its own times is timed by.
+    max_frames : int, optional
+        Stop after this many frames.
+    retry_s : float
+        How long (s) a camera or stream that stops delivering is retried.
+    size : (int, int), optional
+        The (width, height) in px a camera is asked for.
+    controls : optional
+        The rig's camera controls (exposure, gain, focus).
+
+    Returns
+    -------
+    iterable of Frame
+        Each with its ``index``, ``time_s`` (s from the first), grey ``image``
+        (uint8, H x W) or an ``error``.
+
+    Raises
+    ------
+    SourceError
+        A source that cannot be opened (exit 3 on the command line).
+
     A camera is asked for ``size`` (width, height) and ``fps``, and refused if it cannot
     deliver that size (see :class:`VideoSource`), and set to ``controls`` (the rig's
     exposure, gain and focus)."""
