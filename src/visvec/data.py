@@ -10,7 +10,21 @@ import numpy as np
 
 
 class Status(StrEnum):
-    """Outcome of one frame, as written in the ``status`` column."""
+    """Outcome of one frame, as written in the ``status`` column.
+
+    Attributes
+    ----------
+    OK : "ok"
+        Values with their sigma.
+    NO_TARGET : "no_target"
+        Nothing of the target found (or, fused, no fix yet).
+    REJECTED : "rejected"
+        Found but refused (its warnings say why: occluded, out of view, ...).
+    NOT_CONVERGED : "not_converged"
+        The fit did not converge.
+    READ_ERROR : "read_error"
+        The frame could not be read or decoded.
+    """
 
     OK = "ok"
     NO_TARGET = "no_target"

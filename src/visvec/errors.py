@@ -8,22 +8,47 @@ from __future__ import annotations
 
 
 class VisvecError(Exception):
-    """Base class of every error visvec raises on purpose."""
+    """Base class of every error visvec raises on purpose.
+
+    Attributes
+    ----------
+    args : tuple
+        The message (one line naming the file, key, option or frame, and what was
+        expected).
+    """
 
 
 class ConfigError(VisvecError, ValueError):
-    """A rig or calibration file, or a parameter, is missing or has a wrong value.
+    """A rig or calibration file, or a parameter, is missing or has a wrong value
+    (exit 2 on the command line).
 
-    The message names the file, the key, the value found and what was expected.
+    Attributes
+    ----------
+    args : tuple
+        The message: it names the file, the key, the value found and what was
+        expected.
     """
 
 
 class SourceError(VisvecError, OSError):
-    """A frame source (camera, video, folder, stream) cannot be opened or read at all."""
+    """A frame source (camera, video, folder, stream) cannot be opened or read at all
+    (exit 3 on the command line).
+
+    Attributes
+    ----------
+    args : tuple
+        The message, naming the source.
+    """
 
 
 class InputFileError(VisvecError, ValueError):
-    """A data file (truth, frames list, sidecar) has a bad row; the message names it."""
+    """A data file (truth, frames list, sidecar) has a bad row (exit 2).
+
+    Attributes
+    ----------
+    args : tuple
+        The message, naming the file and its line.
+    """
 
 
 class OutputError(VisvecError, OSError):

@@ -165,7 +165,21 @@ class Row:
 
 @dataclass(frozen=True)
 class AttitudeRow(Row):
-    """One output row of an attitude mode (triangle, markers)."""
+    """One output row of an attitude mode (triangle, markers, fused attitude).
+
+    Attributes
+    ----------
+    frame, time_s, status, rms_px, n_points, latency_ms, warnings, time_unix, cov
+        As every row (`Row`): the frame's number and time (s), its status, the fit's
+        RMS residual (px), the points used, the time spent (ms), the warnings, the
+        absolute time (s since 1970) and the values' covariance (deg^2).
+    euler_deg : ndarray, shape (3,)
+        Yaw, pitch, roll (deg, Z-Y-X of R_NB).
+    q_nb : ndarray, shape (4,)
+        The same attitude as a quaternion (w, x, y, z; w >= 0).
+    sigma_deg : ndarray, shape (3,)
+        The 1-sigma of yaw, pitch, roll (deg).
+    """
 
     euler_deg: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))  # yaw,pitch,roll
     q_nb: np.ndarray = field(default_factory=lambda: np.full(4, np.nan))  # w, x, y, z

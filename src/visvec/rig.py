@@ -187,7 +187,24 @@ class ImuSettings:
 
 @dataclass(frozen=True)
 class Rig:
-    """One setup: camera, mount, target and settings."""
+    """One setup: camera, mount, target and settings (`load_rig` reads one).
+
+    Attributes
+    ----------
+    camera : CameraModel
+        Intrinsics (px) and distortion of the camera, its size (px).
+    mount : Mount
+        Where the camera sits on the platform and how it looks (mm, deg).
+    target : TriangleTarget, MarkerTarget, StarfieldTarget or LampTarget
+        The target kind (``kind``) and its geometry (mm).
+    max_tilt_deg, max_rate_dps, max_tilt_rate_dps : float
+        The platform's tilt (deg) and rates (deg/s) the checks allow.
+    fps : float
+        The frame rate (Hz) a source without times is timed by.
+    readout_ms, readout_sigma_ms : float
+        The rolling shutter's readout (ms) and its 1-sigma.
+    detect, zero_tilt, controls, imu
+        The [detect], [zero_tilt], camera controls and [imu] settings."""
 
     camera: CameraModel
     mount: Mount
@@ -443,6 +460,19 @@ def load_rig(path: str | Path, calibration: str | Path | Sequence[str | Path] | 
     """Read and validate a rig file, optionally overridden by calibration files: one, or
     several applied in order (each overrides the keys it names, so a later file wins:
     camera, then zero-tilt, then readout).
+
+    Parameters
+    ----------
+    path : str or Path
+        The rig file (TOML; configs/ has one per target kind; docs/reference.md lists
+        its keys and units: mm and degrees).
+    calibration : str or Path or sequence of them, optional
+        Calibration files (`visvec calibrate ...` writes them), applied in order.
+
+    Returns
+    -------
+    Rig
+        The validated setup: camera, mount, target, settings.
 
     Raises
     ------

@@ -85,8 +85,27 @@ def calibrate_camera(
     progress=None,
 ) -> CameraCalibration:
     """Calibrate from chessboard photos with cv2.calibrateCamera (flags = 0; its
-    Extended form, for the intrinsics' standard deviations); ``progress(1)`` after each
-    photo is searched.
+    Extended form, for the intrinsics' standard deviations).
+
+    Parameters
+    ----------
+    files : list of Path
+        The photos (any size, all the same), each showing the whole pattern.
+    pattern : (int, int)
+        Inner corners per row and per column of the chessboard.
+    square_mm : float
+        The side of one square (mm).
+    recipe : str
+        'precise' (default) or another corner-refinement recipe of the command.
+    progress : callable, optional
+        ``progress(1)`` after each photo is searched.
+
+    Returns
+    -------
+    CameraCalibration
+        fx, fy, cx, cy (px) and the distortion coefficients with their standard
+        deviations, the RMS reprojection error (px), the photos used; its TOML is
+        a rig's ``[camera]`` section.
 
     Raises
     ------

@@ -189,9 +189,26 @@ def calibrate_readout(
 ) -> ReadoutCalibration:
     """The rolling-shutter readout time of the rig's camera from ``frames`` of the
     platform turning (a tracked recording with its times, as `visvec track` or a video
-    gives them); triangle rigs. ``principal_point_px``: how well the rig's principal
-    point is known (1-sigma, px; default PRINCIPAL_POINT_PRIOR of the image width, a
-    camera calibrated roughly; `calibrate camera` prints its own).
+    gives them); triangle rigs.
+
+    Parameters
+    ----------
+    frames : sequence of Frame
+        The platform turning, in order, with their times (s).
+    rig : Rig
+        A triangle rig, its camera and zero-tilt calibrations applied.
+    principal_point_px : float, optional
+        How well the rig's principal point is known (1-sigma, px; default
+        PRINCIPAL_POINT_PRIOR of the image width, a camera calibrated roughly;
+        `calibrate camera` prints its own).
+    progress : callable, optional
+        ``progress(1)`` after each readout tried.
+
+    Returns
+    -------
+    ReadoutCalibration
+        The readout (ms, negative: the last row read first) and its 1-sigma, whether
+        it converged and why not; its TOML sets the rig's ``readout_ms``.
 
     The search runs over readouts from minus to plus one frame interval (1000 / fps ms;
     negative: the last row read first): a coarse grid, 1 ms steps around its best point,

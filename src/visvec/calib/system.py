@@ -424,10 +424,25 @@ def calibrate_system(
 ) -> SystemCalibration:
     """Self-calibrate the rig from identified marker centroids of many frames.
 
-    sigma_px, placement_sigma_mm : the centroid noise and the markers' placement error
-        that weigh the offset prior against the pixels (default: the rig's
-        ``[detect] centroid_sigma_px`` and ``[target] placement_sigma_mm``); only their
-        ratio matters, the covariance is scaled by the final residual.
+    Parameters
+    ----------
+    rig : Rig
+        A markers rig: its layout, camera and mount are the starting point.
+    obs : Observations
+        The identified marker centroids (px) of many frames at several attitudes.
+    max_iterations : int
+        Gauss-Newton iterations at most.
+    sigma_px, placement_sigma_mm : float, optional
+        The centroid noise (px) and the markers' placement error (mm) that weigh the
+        offset prior against the pixels (default: the rig's ``[detect]
+        centroid_sigma_px`` and ``[target] placement_sigma_mm``); only their ratio
+        matters, the covariance is scaled by the final residual.
+
+    Returns
+    -------
+    SystemCalibration
+        The camera's mounting (deg), the markers' offsets (mm) with their sigmas, the
+        residual (px); its TOML overrides the rig's.
 
     Raises
     ------

@@ -247,6 +247,22 @@ def _yaw_alone(det: Detection, rig: Rig, offsets: np.ndarray, yaw0: float) -> tu
 def calibrate_zero_tilt(dets: list[Detection], rig: Rig) -> ZeroTiltResult:
     """Zero-tilt offsets from ok detections of frames taken with the platform level.
 
+    Parameters
+    ----------
+    dets : list of Detection
+        The triangle's detections of frames with the platform level (and at rest),
+        at yaws spread over 60 degrees or more.
+    rig : Rig
+        The triangle rig they were taken with.
+
+    Returns
+    -------
+    ZeroTiltResult
+        The camera's tilt on its mount and the target's offset on the ceiling (deg,
+        mm) with their sigmas, the height offset (mm), the vertices' noise scale
+        (``sigma_scale``), the frames used and left out; its TOML is the rig's
+        ``[zero_tilt]``.
+
     Frames far outside their sigma (a platform nudged or not at rest, a bad frame) are
     left out one at a time, worst first, while one is beyond the 99.9 % point of its
     chi-square (5 degrees of freedom) after scaling by the frames' median, so that a

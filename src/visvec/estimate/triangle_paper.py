@@ -55,7 +55,23 @@ def paper_attitude(points_px: np.ndarray, rig: Rig, z0: np.ndarray) -> np.ndarra
 
 
 def solve_paper(det: Detection, rig: Rig, R_nb_guess: np.ndarray | None = None) -> AttitudeSolution:
-    """The paper's attitude with a covariance propagated from the vertex covariance."""
+    """The paper's attitude with a covariance propagated from the vertex covariance.
+
+    Parameters
+    ----------
+    det : Detection
+        The triangle's vertices (normalised image coordinates) and their covariance.
+    rig : Rig
+        The triangle rig.
+    R_nb_guess : ndarray, shape (3, 3), optional
+        Unused by the paper's closed form (kept for the estimators' common signature).
+
+    Returns
+    -------
+    AttitudeSolution
+        R_NB (3, 3) and its covariance (rad^2, body axes), or a status that says why
+        there is none.
+    """
     del R_nb_guess
     z0 = zero_tilt_centroid(rig)
     pts = det.points_px

@@ -150,7 +150,33 @@ def transition(s: AttitudeState, g: np.ndarray, gdot: np.ndarray, dt: float,
 @dataclass(frozen=True)
 class AttitudeModel:
     """3-D fusion (MEKF) with gyro bias, misalignment, scale factors and time offset,
-    and a process noise learned from the innovations."""
+    and a process noise learned from the innovations (the module doc).
+
+    Attributes
+    ----------
+    gyro_noise : float
+        The prior white rate noise per sample (rad/s); learned from a rest segment
+        and the fixes.
+    rate_noise : float
+        The prior relative rate error held between fixes (q_w its square).
+    sample_s : float
+        The IMU's period (s): the white noise's correlation time.
+    learn_noise : bool
+        Learn the process noise from the innovations.
+    gyro_bias_walk : float
+        The bias's random walk (rad/s per sqrt(s)).
+    gyro_bias0, gyro_bias_sigma : (3,) rad/s, rad/s
+        The bias's prior and its 1-sigma.
+    misalignment_sigma, scale_sigma, time_offset_sigma, clock_drift_sigma : float
+        The priors (rad, relative, s, s/s) of the gyro's misalignment to the fixes'
+        body axes, its scale factors, its time offset and that offset's drift; 0
+        keeps one fixed.
+    jitter_sigma, jitter_time : float
+        The clock jitter between the gyro and the fixes (s; None: one sample period)
+        and its correlation time (s): considered, never estimated.
+    fix_sigma : float
+        A fix's attitude noise (rad) where the fix has no covariance.
+    """
 
     gyro_noise: float = math.radians(0.3)  # rad/s per sample, the prior's white noise
     rate_noise: float = 0.03  # relative rate error, held between fixes (q_w = its square)

@@ -228,7 +228,30 @@ def transition(an: np.ndarray, c: float, sn: float, dt: float) -> np.ndarray:
 
 @dataclass(frozen=True)
 class PlanarModel:
-    """Planar fusion; noises per IMU sample (white), bias random walks per sqrt(s)."""
+    """Planar fusion; noises per IMU sample (white), bias random walks per sqrt(s).
+
+    Attributes
+    ----------
+    method : str
+        'kalman' (the filter with biases) or 'paper' (the paper's reset at each fix).
+    gyro_noise, accel_noise : float
+        White noise per sample: yaw gyro (rad/s), accelerometers (mm/s^2).
+    gyro_bias_walk, accel_bias_walk : float
+        The biases' random walks (rad/s, mm/s^2 per sqrt(s)).
+    gyro_bias0, accel_bias0 : float, (float, float)
+        The biases' priors (rad/s, mm/s^2), with ``gyro_bias_sigma``,
+        ``accel_bias_sigma`` their 1-sigma.
+    velocity_sigma : float
+        The velocity's prior 1-sigma (mm/s).
+    fix_sigma : (float, float)
+        A fix's position (mm) and heading (rad) noise where it has no covariance.
+    time_offset_sigma, time_offset_walk, jitter_sigma : float
+        The fixes' time offset prior (s), its walk (s per sqrt(s)) and the timing
+        jitter (s), learned when ``learn_jitter``.
+    restart_after_s : float
+        Fixes refused in a row for this long (s) restart the filter.
+    timing_spread_s : float
+        A provisional filter's timing spread (s) while the clocks align."""
 
     method: str = "kalman"
     gyro_noise: float = math.radians(0.05)  # rad/s

@@ -85,6 +85,19 @@ class Fusion:
       starts.
 
     ``fix.time_s`` must be on the inertial samples' clock.
+
+    Parameters
+    ----------
+    model : AttitudeModel or PlanarModel
+        The filter.
+    limits : Limits, optional
+        Readings beyond these are faults, not integrated (default: 50 deg/s and
+        0.5 m/s^2, the planar mock-up's).
+    history_s : float
+        The inertial history kept for late fixes (s).
+    gyro_range_dps : float, optional
+        The gyro's range (deg/s), where known; else learned only from the evidence
+        (visvec.fuse.saturation).
     """
 
     def __init__(self, model, *, limits: Limits | None = None, history_s: float = 10.0,

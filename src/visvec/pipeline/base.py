@@ -29,10 +29,18 @@ SolT = TypeVar("SolT")
 
 
 class Pipeline(Generic[DetT, SolT]):
-    """Shared frame loop of every target kind. Subclasses implement :meth:`estimate`
-    (a frame -> status, solution of type SolT or None, warnings; the detection of type
-    DetT is kept as ``last_detection`` for the overlay) and :meth:`make_row` (-> a row
-    of ``row_type``)."""
+    """Shared frame loop of every target kind (make one with `make_pipeline`).
+    Subclasses implement :meth:`estimate` (a frame -> status, solution of type SolT or
+    None, warnings; the detection of type DetT is kept as ``last_detection`` for the
+    overlay) and :meth:`make_row` (-> a row of ``row_type``).
+
+    Parameters
+    ----------
+    rig : Rig
+        The setup (`load_rig`).
+    method : str
+        The estimator (see `make_pipeline`).
+    """
 
     methods: tuple[str, ...] = ()
     row_type: type[Row] = Row

@@ -49,7 +49,15 @@ CONSISTENT_P = 0.001
 class LampPipeline(Pipeline["LampDetection", PlanarSolution]):
     """Position and heading of a mock-up from ceiling lamps (LuVeX, Keldysh preprint
     2011-24): spots, identification (tracking from the predicted pose, else the paper's
-    Delaunay lookup), and a least-squares fit over every identified lamp."""
+    Delaunay lookup), and a least-squares fit over every identified lamp.
+
+    Parameters
+    ----------
+    rig : Rig
+        A lamps rig (its map of the ceiling's lamps, mm).
+    method : str
+        'full' (the only one).
+    """
 
     methods = ("full",)
     hints = {

@@ -34,8 +34,16 @@ TRACK_WINDOW_PX = 24
 
 
 class MarkerPipeline(AttitudePipeline["MarkerDetection"]):
-    """LED markers seen by a camera fixed in the lab; ``method`` "full" (the constrained
-    3-parameter solver) or a PnP baseline ("pnp-sqpnp", "pnp-ippe", ...)."""
+    """LED markers seen by a camera fixed in the lab.
+
+    Parameters
+    ----------
+    rig : Rig
+        A markers rig.
+    method : str
+        'full' (the constrained 3-parameter solver; default) or a PnP baseline
+        ('pnp-sqpnp', 'pnp-ippe', ...).
+    """
 
     methods = MARKER_METHODS
     hints = {

@@ -64,6 +64,13 @@ class RatePipeline(Pipeline["RateDetection", RateSolution]):
     skips the connected-component labelling of most frames, the largest cost at
     1280 x 1024. The smooth background is re-estimated every BACKGROUND_EVERY (5)
     frames while tracking (every frame otherwise); noise and threshold every frame.
+
+    Parameters
+    ----------
+    rig : Rig
+        A starfield rig.
+    method : str
+        'poisson' (the paper; default) or 'crassidis'.
     """
 
     methods = RATE_METHODS

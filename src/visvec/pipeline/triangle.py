@@ -94,7 +94,19 @@ def codec_advice(rig: Rig, codec: str, past: bool = False) -> str:
 
 
 class TrianglePipeline(AttitudePipeline[Detection]):
-    """The triangle target; ``method`` "full" (default) or "paper"."""
+    """The triangle target; ``method`` "full" (default) or "paper".
+
+    Parameters
+    ----------
+    rig : Rig
+        A triangle rig.
+    method : str
+        'full' (camera model, lever arm; default) or 'paper'.
+    still : bool
+        The platform is held still (a zero-tilt calibration's frames): no rate
+        between frames is used.
+    check_shutter : bool
+        Gather the evidence of a rolling shutter the rig does not declare."""
 
     methods = TRIANGLE_METHODS
     hints = {

@@ -9,7 +9,17 @@ from visvec.sim.webcam import WebcamChain
 
 @dataclass(frozen=True)
 class Light:
-    """A round ceiling light, centre (x_mm, y_mm) on the ceiling plane, radius in mm."""
+    """A round ceiling light in a simulated frame.
+
+    Attributes
+    ----------
+    x_mm, y_mm : float
+        Its centre on the ceiling plane (mm, lab axes n1, n2).
+    radius_mm : float
+        Its radius (mm).
+    level : float
+        Its grey level (0..255).
+    """
 
     x_mm: float
     y_mm: float
@@ -19,8 +29,19 @@ class Light:
 
 @dataclass(frozen=True)
 class Occluder:
-    """Something between camera and ceiling (a person leaning over): a disc at height
-    ``z_mm`` in N, centre (x_mm, y_mm), radius in mm."""
+    """Something between camera and ceiling (a person leaning over): a disc.
+
+    Attributes
+    ----------
+    x_mm, y_mm : float
+        Its centre (mm, lab axes n1, n2).
+    z_mm : float
+        Its height in N (mm).
+    radius_mm : float
+        Its radius (mm).
+    level : float
+        Its grey level (0..255).
+    """
 
     x_mm: float
     y_mm: float
@@ -33,6 +54,8 @@ class Occluder:
 class Scene:
     """Photometry and clutter of a simulated frame (grey levels 0..255).
 
+    Attributes
+    ----------
     board_mm : (along n1, along n2) size of the black board, centred on the triangle.
     board_level, contrast : board grey level, and the triangle's step above it.
     ceiling_level : grey level of the ceiling around the board.

@@ -149,7 +149,26 @@ def true_rig(
 ) -> Rig:
     """The lab as it really is: the target shifted on the ceiling (and ``height_offset_mm``
     higher) and the camera tilted on its mount (about b1 and b2) and turned about its own
-    optical axis (``camera_turn_deg``) against what the rig file says (triangle rigs)."""
+    optical axis (``camera_turn_deg``) against what the rig file says (triangle rigs).
+
+    Parameters
+    ----------
+    rig : Rig
+        The rig file's setup.
+    target_offset_mm : (float, float)
+        The target's shift on the ceiling along n1, n2 (mm).
+    camera_askew_deg : (float, float)
+        The camera's tilt on its mount about b1, b2 (deg).
+    height_offset_mm : float
+        How much higher the target really is (mm).
+    camera_turn_deg : float
+        The camera's turn about its optical axis (deg).
+
+    Returns
+    -------
+    Rig
+        The setup to render frames with (the rig file's stays what the sensor is
+        told)."""
     if rig.kind != "triangle":
         if any(target_offset_mm) or any(camera_askew_deg) or height_offset_mm or camera_turn_deg:
             raise ValueError("target offset and camera askew apply to triangle rigs only")
