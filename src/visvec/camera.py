@@ -1,4 +1,4 @@
-"""OpenCV pinhole camera with (k1, k2, p1, p2, k3) distortion (SPEC section 1).
+"""OpenCV pinhole camera with (k1, k2, p1, p2, k3) distortion (docs/reference.md, Conventions).
 
 ``cv2.projectPoints`` is the reference projection; :meth:`CameraModel.distort` is the
 same model written in numpy for small point sets (tested against it).

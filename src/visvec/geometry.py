@@ -1,4 +1,4 @@
-"""Where lab points appear in a platform-mounted camera (SPEC section 1)."""
+"""Where lab points appear in a platform-mounted camera (docs/reference.md, Conventions)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,5 @@
-"""Output rows (SPEC section 4): column names and formatting of one frame's result."""
+"""Output rows (docs/reference.md, Output rows): column names and formatting of one
+frame's result."""
 
 from __future__ import annotations
 

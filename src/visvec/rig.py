@@ -1,4 +1,4 @@
-"""The rig file (SPEC section 2): one TOML file describing one setup.
+"""The rig file (docs/reference.md, The rig file): one TOML file describing one setup.
 
 :func:`load_rig` validates every key before any frame is read and raises
 :class:`~visvec.errors.ConfigError` naming the file, the key and what was expected.

@@ -1,4 +1,4 @@
-"""Rotation conventions of visvec (SPEC section 1), in radians.
+"""Rotation conventions of visvec (docs/reference.md, Conventions), in radians.
 
 R_nb maps body to lab coordinates. Euler angles are intrinsic Z-Y-X:
 R_nb = Rz(yaw) Ry(pitch) Rx(roll). Quaternions are scalar-first with w >= 0.

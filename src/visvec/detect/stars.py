@@ -14,8 +14,9 @@ least 15 sigma above the threshold) and at least 5 spots. A photo of a tree agai
 sky or of a roof fails these; a real sky, even with a comet, passes (tested on real
 frames in tests/detect/test_stars.py).
 
-Pixel convention: (0, 0) is the centre of the top-left pixel (SPEC). Tools that put
-(0, 0) at the pixel's corner (tetra3, cedar-solve) report coordinates 0.5 px larger.
+Pixel convention: (0, 0) is the centre of the top-left pixel (docs/reference.md,
+Conventions). Tools that put (0, 0) at the pixel's corner (tetra3, cedar-solve) report
+coordinates 0.5 px larger.
 """
 
 from __future__ import annotations

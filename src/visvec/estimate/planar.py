@@ -2,8 +2,8 @@
 
 The table is level, so the body's attitude is a rotation by the heading psi about n3:
 R_NB = Rz(psi), and the body origin is at p = (x, y, 0) in N. A lamp P_N appears at
-P_C = R_BC^T (Rz(psi)^T (P_N - p) - t_B) (SPEC section 1 with the body origin moved to
-p). The LuVeX paper (Keldysh preprint 2011-24, Sec. 2) takes the position from the
+P_C = R_BC^T (Rz(psi)^T (P_N - p) - t_B) (docs/reference.md, Conventions, with the body
+origin moved to p). The LuVeX paper (Keldysh preprint 2011-24, Sec. 2) takes the position from the
 identified triangles' agreement; here, beyond it, every matched lamp enters one
 Gauss-Newton least-squares fit of the three parameters in pixels, with an analytic
 Jacobian and the covariance sigma^2 (J^T J)^-1.

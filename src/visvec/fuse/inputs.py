@@ -1,4 +1,4 @@
-"""Inputs of `visvec fuse` (SPEC section 4): an inertial CSV and a fixes CSV.
+"""Inputs of `visvec fuse` (docs/reference.md, Output rows): an inertial CSV and a fixes CSV.
 
 Inertial data: `time_s` and the columns it has of `gx_dps,gy_dps,gz_dps,ax_mps2,
 ay_mps2,az_mps2` in body axes; a planar IMU has `gz_dps,ax_mps2,ay_mps2`. Fixes: visvec

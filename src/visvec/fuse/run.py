@@ -1,4 +1,5 @@
-"""Fused output rows (SPEC section 4): one row per inertial sample, in the fixes' columns."""
+"""Fused output rows (docs/reference.md, Output rows): one row per inertial sample, in
+the fixes' columns."""
 
 from __future__ import annotations
 
