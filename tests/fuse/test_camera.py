@@ -336,6 +336,7 @@ def test_a_recorded_camera_run_replays_to_its_own_rows(tmp_path):
     rec, live, replay = tmp_path / "flight", tmp_path / "live.csv", tmp_path / "replay.csv"
     r = run("track", "--rig", rig, "--camera", sim, "--record", rec, "--out", live)
     assert r.exit_code == 0, r.output
+    assert f"recorded in {rec}: 20 frames" in r.output
     assert (rec / "recording.json").is_file() and (rec / "rig.toml").read_bytes() == (
         rig.read_bytes()
     )

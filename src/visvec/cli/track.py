@@ -180,6 +180,12 @@ def track(
                 if w
             ],
         )
+        if record:
+            from pathlib import Path
+
+            n = len(list(Path(record).glob("frame_*.png")))
+            click.echo(f"visvec: recorded in {record}: {n} frames and the rows; `visvec batch "
+                       f"{record} --rig RIG` replays it", err=True)  # fmt: skip
     finally:
         note_passed_over(source)
         linger(view)
