@@ -13,10 +13,9 @@ import subprocess
 import sys
 import threading
 import time
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 
-import cv2
 import pytest
+from mjpeg import MjpegServer
 
 from conftest import ROOT
 
@@ -69,52 +68,20 @@ def test_systemd_reads_the_unit(tmp_path):
     assert "Unknown key" not in r.stderr and "ignoring" not in r.stderr, r.stderr
 
 
-class Camera:
-    """A network camera (MJPEG on 127.0.0.1) that can go away and come back: while
-    ``away`` it closes every connection after ``frames`` frames and accepts no new
-    stream."""
+class Camera(MjpegServer):
+    """A network camera that can go away and come back: while ``away`` it closes every
+    stream after ``frames`` frames and answers no new one."""
 
     def __init__(self, frames: int):
-        self.jpegs = [cv2.imencode(".jpg", cv2.imread(str(p)))[1].tobytes() for p in SAMPLES]
         self.frames = frames
         self.away = threading.Event()
-        self.done = threading.Event()
-        outer = self
+        super().__init__()
 
-        class Handler(BaseHTTPRequestHandler):
-            def log_message(self, *args):
-                pass
+    def refuse(self, nth: int) -> bool:
+        return self.away.is_set()
 
-            def do_GET(self):  # noqa: N802
-                if outer.away.is_set():
-                    self.send_error(503)
-                    return
-                self.send_response(200)
-                self.send_header("Content-Type", "multipart/x-mixed-replace; boundary=f")
-                self.end_headers()
-                i = 0
-                try:
-                    while not outer.done.is_set():
-                        if outer.away.is_set() and i >= outer.frames:
-                            return  # the camera is gone
-                        b = outer.jpegs[i % len(outer.jpegs)]
-                        self.wfile.write(f"--f\r\nContent-Type: image/jpeg\r\nContent-Length: "
-                                         f"{len(b)}\r\n\r\n".encode() + b + b"\r\n")  # fmt: skip
-                        self.wfile.flush()
-                        i += 1
-                        time.sleep(1 / 30)
-                except (BrokenPipeError, ConnectionResetError):
-                    pass
-
-        self.httpd = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
-        self.httpd.daemon_threads = True
-        self.url = f"http://127.0.0.1:{self.httpd.server_address[1]}/stream.mjpg"
-        threading.Thread(target=self.httpd.serve_forever, daemon=True).start()
-
-    def close(self) -> None:
-        self.done.set()
-        self.httpd.shutdown()
-        self.httpd.server_close()
+    def ends(self, nth: int, i: int) -> bool:
+        return self.away.is_set() and i >= self.frames
 
 
 def _command(camera_url: str) -> list[str]:

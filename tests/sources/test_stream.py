@@ -8,14 +8,12 @@ import csv
 import socket
 import subprocess
 import sys
-import threading
 import time
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 
-import cv2
 import numpy as np
 import pytest
+from mjpeg import MjpegServer
 
 from conftest import ROOT, wait_until
 
@@ -24,59 +22,24 @@ SAMPLES = sorted((ROOT / "data" / "sample_frames").glob("*.png"))
 FPS = 30.0
 
 
-class Mjpeg:
-    """An MJPEG server on 127.0.0.1 in a daemon thread. The first connection sends
-    ``first`` frames, then ``then``: "stall" (keeps the connection, sends nothing more),
-    "drop" (closes it); later connections stream until the test ends."""
+class Mjpeg(MjpegServer):
+    """The first connection sends ``first`` frames, then ``then``: "stall" (keeps the
+    connection, sends nothing more), "drop" (closes it); later connections stream until
+    the test ends."""
 
     def __init__(self, first: int, then: str):
-        self.jpegs = [cv2.imencode(".jpg", cv2.imread(str(p)))[1].tobytes() for p in SAMPLES]
         self.first, self.then = first, then
-        self.connections = 0
-        self.sent: list[float] = []  # time.monotonic() each frame of the first connection was sent
-        self.done = threading.Event()
-        outer = self
+        self.sent_at: list[float] = []  # time.monotonic() each frame of the first went
+        super().__init__(FPS)
 
-        class Handler(BaseHTTPRequestHandler):
-            def log_message(self, *args):
-                pass
+    def ends(self, nth: int, i: int) -> bool | str:
+        if nth == 1 and i >= self.first:
+            return True if self.then == "drop" else "stall"
+        return False
 
-            def do_GET(self):  # noqa: N802
-                outer.connections += 1
-                nth = outer.connections
-                self.send_response(200)
-                self.send_header("Content-Type", "multipart/x-mixed-replace; boundary=f")
-                self.end_headers()
-                i = 0
-                try:
-                    while not outer.done.is_set():
-                        if nth == 1 and i >= outer.first:
-                            if outer.then == "drop":
-                                return
-                            outer.done.wait(30.0)  # a stall: the connection stays open
-                            return
-                        b = outer.jpegs[i % len(outer.jpegs)]
-                        head = (
-                            f"--f\r\nContent-Type: image/jpeg\r\nContent-Length: {len(b)}\r\n\r\n"
-                        )
-                        self.wfile.write(head.encode() + b + b"\r\n")
-                        self.wfile.flush()
-                        if nth == 1:
-                            outer.sent.append(time.monotonic())
-                        i += 1
-                        time.sleep(1.0 / FPS)
-                except (BrokenPipeError, ConnectionResetError):
-                    pass
-
-        self.httpd = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
-        self.httpd.daemon_threads = True
-        self.url = f"http://127.0.0.1:{self.httpd.server_address[1]}/stream.mjpg"
-        threading.Thread(target=self.httpd.serve_forever, daemon=True).start()
-
-    def close(self):
-        self.done.set()
-        self.httpd.shutdown()
-        self.httpd.server_close()
+    def sent(self, nth: int, t: float) -> None:
+        if nth == 1:
+            self.sent_at.append(t)
 
 
 def track(url: str, out: Path, *args: str, timeout: float = 60.0) -> subprocess.CompletedProcess:
@@ -218,7 +181,7 @@ def test_a_stream_read_while_the_pipeline_is_held_up_keeps_its_frames_times():
     # ms but for three (this process's threads share one GIL and one busy core: 1-3 ms
     # on a quiet one), all within 0.1 s (the frames read after the hold-up in the
     # pipeline's thread: 140-270 ms)
-    lag = [f.time_s - (srv.sent[f.index] - srv.sent[frames[0].index]) for f in frames]
+    lag = [f.time_s - (srv.sent_at[f.index] - srv.sent_at[frames[0].index]) for f in frames]
     off = sorted(abs(x - float(np.median(lag))) for x in lag)
     assert off[-4] < 0.020 and off[-1] < 0.1, off[-5:]
     # and none of them waited for a reader held up (the hold-up was the pipeline's)

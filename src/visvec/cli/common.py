@@ -249,23 +249,15 @@ def output_options(f=None, *, rates: bool = False):
         default=None,
         help="Write each frame with the detection drawn on it to this folder.",
     )(f)
-    if rates:
-        method = click.option(
-            "--method",
-            type=click.Choice(RATE_METHODS),
-            default=None,
-            help="Estimator: 'poisson' (default) or 'crassidis'.",
-        )
-    else:
-        method = click.option(
-            "--method",
-            type=click.Choice(METHODS),
-            default=None,
-            help="Estimator, by the rig's kind. Triangle: 'full' (default; camera model, "
-            "lever arm) or 'paper'; markers: 'full' (default) or a PnP baseline (pnp-*); "
-            "lamps: 'full'; starfield: 'poisson' (default) or 'crassidis' (as `rate`).",
-        )
-    f = method(f)
+    f = click.option(
+        "--method",
+        type=click.Choice(RATE_METHODS if rates else METHODS),
+        default=None,
+        help="Estimator: 'poisson' (default) or 'crassidis'." if rates else
+        "Estimator, by the rig's kind. Triangle: 'full' (default; camera model, lever "
+        "arm) or 'paper'; markers: 'full' (default) or a PnP baseline (pnp-*); lamps: "
+        "'full'; starfield: 'poisson' (default) or 'crassidis' (as `rate`).",
+    )(f)  # fmt: skip
     f = click.option(
         "--format",
         "fmt",
