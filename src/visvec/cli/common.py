@@ -173,14 +173,20 @@ def _format_available(ctx, param, value):
     return value
 
 
+def meta_option(name: str, key: str, **kw):
+    """An option whose value goes to the context's meta under ``key`` (read where it
+    is used: visvec.cli.view), not to the command's parameters."""
+    return click.option(name, expose_value=False,
+                        callback=lambda ctx, _p, v: ctx.meta.__setitem__(key, v), **kw)  # fmt: skip
+
+
 def foxglove_option(f):
     """--foxglove [HOST:]PORT, kept in the context's meta (visvec.cli.view)."""
-    return click.option(
+    return meta_option(
         "--foxglove",
+        "visvec.foxglove",
         metavar="[HOST:]PORT",
         default=None,
-        expose_value=False,
-        callback=lambda ctx, _p, v: ctx.meta.__setitem__("visvec.foxglove", v),
         help="Publish the rows live to Foxglove: a Foxglove WebSocket server on "
         "HOST:PORT (HOST 127.0.0.1 unless given; PORT 0: any free port) with the "
         "channels an --out *.mcap file holds, as they are made (pip install "
@@ -208,25 +214,18 @@ def output_options(f=None, *, rates: bool = False):
         "cov_<a>_<b>, in the values' units squared: deg^2 for yaw, pitch, roll; "
         "(deg/s)^2 for rates; mm^2, mm deg, deg^2 for a planar pose).",
     )(f)
-    f = click.option(
-        "--foxglove-image-hz",
-        type=FiniteFloat(min=0),
-        default=5.0,
-        show_default=True,
-        expose_value=False,
-        callback=lambda ctx, _p, v: ctx.meta.__setitem__("visvec.foxglove_image_hz", v),
+    f = meta_option(
+        "--foxglove-image-hz", "visvec.foxglove_image_hz", type=FiniteFloat(min=0),
+        default=5.0, show_default=True,
         help="With --foxglove: frames with their detection drawn, at most this many a "
         "second (0: none).",
-    )(f)
+    )(f)  # fmt: skip
     f = foxglove_option(f)
-    f = click.option(
-        "--keep-view",
-        is_flag=True,
-        expose_value=False,
-        callback=lambda ctx, _p, v: ctx.meta.__setitem__("visvec.keep_view", v),
+    f = meta_option(
+        "--keep-view", "visvec.keep_view", is_flag=True,
         help="With --serve: at the run's end keep the page (showing that the run ended) "
         "until Ctrl-C, instead of ending with the run.",
-    )(f)
+    )(f)  # fmt: skip
     f = click.option(
         "--serve",
         metavar="[HOST:]PORT",
