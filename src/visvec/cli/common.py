@@ -13,8 +13,6 @@ import click
 
 from visvec.data import inter_frame
 from visvec.errors import ConfigError
-from visvec.pipeline import METHODS, RATE_METHODS
-from visvec.pipeline.triangle import codec_advice
 from visvec.rig import Rig, load_rig
 from visvec.sinks import UdpStream, open_sink
 
@@ -248,6 +246,8 @@ def output_options(f=None, *, rates: bool = False):
         default=None,
         help="Write each frame with the detection drawn on it to this folder.",
     )(f)
+    from visvec.pipeline import METHODS, RATE_METHODS
+
     f = click.option(
         "--method",
         type=click.Choice(RATE_METHODS if rates else METHODS),
@@ -308,6 +308,8 @@ def note_codec(rig: Rig, src) -> str | None:
     and what that means for its rows (visvec.pipeline.triangle.codec_advice). Returns
     the line (for the live view's information), or None."""
     codec = getattr(src, "codec", "")
+    from visvec.pipeline.triangle import codec_advice
+
     advice = codec_advice(rig, codec) if rig.kind == "triangle" and inter_frame(codec) else ""
     if not advice:
         return None

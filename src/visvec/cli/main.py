@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import importlib.metadata
 import logging
+import os
 import sys
 
 import click
@@ -19,6 +20,16 @@ from visvec.errors import ConfigError, InputFileError, NoOkRows, OutputError, So
 
 
 class VisvecGroup(click.Group):
+    def list_commands(self, ctx: click.Context) -> list[str]:
+        return list(COMMANDS)
+
+    def get_command(self, ctx: click.Context, cmd_name: str) -> click.Command | None:
+        if cmd_name not in COMMANDS:
+            return None
+        if cmd_name not in self.commands:
+            self.commands[cmd_name] = _load(cmd_name)
+        return self.commands[cmd_name]
+
     def invoke(self, ctx: click.Context):
         debug = bool(ctx.params.get("debug"))
         try:
@@ -135,46 +146,51 @@ def cli(debug: bool, status_every: float) -> None:
     set_status_every(status_every)
     if not debug:
         # OpenCV's own warnings (for instance every backend it tried on a camera that
-        # cannot be opened) would bury visvec's one-line message; --debug keeps them
-        import cv2
+        # cannot be opened) would bury visvec's one-line message; --debug keeps them.
+        # OpenCV reads the level when it is imported: a command that never imports it
+        # (fuse, plot) does not pay for the import here
+        if "cv2" in sys.modules:
+            import cv2
 
-        cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
+            cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
+        else:
+            os.environ["OPENCV_LOG_LEVEL"] = "ERROR"
+
+
+# the commands, in the order `visvec --help` lists them, each imported when it is run
+# (or listed): `visvec fuse` starts without the camera pipelines' imports
+COMMANDS = {
+    "track": "visvec.cli.track:track",
+    "batch": "visvec.cli.batch:batch",
+    "calibrate": "visvec.cli.calibrate:calibrate",
+    "simulate": "visvec.cli.simulate:simulate",
+    "montecarlo": "visvec.cli.montecarlo:montecarlo",
+    "rate": "visvec.cli.rate:rate",
+    "catalog": "visvec.cli.catalog:catalog",
+    "fuse": "visvec.cli.fuse:fuse",
+    "check": "visvec.cli.check:check",
+    "plot": "visvec.cli.plot:plot",
+}
+
+
+def _load(name: str) -> click.Command:
+    """The command ``name``, imported, its help ending with the exit codes it can give
+    (every subcommand of a group with its group's)."""
+    import importlib
+
+    module, attr = COMMANDS[name].split(":")
+    cmd = getattr(importlib.import_module(module), attr)
+    todo = [cmd]
+    while todo:
+        c = todo.pop()
+        c.epilog = exit_codes(name)
+        if isinstance(c, click.Group):
+            todo += list(c.commands.values())
+    return cmd
 
 
 def _register() -> None:
-    from visvec.cli import (
-        batch,
-        calibrate,
-        catalog,
-        check,
-        fuse,
-        montecarlo,
-        plot,
-        rate,
-        simulate,
-        track,
-    )
-
-    cli.add_command(track.track)
-    cli.add_command(batch.batch)
-    cli.add_command(calibrate.calibrate)
-    cli.add_command(simulate.simulate)
-    cli.add_command(montecarlo.montecarlo)
-    cli.add_command(rate.rate)
-    cli.add_command(catalog.catalog)
-    cli.add_command(fuse.fuse)
-    cli.add_command(check.check)
-    cli.add_command(plot.plot)
-    # every command's help ends with the exit codes it can give
     cli.epilog = exit_codes(None)
-    todo = [(name, cmd) for name, cmd in cli.commands.items()]
-    while todo:
-        name, cmd = todo.pop()
-        if isinstance(cmd, click.Group):
-            cmd.epilog = exit_codes(name)
-            todo += [(name, sub) for sub in cmd.commands.values()]
-        else:
-            cmd.epilog = exit_codes(name)
 
 
 # what each exit code means (the module doc), and which a command can give

@@ -6,8 +6,6 @@ import time
 
 import click
 
-from visvec.pipeline import make_pipeline
-
 
 def open_view(spec: str | None, rig, rig_path: str, method: str | None, source: str):
     """The live view's server, bound and serving, or None without --serve. Said on
@@ -27,6 +25,8 @@ def open_view(spec: str | None, rig, rig_path: str, method: str | None, source: 
         from visvec.cli.check import geometry_lines
 
         info += [("warning: " if warn else "") + text.strip() for text, warn in geometry_lines(rig)]
+    from visvec.pipeline import make_pipeline
+
     row_type = make_pipeline(rig, method).row_type
     server = start(spec, rig, row_type, info, "--serve")  # ConfigError: exit 2
     click.echo(f"visvec: live view at {server.url}", err=True)
@@ -131,5 +131,7 @@ def open_foxglove(rig, method: str | None, topic_prefix: str = "/visvec", server
     server = foxglove_server() if own else server
     if server is None:
         return None
+    from visvec.pipeline import make_pipeline
+
     live = foxglove_live(server, make_pipeline(rig, method).row_type.columns, rig, topic_prefix)
     return FoxgloveWatcher(live, rig, stop_server=own)
