@@ -54,7 +54,7 @@ def test_rows_reach_a_subscribed_client_as_the_mcap_output_holds_them(tmp_path):
     server = FoxgloveServer("127.0.0.1", 0)
     live = FoxgloveLive(server, ATTITUDE_COLUMNS, "rig.toml")
     live.advertise()
-    client = Client(live.port)
+    client = Client(server.port)
     try:
         client.subscribe_all(wait_for=4)
         topics = {ch["topic"]: ch for ch in client.channels.values()}
@@ -91,6 +91,21 @@ def test_rows_reach_a_subscribed_client_as_the_mcap_output_holds_them(tmp_path):
         assert topics[topic]["schemaEncoding"] == "ros2msg" == sc.encoding
         assert topics[topic]["schema"] == sc.data.decode()
         assert topics[topic]["encoding"] == "cdr"
+    # a ROS 2 reader given only what the server advertised (the schema's text, as
+    # Foxglove parses it): the MCAP library's ROS 2 decoder
+    mcap_ros2 = pytest.importorskip("mcap_ros2.decoder")
+    by_ros2 = {}
+    for topic, _, data in client.got:
+        ch = topics[topic]
+        decode = mcap_ros2.generate_dynamic(ch["schemaName"], ch["schema"])[ch["schemaName"]]
+        by_ros2.setdefault(topic, []).append(decode(data))
+    ok_rows = [r for r in rows if r["status"] == "ok"]
+    np.testing.assert_allclose(
+        [[m.quaternion.w, m.quaternion.x, m.quaternion.y, m.quaternion.z]
+         for m in by_ros2["/visvec/attitude/quaternion"]],
+        [[r["qw"], r["qx"], r["qy"], r["qz"]] for r in ok_rows],
+    )  # fmt: skip
+    assert [m.status[0].message for m in by_ros2["/visvec/status"]] == [r["status"] for r in rows]
     # and the values are the rows'
     ts = get_typestore(Stores.ROS2_HUMBLE)
     quats = [ts.deserialize_cdr(d, "geometry_msgs/msg/QuaternionStamped").quaternion

@@ -10,7 +10,13 @@ import click
 
 from visvec.cli.common import rows_out
 from visvec.cli.frames import FrameRecorder
-from visvec.cli.fuse import echo_learned, engine, live_summary, options_model, with_declared_range
+from visvec.cli.fuse import (
+    echo_learned,
+    live_setup,
+    live_summary,
+    options_model,
+    with_declared_range,
+)
 from visvec.cli.view import foxglove_live, open_foxglove, say_published
 from visvec.errors import ConfigError, InputFileError
 from visvec.fuse.camera import CameraFixes
@@ -62,10 +68,7 @@ def run_fused_camera(rig, frames, imu_src, method, out, fmt, camera_out, view=No
 
     opts = FusionOptions(gyro_range_dps=rig.imu.gyro_range_dps)
 
-    def setup(is_planar: bool):
-        eng = engine(is_planar, None, opts)
-        return eng, eng.model
-
+    setup = live_setup(opts)
     log = None
     with ExitStack() as stack:
         cam_sink = None
@@ -131,18 +134,16 @@ def replay_fused(rig, folder, method, out, fmt, camera_out) -> None:
     rows = {}
     with (rows_out(camera_out, fmt, pipe.row_type.columns, "--camera-out") if camera_out
           else nullcontext()) as sink:  # fmt: skip
+        write = row_writer(sink) if sink is not None else None
         for frame in open_source(str(folder), fps=rig.fps, retry_s=0.0):
             row = pipe.process(frame)
             rows[row.frame] = row
-            if sink is not None:
-                sink.write(row.as_dict())
+            if write is not None:
+                write(row)
     events = read_event_log(folder / EVENTS)
     opts = FusionOptions(gyro_range_dps=rig.imu.gyro_range_dps)
 
-    def setup(is_planar: bool):
-        eng = engine(is_planar, None, opts)
-        return eng, eng.model
-
+    setup = live_setup(opts)
     m = manifest(folder)
     with ExitStack() as stack:
 

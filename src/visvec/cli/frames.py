@@ -62,16 +62,17 @@ class RowRecorder:
     """Each row, as written, into a recording's rows.csv (`track --record`)."""
 
     def __init__(self, path: Path, columns):
-        from visvec.sinks.writers import CsvSink, row_writer
+        from visvec.recording import rows_file
+        from visvec.sinks.writers import row_writer
 
-        self.fh = open(path, "w", newline="", encoding="utf-8")  # noqa: SIM115
-        self.write = row_writer(CsvSink(self.fh, columns))
+        self._file = rows_file(path, columns)
+        self.write = row_writer(self._file.__enter__())
 
     def see(self, frame: Frame, row: Row, pipe: Pipeline) -> None:
         self.write(row)
 
     def close(self) -> None:
-        self.fh.close()
+        self._file.__exit__(None, None, None)
 
 
 class RosImages:

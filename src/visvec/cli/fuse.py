@@ -113,10 +113,7 @@ def fuse(imu_path, fixes_path, follow, max_samples, silent_s, gyro_range_dps, ou
             raise click.UsageError("--truth, --errors, --summary and --rest-s apply to files, "
                                    "not live sources")  # fmt: skip
 
-        def setup(planar: bool):
-            eng = engine(planar, None, opts)
-            return eng, eng.model
-
+        setup = live_setup(opts)
         _run_live(imu_path, fixes_path, follow, max_samples, silent_s, setup, out, fmt)
         return
     if click.get_current_context().meta.get("visvec.foxglove") is not None:
@@ -261,6 +258,17 @@ def options_model(planar: bool, period_s: float | None, opts: FusionOptions):
         return model_from_options(planar, period_s, opts)
     except ValueError as exc:
         raise click.UsageError(f"{exc}") from None
+
+
+def live_setup(opts: FusionOptions):
+    """A live fusion's ``setup(planar)`` (visvec.fuse.live.run_live): the engine the
+    options ask for, made once the first inertial row tells the kind, and its filter."""
+
+    def setup(planar: bool):
+        eng = engine(planar, None, opts)
+        return eng, eng.model
+
+    return setup
 
 
 def engine(planar: bool, period_s: float | None, opts: FusionOptions) -> Fusion:

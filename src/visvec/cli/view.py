@@ -80,7 +80,7 @@ class FoxgloveWatcher:
                                        [cv2.IMWRITE_JPEG_QUALITY, 85])  # fmt: skip
                 return buf.tobytes() if ok else None
 
-        self.live.publish(row.as_dict(), image)
+        self.live.publish(row, image)  # its dict made on the publishing thread
 
     def close(self) -> None:
         say_published(self.live, self.stop_server)

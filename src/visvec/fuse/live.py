@@ -504,9 +504,10 @@ def run_live(imu: Reader, fixes, setup, open_rows, *, max_samples: int | None = 
             except queue.Empty:
                 ev = None
             now = time.monotonic()
+            go = run.take(ev, now)
             if record is not None:
-                record.event(ev, now)
-            if not run.take(ev, now):
+                record.event(ev, now)  # after the event's row is out: it waits for no log
+            if not go:
                 break
             if max_samples is not None and run.summary.samples >= max_samples:
                 break

@@ -20,7 +20,6 @@ import time
 from visvec.errors import ConfigError
 from visvec.sinks.ros import OVERLAY_TOPIC, STATUS_TOPIC, TOPICS, RosMessages
 
-DEFAULT_PORT = 8765  # Foxglove's own default
 QUEUE_ROWS = 256  # rows waiting for the publishing thread; beyond, the oldest go
 
 
@@ -87,7 +86,6 @@ class FoxgloveLive(RosMessages):
         super().__init__(columns, rig_name)
         self.srv = server
         self._fg, self.ctx = server.fg, server.ctx
-        self.host, self.port = server.host, server.port
         self.prefix = topic_prefix.rstrip("/")
         self.image_hz = image_hz
         self._channels: dict[str, object] = {}
@@ -142,11 +140,12 @@ class FoxgloveLive(RosMessages):
                 row, image = self._queue.popleft()
                 if not self._watched():
                     continue
-                self.messages(row if isinstance(row, dict) else row.as_dict())
+                d = row if isinstance(row, dict) else row.as_dict()
+                self.messages(d)
                 if image is not None:
                     jpeg = image()
                     if jpeg is not None:
-                        self.image_message(row["time_s"], jpeg)
+                        self.image_message(d["time_s"], jpeg)
                 self.published += 1
 
     def _watched(self) -> bool:

@@ -98,6 +98,9 @@ class CsvSink:
             if extra:
                 raise ValueError(f"fields not in the columns: {sorted(extra)}")
             fields = ["" if (v := row.get(k)) is None else v for k in self.columns]
+        return self._format(fields)
+
+    def _format(self, fields: list) -> str:
         buf = self._buf
         buf.seek(0)
         buf.truncate()
@@ -113,11 +116,7 @@ class CsvSink:
         if row.columns != self._columns:
             self.write(row.as_dict())
             return
-        buf = self._buf
-        buf.seek(0)
-        buf.truncate()
-        self._csv.writerow(["" if v is None else v for v in row.fields()])
-        self.lines.put(buf.getvalue())
+        self.lines.put(self._format(["" if v is None else v for v in row.fields()]))
 
 
 def row_writer(sink):
