@@ -177,3 +177,44 @@ def test_the_engines_state_after_a_step_cut_short(tmp_path):
             last = fs.state if fs.state is not None else last
     assert last is not None and eng.history.states[-1] is None
     assert eng.state is last
+
+
+@pytest.mark.parametrize("gyro_range_dps", [None, 250.0])
+def test_a_replay_s_runs_give_the_states_step_by_step_gives(gyro_range_dps):
+    """A file replay takes the samples between two fixes' arrivals in one Fusion.run
+    (their states propagated in one call): every state, warning and index must be
+    those of Fusion.step taken sample by sample, to the bit, through a clipping gyro
+    whose flat tops are rebuilt as they end (readings rewritten behind the newest
+    sample), a faulty sample, a clock that steps back and a gap."""
+    t, R, gyro, _ = _sim3d(amp=7.0, n=2500, speed=12.0, rest_s=3.0)
+    g = np.clip(gyro, -np.radians(250.0), np.radians(250.0))
+    g[1700] = [np.nan, 0.0, 0.0]  # a fault
+    t = t.copy()
+    t[1900] = t[1899] - 0.001  # the clock steps back
+    fixes = _fixes(t, R, np.random.default_rng(3), every=37)
+    imu = ImuData(t, g, None, np.arange(len(t)), (2100,), 0.01)
+    model = AttitudeModel()
+    limits = Limits(max_rate_dps=None, max_accel_mps2=None)
+    runs = list(fuse(imu, fixes, model, limits=limits, gyro_range_dps=gyro_range_dps))
+    from visvec.fuse.replay import Fusion
+
+    eng = Fusion(model, limits=limits, gyro_range_dps=gyro_range_dps)
+    arrivals = sorted(fixes, key=lambda f: (f.available_s, f.time_s))
+    nxt, one = 0, []
+    for k in range(len(t)):
+        while nxt < len(arrivals) and arrivals[nxt].available_s <= t[k]:
+            eng.add_fix(arrivals[nxt])
+            nxt += 1
+        one.append(eng.step(float(t[k]), g[k], None, gap=k == 2100, index=k))
+    assert len(runs) == len(one) == len(t)
+    for a, b in zip(runs, one, strict=True):
+        assert (a.index, a.time_s, a.warnings, a.n_fixes, a.nis) == (
+            b.index, b.time_s, b.warnings, b.n_fixes, b.nis)  # fmt: skip
+        if b.state is None:
+            assert a.state is None
+            continue
+        assert np.array_equal(a.state.R, b.state.R) and np.array_equal(a.state.P, b.state.P)
+    warned = {w for s in one for w in s.warnings}
+    assert {"imu_fault", "imu_time_back", "imu_gap"} <= warned
+    if gyro_range_dps is not None:
+        assert sum("gyro_saturated" in s.warnings for s in one) > 50

@@ -97,7 +97,7 @@ def fused_rows(samples: Iterator[FusedSample], model) -> Iterator[Row]:
         fs = next(it, None)
         if fs is None:
             return
-        latency_ms = (time.perf_counter() - t0) * 1000.0
+        latency_ms = (time.perf_counter() - t0) * 1000.0 if fs.spent_ms is None else fs.spent_ms
         if fs.state is None:
             if model.planar:
                 yield PoseRow(fs.index, fs.time_s, Status.NO_TARGET, math.nan, fs.n_fixes,
