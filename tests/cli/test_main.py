@@ -151,17 +151,16 @@ def test_help_groups_the_options_of_each_kind():
 def test_version_says_which_path_the_triangle_runs(monkeypatch):
     """--version names the version and whether the compiled kernels (the fast extra)
     run, VISVEC_PURE turned them off, or how to install them."""
-    from visvec import __version__
-    from visvec.detect import _compiled
+    from visvec import __version__, _kernels
 
     r = run("--version")
     assert r.exit_code == 0 and f"version {__version__}" in r.output
-    if _compiled.AVAILABLE:
+    if _kernels.AVAILABLE:
         assert "compiled (Numba " in r.output
-    monkeypatch.setattr(_compiled, "AVAILABLE", False)
-    monkeypatch.setattr(_compiled, "PURE", True)
+    monkeypatch.setattr(_kernels, "AVAILABLE", False)
+    monkeypatch.setattr(_kernels, "PURE", True)
     assert "in numpy (VISVEC_PURE is set)" in run("--version").output
-    monkeypatch.setattr(_compiled, "PURE", False)
+    monkeypatch.setattr(_kernels, "PURE", False)
     assert 'pip install "visvec[fast]"' in run("--version").output
 
 

@@ -104,12 +104,12 @@ def _show_version(ctx: click.Context, _param: click.Parameter, value: bool) -> N
     """--version: the version, and whether the triangle's compiled kernels run."""
     if not value or ctx.resilient_parsing:
         return
-    from visvec.detect import _compiled
+    from visvec import _kernels
 
-    if _compiled.AVAILABLE:
+    if _kernels.AVAILABLE:
         numba_version = importlib.metadata.version("numba")
         kernels = f"the triangle's edge, pixel and attitude fits compiled (Numba {numba_version})"
-    elif _compiled.PURE:
+    elif _kernels.PURE:
         kernels = "the triangle's edge, pixel and attitude fits in numpy (VISVEC_PURE is set)"
     else:
         kernels = ("the triangle's edge, pixel and attitude fits in numpy (pip install "

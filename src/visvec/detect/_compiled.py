@@ -21,20 +21,15 @@ variable ``VISVEC_PURE=1``, edges and photometric run their numpy functions.
 
 from __future__ import annotations
 
-import importlib.util
 import math
-import os
 import sys
 import threading
 
 import numpy as np
 
+from visvec._kernels import AVAILABLE
 from visvec.camera import _distorted
 
-PURE = os.environ.get("VISVEC_PURE", "").strip() not in ("", "0")
-# Numba is imported when a kernel is first called (_load), not with this module: its
-# import takes 0.2 s, which every command line paid, also those that run no triangle
-AVAILABLE = not PURE and importlib.util.find_spec("numba") is not None
 numba = None  # the module, once loaded
 # whether the kernels run: edges and photometric look here on every call; edges.warm_up
 # turns it off when they do not load

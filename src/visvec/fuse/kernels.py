@@ -20,7 +20,7 @@ import threading
 
 import numpy as np
 
-from visvec.detect._compiled import AVAILABLE
+from visvec._kernels import AVAILABLE
 from visvec.rotations import expmap_xyz  # compiled beside the kernels that call it
 
 N_STATE = 15  # dtheta (3), bias (3), misalignment (3), scale (3), tau, jitter, clock rate
