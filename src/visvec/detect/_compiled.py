@@ -28,6 +28,7 @@ import threading
 import numpy as np
 
 from visvec._kernels import AVAILABLE
+from visvec._kernels.pixel_fit import GaussNewtonSteps, PixelSolve
 from visvec.camera import _distorted
 
 numba = None  # the module, once loaded
@@ -876,7 +877,7 @@ def _pixel_gn(x, y, counts, n, c, w, centroid, scale, steps, table, rng, inv_ste
             try:
                 level = np.linalg.solve(AtA, Aty)
             except Exception:  # noqa: BLE001 - Numba catches no narrower class
-                return n, c, w, level, H, b, rss, r_all, g_all, False
+                return GaussNewtonSteps(n, c, w, level, H, b, rss, r_all, g_all, False)
         H[:, :] = 0.0
         b[:] = 0.0
         rss = 0.0
@@ -905,7 +906,7 @@ def _pixel_gn(x, y, counts, n, c, w, centroid, scale, steps, table, rng, inv_ste
         try:
             step = np.linalg.solve(H, b)
         except Exception:  # noqa: BLE001
-            return n, c, w, level, H, b, rss, r_all, g_all, False
+            return GaussNewtonSteps(n, c, w, level, H, b, rss, r_all, g_all, False)
         for e in range(3):
             th, oo = step[2 * e], step[2 * e + 1]
             cs, sn = math.cos(th), math.sin(th)
@@ -918,7 +919,7 @@ def _pixel_gn(x, y, counts, n, c, w, centroid, scale, steps, table, rng, inv_ste
         for q in range(6):
             level[q] += step[9 + q]
         rss -= step @ b
-    return n, c, w, level, H, b, rss, r_all, g_all, True
+    return GaussNewtonSteps(n, c, w, level, H, b, rss, r_all, g_all, True)
 
 
 def _strided(x, y, counts, stride):
@@ -938,24 +939,25 @@ def _strided(x, y, counts, stride):
     return xs, ys, cs
 
 
-def _pixel_solve(x, y, uv, counts, n, c, w, V, centroid, scale, steps, stride, lags, L,
-                 min_pairs, rms_ratio, warm, settled, warm_steps, table, rng,
-                 inv_step):  # fmt: skip
-    """photometric._solve compiled: the same steps, checks, inflation and covariance."""
+def _pixel_solve(x, y, uv, counts, n, c, w, V, centroid, scale, warm, st):
+    """photometric._solve compiled: the same steps, checks, inflation and covariance;
+    ``st`` the fit's constants (PixelFitSettings). A PixelSolve."""
+    table, rng, inv_step = st.table, st.rng, st.inv_step
+    steps, stride = st.steps, st.stride
     fail = np.full((6, 6), np.nan)
     if warm:
         # from the run's blur: one step on every pixel, another while the last moved a
         # width by more than ``settled``, ``warm_steps`` at most
         out = _pixel_gn(x, y, counts, n, c, w, centroid, scale, 1, table, rng, inv_step)
         steps = 1
-        while steps < warm_steps and out[9]:
+        while steps < st.warm_steps and out.ok:
             moved = 0.0
             for e in range(3):
-                moved = max(moved, abs(out[2][e] / w[e] - 1.0))
-            if moved <= settled:
+                moved = max(moved, abs(out.w[e] / w[e] - 1.0))
+            if moved <= st.settled:
                 break
-            w = out[2]
-            out = _pixel_gn(x, y, counts, out[0], out[1], w, centroid, scale, 1, table, rng,
+            w = out.w
+            out = _pixel_gn(x, y, counts, out.n, out.c, w, centroid, scale, 1, table, rng,
                             inv_step)  # fmt: skip
             steps += 1
     else:
@@ -963,14 +965,14 @@ def _pixel_solve(x, y, uv, counts, n, c, w, V, centroid, scale, steps, stride, l
             xs, ys, cs = _strided(x, y, counts, stride)
             first = _pixel_gn(xs, ys, cs, n, c, w, centroid, scale, steps - 1, table, rng,
                               inv_step)  # fmt: skip
-            n, c, w = first[0], first[1], first[2]
-            if not first[9]:
-                return False, V, fail, w, math.nan, 1.0, 0
+            n, c, w = first.n, first.c, first.w
+            if not first.ok:
+                return PixelSolve(False, V, fail, w, math.nan, 1.0, 0)
             steps = 1
         out = _pixel_gn(x, y, counts, n, c, w, centroid, scale, steps, table, rng, inv_step)
     n, c, w, _, H, _, rss, r, g, ok = out
     if not ok:
-        return False, V, fail, w, math.nan, 1.0, steps
+        return PixelSolve(False, V, fail, w, math.nan, 1.0, steps)
     m = len(y)
     s2 = max(rss, 0.0) / max(m - 15, 1)
     rms = np.empty(3)
@@ -982,13 +984,13 @@ def _pixel_solve(x, y, uv, counts, n, c, w, V, centroid, scale, steps, stride, l
         rms[e] = math.sqrt(ss / counts[e])
         start += counts[e]
     rms.sort()
-    if rms[2] > rms_ratio * rms[1]:
-        return False, V, fail, w, s2, 1.0, steps
-    inflation = noise_inflation(uv, r, g, lags, L, min_pairs)
+    if rms[2] > st.rms_ratio * rms[1]:
+        return PixelSolve(False, V, fail, w, s2, 1.0, steps)
+    inflation = noise_inflation(uv, r, g, st.lags, st.lag_px, st.min_pairs)
     try:
         Hi = np.linalg.inv(H)
     except Exception:  # noqa: BLE001 - Numba catches no narrower class
-        return False, V, fail, w, s2, inflation, steps
+        return PixelSolve(False, V, fail, w, s2, inflation, steps)
     cov_p = inflation * s2 * np.ascontiguousarray(Hi[:6, :6])
     # the vertices (edges._vertices: vertex i on lines i + 1, i + 2, Cramer's rule) and
     # how the lines move them (photometric._vertex_gain)
@@ -999,7 +1001,7 @@ def _pixel_solve(x, y, uv, counts, n, c, w, V, centroid, scale, steps, stride, l
         a, b, cc, d = n[j, 0], n[j, 1], n[k, 0], n[k, 1]
         det = a * d - b * cc
         if det == 0.0:
-            return False, V, fail, w, s2, inflation, steps
+            return PixelSolve(False, V, fail, w, s2, inflation, steps)
         invs[i, 0, 0], invs[i, 0, 1] = d / det, -b / det
         invs[i, 1, 0], invs[i, 1, 1] = -cc / det, a / det
         oj = n[j, 0] * c[j, 0] + n[j, 1] * c[j, 1]
@@ -1015,7 +1017,7 @@ def _pixel_solve(x, y, uv, counts, n, c, w, V, centroid, scale, steps, stride, l
             for q in range(2):
                 G[2 * v + q, 2 * ln] -= invs[v, q, row] * sv
                 G[2 * v + q, 2 * ln + 1] += invs[v, q, row]
-    return True, V2, G @ cov_p @ G.T, w, s2, inflation, steps
+    return PixelSolve(True, V2, G @ cov_p @ G.T, w, s2, inflation, steps)
 
 
 # ------------------------------------------------- a fine pass's lines (_edge_fit)

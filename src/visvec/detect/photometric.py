@@ -44,6 +44,7 @@ from itertools import pairwise
 
 import numpy as np
 
+from visvec._kernels.pixel_fit import GaussNewtonSteps, PixelFitSettings, PixelSolve
 from visvec.camera import CameraModel
 from visvec.detect import _compiled
 from visvec.detect.edges import _vertices
@@ -339,6 +340,10 @@ def _phi_nodes() -> np.ndarray:
 
 
 _PHI = _phi_nodes()
+# the constants as the compiled solve takes them (visvec.detect._compiled.pixel_solve)
+SETTINGS = PixelFitSettings(GN_STEPS, FIRST_STRIDE, _LAGS, NOISE_LAG_PX, NOISE_MIN_PAIRS,
+                            EDGE_RMS_RATIO, WIDTH_SETTLED, WARM_STEPS, _PHI, PHI_RANGE,
+                            1.0 / PHI_STEP)  # fmt: skip
 
 
 def _phi_of(u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -366,7 +371,7 @@ def _gauss_newton(x, y, counts, n, c, w, centroid, scale, steps):
     equations H, b; the residual sum of squares after it, as Gauss-Newton predicts it
     (the last step is a small one: no pass of its own is needed to measure it); the last
     pass's residuals and offset derivatives dI / d(distance) (M,) each; and False where
-    a system was singular."""
+    a system was singular: a GaussNewtonSteps."""
     n, c, w = n.copy(), c.copy(), w.copy()
     bounds = np.concatenate([[0], np.cumsum(counts)])
     xs = [x[bounds[i] : bounds[i + 1]] for i in range(3)]
@@ -400,7 +405,7 @@ def _gauss_newton(x, y, counts, n, c, w, centroid, scale, steps):
             try:
                 level = np.linalg.solve(A.T @ A, A.T @ y)
             except np.linalg.LinAlgError:
-                return n, c, w, level, H, b, rss, r_all, g_all, False
+                return GaussNewtonSteps(n, c, w, level, H, b, rss, r_all, g_all, False)
         for i, Je in enumerate(jac):
             u, perp, slope = steps_[i]
             ye = y[bounds[i] : bounds[i + 1]]
@@ -418,7 +423,7 @@ def _gauss_newton(x, y, counts, n, c, w, centroid, scale, steps):
         try:
             step = np.linalg.solve(H, b)
         except np.linalg.LinAlgError:
-            return n, c, w, level, H, b, rss, r_all, g_all, False
+            return GaussNewtonSteps(n, c, w, level, H, b, rss, r_all, g_all, False)
         for i in range(3):
             th, oo = step[2 * i], step[2 * i + 1]
             cs, sn = math.cos(th), math.sin(th)
@@ -427,7 +432,7 @@ def _gauss_newton(x, y, counts, n, c, w, centroid, scale, steps):
         w = np.maximum(w + step[6:9], 0.2)
         level = level + step[9:15]
         rss -= float(step @ b)
-    return n, c, w, level, H, b, rss, r_all, g_all, True
+    return GaussNewtonSteps(n, c, w, level, H, b, rss, r_all, g_all, True)
 
 
 def _noise_inflation(uv: np.ndarray, r: np.ndarray, w: np.ndarray) -> float:
@@ -521,16 +526,14 @@ def refine(image: np.ndarray, normals: np.ndarray, offsets: np.ndarray, width: n
     if warm:
         w = np.full(3, max(float(blur), 0.3))
     if _compiled.ON:  # the same, compiled
-        ok, V, cov, w, s2, inflation, steps = _compiled.pixel_solve(
-            x, y, uv, counts, n, c, w, V, centroid, scale, GN_STEPS, FIRST_STRIDE, _LAGS,
-            NOISE_LAG_PX, NOISE_MIN_PAIRS, EDGE_RMS_RATIO, warm, WIDTH_SETTLED, WARM_STEPS,
-            _PHI, PHI_RANGE, 1.0 / PHI_STEP)  # fmt: skip
+        fit = _compiled.pixel_solve(x, y, uv, counts, n, c, w, V, centroid, scale, warm,
+                                    SETTINGS)  # fmt: skip
     else:
-        ok, V, cov, w, s2, inflation, steps = _solve(x, y, uv, counts, n, c, w, V, centroid,
-                                                     scale, warm)  # fmt: skip
-    if not ok:
-        return _refused(V, w, m)
-    return PhotometricFit(V, cov, w, math.sqrt(s2), m, inflation=inflation, steps=int(steps))
+        fit = _solve(x, y, uv, counts, n, c, w, V, centroid, scale, warm)
+    if not fit.ok:
+        return _refused(fit.V, fit.w, m)
+    return PhotometricFit(fit.V, fit.cov, fit.w, math.sqrt(fit.s2), m, inflation=fit.inflation,
+                          steps=int(fit.steps))  # fmt: skip
 
 
 def _strided(x: np.ndarray, y: np.ndarray, counts: np.ndarray, stride: int):
@@ -546,8 +549,8 @@ def _solve(x, y, uv, counts, n, c, w, V, centroid, scale, warm=False):
     pixel), or with ``warm`` (w the run's blur) one on every pixel, another while the
     last moved a width by more than WIDTH_SETTLED (WARM_STEPS at most); the bands'
     residuals checked against each other (EDGE_RMS_RATIO), the covariance inflated for
-    the noise's correlation and taken to the vertices. Returns whether it is to be
-    taken, the vertices (3, 2) (the starting ones when it is not), their covariance
+    the noise's correlation and taken to the vertices. A PixelSolve: whether it is to
+    be taken, the vertices (3, 2) (the starting ones when it is not), their covariance
     (6, 6), the widths, the residuals' variance, the inflation and the steps on every
     pixel."""
     steps = GN_STEPS
@@ -563,7 +566,7 @@ def _solve(x, y, uv, counts, n, c, w, V, centroid, scale, warm=False):
         xs, ys, cs = _strided(x, y, counts, FIRST_STRIDE)
         n, c, w, *_, ok = _gauss_newton(xs, ys, cs, n, c, w, centroid, scale, steps - 1)
         if not ok:
-            return False, V, None, w, math.nan, 1.0, 0
+            return PixelSolve(False, V, None, w, math.nan, 1.0, 0)
         steps = 1
     n, c, w, _, H, _, rss, r, g, ok = _gauss_newton(x, y, counts, n, c, w, centroid, scale, steps)
     return _finish(V, uv, counts, n, c, w, H, rss, r, g, ok, len(y), steps)
@@ -574,7 +577,7 @@ def _finish(V, uv, counts, n, c, w, H, rss, r, g, ok, m, steps):
     a singular system): the bands' check, the noise inflation, the vertices and their
     covariance."""
     if not ok:
-        return False, V, None, w, math.nan, 1.0, steps
+        return PixelSolve(False, V, None, w, math.nan, 1.0, steps)
     s2 = max(rss, 0.0) / max(m - N_PARAMS, 1)
     # the residuals of a band the model fits are the pixels' noise, alike in the three
     # bands (the same board and triangle): one band's twice the others' has something
@@ -583,14 +586,14 @@ def _finish(V, uv, counts, n, c, w, H, rss, r, g, ok, m, steps):
     bounds = np.concatenate([[0], np.cumsum(counts)])
     rms = sorted(math.sqrt(float(r[a:b] @ r[a:b]) / (b - a)) for a, b in pairwise(bounds))
     if rms[2] > EDGE_RMS_RATIO * rms[1]:
-        return False, V, None, w, s2, 1.0, steps
+        return PixelSolve(False, V, None, w, s2, 1.0, steps)
     inflation = _noise_inflation(uv, r, g)
     try:
         cov_p = inflation * s2 * np.linalg.inv(H)[:6, :6]
     except np.linalg.LinAlgError:
-        return False, V, None, w, s2, inflation, steps
+        return PixelSolve(False, V, None, w, s2, inflation, steps)
     V2, invs = _intersections(n, c)
     if invs is None:
-        return False, V, None, w, s2, inflation, steps
+        return PixelSolve(False, V, None, w, s2, inflation, steps)
     G = _vertex_gain(n, c, V2, invs)
-    return True, V2, G @ cov_p @ G.T, w, s2, inflation, steps
+    return PixelSolve(True, V2, G @ cov_p @ G.T, w, s2, inflation, steps)
