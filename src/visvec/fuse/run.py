@@ -88,7 +88,8 @@ def fused_rows(samples: Iterator[FusedSample], model) -> Iterator[Row]:
     AttitudeRow or PoseRow
         One per sample: yaw, pitch, roll (deg) and q_NB with their sigmas (deg) and
         covariance (deg^2), or x, y (mm) and heading (deg) with theirs; ``latency_ms``
-        the time spent on the sample (its propagation and any replay); ``no_target``
+        the time spent on the sample (its propagation and any replay; in a file
+        replay's run of samples, its share of the run's time); ``no_target``
         before the first fix.
     """
     it = iter(samples)
