@@ -131,8 +131,9 @@ def main() -> None:
             "p99": float(np.percentile(lat, 99)),
             "max": float(lat.max()),
         },
-        "sensor_summary": [ln for ln in err.strip().splitlines()
-                           if "inertial samples" in ln or "learned:" in ln],  # fmt: skip
+        "sensor_summary": [
+            ln for ln in err.strip().splitlines() if "inertial samples" in ln or "learned:" in ln
+        ],  # fmt: skip
     }
     save_json("fusion_live_khz", result)
     print(result)
