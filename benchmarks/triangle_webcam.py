@@ -4,7 +4,9 @@ at 85), beside the plain render: the edge lines (default) and the pixel fit (ref
 "pixels"), cold frames at random attitudes (yaw uniform, tilts within 5 deg), scored on
 their accuracy and whether their sigma covers the errors (share beyond 3 sigma: a
 Gaussian's 0.27 % per axis; none beyond 5), uncalibrated and after `calibrate zero-tilt`
-on 12 level frames through the same chain. Seeds of its own (61, 62), used by no test.
+on 12 level frames through the same chain; through the webcam also with the rig
+declaring the camera's tone curve (``[camera] tone_curve = "srgb"``: the fits read
+linear light, visvec.tone). Seeds of its own (61, 62), used by no test.
 
     python benchmarks/triangle_webcam.py [--frames 60]
 """
@@ -12,6 +14,7 @@ on 12 level frames through the same chain. Seeds of its own (61, 62), used by no
 from __future__ import annotations
 
 import argparse
+from dataclasses import replace
 
 from visvec.bench.triangle import (
     evaluate,
@@ -31,6 +34,9 @@ CHAINS = {
     "through a webcam": Scene(webcam=WebcamChain()),
     "through a webcam, no tone curve": Scene(webcam=WebcamChain(srgb=False)),
 }
+# the rig's tone_curve per chain: through the webcam as the rig files leave it (linear)
+# and as a lab that declares its webcam's sRGB curve
+TONES = {"through a webcam": ("linear", "srgb")}
 
 
 def main() -> None:
@@ -39,9 +45,13 @@ def main() -> None:
     args = ap.parse_args()
     results = run_record()
     for cfg in ("triangle.toml", "triangle-320.toml"):
-        rig = load_rig(CONFIGS / cfg)
         res = {}
-        for name, scene in CHAINS.items():
+        for (name, scene), tone in (
+            (item, t) for item in CHAINS.items() for t in TONES.get(item[0], ("linear",))
+        ):
+            rig = replace(load_rig(CONFIGS / cfg), tone_curve=tone)
+            if tone != "linear":
+                name = f"{name}, tone_curve = {tone}"
             cases = random_cases(args.frames, scene, seed=61)
             imgs = render_cases(rig, cases)
             cal, n_found = level_calibration(rig, rig, 12, scene, seed=620)

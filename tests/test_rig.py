@@ -94,6 +94,17 @@ def test_example_configs_load():
         ),
         ("[platform]", "[plaftorm]", ["unknown section", "plaftorm"]),
         (
+            "readout_ms = 0.0",
+            'readout_ms = 0.0\ntone_curve = "sRGB2"',
+            ["[camera] tone_curve", 'expected "linear"'],
+        ),
+        (
+            "readout_ms = 0.0",
+            "readout_ms = 0.0\ntone_curve = 0.0",
+            ["[camera] tone_curve", "a gamma from 0.2 to 5"],
+        ),
+        ("readout_ms = 0.0", "readout_ms = 0.0\ntone_curve = true", ["[camera] tone_curve"]),
+        (
             # k1 mistyped tenfold: the polynomial turns back 138 px out
             "dist = [0.0, 0.0, 0.0, 0.0, 0.0]",
             "dist = [-2.8, 0.0, 0.0, 0.0, 0.0]",

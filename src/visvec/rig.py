@@ -22,6 +22,7 @@ import numpy as np
 from visvec.camera import CameraModel
 from visvec.errors import ConfigError
 from visvec.lamps import LampMap, read_lamp_map
+from visvec.tone import check_tone_curve
 
 TARGET_KINDS = ("triangle", "markers", "lamps", "starfield")
 REFINE_METHODS = ("lines", "pixels", "corners")
@@ -203,6 +204,8 @@ class Rig:
         The frame rate (Hz) a source without times is timed by.
     readout_ms, readout_sigma_ms : float
         The rolling shutter's readout (ms) and its 1-sigma.
+    tone_curve : str or float
+        The camera's tone curve: "linear", "srgb" or a gamma (visvec.tone).
     detect, zero_tilt, controls, imu
         The [detect], [zero_tilt], camera controls and [imu] settings."""
 
@@ -224,6 +227,9 @@ class Rig:
     readout_ms: float = 0.0
     # its 1-sigma (ms), as `calibrate readout` measured it: the rows' sigma carries it
     readout_sigma_ms: float = 0.0
+    # the camera's tone curve ("linear", "srgb" or a gamma): the triangle's fits read
+    # linear light through it (visvec.tone)
+    tone_curve: str | float = "linear"
     controls: CameraControls = field(default_factory=CameraControls)
     imu: ImuSettings = field(default_factory=ImuSettings)
     # whether the rig file (or a calibration) gave [platform] max_tilt_deg, or the default
@@ -589,12 +595,16 @@ def _camera_fields(cam: _Section, src: str) -> dict[str, Any]:
             f"{cam._where('readout_sigma_ms')} = {readout_sigma_ms}: needs a readout_ms "
             "(0 declares a global shutter, whose readout has no uncertainty)"
         )
+    try:
+        tone_curve = check_tone_curve(cam.get("tone_curve", "linear"), cam._where("tone_curve"))
+    except ValueError as exc:
+        raise ConfigError(str(exc)) from None
     controls = _camera_controls(cam)
     cam.check_unknown()
     _check_intrinsics(camera, cam)
     return {"camera": camera, "device": device, "fps": fps, "exposure_ms": exposure_ms,
             "readout_ms": readout_ms, "readout_sigma_ms": readout_sigma_ms,
-            "controls": controls}  # fmt: skip
+            "tone_curve": tone_curve, "controls": controls}  # fmt: skip
 
 
 def _camera_controls(cam: _Section) -> CameraControls:

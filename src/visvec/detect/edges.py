@@ -588,15 +588,19 @@ def _widths(
     return w
 
 
-def _crop(image: np.ndarray, corners_px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _crop(image: np.ndarray, corners_px: np.ndarray,
+          tone: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
     """The part of the image (float32) that any profile of the triangle with these
-    corners can reach, and its top-left corner (x, y) in the image."""
+    corners can reach, and its top-left corner (x, y) in the image; with ``tone`` (a
+    tone curve's table, visvec.tone.tone_lut) its levels as the linear light they
+    encode."""
     reach = MAX_HALF_PX + LEVEL_EXTENT_PX + 3.0
     lo = np.floor(corners_px.min(axis=0) - reach).astype(int)
     hi = np.ceil(corners_px.max(axis=0) + reach).astype(int)
     lo = np.maximum(lo, 0)
     hi = np.minimum(hi, [image.shape[1] - 1, image.shape[0] - 1])
-    roi = image[lo[1] : hi[1] + 1, lo[0] : hi[0] + 1].astype(np.float32)
+    roi = image[lo[1] : hi[1] + 1, lo[0] : hi[0] + 1]
+    roi = roi.astype(np.float32) if tone is None else np.take(tone, roi)
     return roi, lo.astype(float)
 
 
@@ -743,6 +747,7 @@ def fit_edges(
     shutter: RollingShutter | None = None,
     rate_c: np.ndarray | None = None,
     gain: bool = False,
+    tone: np.ndarray | None = None,
 ) -> EdgeFit:
     """Fit the three edges of the triangle whose coarse corners are ``corners_px`` (3, 2).
 
@@ -770,8 +775,11 @@ def fit_edges(
     With ``shutter`` and ``gain``, whether or not the rate is known: the fit also
     carries ``shutter_gain`` (:func:`_shutter_gain`), the vertices' sensitivity to the
     rate, for the covariance of a rate not known yet or of the readout's error.
+
+    With ``tone`` (the camera's tone curve as a table, visvec.tone.tone_lut) the levels
+    are read as the linear light they encode, which the step model describes.
     """
-    roi, off = _crop(image, corners_px)
+    roi, off = _crop(image, corners_px, tone)
     f = camera.fx
     corners = corners_px.astype(float)
     tracked = width is not None

@@ -488,8 +488,8 @@ def _noise_inflation(uv: np.ndarray, r: np.ndarray, w: np.ndarray) -> float:
 
 def refine(image: np.ndarray, normals: np.ndarray, offsets: np.ndarray, width: np.ndarray,
            camera: CameraModel, shutter: RollingShutter | None = None,
-           rate_c: np.ndarray | None = None,
-           blur: float | None = None) -> PhotometricFit:  # fmt: skip
+           rate_c: np.ndarray | None = None, blur: float | None = None,
+           tone: np.ndarray | None = None) -> PhotometricFit:  # fmt: skip
     """Refine the edge lines n_i . x = offset_i (ideal px, normals into the triangle)
     on the pixels of ``image``; ``width`` (3,) the edge lines' blur widths, which set the
     bands (and start the fit without ``blur``).
@@ -505,7 +505,10 @@ def refine(image: np.ndarray, normals: np.ndarray, offsets: np.ndarray, width: n
     points there): each pixel is fitted at its coordinates taken there too
     (visvec.shutter.unroll: the lab point a pixel sees at its row's time, where the
     centre row's exposure would see it). The blurred step model then holds as for a
-    still image: the shift varies smoothly, a fraction of a pixel across a band."""
+    still image: the shift varies smoothly, a fraction of a pixel across a band.
+
+    ``tone``: the camera's tone curve as a table (visvec.tone.tone_lut); the pixels'
+    levels are then read as the linear light they encode, which the model describes."""
     n = np.asarray(normals, float).copy()
     # each line's centre: the middle between its two vertices
     V, _ = _intersections(n, n * np.asarray(offsets, float)[:, None])
@@ -520,6 +523,9 @@ def refine(image: np.ndarray, normals: np.ndarray, offsets: np.ndarray, width: n
     if m < 3 * N_PARAMS or counts.min() < 10:
         return _refused(V, w, m)
     x, y, uv, _ = bands
+    if tone is not None:
+        # the levels as the linear light they encode (the camera's tone curve)
+        y = np.take(tone, y.astype(np.int64)).astype(float)
     centroid = V.mean(axis=0)
     scale = max(float(np.abs(V - centroid).max()), 1.0)
     warm = blur is not None and math.isfinite(blur)

@@ -35,6 +35,7 @@ from visvec.geometry import project_target
 from visvec.noise import LearnedCorrelation
 from visvec.rig import Rig
 from visvec.shutter import RollingShutter, shutter_matrix, shutter_shift
+from visvec.tone import tone_lut
 
 # Tolerances of the shape checks (relative, or degrees), chosen to pass every tilt
 # within max_tilt_deg of the paper's geometry with a wide margin.
@@ -180,7 +181,8 @@ def _centre(p: np.ndarray) -> np.ndarray:
     return np.add.reduce(p, axis=0) / 3
 
 
-def _pixel_fit(image, fit, xy, cov, camera, shutter=None, rate_c=None, blur=None):
+def _pixel_fit(image, fit, xy, cov, camera, shutter=None, rate_c=None, blur=None,
+               tone=None):  # fmt: skip
     """The vertices of the edge lines refined on the pixels (visvec.detect.photometric,
     started from the run's blur width ``blur`` where there is one), and the fit, when
     the refinement agrees with them: the edge lines are robust (their profiles'
@@ -194,7 +196,8 @@ def _pixel_fit(image, fit, xy, cov, camera, shutter=None, rate_c=None, blur=None
     not taken, None where none was made."""
     if shutter is not None and rate_c is None:
         return xy, cov, None
-    pf = refine(image, fit.normals, fit.offsets, fit.width, camera, shutter, rate_c, blur)
+    pf = refine(image, fit.normals, fit.offsets, fit.width, camera, shutter, rate_c, blur,
+                tone)  # fmt: skip
     if not pf.ok or not np.isfinite(pf.cov).all():
         return xy, cov, False
     dv = (pf.xy - xy).ravel()
@@ -229,6 +232,8 @@ class TriangleDetector:
     def __init__(self, rig: Rig):
         self.rig = rig
         cam = rig.camera
+        # the camera's tone curve: the fits read linear light through it (visvec.tone)
+        self._tone = tone_lut(rig.tone_curve)
         # the compiled kernels loaded before the first frame, not on it
         warm_up(pixel_fit=rig.detect.refine == "pixels")
         self.expected_px = project_target(rig, np.eye(3))
@@ -633,6 +638,7 @@ class TriangleDetector:
             # the shutter gain, for the covariance of a rate not known yet or of the
             # readout's error (not computed when neither is there)
             gain=bool(self.readout_ms) and (rate_c is None or self.readout_sigma_ms > 0),
+            tone=self._tone,
         )
         self._fit_width = fit.width
         if not fit.ok:
@@ -649,11 +655,14 @@ class TriangleDetector:
             # codec's correlation, do not; visvec.pipeline.triangle.codec_advice,
             # benchmarks/triangle_compression.py)
             xy, cov, self._pixel = _pixel_fit(image, fit, xy, cov, cam, shutter, rate_c,
-                                              self._blur)  # fmt: skip
+                                              self._blur, self._tone)  # fmt: skip
+        level_mid = float(np.add.reduce(fit.mid_level)) / 3
+        if self._tone is not None:
+            # (the image's own level, which the checks compare with its pixels)
+            level_mid = float(np.interp(level_mid, self._tone, np.arange(256.0)))
         return _Measured(
             xy, cam.distort(xy / cam.fx), cov, fit.contrast.min(), fit.outlier_fraction.max(),
-            float(fit.vertex_gaps().max()), float(np.add.reduce(fit.mid_level)) / 3,
-            fit.shutter_gain, fit.lag_sums,
+            float(fit.vertex_gaps().max()), level_mid, fit.shutter_gain, fit.lag_sums,
         )  # fmt: skip
 
     def _named(self, m: _Measured) -> tuple[_Measured, np.ndarray, np.ndarray]:
