@@ -1,9 +1,12 @@
 """Ceiling lamps with few lit (issue 35): lost in space with a share of the map's lamps
 switched off, the frames identified by how many lamps are in view, and the wrong fixes.
 
-Two ceilings seen by configs/lamps.toml's 640x480 camera: its own map (180 lamps 2.35 m
-above the camera), and an independent one drawn at random (190 lamps anywhere over 7 x 5
-m, 2.6 m up: no grid, so many near-alike triangles), nothing tuned to it. Random poses
+Four ceilings seen by configs/lamps.toml's 640x480 camera: its own map (180 lamps 2.35 m
+above the camera), an independent one drawn at random (190 lamps anywhere over 7 x 5
+m, 2.6 m up: no grid, so many near-alike triangles), nothing tuned to it, and two office
+grids (12 x 9 lamps 600 mm apart, 2.5 m up): one whose lamps sit 20 mm (1-sigma) off their
+nodes, and a square one, where with lamps dark every shift by a pitch fits alike and
+lost in space must refuse. Random poses
 over the whole map, each frame cold; 0, 50, 80 and 90 % of the lamps dark (a fresh random set
 per share), and the two sparsest again with stray bright spots (20 % of the lamps in
 view). "Wrong": an ok row more than 10 mm or 0.5 deg off. The ok rows' error over their
@@ -142,6 +145,22 @@ def random_ceiling(folder: Path, seed: int) -> Path:
     return folder / "rig.toml"
 
 
+def grid_ceiling(folder: Path, pitch: float, jitter: float, seed: int) -> Path:
+    """A rig for configs/lamps.toml's camera under lamps on a 12 x 9 grid of ``pitch``
+    (mm), each ``jitter`` (mm, 1-sigma per axis) off its node, 2.5 m up: an office
+    ceiling (a square grid with jitter 0 fits every shift by a pitch alike)."""
+    rng = np.random.default_rng(seed)
+    xs = (np.arange(12) - 5.5) * pitch
+    ys = (np.arange(9) - 4.0) * pitch
+    pts = [(x + rng.normal(0, jitter), y + rng.normal(0, jitter)) for x in xs for y in ys]
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "lamps.csv").write_text("x_mm,y_mm\n" + "".join(f"{x:.1f},{y:.1f}\n" for x, y in pts))
+    text = (CONFIGS / "lamps.toml").read_text()
+    text = text.replace('map = "lamps.csv"', f'map = "{folder / "lamps.csv"}"')
+    (folder / "rig.toml").write_text(text)
+    return folder / "rig.toml"
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=400)
@@ -151,7 +170,11 @@ def main() -> None:
     out = []
     with tempfile.TemporaryDirectory() as tmp:
         rigs = {"configs/lamps.toml": load_rig(CONFIGS / "lamps.toml"),
-                "random ceiling": load_rig(random_ceiling(Path(tmp), args.seed))}  # fmt: skip
+                "random ceiling": load_rig(random_ceiling(Path(tmp), args.seed)),
+                "grid, lamps 20 mm off their nodes": load_rig(
+                    grid_ceiling(Path(tmp) / "jittered", 600.0, 20.0, args.seed)),
+                "square grid": load_rig(
+                    grid_ceiling(Path(tmp) / "grid", 600.0, 0.0, args.seed))}  # fmt: skip
         dark = []
         for ceiling, rig in rigs.items():
             for share, spurious in CASES:

@@ -111,12 +111,14 @@ class StarfieldTarget:
 class LampTarget:
     """Lamps on a level ceiling: ``lamps`` (the map, positions in N) read from
     ``map_path``; ``ceiling_z_mm`` is their height above the body origin where the map
-    has no z."""
+    has no z; ``map_sigma_mm`` how well the map's lamp positions are known (1-sigma per
+    axis): lost in space tells two places the lamps fit apart by it."""
 
     lamps: LampMap
     map_path: Path
     ceiling_z_mm: float
     kind: str = "lamps"
+    map_sigma_mm: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -779,6 +781,7 @@ def _lamp_target(tgt: _Section, mount: Mount, src: str, base_dir: Path | None) -
     if not isinstance(name, str) or not name:
         raise ConfigError(f"{src}: [target] map = {name!r}: expected the lamp map's CSV path")
     ceiling = tgt.number("ceiling_z_mm", required=True, positive=True)
+    map_sigma = tgt.number("map_sigma_mm", 1.0, positive=True, hi=100.0)
     tgt.check_unknown()
     path = Path(name)
     if not path.is_absolute() and base_dir is not None:
@@ -787,7 +790,7 @@ def _lamp_target(tgt: _Section, mount: Mount, src: str, base_dir: Path | None) -
         lamps = read_lamp_map(path, ceiling)
     except ConfigError as exc:
         raise ConfigError(f"{src}: [target] map: {exc}") from None
-    return LampTarget(lamps, path, ceiling)
+    return LampTarget(lamps, path, ceiling, map_sigma_mm=map_sigma)
 
 
 def _starfield_target(tgt: _Section, mount: Mount, src: str) -> StarfieldTarget:

@@ -61,6 +61,17 @@ TRACK_GATE_PX = 15.0
 # a prediction off by up to a gate cannot swap it for another)
 DARK_CLEAR = 2.0
 AMBIGUOUS_RATIO = 0.6  # a rival with this fraction of the winner's verified lamps
+# The place the lamps fit, against every other place they may fit. A pose's chi-square
+# against the spots: each identified spot's squared distance from its lamp (after a
+# rigid fit of all of them) over the map's and the centroids' variance, and each spot it
+# leaves unexplained counted as one at the verify gate. Another pose within RIVAL_CHI2 of
+# the best is a rival: the spots fit both, and the frame is ambiguous (on a regular
+# grid every shift by a pitch fits as well as the truth, and dark lamps are no evidence
+# against it); the candidates are every map triangle whose sides match three of the
+# identified spots' within RIVAL_SIDE_GATES verify gates
+RIVAL_CHI2 = 25.0
+CENTROID_PX = 0.1  # the centroids' 1-sigma taken with the map's (configs' prior)
+RIVAL_SIDE_GATES = 2.0
 # dark lamps: each spot's triangles with pairs of its FRAME_NEIGHBOURS nearest spots are
 # looked up among each lamp's triangles with pairs of its MAP_NEIGHBOURS nearest lamps
 # (a lit lamp's nearest lit neighbours are among its nearest few on the map)
@@ -265,18 +276,136 @@ class LampIdentifier:
             return Identification(none, None, reason="no_catalogue_match")
         hyp = hyp[good]
         need = len(idx) if len(idx) < 6 else len(idx) - 1
-        ver = np.array([np.sum(self.match_to_map(pts, h, self.verify_gate_mm) >= 0)
-                        for h in hyp])  # fmt: skip
+        ver = self._verified_counts(pts[idx], hyp)
         full = ver >= need
         if not full.any():
             return Identification(none, None, reason="no_consensus")
         hyp, ver = hyp[full], ver[full]
         best = int(np.argmax(ver))
-        rivals = ~_agrees(hyp, hyp[best])
-        if np.any(rivals & (ver >= ver[best] - 1)):
-            return Identification(none, None, reason="ambiguous")
+        rivals = ~_agrees(hyp, hyp[best]) & (ver >= ver[best] - 1)
         ids = self.match_to_map(pts, hyp[best], self.verify_gate_mm)
-        return Identification(ids, hyp[best], int(np.sum(_agrees(hyp, hyp[best]))))
+        votes = int(np.sum(_agrees(hyp, hyp[best])))
+        return self._unique(pts, Identification(ids, hyp[best], votes), hyp[rivals])
+
+    def _near(self, q: np.ndarray, poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(k, n) each: each of the points ``q`` (n, 2; body, mm) at each of the ``poses``
+        (k, 3): its distance to the nearest lamp (inf beyond the verify gate) and that
+        lamp (len(map) where none); one query for them all."""
+        cs, sn = np.cos(poses[:, 2])[:, None], np.sin(poses[:, 2])[:, None]
+        mapped = np.stack([poses[:, :1] + cs * q[:, 0] - sn * q[:, 1],
+                           poses[:, 1:2] + sn * q[:, 0] + cs * q[:, 1]], axis=2)  # fmt: skip
+        dist, j = self.map_tree.query(mapped.reshape(-1, 2),
+                                      distance_upper_bound=self.verify_gate_mm)  # fmt: skip
+        return dist.reshape(len(poses), len(q)), j.reshape(len(poses), len(q))
+
+    def _verified_counts(self, q: np.ndarray, poses: np.ndarray) -> np.ndarray:
+        """(k,): how many of the points ``q`` each pose puts on a lamp, one point per lamp
+        (`match_to_map`'s count: the lamps claimed, each once), for all poses at once."""
+        _, j = self._near(q, poses)
+        j = np.sort(j, axis=1)  # the misses (len(map)) last
+        first = j[:, :1] < len(self.lamps)
+        new = (np.diff(j, axis=1) != 0) & (j[:, 1:] < len(self.lamps))
+        return first[:, 0].astype(int) + new.sum(axis=1)
+
+    def _var(self) -> float:
+        """A spot's variance on the ceiling per axis against its lamp (mm^2): the map's
+        and the centroid's."""
+        return self.rig.target.map_sigma_mm**2 + (CENTROID_PX * self.mm_per_px) ** 2
+
+    def _chi2(self, pts: np.ndarray, pose: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+        """A pose's chi-square against the spots (RIVAL_CHI2's comment), the spots' lamp
+        indices at it and the pose refitted to them."""
+        ids = self.match_to_map(pts, pose, self.verify_gate_mm)
+        m = ids >= 0
+        n_fin = int(np.all(np.isfinite(pts), axis=1).sum())
+        var = self._var()
+        miss = (n_fin - int(m.sum())) * self.verify_gate_mm**2 / var
+        if m.sum() < 2:
+            return math.inf, ids, pose
+        src, dst = pts[m][None], self.lamps[ids[m], :2][None]
+        fit, _ = _procrustes(src, dst)
+        r = _to_map(pts[m], fit[0]) - dst[0]
+        return float(np.sum(r * r)) / var + miss, ids, fit[0]
+
+    def _unique(self, pts: np.ndarray, found: Identification,
+                others: np.ndarray | None = None) -> Identification:  # fmt: skip
+        """``found`` (a pose that explains the spots) kept when no other place fits them
+        nearly as well (RIVAL_CHI2's comment): the places the lookup also found
+        (``others``, poses (k, 3)) and those of every map triangle like three of the
+        identified spots'; the better place where one fits clearly better; else no fix
+        (ambiguous)."""
+        m = found.ids >= 0
+        if m.sum() < 3:
+            return found
+        P = pts[m]
+        # three well-spread identified spots: the farthest two and the one farthest from both
+        d = np.linalg.norm(P[:, None] - P[None], axis=2)
+        a, b = np.unravel_index(np.argmax(d), d.shape)
+        c = int(np.argmax(np.minimum(d[a], d[b])))
+        tri = P[[a, b, c]]
+        T, feats, tree = self._all_triangles()
+        f, order = _sides(tri[None])
+        # a rival within RIVAL_CHI2 of the found pose puts each of the three spots within
+        # sqrt((its own chi-square + RIVAL_CHI2) var) of a lamp, and so each side within
+        # twice that of its map triangle's (at most RIVAL_SIDE_GATES verify gates)
+        lamps_f = self.lamps[found.ids[m], :2]
+        fit_f, _ = _procrustes(P[None], lamps_f[None])
+        r_f = _to_map(P, fit_f[0]) - lamps_f
+        reach = math.sqrt((float(np.sum(r_f * r_f)) / self._var() + RIVAL_CHI2) * self._var())
+        tol = min(2.0 * reach, RIVAL_SIDE_GATES * self.verify_gate_mm)
+        near = tree.query_ball_point(f[0], tol, p=np.inf)
+        cands = [others] if others is not None and len(others) else []
+        if near:
+            ordered = tri[order[0]][np.array(_SWAPS)]  # (3 orders, 3, 2)
+            src = np.broadcast_to(ordered, (len(near), *ordered.shape)).reshape(-1, 3, 2)
+            dst = np.repeat(self.lamps[T[np.array(near)], :2], len(_SWAPS), axis=0)
+            hyp, err = _procrustes(src, dst)
+            cands.append(hyp[err < self.verify_gate_mm])
+        cands = np.concatenate(cands) if cands else np.zeros((0, 3))
+        cands = cands[~_agrees(cands, found.pose)] if len(cands) else cands
+        if not len(cands):
+            return found
+        # only those that put as many spots near lamps as the found pose (a spot left
+        # unexplained costs a gate's chi-square, RIVAL_CHI2 many times over): tried first
+        # on four of the found pose's spots besides the three (a candidate may miss no
+        # more of them than the spots the found pose leaves out), where a unique map's
+        # candidates already fail, then on every spot
+        fin = np.nonzero(np.all(np.isfinite(pts), axis=1))[0]
+        ident = np.nonzero(m)[0]
+        few = ident[~np.isin(ident, ident[[a, b, c]])][:4]
+        slack = len(fin) - len(ident)
+        for part, need in ((few, len(few) - slack), (fin, len(ident))):
+            if not len(cands):
+                return found
+            dist, _ = self._near(pts[part], cands)
+            keep = np.isfinite(dist).sum(axis=1) >= need
+            cands, dist = cands[keep], dist[keep]
+        # one of each place (poses within a cluster's size alike), the likeliest first (the
+        # spots' squared distances from their nearest lamps): a rival is then weighed
+        # against the best place, not a worse one
+        key = np.round(cands / [CLUSTER_MM, CLUSTER_MM, np.radians(CLUSTER_DEG)])
+        first = np.unique(key, axis=0, return_index=True)[1]
+        cands, dist = cands[first], dist[first]
+        rough = np.minimum(dist, self.verify_gate_mm) ** 2
+        cands = cands[np.argsort(rough.sum(axis=1), kind="stable")]
+        chi, ids, fit = self._chi2(pts, found.pose)
+        scored = [(fit, chi, ids)]
+        for h in cands:
+            chi, ids, fit = self._chi2(pts, h)
+            if any(_agrees(fit[None], q)[0] for q, _, _ in scored):
+                continue  # the same place again
+            scored.append((fit, chi, ids))
+            fits = np.array([x[0] for x in scored])
+            chis = np.array([x[1] for x in scored])
+            best = int(np.argmin(chis))
+            if np.any(~_agrees(fits, fits[best]) & (chis <= chis[best] + RIVAL_CHI2)):
+                # two places the spots fit alike (one still better found later would
+                # only make this a refusal it need not be: never a wrong fix)
+                return Identification(np.full(len(pts), -1), None, found.votes, reason="ambiguous")
+        best = int(np.argmin([x[1] for x in scored]))
+        if best == 0:
+            return found
+        return Identification(scored[best][2], scored[best][0], found.votes)
 
     def _all_triangles(self):
         """Every map triangle whose sides all fit in the camera's view on the ceiling:
@@ -355,14 +484,15 @@ class LampIdentifier:
         n_ver = int(np.sum(ids >= 0))
         if n_ver < max(MIN_VERIFIED, MIN_VERIFIED_SHARE * np.isfinite(pts).all(axis=1).sum()):
             return Identification(none, None, votes=int(votes[best]), reason="no_consensus")
-        # the strongest hypothesis that disagrees with the winner
-        rival = ~_agrees(hyp, hyp[best])
-        if rival.any() and votes[rival].max() >= MIN_VOTES:
-            r = np.nonzero(rival)[0][np.argmax(votes[rival])]
-            n_rival = int(np.sum(self.match_to_map(pts, hyp[r], self.verify_gate_mm) >= 0))
-            if n_rival >= max(MIN_VERIFIED, AMBIGUOUS_RATIO * n_ver):
-                return Identification(none, None, votes=int(votes[best]), reason="ambiguous")
-        return Identification(ids, hyp[best], int(votes[best]))
+        # the hypotheses that disagree with the winner with votes enough: each weighed
+        # against it by how well the spots fit (_unique)
+        rival = ~_agrees(hyp, hyp[best]) & (votes >= MIN_VOTES)
+        return self._unique(pts, Identification(ids, hyp[best], int(votes[best])), hyp[rival])
+
+
+# a triangle's vertex orders tried against a map triangle: the canonical one and the two
+# closest sides swapped (an isosceles triangle's order is not fixed by its sides)
+_SWAPS = ((0, 1, 2), (1, 0, 2), (0, 2, 1))
 
 
 def _sides(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
