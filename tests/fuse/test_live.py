@@ -20,6 +20,7 @@ from visvec.output import PLANAR_COLUMNS
 from conftest import Stderr, data_rows, wait_until
 
 
+@pytest.mark.slow  # 5 s of real time
 def test_fuse_live_over_udp_in_real_time(tmp_path):
     """IMU samples sent at 100 Hz in real time and fixes as they become available, both
     over UDP on 127.0.0.1: the rows come out as the samples arrive, within 5 mm of the
