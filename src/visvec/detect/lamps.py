@@ -60,15 +60,14 @@ TRACK_GATE_PX = 15.0
 # this many tracking gates of a spot's predicted place (with the lamp within one gate,
 # a prediction off by up to a gate cannot swap it for another)
 DARK_CLEAR = 2.0
-AMBIGUOUS_RATIO = 0.6  # a rival with this fraction of the winner's verified lamps
 # The place the lamps fit, against every other place they may fit. A pose's chi-square
 # against the spots: each identified spot's squared distance from its lamp (after a
 # rigid fit of all of them) over the map's and the centroids' variance, and each spot it
 # leaves unexplained counted as one at the verify gate. Another pose within RIVAL_CHI2 of
 # the best is a rival: the spots fit both, and the frame is ambiguous (on a regular
 # grid every shift by a pitch fits as well as the truth, and dark lamps are no evidence
-# against it); the candidates are every map triangle whose sides match three of the
-# identified spots' within RIVAL_SIDE_GATES verify gates
+# against it); the candidates put two identified spots far apart on any two lamps as far
+# apart, within RIVAL_SIDE_GATES verify gates
 RIVAL_CHI2 = 25.0
 CENTROID_PX = 0.1  # the centroids' 1-sigma taken with the map's (configs' prior)
 RIVAL_SIDE_GATES = 2.0
@@ -152,6 +151,9 @@ class LampIdentifier:
         self._neighbour_perimeter = np.zeros(0)
         # every map triangle that fits in the view, built on first need (few lamps lit)
         self._few_cat: tuple[np.ndarray, np.ndarray, cKDTree] | None = None
+        # every pair of lamps within the view, by distance (lost in space's rival places)
+        self._pair_cache: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._pairs()
 
     def body_points(self, xy_n: np.ndarray) -> np.ndarray:
         """Spots put on the ceiling plane, in body coordinates (x, y mm; level table)."""
@@ -331,50 +333,53 @@ class LampIdentifier:
                 others: np.ndarray | None = None) -> Identification:  # fmt: skip
         """``found`` (a pose that explains the spots) kept when no other place fits them
         nearly as well (RIVAL_CHI2's comment): the places the lookup also found
-        (``others``, poses (k, 3)) and those of every map triangle like three of the
-        identified spots'; the better place where one fits clearly better; else no fix
+        (``others``, poses (k, 3)) and those that put two identified spots far apart on
+        any two lamps as far apart; the better place where one fits clearly better; else no fix
         (ambiguous)."""
         m = found.ids >= 0
         if m.sum() < 3:
             return found
         P = pts[m]
-        # three well-spread identified spots: the farthest two and the one farthest from both
+        # two identified spots far apart, and a third far from both
         d = np.linalg.norm(P[:, None] - P[None], axis=2)
         a, b = np.unravel_index(np.argmax(d), d.shape)
         c = int(np.argmax(np.minimum(d[a], d[b])))
-        tri = P[[a, b, c]]
-        T, feats, tree = self._all_triangles()
-        f, order = _sides(tri[None])
-        # a rival within RIVAL_CHI2 of the found pose puts each of the three spots within
-        # sqrt((its own chi-square + RIVAL_CHI2) var) of a lamp, and so each side within
-        # twice that of its map triangle's (at most RIVAL_SIDE_GATES verify gates)
+        # a rival within RIVAL_CHI2 of the found pose puts each spot within
+        # sqrt((its own chi-square + RIVAL_CHI2) var) of a lamp, and so the two spots'
+        # distance within twice that of its two lamps' (at most RIVAL_SIDE_GATES gates)
         lamps_f = self.lamps[found.ids[m], :2]
         fit_f, _ = _procrustes(P[None], lamps_f[None])
         r_f = _to_map(P, fit_f[0]) - lamps_f
         reach = math.sqrt((float(np.sum(r_f * r_f)) / self._var() + RIVAL_CHI2) * self._var())
         tol = min(2.0 * reach, RIVAL_SIDE_GATES * self.verify_gate_mm)
-        near = tree.query_ball_point(f[0], tol, p=np.inf)
+        li, lj, dist = self._pairs()
+        lo, hi = np.searchsorted(dist, [d[a, b] - tol, d[a, b] + tol])
+        # each pair of lamps that far apart, both ways round: the pose that puts the two
+        # spots on them
+        i2 = np.concatenate([li[lo:hi], lj[lo:hi]])
+        j2 = np.concatenate([lj[lo:hi], li[lo:hi]])
+        vm = self.lamps[j2, :2] - self.lamps[i2, :2]
+        vb = P[b] - P[a]
+        psi = np.arctan2(vm[:, 1], vm[:, 0]) - math.atan2(vb[1], vb[0])
+        cs, sn = np.cos(psi), np.sin(psi)
+        pa = np.column_stack([cs * P[a, 0] - sn * P[a, 1], sn * P[a, 0] + cs * P[a, 1]])
         cands = [others] if others is not None and len(others) else []
-        if near:
-            ordered = tri[order[0]][np.array(_SWAPS)]  # (3 orders, 3, 2)
-            src = np.broadcast_to(ordered, (len(near), *ordered.shape)).reshape(-1, 3, 2)
-            dst = np.repeat(self.lamps[T[np.array(near)], :2], len(_SWAPS), axis=0)
-            hyp, err = _procrustes(src, dst)
-            cands.append(hyp[err < self.verify_gate_mm])
+        cands.append(np.column_stack([self.lamps[i2, :2] - pa, psi]))
         cands = np.concatenate(cands) if cands else np.zeros((0, 3))
         cands = cands[~_agrees(cands, found.pose)] if len(cands) else cands
         if not len(cands):
             return found
         # only those that put as many spots near lamps as the found pose (a spot left
         # unexplained costs a gate's chi-square, RIVAL_CHI2 many times over): tried first
-        # on four of the found pose's spots besides the three (a candidate may miss no
-        # more of them than the spots the found pose leaves out), where a unique map's
-        # candidates already fail, then on every spot
+        # on the third spot, then four more of the found pose's spots (a candidate may
+        # miss no more of them than the spots the found pose leaves out), where a unique
+        # map's candidates already fail, then on every spot
         fin = np.nonzero(np.all(np.isfinite(pts), axis=1))[0]
         ident = np.nonzero(m)[0]
         few = ident[~np.isin(ident, ident[[a, b, c]])][:4]
         slack = len(fin) - len(ident)
-        for part, need in ((few, len(few) - slack), (fin, len(ident))):
+        third = ident[[c]]  # the pair's candidates have not placed it yet
+        for part, need in ((third, 1 - slack), (few, len(few) - slack), (fin, len(ident))):
             if not len(cands):
                 return found
             dist, _ = self._near(pts[part], cands)
@@ -406,6 +411,19 @@ class LampIdentifier:
         if best == 0:
             return found
         return Identification(scored[best][2], scored[best][0], found.votes)
+
+    def _pairs(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Every pair of map lamps closer than the camera's view on the ceiling reaches:
+        their indices and distances (mm), by distance (built once, a few milliseconds)."""
+        if self._pair_cache is None:
+            cam = self.rig.camera
+            reach = float(np.hypot(cam.width, cam.height)) * self.mm_per_px
+            pairs = self.map_tree.query_pairs(reach, output_type="ndarray")
+            xy = self.lamps[:, :2]
+            dist = np.linalg.norm(xy[pairs[:, 0]] - xy[pairs[:, 1]], axis=1)
+            order = np.argsort(dist)
+            self._pair_cache = (pairs[order, 0], pairs[order, 1], dist[order])
+        return self._pair_cache
 
     def _all_triangles(self):
         """Every map triangle whose sides all fit in the camera's view on the ceiling:
@@ -488,11 +506,6 @@ class LampIdentifier:
         # against it by how well the spots fit (_unique)
         rival = ~_agrees(hyp, hyp[best]) & (votes >= MIN_VOTES)
         return self._unique(pts, Identification(ids, hyp[best], int(votes[best])), hyp[rival])
-
-
-# a triangle's vertex orders tried against a map triangle: the canonical one and the two
-# closest sides swapped (an isosceles triangle's order is not fixed by its sides)
-_SWAPS = ((0, 1, 2), (1, 0, 2), (0, 2, 1))
 
 
 def _sides(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
