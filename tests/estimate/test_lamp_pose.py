@@ -425,3 +425,23 @@ def test_the_map_s_sigma_is_read_and_checked(tmp_path):
     (tmp_path / "b.toml").write_text(text.replace(height, height + "\nmap_sigma_mm = -1"))
     with pytest.raises(ConfigError, match=r"\[target\] map_sigma_mm = -1"):
         load_rig(tmp_path / "b.toml")
+
+
+def test_the_batched_verification_counts_as_match_to_map_does(rng):
+    """Lost in space counts each pose's verified spots for many poses in one query
+    (_verified_counts): the count match_to_map gives pose by pose, spots that claim one
+    lamp and spots near no lamp included."""
+    from visvec.detect.lamps import LampIdentifier
+
+    ident = LampIdentifier(RIG)
+    for _ in range(50):
+        pose = np.array([rng.uniform(-2000, 2000), rng.uniform(-1500, 1500), rng.uniform(-3, 3)])
+        lamps = ident.lamps[rng.choice(len(ident.lamps), 8, replace=False), :2]
+        c, s = np.cos(pose[2]), np.sin(pose[2])
+        body = (lamps - pose[:2]) @ np.array([[c, -s], [s, c]])
+        # noisy spots, strays, and a spot beside another (both near one lamp)
+        body = np.vstack([body + rng.normal(0, 8, body.shape),
+                          rng.uniform(-1000, 1000, (3, 2)), body[:1] + 3])  # fmt: skip
+        poses = pose + rng.normal(0, [15, 15, 0.01], (20, 3))
+        want = [np.sum(ident.match_to_map(body, h, ident.verify_gate_mm) >= 0) for h in poses]
+        assert ident._verified_counts(body, poses).tolist() == want

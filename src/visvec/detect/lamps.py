@@ -152,8 +152,7 @@ class LampIdentifier:
         # every map triangle that fits in the view, built on first need (few lamps lit)
         self._few_cat: tuple[np.ndarray, np.ndarray, cKDTree] | None = None
         # every pair of lamps within the view, by distance (lost in space's rival places)
-        self._pair_cache: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
-        self._pairs()
+        self._pairs = _lamp_pairs(self.lamps[:, :2], self.map_tree, rig.camera, self.mm_per_px)
 
     def body_points(self, xy_n: np.ndarray) -> np.ndarray:
         """Spots put on the ceiling plane, in body coordinates (x, y mm; level table)."""
@@ -314,28 +313,31 @@ class LampIdentifier:
         and the centroid's."""
         return self.rig.target.map_sigma_mm**2 + (CENTROID_PX * self.mm_per_px) ** 2
 
-    def _chi2(self, pts: np.ndarray, pose: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    def _chi2(self, pts: np.ndarray, pose: np.ndarray) -> tuple[float, np.ndarray, np.ndarray,
+                                                                float]:  # fmt: skip
         """A pose's chi-square against the spots (RIVAL_CHI2's comment), the spots' lamp
-        indices at it and the pose refitted to them."""
+        indices at it, the pose refitted to them and the identified spots' part of the
+        chi-square."""
         ids = self.match_to_map(pts, pose, self.verify_gate_mm)
         m = ids >= 0
         n_fin = int(np.all(np.isfinite(pts), axis=1).sum())
         var = self._var()
         miss = (n_fin - int(m.sum())) * self.verify_gate_mm**2 / var
         if m.sum() < 2:
-            return math.inf, ids, pose
+            return math.inf, ids, pose, math.inf
         src, dst = pts[m][None], self.lamps[ids[m], :2][None]
         fit, _ = _procrustes(src, dst)
         r = _to_map(pts[m], fit[0]) - dst[0]
-        return float(np.sum(r * r)) / var + miss, ids, fit[0]
+        fitted = float(np.sum(r * r)) / var
+        return fitted + miss, ids, fit[0], fitted
 
     def _unique(self, pts: np.ndarray, found: Identification,
                 others: np.ndarray | None = None) -> Identification:  # fmt: skip
         """``found`` (a pose that explains the spots) kept when no other place fits them
         nearly as well (RIVAL_CHI2's comment): the places the lookup also found
         (``others``, poses (k, 3)) and those that put two identified spots far apart on
-        any two lamps as far apart; the better place where one fits clearly better; else no fix
-        (ambiguous)."""
+        any two lamps as far apart; the better place where one fits clearly better; else
+        no fix (ambiguous)."""
         m = found.ids >= 0
         if m.sum() < 3:
             return found
@@ -347,12 +349,11 @@ class LampIdentifier:
         # a rival within RIVAL_CHI2 of the found pose puts each spot within
         # sqrt((its own chi-square + RIVAL_CHI2) var) of a lamp, and so the two spots'
         # distance within twice that of its two lamps' (at most RIVAL_SIDE_GATES gates)
-        lamps_f = self.lamps[found.ids[m], :2]
-        fit_f, _ = _procrustes(P[None], lamps_f[None])
-        r_f = _to_map(P, fit_f[0]) - lamps_f
-        reach = math.sqrt((float(np.sum(r_f * r_f)) / self._var() + RIVAL_CHI2) * self._var())
+        chi, ids, fit, fitted = self._chi2(pts, found.pose)
+        scored = [(fit, chi, ids)]
+        reach = math.sqrt((fitted + RIVAL_CHI2) * self._var())
         tol = min(2.0 * reach, RIVAL_SIDE_GATES * self.verify_gate_mm)
-        li, lj, dist = self._pairs()
+        li, lj, dist = self._pairs
         lo, hi = np.searchsorted(dist, [d[a, b] - tol, d[a, b] + tol])
         # each pair of lamps that far apart, both ways round: the pose that puts the two
         # spots on them
@@ -363,9 +364,9 @@ class LampIdentifier:
         psi = np.arctan2(vm[:, 1], vm[:, 0]) - math.atan2(vb[1], vb[0])
         cs, sn = np.cos(psi), np.sin(psi)
         pa = np.column_stack([cs * P[a, 0] - sn * P[a, 1], sn * P[a, 0] + cs * P[a, 1]])
-        cands = [others] if others is not None and len(others) else []
-        cands.append(np.column_stack([self.lamps[i2, :2] - pa, psi]))
-        cands = np.concatenate(cands) if cands else np.zeros((0, 3))
+        cands = np.column_stack([self.lamps[i2, :2] - pa, psi])
+        if others is not None and len(others):
+            cands = np.concatenate([others, cands])
         cands = cands[~_agrees(cands, found.pose)] if len(cands) else cands
         if not len(cands):
             return found
@@ -393,10 +394,8 @@ class LampIdentifier:
         cands, dist = cands[first], dist[first]
         rough = np.minimum(dist, self.verify_gate_mm) ** 2
         cands = cands[np.argsort(rough.sum(axis=1), kind="stable")]
-        chi, ids, fit = self._chi2(pts, found.pose)
-        scored = [(fit, chi, ids)]
         for h in cands:
-            chi, ids, fit = self._chi2(pts, h)
+            chi, ids, fit, _ = self._chi2(pts, h)
             if any(_agrees(fit[None], q)[0] for q, _, _ in scored):
                 continue  # the same place again
             scored.append((fit, chi, ids))
@@ -411,19 +410,6 @@ class LampIdentifier:
         if best == 0:
             return found
         return Identification(scored[best][2], scored[best][0], found.votes)
-
-    def _pairs(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Every pair of map lamps closer than the camera's view on the ceiling reaches:
-        their indices and distances (mm), by distance (built once, a few milliseconds)."""
-        if self._pair_cache is None:
-            cam = self.rig.camera
-            reach = float(np.hypot(cam.width, cam.height)) * self.mm_per_px
-            pairs = self.map_tree.query_pairs(reach, output_type="ndarray")
-            xy = self.lamps[:, :2]
-            dist = np.linalg.norm(xy[pairs[:, 0]] - xy[pairs[:, 1]], axis=1)
-            order = np.argsort(dist)
-            self._pair_cache = (pairs[order, 0], pairs[order, 1], dist[order])
-        return self._pair_cache
 
     def _all_triangles(self):
         """Every map triangle whose sides all fit in the camera's view on the ceiling:
@@ -506,6 +492,16 @@ class LampIdentifier:
         # against it by how well the spots fit (_unique)
         rival = ~_agrees(hyp, hyp[best]) & (votes >= MIN_VOTES)
         return self._unique(pts, Identification(ids, hyp[best], int(votes[best])), hyp[rival])
+
+
+def _lamp_pairs(xy: np.ndarray, tree, camera, mm_per_px: float):
+    """Every pair of map lamps ``xy`` closer than the camera's view on the ceiling
+    reaches: their indices (two arrays) and distances (mm), by distance."""
+    reach = float(np.hypot(camera.width, camera.height)) * mm_per_px
+    pairs = tree.query_pairs(reach, output_type="ndarray")
+    dist = np.linalg.norm(xy[pairs[:, 0]] - xy[pairs[:, 1]], axis=1)
+    order = np.argsort(dist)
+    return pairs[order, 0], pairs[order, 1], dist[order]
 
 
 def _sides(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

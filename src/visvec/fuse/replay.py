@@ -246,9 +246,8 @@ class Fusion:
         offset)."""
         n = len(ts)
         h = self.history
-        run = getattr(self.model, "propagate_run", None)
         if (
-            run is None
+            not hasattr(self.model, "propagate_run")
             or hasattr(self.model, "time_offset")
             or not self._initialised
             or self._prov is not None
