@@ -10,6 +10,7 @@ from fusion_cases import _fixes, _sim3d
 from visvec.bench.recordings import (
     BROAD_TRIALS,
     REPOIMU_CLIPPING,
+    REPOIMU_CLIPS_ONCE,
     REPOIMU_TRIALS,
     load,
     shared_recordings,
@@ -25,10 +26,17 @@ from conftest import SHARED_DATA
 
 def _detect(t, gyro, gyro_range_dps=None, keep=1200):
     """Every sample through a Saturation on a history of ``keep`` samples; its learned
-    levels (axis, side, deg/s) and how many samples it flagged."""
+    levels (axis, side, deg/s) and how many samples it flagged (the samples kept as read
+    with a sigma as if clipped, `Saturation.n_maybe`, count too)."""
+    sat = _run_saturation(t, gyro, gyro_range_dps, keep)
+    return ([(ax, side, math.degrees(v)) for ax, side, v in sat.learned],
+            sat.n_saturated + sat.n_maybe)  # fmt: skip
+
+
+def _run_saturation(t, gyro, gyro_range_dps=None, keep=1200):
     h = History()
+    widened: list[float] = []
     sat = Saturation(h, gyro_range_dps)
-    flagged = 0
     for k in range(len(t)):
         h.ts.append(float(t[k]))
         h.raw.append(np.asarray(gyro[k], float))
@@ -36,11 +44,15 @@ def _detect(t, gyro, gyro_range_dps=None, keep=1200):
         h.acc.append(None)
         h.states.append(None)
         h.gyro.append(h.reading(len(h.ts) - 1, np.zeros(3)))
-        clipped, _ = sat.take()
-        flagged += bool(clipped.any())
+        before = sat.n_maybe
+        sat.take()
+        # the samples widened as a possible first clip: the newest, and on the top's
+        # first evidence the samples back to its start (all the latest in the history)
+        widened += h.ts[len(h) - (sat.n_maybe - before) :] if sat.n_maybe > before else []
         if len(h) > keep:
             h.drop(len(h) - keep)
-    return [(ax, side, math.degrees(v)) for ax, side, v in sat.learned], sat.n_saturated
+    sat.widened = widened  # their times
+    return sat
 
 
 def _recordings(names):
@@ -51,7 +63,7 @@ def _recordings(names):
     return out
 
 
-NOT_CLIPPING = [n for n in REPOIMU_TRIALS if n not in REPOIMU_CLIPPING]
+NOT_CLIPPING = [n for n in REPOIMU_TRIALS if n not in REPOIMU_CLIPPING + REPOIMU_CLIPS_ONCE]
 
 
 @pytest.mark.parametrize("name", [*NOT_CLIPPING, BROAD_TRIALS[2], BROAD_TRIALS[0]])
@@ -91,6 +103,44 @@ def test_a_clipping_gyro_is_found_on_its_own_axis():
         assert 412.0 < levels.get((0, 0), 415.0) < 418.0 and 418.0 < levels[(0, 1)] < 424.0
 
 
+def test_a_first_clip_keeps_its_readings_and_widens_their_sigma():
+    """RepoIMU Test05's first flat top (x at -421 deg/s from 8.47 to 8.73 s; its range is
+    learned only from a later one): before any range is known, its readings are kept
+    as read, and from its tenth quiet step on each carries a sigma as if clipped (a
+    third of the range or more), back to its first sample; the samples before it
+    none."""
+    ((ds, path),) = _recordings(["Test05_Trial2"])
+    rec = load(ds, path)
+    end = int(np.searchsorted(rec.t, 8.72))
+    sat = _run_saturation(rec.t[:end], rec.gyro[:end], keep=10**6)
+    assert sat.learned == []
+    h = sat.h
+    top = [j for j in range(end) if rec.t[j] >= 8.48]
+    before = [j for j in range(end) if 8.0 <= rec.t[j] < 8.45]
+    assert all(np.array_equal(h.raw[j], rec.gyro[j]) for j in range(end))
+    assert all(h.gyro[j][2][0] > np.radians(0.3 * 421.0) for j in top)
+    assert not any(h.gyro[j][2].any() for j in before)
+    assert sat.n_maybe >= len(top)
+
+
+@pytest.mark.parametrize("keep", [1000, 2000])
+def test_a_gyro_that_clips_once_is_widened_there_and_nowhere_else(keep):
+    """RepoIMU Test06's y axis sits at -408 deg/s for 18 samples (48.63-48.80 s), once,
+    4 of its 17 steps as loud as the gyro's noise: no range is learned from one flat top;
+    with the engine's 10 s of history (1000 samples; the noise learned over them) its
+    samples carry a sigma as if clipped, from its tenth quiet step on, back to its start;
+    with 20 s the noise learned is wider and the evidence stays short of SAT_MAYBE_P.
+    Either way no other sample is widened."""
+    ((ds, path),) = _recordings(list(REPOIMU_CLIPS_ONCE))
+    rec = load(ds, path)
+    sat = _run_saturation(rec.t, rec.gyro, keep=keep)
+    assert sat.learned == [] and sat.n_saturated == 0
+    if keep == 1000:
+        assert 12 <= sat.n_maybe <= 20
+    assert len(sat.widened) == sat.n_maybe
+    assert all(48.62 <= x <= 48.81 for x in sat.widened)
+
+
 def _clipped_swing(axes=(0,)):
     """``axes`` clipped at 250 deg/s (their readings identical at the range), the
     others swinging to about 300 deg/s unclipped, after 3 s at rest (where the gyro's
@@ -112,12 +162,13 @@ def test_no_axis_takes_another_s_range():
 
 def test_repeated_slews_at_one_rate_are_not_a_range():
     """A platform slewing again and again at one commanded rate (200 deg/s, reached
-    within one sample, held 1 s each time): a real gyro's noise rides on it, so no flat
-    top is taken for a range."""
+    within one sample, held 1 s each time, 80 times): a real gyro's noise rides on it,
+    so no flat top is taken for a range, nor widened as a possible first clip (each of
+    their steps looked at)."""
     rng = np.random.default_rng(5)
     dt = 0.01
     seg = np.r_[np.zeros(50), np.full(100, 200.0), np.zeros(50), np.full(100, -200.0)]
-    rate = np.tile(seg, 8)
+    rate = np.tile(seg, 40)
     t = np.arange(len(rate)) * dt
     g = np.zeros((len(t), 3))
     g[:, 2] = np.radians(rate + rng.normal(0, 0.3, len(t)))
@@ -139,3 +190,14 @@ def test_a_declared_range_flags_at_once_and_refuses_readings_beyond_it():
     assert eng.saturation.learned == []
     assert "gyro_beyond_range" in out[first + 400].warnings
     assert sum("gyro_beyond_range" in x.warnings for x in out) == 1
+
+
+def test_the_closing_line_counts_the_readings_kept_as_read_with_a_clip_s_sigma():
+    from visvec.cli.fuse import range_words
+
+    sat = Saturation(History())
+    assert "too quiet" not in range_words(sat)
+    sat.n_maybe = 28
+    assert range_words(sat).endswith(
+        "28 samples on flat tops too quiet for its noise kept as read, with a sigma as if clipped"
+    )

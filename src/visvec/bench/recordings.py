@@ -17,6 +17,9 @@ REPOIMU_TRIALS = ("Test02_Trial1", "Test04_Trial1", "Test05_Trial2", "Test06_Tri
                   "Test10_Trial1", "Test11_Trial1")  # fmt: skip
 # RepoIMU's trials whose gyro clips at its range (Test05 in over a thousand samples)
 REPOIMU_CLIPPING = ("Test05_Trial2", "Test10_Trial1")
+# ... and the one whose gyro clips once: Test06's y axis at -408 deg/s for 18 samples
+# from 48.63 s (steps of 0.0-0.3 deg/s while x swings by 150 deg/s)
+REPOIMU_CLIPS_ONCE = ("Test06_Trial2",)
 BROAD_TRIALS = ("01_undisturbed_slow_rotation_A", "06_undisturbed_fast_rotation_A",
                 "08_undisturbed_fast_rotation_with_breaks_A",
                 "15_undisturbed_fast_translation_A",

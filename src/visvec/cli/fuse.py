@@ -367,11 +367,14 @@ def range_words(sat) -> str:
         if sat.n_beyond:
             words += f", {sat.n_beyond} beyond it refused (gyro_beyond_range)"
         return words
+    maybe = (f"; {sat.n_maybe} samples on flat tops too quiet for its noise kept as read, "
+             "with a sigma as if clipped" if sat.n_maybe else "")  # fmt: skip
     if not sat.learned:
-        return "gyro range not seen (no flat top of a clipping gyro; none assumed)"
+        return "gyro range not seen (no flat top of a clipping gyro; none assumed)" + maybe
     levels = ", ".join(f"{'+' if side == 0 else '-'}{math.degrees(v):.1f} on {'xyz'[ax]}"
                        for ax, side, v in sat.learned)  # fmt: skip
-    return f"gyro range learned from its flat tops: {levels} deg/s, {sat.n_saturated} samples at it"
+    return (f"gyro range learned from its flat tops: {levels} deg/s, {sat.n_saturated} "
+            "samples at it" + maybe)  # fmt: skip
 
 
 def live_summary(summary) -> str:

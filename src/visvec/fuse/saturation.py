@@ -48,6 +48,23 @@ SAT_STEPS = 20
 SAT_QUIET = 0.5
 SAT_P = 1e-6
 SAT_TOPS_KEPT = 200  # the flat tops weighed, per axis and side: the latest
+# A first clip, before any range is known on its axis and side: a flat top still open
+# whose steps are already quieter than the gyro's noise would make them with a
+# probability below SAT_MAYBE_P (the sign test above, on this top alone) may be the
+# gyro at its range. Nothing is rewritten on this evidence: its readings are kept as
+# read and each carries the extra sigma SAT_SIGMA_MAYBE times the top's level, held
+# through the top as a reconstruction's is (rows: gyro_saturated). A reading at the
+# range says the rate was at least that; a clipped peak reaches at most about twice it
+# (declip's cap), and an excess uniform over [0, range] has an RMS of range / sqrt(3).
+# SAT_MAYBE_P is looked at after every step of every open top: 1e-4 (ten quiet steps in
+# a row) leaves 200 slews at one commanded rate with a real gyro's noise unwidened,
+# where 1e-3 widens one in a hundred. Checked on every shared recording
+# (tests/fuse/test_saturation.py): RepoIMU Test05's first flat top, widened from its
+# tenth step (its range is learned only from a later one); Test06's one flat top (y at
+# -408 deg/s for 18 samples, 14 of 17 steps quiet) with the engine's 10 s of history;
+# no BROAD trial and no RepoIMU trial within its range
+SAT_MAYBE_P = 1e-4
+SAT_SIGMA_MAYBE = 1.0 / math.sqrt(3.0)
 # the gyro's sample noise (rad/s) per axis: every NOISE_EVERY samples, over the last
 # NOISE_SPAN, the median absolute second difference (Gaussian: 0.6745 sqrt(6) sigma) of
 # each NOISE_BLOCK samples that stay below SAT_MIN_DPS on that axis (no flat top there),
@@ -128,12 +145,15 @@ class Saturation:
         self._noise: np.ndarray | None = None  # rad/s per axis
         self._noise_at = 0
         self._found = False  # a range learned at the newest sample
+        self.n_maybe = 0  # readings that may have been at a range not yet known
+        self._maybe: list[list | None] = [None, None, None]  # the open top's steps, once quiet
         self._all_known = bool(np.all(np.isfinite(self.ranges)))
 
     def reset(self) -> None:
         """The samples broke off (a gap): no flat top is open."""
         self._burst_end = None
         self._open = [None, None, None]
+        self._maybe = [None, None, None]
 
     def level(self, ax: int, sign: float) -> float | None:
         """The clip level of an axis on one side (rad/s), or None while none is
@@ -282,6 +302,10 @@ class Saturation:
                 first = self.reconstruct(last, both=True)
                 if first is not None:
                     dirty = min(dirty, first)
+        if clipped is NOT_CLIPPED and not self._all_known:
+            first = self._maybe_clipped(j_new)
+            if first is not None:
+                dirty = min(dirty, first)
         if clipped is not NOT_CLIPPED:
             self.n_saturated += 1
             first = self.reconstruct(j_new, both=False)
@@ -298,6 +322,44 @@ class Saturation:
                     dirty = min(dirty, first)
                 self._burst_end = None
         return clipped, dirty
+
+    def _maybe_clipped(self, j_new: int) -> int | None:
+        """The open flat tops that may be a first clip (the rule in the comment of
+        SAT_MAYBE_P): their readings' extra sigma set, from the top's first sample on
+        when it has just become quiet enough; the first sample whose reading changed."""
+        first = None
+        for ax in range(3):
+            top = self._open[ax]
+            if top is None:
+                self._maybe[ax] = None
+                continue
+            side, level, _, steps = top
+            if self._maybe[ax] is not steps:
+                width = SAT_QUIET * math.sqrt(2.0) * float(self._noise[ax])
+                quiet = sum(abs(d) <= width for d in steps)
+                if binom_sf(quiet, len(steps), math.erf(SAT_QUIET / math.sqrt(2.0))) >= SAT_MAYBE_P:
+                    continue
+                self._maybe[ax] = steps  # this top, from its first sample
+                start = max(0, j_new - len(steps))
+            else:
+                start = j_new
+            first = start if first is None else min(first, start)
+        if first is None:
+            return None
+        h = self.h
+        for j in range(first, j_new + 1):
+            sig = np.zeros(3)
+            for ax in range(3):
+                steps = self._maybe[ax]
+                if steps is None:
+                    continue
+                m = j - (j_new - len(steps)) + 1  # the m-th interval of this top
+                if m >= 1:
+                    sig[ax] = SAT_SIGMA_MAYBE * self._open[ax][1] * math.sqrt(2 * m - 1)
+            if sig.any():
+                self.n_maybe += not h.gyro[j][2].any()  # each reading counted once
+                h.gyro[j] = h.reading(j, sig)
+        return first
 
     def _top_ends(self, j_new: int) -> list[int]:
         """The last samples of the flat tops flagged in the history that ended before
