@@ -156,9 +156,44 @@ class DetectSettings:
 
 @dataclass(frozen=True)
 class ZeroTilt:
-    """Calibrated zero-tilt centroid for the "paper" estimator (``[zero_tilt]``)."""
+    """What `calibrate zero-tilt` found (``[zero_tilt]``): the zero-tilt centroid for the
+    "paper" estimator, and how well it found the offsets it wrote into the rig:
+    ``offsets_cov`` (4, 4), the covariance of the target's offset on the ceiling (dx,
+    dy: mm) and the camera's tilt on its mount (about b1, b2: deg), and
+    ``turn_sigma_deg``, the sigma of the camera's turn about b3 (nan: not calibrated).
+    Their errors are the same in every row, so each row's sigma carries them
+    (`cov_body`)."""
 
     centroid_px: np.ndarray | None = None
+    offsets_cov: np.ndarray | None = None
+    turn_sigma_deg: float = float("nan")
+
+    def cov_body(self, R_nb: np.ndarray, target_mm: float, camera_mm: float) -> np.ndarray | None:
+        """The calibration's covariance of a row's attitude about the body axes (rad^2)
+        at attitude ``R_nb``, the target ``target_mm`` and the camera ``camera_mm``
+        above the platform's pivot; None when nothing was calibrated.
+
+        A camera tilted on its mount by (a, b) sees what a platform tilted by (a, b)
+        about the camera would show; the triangle's attitude turns about the pivot, where
+        the camera's own shift adds to the turn it sees, so it reads k (a, b, 0) about
+        the body axes, k = (target_mm - camera_mm) / target_mm. A target shifted by (dx,
+        dy) on the ceiling reads as the lab turned by theta = (-dy, dx, 0) / target_mm,
+        an attitude error -R_nb^T theta about the body axes. A turn about b3 adds to the
+        third. The geometry of calib.zero_tilt._model; checked against the triangle's
+        own fit in tests/calib/test_zero_tilt.py."""
+        if self.offsets_cov is None:
+            return None
+        k = (target_mm - camera_mm) / target_mm
+        d = math.radians(1.0)
+        J = np.zeros((3, 4))
+        # columns dx, dy (mm): -R_nb^T theta, theta = (-dy, dx, 0) / target_mm
+        J[:, 0] = -R_nb[1, :] / target_mm  # -R_nb^T (0, 1, 0) / target_mm
+        J[:, 1] = R_nb[0, :] / target_mm  # -R_nb^T (-1, 0, 0) / target_mm
+        J[0, 2] = J[1, 3] = k * d
+        cov = J @ self.offsets_cov @ J.T
+        if math.isfinite(self.turn_sigma_deg):
+            cov[2, 2] += (self.turn_sigma_deg * d) ** 2
+        return cov
 
 
 @dataclass(frozen=True)
@@ -697,7 +732,15 @@ def _detect_settings(det: _Section, src: str) -> DetectSettings:
 
 
 def _zero_tilt(zt: _Section) -> ZeroTilt:
-    zero = ZeroTilt(centroid_px=zt.array("centroid_px", (2,)))
+    cov = zt.array("offsets_cov", (4, 4))
+    if cov is not None and (not np.allclose(cov, cov.T) or np.linalg.eigvalsh(cov).min() < 0):
+        raise ConfigError(
+            f"{zt._where('offsets_cov')}: expected a covariance (symmetric, positive "
+            "semi-definite), as `calibrate zero-tilt` writes it"
+        )
+    turn = zt.number("turn_sigma_deg", None, lo=0.0)
+    zero = ZeroTilt(centroid_px=zt.array("centroid_px", (2,)), offsets_cov=cov,
+                    turn_sigma_deg=math.nan if turn is None else turn)  # fmt: skip
     zt.get("residual_px")  # written by `calibrate zero-tilt`, for the reader
     zt.check_unknown()
     return zero

@@ -10,7 +10,7 @@ from visvec.calib.zero_tilt import calibrate_zero_tilt, circle_centre
 from visvec.data import Detection, Status
 from visvec.errors import InputFileError
 from visvec.geometry import lab_to_camera
-from visvec.rotations import euler_to_matrix
+from visvec.rotations import euler_to_matrix, quat_to_matrix
 from visvec.sim.simulate import true_rig
 
 from conftest import CONFIGS, rig_variant, run
@@ -226,6 +226,26 @@ def test_calibrate_zero_tilt_cli_end_to_end(tmp_path):
 
     rows = list(csv.DictReader(io.StringIO(r.stdout)))
     assert all(abs(float(x["roll_deg"])) < 0.05 and abs(float(x["pitch_deg"])) < 0.05 for x in rows)
+    # the calibration's own error is in every row's sigma: the file holds its covariance,
+    # and the rows' tilt sigma is the detection's and the calibration's in quadrature
+    from visvec.rig import load_rig
+
+    calibrated = load_rig(rig_p, [pre, cal])
+    C = calibrated.zero_tilt.offsets_cov
+    assert C.shape == (4, 4) and np.all(np.diag(C) > 0)
+    bare = tmp_path / "cal-bare.toml"
+    bare.write_text("".join(x for x in text.splitlines(True) if not x.startswith("offsets_cov")))
+    r = run("batch", frames, "--rig", rig_p, "--calibration", pre, "--calibration", bare)
+    assert r.exit_code == 0
+    for x, y in zip(rows, csv.DictReader(io.StringIO(r.stdout)), strict=True):
+        R = quat_to_matrix(np.array([float(x[k]) for k in ("qw", "qx", "qy", "qz")]))
+        body = calibrated.zero_tilt.cov_body(
+            R, float(calibrated.target.vertices_mm[:, 2].mean()), float(calibrated.t_b[2])
+        )
+        added = sum(float(x[k]) ** 2 - float(y[k]) ** 2 for k in ("sigma_roll_deg",
+                                                                  "sigma_pitch_deg"))  # fmt: skip
+        # level: roll and pitch are the body's b1 and b2 tilts
+        assert added == pytest.approx(np.degrees(np.sqrt(body[0, 0] + body[1, 1])) ** 2, rel=0.05)
 
 
 def test_calibrate_zero_tilt_takes_one_recording_per_yaw(tmp_path):
@@ -261,3 +281,37 @@ def test_calibrate_zero_tilt_takes_one_recording_per_yaw(tmp_path):
         "calibrate", "zero-tilt", *stops, tmp_path / "nope", "--rig", rig_p, "--out", tmp_path / "x"
     )
     assert gone.exit_code == 3 and "nope" in gone.output and "yaw-a" not in gone.output
+
+
+@pytest.mark.parametrize("yaw_deg, tilt_deg", [(0.0, 0.0), (70.0, 2.0), (-135.0, -3.0)])
+def test_a_calibration_s_error_reaches_the_rows_as_its_covariance_says(rig640, yaw_deg, tilt_deg):
+    """The rig calibrated with its offsets off by dp (target dx, dy mm; camera tilt
+    about b1, b2 deg): the triangle's attitude at R is then off by e, and cov_body(R) for
+    offsets_cov = dp dp^T is e e^T: the mapping Rig.ZeroTilt.cov_body carries into every
+    row's sigma, its signs and its turn with the platform's yaw included."""
+    from visvec.estimate.triangle_full import solve_full
+    from visvec.rig import ZeroTilt
+    from visvec.rotations import logmap
+
+    dp = np.array([0.8, -0.5, 0.02, 0.015])
+    world = true_rig(rig640, (dp[0], dp[1]), (dp[2], dp[3]))
+    R = euler_to_matrix(*np.radians([yaw_deg, tilt_deg, -0.5 * tilt_deg]))
+    det = _level_detections(rig640, world, [0.0])[0]
+    p = lab_to_camera(world, R, world.target.vertices_mm)
+    xy = p[:, :2] / p[:, 2:3]
+    det = Detection(Status.OK, points_px=rig640.camera.distort(xy), points_n=xy,
+                    cov_n=det.cov_n)  # fmt: skip
+    sol = solve_full(det, rig640, R)
+    e = logmap(R.T @ sol.R_nb)  # the attitude error about the body axes (rad)
+    C = ZeroTilt(offsets_cov=np.outer(dp, dp)).cov_body(
+        sol.R_nb, float(rig640.target.vertices_mm[:, 2].mean()), float(rig640.t_b[2])
+    )
+    lam, vec = np.linalg.eigh(C)
+    j = np.sqrt(lam[-1]) * vec[:, -1]  # +- J dp
+    assert np.linalg.norm(e) > 1e-4  # at yaw 0 the two parts partly cancel
+    # within 3 % of each part's size (the offset's is 1-2 % off: the triangle's extent)
+    tol = 0.03 * (np.linalg.norm(dp[:2]) / 2150.0 + np.radians(np.linalg.norm(dp[2:])))
+    assert min(np.linalg.norm(e - j), np.linalg.norm(e + j)) < tol
+    # the offset's and the tilt's parts are of one size: a wrong sign between them
+    # would fail the sum above
+    assert 0.5 < np.radians(np.linalg.norm(dp[2:])) * 2150.0 / np.linalg.norm(dp[:2]) < 2.0

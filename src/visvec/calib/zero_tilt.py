@@ -123,6 +123,9 @@ class ZeroTiltResult:
     # the stops' scatter about the turn over their sigma (chi-square per degree of
     # freedom, nan with one stop): above about 3, a yaw given wrong or a stop that moved
     yaw_stop_chi2_dof: float = float("nan")
+    # (4, 4) the covariance of (dx, dy: mm; camera tilt about b1, b2: deg), the errors
+    # every row made with this calibration shares (Rig.zero_tilt.cov_body)
+    offsets_cov: np.ndarray | None = None
 
     def apply(self, rig: Rig) -> Rig:
         """The rig with the calibration applied."""
@@ -138,7 +141,12 @@ class ZeroTiltResult:
             rig,
             target=replace(rig.target, vertices_mm=v),
             mount=replace(rig.mount, rotation=R_bc),
-            zero_tilt=replace(rig.zero_tilt, centroid_px=self.centroid_px),
+            zero_tilt=replace(
+                rig.zero_tilt,
+                centroid_px=self.centroid_px,
+                offsets_cov=self.offsets_cov,
+                turn_sigma_deg=self.sigma_camera_turn_deg,
+            ),
             detect=replace(rig.detect, sigma_scale=self.sigma_scale),
         )
 
@@ -294,6 +302,9 @@ def calibrate_zero_tilt(dets: list[Detection], rig: Rig) -> ZeroTiltResult:
     ratio_95 = ratio * np.sqrt(dof / np.array([chi2_ppf(0.975, dof), chi2_ppf(0.025, dof)]))
     wider = chi2_own > chi2_ppf(SIGMA_CHECK_QUANTILE, dof)
     sig = np.sqrt(np.diag(cov))
+    deg = np.array([1.0, 1.0, np.degrees(1.0), np.degrees(1.0)])
+    offsets_cov = cov[:4, :4] * np.outer(deg, deg)
+    offsets_cov = 0.5 * (offsets_cov + offsets_cov.T)
     sigma_yaw = np.full(n, np.nan)
     sigma_yaw[idx] = np.degrees(sig[N_COMMON:])
     check_x, check_sig, camera_off = _camera_check([dets[i] for i in idx], rig, sol, chi2, dof)
@@ -322,6 +333,7 @@ def calibrate_zero_tilt(dets: list[Detection], rig: Rig) -> ZeroTiltResult:
         converged=bool(sol.success),
         sigma_ratio=ratio,
         sigma_ratio_95=ratio_95,
+        offsets_cov=offsets_cov,
         dof=dof,
         sigma_scale=ratio if wider else 1.0,
         outliers=~keep,
@@ -463,6 +475,17 @@ def calibration_sections(res: ZeroTiltResult, rig: Rig) -> dict[str, dict[str, o
         "zero_tilt": {
             "centroid_px": np.round(res.centroid_px, 4),
             "residual_px": round(res.rms_px, 5),
+            # how well the offsets were found: carried into every row's sigma
+            **(
+                {"offsets_cov": [[float(f"{x:.6g}") for x in row] for row in res.offsets_cov]}
+                if res.offsets_cov is not None
+                else {}
+            ),
+            **(
+                {"turn_sigma_deg": round(res.sigma_camera_turn_deg, 6)}
+                if np.isfinite(res.camera_turn_deg)
+                else {}
+            ),
         },
         "detect": {"sigma_scale": round(res.sigma_scale, 4)},
         "report": {
@@ -488,3 +511,4 @@ def calibration_sections(res: ZeroTiltResult, rig: Rig) -> dict[str, dict[str, o
             ),
         },
     }
+

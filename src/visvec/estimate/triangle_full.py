@@ -215,6 +215,12 @@ def solve_full(
     R_nb = R_cn.T @ rig.R_bc.T
     # R_nb_true = R_nb exp(-[R_BC d]x): body-axis error eps = -R_BC d
     cov_b = rig.R_bc @ cov_d @ rig.R_bc.T
+    # the zero-tilt calibration's own error, the same in every row (Rig.ZeroTilt)
+    cal = rig.zero_tilt.cov_body(
+        R_nb, float(rig.target.vertices_mm[:, 2].mean()), float(rig.t_b[2])
+    )
+    if cal is not None:
+        cov_b = cov_b + cal
     status, warnings = Status.OK, ()
     if chi2 > CHI2_REJECT[dof] or (not held and prior > HEIGHT_REJECT):
         status, warnings = Status.REJECTED, ("inconsistent_geometry",)
