@@ -43,8 +43,8 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from visvec.chi2 import ppf as chi2_ppf
-from visvec.data import Detection
-from visvec.errors import InputFileError
+from visvec.data import Detection, Status
+from visvec.errors import InputFileError, SourceError
 from visvec.estimate.shear import ASPECT_MIN, PRINCIPAL_POINT_MIN
 from visvec.rig import Rig
 from visvec.rotations import rot_x, rot_y, rot_z
@@ -512,3 +512,62 @@ def calibration_sections(res: ZeroTiltResult, rig: Rig) -> dict[str, dict[str, o
         },
     }
 
+
+@dataclass
+class LevelFrames:
+    """The ok detections of the level recordings, each frame's name and recording
+    (stop) index, and how many frames were skipped."""
+
+    dets: list = field(default_factory=list)
+    names: list = field(default_factory=list)
+    stop: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
+    bad: int = 0
+    unreadable: int = 0  # of the skipped, those that could not be read at all
+
+
+def level_detections(frames, sources, rig: Rig, say=None, step=None) -> LevelFrames:
+    """Every frame of every recording (``sources``, opened from the paths ``frames``)
+    through the still-platform triangle pipeline: the detections `calibrate_zero_tilt`
+    takes. Each skipped frame is named with its reason through ``say(text)``; ``step()``
+    is called after each frame (a progress bar).
+
+    Raises
+    ------
+    SourceError
+        Not one frame could be read (the sources are unreadable, not a calibration that
+        failed).
+    """
+    from visvec.pipeline import TrianglePipeline
+
+    pipe = TrianglePipeline(rig, "full", still=True)
+    out = LevelFrames()
+    stops = []
+    for k, (path, src) in enumerate(zip(frames, sources, strict=True)):
+        pipe.reset()  # another recording: another yaw
+        where = f"{path}: " if len(frames) > 1 else ""
+        for frame in src:
+            if step is not None:
+                step()
+            row = pipe.process(frame)
+            det = pipe.last_detection
+            if det is not None and det.status is Status.OK:
+                out.dets.append(det)
+                out.names.append(where + (frame.name or f"frame {frame.index}"))
+                stops.append(k)
+                continue
+            out.bad += 1
+            out.unreadable += row.status == "read_error"
+            why = (
+                frame.error or pipe.check_frame(frame) or "unreadable"
+                if row.status == "read_error"
+                else ";".join(row.warnings) or "no detail"
+            )
+            if say is not None:
+                say(f"{where}frame {frame.index}: skipped ({row.status}: {why})")
+    out.stop = np.array(stops, int)
+    if out.bad and out.unreadable == out.bad and not out.dets:
+        raise SourceError(
+            f"{', '.join(map(str, frames))}: none of the {out.bad} frames could be read "
+            "(the reasons above): expected images or a video of the rig's camera"
+        )
+    return out

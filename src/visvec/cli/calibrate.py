@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import hashlib
-from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -15,15 +14,18 @@ from visvec.calib.readout import calibrate_readout, readout_sections, readout_tr
 from visvec.calib.system import Observations, calibrate_system, initial_attitudes
 from visvec.calib.system import calibration_sections as system_sections
 from visvec.calib.tomlout import dumps
-from visvec.calib.zero_tilt import calibrate_zero_tilt, calibration_sections, yaw_reference
+from visvec.calib.zero_tilt import (
+    calibrate_zero_tilt,
+    calibration_sections,
+    level_detections,
+    yaw_reference,
+)
 from visvec.camera import CameraModel
 from visvec.cli.common import FiniteFloat, check_output, load, note_inputs, rig_options, write_whole
 from visvec.cli.progress import Work
-from visvec.data import Status
 from visvec.detect.markers import MarkerIdentifier
 from visvec.detect.spots import find_spots
 from visvec.errors import InputFileError, SourceError
-from visvec.pipeline import TrianglePipeline
 from visvec.sources import open_source
 from visvec.sources.folder import IMAGE_SUFFIXES, natural_key
 
@@ -89,7 +91,10 @@ def zero_tilt(frames, rig_path, calibration, out, yaws, yaw_sigma_deg):
     known = _known_yaws(yaws, frames)
     # every source opened first: a missing one is refused before any work
     sources = [open_source(f, fps=rig.fps, retry_s=0.0) for f in frames]
-    level = _level_frames(frames, sources, rig)
+    total = sum(len(s) for s in sources) if all(hasattr(s, "__len__") for s in sources) else None
+    with Work("calibrate zero-tilt", total) as bar:
+        level = level_detections(frames, sources, rig, lambda msg: click.echo(msg, err=True),
+                                 lambda: bar.update(1))  # fmt: skip
     res = calibrate_zero_tilt(level.dets, rig)
     if not all(np.isnan(known)):
         res = yaw_reference(res, known[level.stop], level.stop, yaw_sigma_deg)
@@ -123,57 +128,6 @@ def zero_tilt(frames, rig_path, calibration, out, yaws, yaw_sigma_deg):
         click.echo("visvec: error: the calibration did not converge; nothing written", err=True)
         raise SystemExit(1)
     click.echo(f"wrote {out}; later runs take {_runs_with(calibration, out)}")
-
-
-@dataclass
-class _LevelFrames:
-    """The ok detections of the level recordings, each frame's name and recording
-    (stop) index, and how many frames were skipped."""
-
-    dets: list = field(default_factory=list)
-    names: list = field(default_factory=list)
-    stop: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
-    bad: int = 0
-    unreadable: int = 0  # of the skipped, those that could not be read at all
-
-
-def _level_frames(frames, sources, rig) -> _LevelFrames:
-    """Every frame of every recording through the still-platform triangle pipeline;
-    the skipped ones named on stderr with the reason."""
-    pipe = TrianglePipeline(rig, "full", still=True)
-    out = _LevelFrames()
-    stops = []
-    total = sum(len(s) for s in sources) if all(hasattr(s, "__len__") for s in sources) else None
-    with Work("calibrate zero-tilt", total) as bar:
-        for k, (path, src) in enumerate(zip(frames, sources, strict=True)):
-            pipe.reset()  # another recording: another yaw
-            where = f"{path}: " if len(frames) > 1 else ""
-            for frame in src:
-                bar.update(1)
-                row = pipe.process(frame)
-                det = pipe.last_detection
-                if det is not None and det.status is Status.OK:
-                    out.dets.append(det)
-                    out.names.append(where + (frame.name or f"frame {frame.index}"))
-                    stops.append(k)
-                    continue
-                out.bad += 1
-                out.unreadable += row.status == "read_error"
-                why = (
-                    frame.error or pipe.check_frame(frame) or "unreadable"
-                    if row.status == "read_error"
-                    else ";".join(row.warnings) or "no detail"
-                )
-                click.echo(f"{where}frame {frame.index}: skipped ({row.status}: {why})", err=True)
-    out.stop = np.array(stops, int)
-    if out.bad and out.unreadable == out.bad and not out.dets:
-        # not one frame could be read: the source is unreadable (exit 3), not a
-        # calibration that failed
-        raise SourceError(
-            f"{', '.join(map(str, frames))}: none of the {out.bad} frames could be read "
-            "(the reasons above): expected images or a video of the rig's camera"
-        )
-    return out
 
 
 def _zero_tilt_report(res, rig, names) -> None:
