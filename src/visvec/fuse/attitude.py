@@ -120,11 +120,13 @@ JITTER_TIME_S = 0.2
 FADE_NEW = 0.5
 NOISE_FORGET = 0.93  # per fix: the noise fit remembers about the last 15 fixes
 NOISE_PRIOR_FIXES = 3.0  # the prior counts as this many fixes
-N_STATE = 15
-# the error state's parts: attitude (body, rad), gyro bias (rad/s), misalignment (rad),
-# scale factors, time offset (s), clock jitter (s, considered) and clock rate (s/s)
-TH, BIAS, MIS, SCALE = slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 12)
-TAU, JIT, DRIFT = 12, 13, 14
+N_STATE = kernels.N_STATE
+# the error state's parts (kernels' layout): attitude (body, rad), gyro bias (rad/s),
+# misalignment (rad), scale factors, time offset (s), clock jitter (s, considered) and
+# clock rate (s/s)
+TH, BIAS, MIS, SCALE = (slice(i, i + 3) for i in (kernels.TH0, kernels.BIAS0, kernels.MIS0,
+                                                  kernels.SCALE0))  # fmt: skip
+TAU, JIT, DRIFT = kernels.TAU, kernels.JIT, kernels.DRIFT
 # two free-running clocks (the gyro's, the fixes') differ in rate, quartz oscillators by
 # tens of ppm: RepoIMU's gyro against its Vicon by about 100 ppm (the time offset fitted
 # per 15 s in hindsight grows from 2 to 8 ms over Test06's 90 s and from 1.5 to 9 ms

@@ -23,7 +23,23 @@ import numpy as np
 from visvec._kernels import AVAILABLE
 from visvec.rotations import expmap_xyz  # compiled beside the kernels that call it
 
-N_STATE = 15  # dtheta (3), bias (3), misalignment (3), scale (3), tau, jitter, clock rate
+# the error state's layout: the first index of each 3-vector (attitude dtheta about the
+# body axes, the gyro's bias, its misalignment, its scale factors), then the time offset
+# tau, the clock jitter and the clock rate (visvec.fuse.attitude names their slices);
+# integers, which Numba compiles as constants
+TH0, BIAS0, MIS0, SCALE0 = 0, 3, 6, 9
+TAU, JIT, DRIFT = 12, 13, 14
+N_STATE = 15
+
+
+def _minus_cross_into(F, r, c, v):
+    """F's 3x3 block at (r, c) set to -[v]x (the skew matrix of v, negated)."""
+    F[r, c + 1] = v[2]
+    F[r, c + 2] = -v[1]
+    F[r + 1, c] = -v[2]
+    F[r + 1, c + 2] = v[0]
+    F[r + 2, c] = v[1]
+    F[r + 2, c + 1] = -v[0]
 
 
 def transition(Rm, k, b, tau, g, gdot, dt, jitter_time):
@@ -36,20 +52,16 @@ def transition(Rm, k, b, tau, g, gdot, dt, jitter_time):
     w = Rm @ (scale * gc)
     RmS = Rm * scale
     F = np.eye(N_STATE)
-    F[0:3, 0:3] = expmap_xyz(-w[0] * dt, -w[1] * dt, -w[2] * dt)
-    F[0:3, 3:6] = -RmS * dt
-    F[0, 7] = w[2] * dt  # -[w]x dt
-    F[0, 8] = -w[1] * dt
-    F[1, 6] = -w[2] * dt
-    F[1, 8] = w[0] * dt
-    F[2, 6] = w[1] * dt
-    F[2, 7] = -w[0] * dt
-    F[0:3, 9:12] = Rm * gc * dt
+    th = slice(TH0, TH0 + 3)
+    F[th, th] = expmap_xyz(-w[0] * dt, -w[1] * dt, -w[2] * dt)
+    F[th, BIAS0 : BIAS0 + 3] = -RmS * dt
+    _minus_cross_into(F, TH0, MIS0, w * dt)  # the misalignment's: -[w]x dt
+    F[th, SCALE0 : SCALE0 + 3] = Rm * gc * dt
     col = RmS @ gdot * dt
-    F[0:3, 12] = col
-    F[0:3, 13] = col
-    F[13, 13] = math.exp(-dt / jitter_time)
-    F[12, 14] = dt
+    F[th, TAU] = col
+    F[th, JIT] = col
+    F[JIT, JIT] = math.exp(-dt / jitter_time)
+    F[TAU, DRIFT] = dt
     return w, F
 
 
@@ -60,15 +72,15 @@ def process_noise(RmS, q, gsat, dt, jitter, jitter_time, drift_walk2, bias_walk2
     Gauss-Markov increment and the clock rate's random walk (``drift_walk2``: 1/s)."""
     fade_j = math.exp(-dt / jitter_time)
     Q = np.zeros((N_STATE, N_STATE))
-    Q[13, 13] = jitter * jitter * (1.0 - fade_j * fade_j)
-    Q[14, 14] = drift_walk2 * dt
+    Q[JIT, JIT] = jitter * jitter * (1.0 - fade_j * fade_j)
+    Q[DRIFT, DRIFT] = drift_walk2 * dt
     for i in range(3):
-        Q[i, i] = q
-        Q[3 + i, 3 + i] = bias_walk2 * dt
+        Q[TH0 + i, TH0 + i] = q
+        Q[BIAS0 + i, BIAS0 + i] = bias_walk2 * dt
     if np.any(gsat > 0):
         # a saturated reading's error is the same all through the burst: count it as
         # one (conservatively, the whole interval's worth at once)
-        Q[0:3, 0:3] += RmS @ np.diag((gsat * dt) ** 2) @ RmS.T
+        Q[TH0 : TH0 + 3, TH0 : TH0 + 3] += RmS @ np.diag((gsat * dt) ** 2) @ RmS.T
     return Q
 
 
@@ -88,7 +100,7 @@ def propagate(R, b, Rm, k, tau, P, G, dt, qa, qw, A, fade, jitter, jitter_time, 
     Q = process_noise(Rm * (1.0 + k), q, gsat, dt, jitter, jitter_time, drift_walk2,
                       bias_walk2)  # fmt: skip
     Pn = F @ P @ np.ascontiguousarray(F.T) + Q
-    return Rn, Pn, A1, Q[0, 0] + Q[1, 1] + Q[2, 2]
+    return Rn, Pn, A1, Q[TH0, TH0] + Q[TH0 + 1, TH0 + 1] + Q[TH0 + 2, TH0 + 2]
 
 
 def propagate_run(R, b, Rm, k, tau, drift, P, G, dts, qa, qw, A, trq, fade, jitter,
@@ -122,6 +134,7 @@ def propagate_run(R, b, Rm, k, tau, drift, P, G, dts, qa, qw, A, trq, fade, jitt
 # ------------------------------------------------------------------ compiled on demand
 _PY = {
     "expmap_xyz": expmap_xyz,
+    "_minus_cross_into": _minus_cross_into,
     "transition": transition,
     "process_noise": process_noise,
     "propagate": propagate,
