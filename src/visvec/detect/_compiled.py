@@ -28,6 +28,7 @@ import threading
 import numpy as np
 
 from visvec._kernels import AVAILABLE
+from visvec._kernels.edge_fit import EdgeLines
 from visvec._kernels.pixel_fit import GaussNewtonSteps, PixelSolve
 from visvec.camera import _distorted
 
@@ -561,7 +562,7 @@ def _robust_lines(x, y, gid, use, floor, rounds, inflation):
     for g in range(3):
         sigmas[g] = max(math.sqrt(rss[g] / max(k[g] - 2.0, 1.0) * inflation), floor)
         offset[g] = n[g, 0] * c[g, 0] + n[g, 1] * c[g, 1]
-    return n, offset, c, spread, sigmas, keep
+    return EdgeLines(n, offset, c, spread, sigmas, keep)
 
 
 def _inward_lines(x, y, gid, clear, floor, rounds, inflation):
@@ -582,7 +583,7 @@ def _inward_lines(x, y, gid, clear, floor, rounds, inflation):
     for g in range(3):
         if n[g, 0] * sx + n[g, 1] * sy < 3.0 * offset[g]:
             n[g, 0], n[g, 1], offset[g] = -n[g, 0], -n[g, 1], -offset[g]
-    return n, offset, c, spread, sigmas, keep
+    return EdgeLines(n, offset, c, spread, sigmas, keep)
 
 
 # ------------------------------------------------- the pixel fit's noise correlation

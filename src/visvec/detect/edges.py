@@ -18,6 +18,7 @@ from dataclasses import dataclass, replace
 import cv2
 import numpy as np
 
+from visvec._kernels.edge_fit import EdgeLines
 from visvec.camera import CameraModel
 from visvec.detect import _compiled
 from visvec.noise import CORRELATION_LAGS
@@ -246,15 +247,11 @@ def _robust_lines(
     use: np.ndarray,
     floor: float,
     rounds: int,
-) -> tuple:
+) -> EdgeLines:
     """Total-least-squares lines through each edge's points (those with ``use``), with
     iterative outlier rejection (3.5 robust sigmas, sigma from the median absolute
     residual), all three edges at once. An edge stops iterating when its inliers no
-    longer change or would fall under 5.
-
-    Returns per edge the normal (3, 2), offset (3,), centre (3, 2), spread (3,), sigma
-    (3,), and the inlier mask (M,).
-    """
+    longer change or would fall under 5. Normals not yet turned into the triangle."""
     if _compiled.ON:
         return _compiled.robust_lines(x, y, gid, use, float(floor), int(rounds),
                                       EDGE_VARIANCE_INFLATION)  # fmt: skip
@@ -280,7 +277,7 @@ def _robust_lines(
     sigma = np.maximum(np.sqrt(rss / np.maximum(k - 2, 1) * EDGE_VARIANCE_INFLATION), floor)
     spread = np.bincount(gid, w * t * t, 3)
     offset = np.einsum("ij,ij->i", n, c)
-    return n, offset, c, spread, sigma, keep
+    return EdgeLines(n, offset, c, spread, sigma, keep)
 
 
 def _levels_suspect(
@@ -692,11 +689,11 @@ def _profiles(roi, corners, off, half, ext, step, trims, spacing, width) -> _Pro
                      clear)  # fmt: skip
 
 
-def _lines(raw, pts_px, pr: _Profiles, camera, shutter, rate_c, sigma_floor, rounds):
+def _lines(raw, pts_px, pr: _Profiles, camera, shutter, rate_c, sigma_floor,
+           rounds) -> tuple[EdgeLines, np.ndarray]:  # fmt: skip
     """The three edge lines through the profiles' step positions, in ideal pixels
     (taken back to the centre row's exposure under a rolling shutter with a known
-    rate), their normals pointing into the triangle: (normals, offsets, centres,
-    spreads, sigmas, keep) as _robust_lines gives them."""
+    rate), their normals pointing into the triangle, and the points (M, 2; ideal px)."""
     f = camera.fx
     ideal = raw * f
     if shutter is not None and rate_c is not None:
@@ -705,7 +702,7 @@ def _lines(raw, pts_px, pr: _Profiles, camera, shutter, rate_c, sigma_floor, rou
     if _compiled.ON:  # the same, compiled (the fast extra)
         out = _compiled.inward_lines(ideal[:, 0], ideal[:, 1], gid, clear, float(sigma_floor),
                                      int(rounds), EDGE_VARIANCE_INFLATION)  # fmt: skip
-        return (*out, ideal)
+        return out, ideal
     # an edge's points with a clear step; all of them if fewer than 5 are clear
     use = clear | (np.bincount(gid, clear, 3) < 5)[gid]
     normals_l, offsets, centres, spreads, sigmas, keep = _robust_lines(
@@ -714,7 +711,8 @@ def _lines(raw, pts_px, pr: _Profiles, camera, shutter, rate_c, sigma_floor, rou
     # normals into the triangle: towards the mean of the three edges' centres (a point
     # on each side: inside; compared as sums, n . sum < 3 offset)
     flip = np.where(normals_l @ centres.sum(axis=0) < 3.0 * offsets, -1.0, 1.0)
-    return normals_l * flip[:, None], offsets * flip, centres, spreads, sigmas, keep, ideal
+    return EdgeLines(normals_l * flip[:, None], offsets * flip, centres, spreads, sigmas,
+                     keep), ideal  # fmt: skip
 
 
 def lag_sums(ideal, gid, keep, normals, offsets, sigmas) -> np.ndarray:
@@ -817,9 +815,10 @@ def fit_edges(
                 passes.insert(k, 0)
         pts_px = pr.bases + e[:, None] * pr.normals
         raw = camera.undistort(pts_px)
-        normals_l, offsets, centres, spreads, sigmas, keep, ideal = _lines(
+        lines, ideal = _lines(
             raw, pts_px, pr, camera, shutter, rate_c, sigma_floor, 3 if npass == 1 else 1
         )
+        normals_l, offsets, keep = lines.normals, lines.offsets, lines.keep
         new = camera.distort(_vertices(normals_l, offsets)[0] / f)
         size = float(sides.max())
         failed = not np.isfinite(new).all() or np.abs(new - corners).max() > 0.25 * size + 3.0
@@ -832,9 +831,10 @@ def fit_edges(
         # area estimate is only used for its lines, never for a covariance)
         level_px = _level_gain(width, half, step) * pr.level_sd if npass >= 1 else np.zeros(3)
         # a fine pass's residuals along the edges, for the correlation a run learns
-        lags = lag_sums(ideal, gid, keep, normals_l, offsets, sigmas) if npass >= 1 else None
-        fit = _edge_fit(normals_l, offsets, centres, spreads, sigmas, level_px, pr.h_mid,
-                        pr.mid, width, gid, keep, pr.along, trims, pr.lengths, lags)  # fmt: skip
+        lags = lag_sums(ideal, gid, keep, normals_l, offsets, lines.sigmas) if npass >= 1 else None
+        fit = _edge_fit(normals_l, offsets, lines.centres, lines.spreads, lines.sigmas, level_px,
+                        pr.h_mid, pr.mid, width, gid, keep, pr.along, trims, pr.lengths,
+                        lags)  # fmt: skip
         if gain and shutter is not None and not failed:
             omega = np.zeros(3) if rate_c is None else np.asarray(rate_c, float)
             fit = replace(
