@@ -72,8 +72,8 @@ from visvec.sources.folder import FolderSource
 def batch(paths, rig_path, calibration, truth, imu_path, fps, out_dir, scheduler, workers,
           camera_out, errors, summary, out, fmt, method, overlay, max_frames, serve, covariance,
           ros_images):  # fmt: skip
-    """Process a folder of images (natural sort order) or a video file; or many of them
-    with --out-dir, one output each."""
+    """Process PATH: a folder of images (natural sort order), a video file, or a folder
+    `track --record` made; or many of them with --out-dir, one output each."""
     rig = load(rig_path, calibration)
     if out_dir is not None or len(paths) > 1:
         given = [name for name, v in (("--out", out), ("--truth", truth), ("--imu", imu_path),

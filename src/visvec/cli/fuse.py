@@ -60,7 +60,9 @@ from visvec.sinks.foxglove import Published
               help="Output file, or udp://HOST:PORT for one datagram per row (default: "
               "stdout).")  # fmt: skip
 @click.option("--format", "fmt", type=click.Choice(["csv", "jsonl"]), default="csv",
-              show_default=True)  # fmt: skip
+              show_default=True,
+              help="Row format: CSV with a header, or JSON lines (one object per row, the "
+                   "same keys).")  # fmt: skip
 @click.option(
     "--method",
     type=click.Choice(["kalman", "paper"]),
