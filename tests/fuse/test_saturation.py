@@ -258,3 +258,25 @@ def test_rows_through_a_first_clip_stay_within_their_sigma(monkeypatch, widen):
         assert all("gyro_saturated" in out[k].warnings for k in range(clip[0] + 10, clip[-1]))
     else:
         assert z.max() > 5.0
+
+
+def test_a_widened_top_that_ended_leaves_its_axis_alone():
+    """x clips once (at 3 s, readings exactly 250 deg/s: widened), and later plateaus,
+    noisy, at a new extreme (300 deg/s at 6 s) while y clips (exactly 250): y's samples
+    are widened, x's noisy plateau is not (x's first top, long ended, is not taken for
+    it)."""
+    rng = np.random.default_rng(3)
+    t = np.arange(1000) * 0.01
+    g = np.radians(0.3) * rng.standard_normal((len(t), 3))
+    first = (t >= 3.0) & (t < 3.3)
+    second = (t >= 6.0) & (t < 6.3)
+    g[first, 0] = np.radians(250.0)
+    g[second, 0] += np.radians(300.0)
+    g[second, 1] = np.radians(250.0)
+    sat = _run_saturation(t, g, keep=10**6)
+    assert sat.learned == []
+    h = sat.h
+    assert all(h.gyro[j][2][0] > 0 for j in np.nonzero(first)[0][11:])
+    late = np.nonzero(second)[0][11:]
+    assert all(h.gyro[j][2][1] > 0 for j in late)
+    assert not any(h.gyro[j][2][0] > 0 for j in np.nonzero(second)[0])

@@ -335,6 +335,7 @@ class Saturation:
                 continue
             side, level, _, steps = top
             if self._maybe[ax] is not steps:
+                self._maybe[ax] = None  # a top that ended, or this one not yet quiet
                 width = SAT_QUIET * math.sqrt(2.0) * float(self._noise[ax])
                 quiet = sum(abs(d) <= width for d in steps)
                 if binom_sf(quiet, len(steps), math.erf(SAT_QUIET / math.sqrt(2.0))) >= SAT_MAYBE_P:
