@@ -32,14 +32,15 @@ TAU, JIT, DRIFT = 12, 13, 14
 N_STATE = 15
 
 
-def _minus_cross_into(F, r, c, v):
-    """F's 3x3 block at (r, c) set to -[v]x (the skew matrix of v, negated)."""
-    F[r, c + 1] = v[2]
-    F[r, c + 2] = -v[1]
-    F[r + 1, c] = -v[2]
-    F[r + 1, c + 2] = v[0]
-    F[r + 2, c] = v[1]
-    F[r + 2, c + 1] = -v[0]
+def _minus_cross_into(F, r, c, v, s):
+    """F's 3x3 block at (r, c) set to -[v]x s (the skew matrix of v, negated, times the
+    scalar s; no temporary array: the propagation runs for every inertial sample)."""
+    F[r, c + 1] = v[2] * s
+    F[r, c + 2] = -v[1] * s
+    F[r + 1, c] = -v[2] * s
+    F[r + 1, c + 2] = v[0] * s
+    F[r + 2, c] = v[1] * s
+    F[r + 2, c + 1] = -v[0] * s
 
 
 def transition(Rm, k, b, tau, g, gdot, dt, jitter_time):
@@ -55,7 +56,7 @@ def transition(Rm, k, b, tau, g, gdot, dt, jitter_time):
     th = slice(TH0, TH0 + 3)
     F[th, th] = expmap_xyz(-w[0] * dt, -w[1] * dt, -w[2] * dt)
     F[th, BIAS0 : BIAS0 + 3] = -RmS * dt
-    _minus_cross_into(F, TH0, MIS0, w * dt)  # the misalignment's: -[w]x dt
+    _minus_cross_into(F, TH0, MIS0, w, dt)  # the misalignment's: -[w]x dt
     F[th, SCALE0 : SCALE0 + 3] = Rm * gc * dt
     col = RmS @ gdot * dt
     F[th, TAU] = col

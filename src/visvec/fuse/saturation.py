@@ -110,6 +110,15 @@ def binom_sf(k: int, m: int, p: float) -> float:
     return min(total, 1.0)
 
 
+def _quiet_chance(steps: list[float], sigma: float) -> float:
+    """How likely a gyro whose sample noise is ``sigma`` makes at least as many of a flat
+    top's ``steps`` as quiet (within SAT_QUIET of a noise step's sigma; the sign test in
+    the comment of SAT_RUN ... SAT_P)."""
+    width = SAT_QUIET * math.sqrt(2.0) * sigma
+    quiet = sum(abs(d) <= width for d in steps)
+    return binom_sf(quiet, len(steps), math.erf(SAT_QUIET / math.sqrt(2.0)))
+
+
 class Saturation:
     """The gyro's clip levels (rad/s) per axis and side, and the flat tops found at
     them, on the engine's `History`.
@@ -268,10 +277,8 @@ class Saturation:
         if len(agree) < SAT_CONFIRM or m < SAT_STEPS:
             return
         top_level = max(lv for lv, _ in agree)
-        width = SAT_QUIET * math.sqrt(2.0) * sigma
-        quiet = sum(abs(d) <= width for _, st in agree for d in st)
-        p0 = math.erf(SAT_QUIET / math.sqrt(2.0))
-        if binom_sf(quiet, m, p0) >= SAT_P or self._extreme[ax, side] > top_level * (1 + SAT_BAND):
+        chance = _quiet_chance([d for _, st in agree for d in st], sigma)
+        if chance >= SAT_P or self._extreme[ax, side] > top_level * (1 + SAT_BAND):
             return
         self.ranges[ax, side] = top_level
         self.learned.append((ax, side, top_level))
@@ -336,9 +343,7 @@ class Saturation:
             side, level, _, steps = top
             if self._maybe[ax] is not steps:
                 self._maybe[ax] = None  # a top that ended, or this one not yet quiet
-                width = SAT_QUIET * math.sqrt(2.0) * float(self._noise[ax])
-                quiet = sum(abs(d) <= width for d in steps)
-                if binom_sf(quiet, len(steps), math.erf(SAT_QUIET / math.sqrt(2.0))) >= SAT_MAYBE_P:
+                if _quiet_chance(steps, float(self._noise[ax])) >= SAT_MAYBE_P:
                     continue
                 self._maybe[ax] = steps  # this top, from its first sample
                 start = max(0, j_new - len(steps))
