@@ -36,9 +36,9 @@ import _onecore  # noqa: F401, I001 - one thread each for BLAS and OpenMP, befor
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
+from visvec._kernels import jit  # noqa: E402
 from visvec.bench.triangle import Case, render_cases, with_refine  # noqa: E402
 from visvec.data import Frame  # noqa: E402
-from visvec.detect import _compiled  # noqa: E402
 from visvec.pipeline import TrianglePipeline  # noqa: E402
 from visvec.rig import load_rig  # noqa: E402
 from visvec.sim.scene import Scene  # noqa: E402
@@ -79,7 +79,7 @@ def main() -> None:
 
     rig = with_refine(load_rig(args.rig), args.refine)
     name = "triangle_speed" if args.refine == "lines" else f"triangle_speed_{args.refine}"
-    if not _compiled.ON:
+    if not jit.ON:
         name += "_pure"
     if args.size:
         w, h = (int(v) for v in args.size.lower().split("x"))
@@ -107,7 +107,7 @@ def main() -> None:
     pngs = [cv2.imencode(".png", im)[1] for im in images]
     if args.pair:
         res = {**run_record(), "image": f"{rig.camera.width}x{rig.camera.height}",
-               "frames": args.frames, "repeats": args.repeats, "compiled_kernels": _compiled.ON,
+               "frames": args.frames, "repeats": args.repeats, "compiled_kernels": jit.ON,
                **pair(rig, images, pngs, args.repeats)}  # fmt: skip
         print(res)
         print(save_json(name.replace("triangle_speed", "triangle_speed_pair"), res))
@@ -122,7 +122,7 @@ def main() -> None:
         "frames": args.frames,
         "repeats": args.repeats,
         # the edge fit's compiled kernels (the fast extra; VISVEC_PURE=1 turns them off)
-        "compiled_kernels": _compiled.ON,
+        "compiled_kernels": jit.ON,
     }
     # in sequence: tracking on the sweep; on random attitudes every frame's track is lost
     seq = "lost" if args.motion == "random" else "tracking"
@@ -274,7 +274,7 @@ STEPS = (
     ("visvec.detect.edges", None, "_widths", "  blur widths"),
     ("visvec.detect.triangle", None, "refine", "pixel fit (refine = pixels), all of it"),
     ("visvec.detect.photometric", None, "_band", "  the bands' pixels"),
-    ("visvec.detect._compiled", None, "pixel_solve", "  the solve (compiled)"),
+    ("visvec._kernels.pixel_fit", None, "pixel_solve", "  the solve (compiled)"),
     ("visvec.detect.photometric", None, "_solve", "  the solve (numpy)"),
     ("visvec.detect.triangle", "TriangleDetector", "_usability_reason", "checks of the image"),
     ("visvec.detect.triangle", "TriangleDetector", "detect", "detection (total)"),

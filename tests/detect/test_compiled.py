@@ -1,4 +1,4 @@
-"""The edge fit's compiled kernels (visvec.detect._compiled, the `fast` extra) against
+"""The edge fit's compiled kernels (visvec._kernels, the `fast` extra) against
 the numpy functions they replace: the same results to rounding, on the inputs frames
 of every kind give them (sharp and defocused, both resolutions, a lens with distortion,
 a lighting gradient, a light and a head over the triangle, tracked and cold)."""
@@ -13,9 +13,14 @@ from dataclasses import fields, replace
 import numpy as np
 import pytest
 
+from visvec._kernels import edge_fit as KE
+from visvec._kernels import jit
+from visvec._kernels import pixel_fit as KP
+from visvec._kernels import readout as KO
+from visvec._kernels import rotation as KR
 from visvec.data import Frame
-from visvec.detect import _compiled
 from visvec.detect import edges as E
+from visvec.detect import warm as W
 from visvec.pipeline import TrianglePipeline
 from visvec.rig import load_rig
 from visvec.rotations import euler_to_matrix
@@ -24,7 +29,7 @@ from visvec.sim.scene import Light, Occluder, Scene
 
 from conftest import CONFIGS, attitudes
 
-pytestmark = pytest.mark.skipif(not _compiled.AVAILABLE, reason="Numba (the fast extra)")
+pytestmark = pytest.mark.skipif(not jit.AVAILABLE, reason="Numba (the fast extra)")
 
 KERNELS = (
     "_sample",
@@ -83,7 +88,7 @@ def calls():
 
     mp = pytest.MonkeyPatch()
     try:
-        mp.setattr(_compiled, "ON", False)
+        mp.setattr(jit, "ON", False)
         for n in KERNELS:
             mp.setattr(E, n, spy(n))
         for rig, img in _frames():
@@ -123,9 +128,9 @@ def test_each_kernel_gives_what_numpy_gives(calls, name, monkeypatch):
     assert len(args) >= 10, len(args)
     worst = 0.0
     for a, k in args:
-        monkeypatch.setattr(_compiled, "ON", False)
+        monkeypatch.setattr(jit, "ON", False)
         pure = f(*a, **k)
-        monkeypatch.setattr(_compiled, "ON", True)
+        monkeypatch.setattr(jit, "ON", True)
         fast = f(*a, **k)
         worst = max(worst, _diff(pure, fast))
     assert worst < 1e-9, worst
@@ -145,18 +150,18 @@ def test_the_kernels_run_as_python_give_what_compiled_gives(calls):
     """Each kernel's Python source (Numba's py_func, which coverage can follow) gives
     the compiled kernel's result: what the tests above check is the code here."""
     kernels = {
-        "_positions": (_compiled.positions, lambda a, k: _positions_args(*a, **k)),
-        "_widths": (_compiled.widths, lambda a, k: _widths_args(*a, **k)),
-        "_robust_lines": (_compiled.robust_lines, lambda a, k: _lines_args(*a, **k)),
-        "_sample": (_compiled.sample_geometry, lambda a, k: _sample_args(*a, **k)),
+        "_positions": (KE.positions, lambda a, k: _positions_args(*a, **k)),
+        "_widths": (KE.widths, lambda a, k: _widths_args(*a, **k)),
+        "_robust_lines": (KE.robust_lines, lambda a, k: _lines_args(*a, **k)),
+        "_sample": (KE.sample_geometry, lambda a, k: _sample_args(*a, **k)),
         "_group_median": (
-            _compiled.group_median,
+            KE.group_median,
             lambda a, k: (np.asarray(a[0], float), a[1], a[3]),
         ),
-        "_edge_fit": (_compiled.edge_stats, lambda a, k: (a[4], a[5], a[6], *a[9:14])),
-        "_level_gain": (_compiled.level_gain, lambda a, k: (np.asarray(a[0], float), *a[1:])),
-        "_lines": (_compiled.inward_lines, lambda a, k: _inward_args(*a)),
-        "lag_sums": (_compiled.edge_lag_sums, lambda a, k: (*a, E.CORRELATION_LAGS)),
+        "_edge_fit": (KE.edge_stats, lambda a, k: (a[4], a[5], a[6], *a[9:14])),
+        "_level_gain": (KE.level_gain, lambda a, k: (np.asarray(a[0], float), *a[1:])),
+        "_lines": (KE.inward_lines, lambda a, k: _inward_args(*a)),
+        "lag_sums": (KE.edge_lag_sums, lambda a, k: (*a, E.CORRELATION_LAGS)),
     }
     for name, (kernel, to_args) in kernels.items():
         for a, k in calls[name][1][:2]:
@@ -164,9 +169,14 @@ def test_the_kernels_run_as_python_give_what_compiled_gives(calls):
             assert _diff(kernel(*args), _as_python(kernel)(*args)) == 0.0, name
 
 
+def _home(name):
+    """The kernels' module that holds ``name``."""
+    return next(m for m in (KE, KP, KR, KO) if name in vars(m))
+
+
 def _as_python(kernel):
     """The kernel and the kernels it calls as plain Python."""
-    inner = {n: getattr(_compiled, n) for n in ("_group_linear", "_levels_suspect",
+    inner = {n: getattr(_home(n), n) for n in ("_group_linear", "_levels_suspect",
                                                  "_level_lines", "_group_tls",
                                                  "_group_median", "_lag_sums",
                                                  "_phi_of", "_pixel_gn", "_strided",
@@ -177,7 +187,7 @@ def _as_python(kernel):
         mp = pytest.MonkeyPatch()
         try:
             for n, f in inner.items():
-                mp.setattr(_compiled, n, f.py_func)
+                mp.setattr(_home(n), n, f.py_func)
             return kernel.py_func(*args)
         finally:
             mp.undo()
@@ -218,7 +228,7 @@ def test_a_cold_frame_gives_the_same_vertices_compiled_or_not(monkeypatch):
     agree to the estimator's own 1e-5 px)."""
     got = {}
     for flag in (False, True):
-        monkeypatch.setattr(_compiled, "ON", flag)
+        monkeypatch.setattr(jit, "ON", flag)
         out = []
         for rig, img in _frames():
             pipe = TrianglePipeline(rig)
@@ -257,7 +267,7 @@ def test_the_attitude_fit_compiled_or_not(monkeypatch):
     for args in calls:
         fits = []
         for flag in (False, True):
-            monkeypatch.setattr(_compiled, "ON", flag)
+            monkeypatch.setattr(jit, "ON", flag)
             fits.append(rotation._fit_with_shift(*args))
         a, b = fits
         assert a.iterations == b.iterations and a.converged == b.converged
@@ -269,13 +279,13 @@ def test_the_attitude_fit_compiled_or_not(monkeypatch):
     t_c, X, xy, W, R, prior = calls[0]
     tols = (rotation.MAX_ITERATIONS, rotation.STEP_TOL_RAD**2, rotation.STEP_TOL_SHIFT)
     kargs = (R, t_c, X, xy, W, prior.axis, float(prior.mean), 1.0 / prior.sigma**2, *tols)
-    monkeypatch.setattr(_compiled, "_expmap", _compiled._expmap.py_func)
-    assert _diff(_compiled.gn_shift(*kargs), _compiled.gn_shift.py_func(*kargs)) == 0.0
+    monkeypatch.setattr(KR, "_expmap", KR._expmap.py_func)
+    assert _diff(KR.gn_shift(*kargs), KR.gn_shift.py_func(*kargs)) == 0.0
 
 
 def test_visvec_pure_turns_the_kernels_off():
     """VISVEC_PURE=1 runs the numpy functions (a lab can compare, or rule Numba out)."""
-    code = "from visvec.detect import _compiled; print(_compiled.ON)"
+    code = "from visvec._kernels import jit; print(jit.ON)"
     for value, expected in (("1", "False"), ("0", "True")):
         env = {**os.environ, "VISVEC_PURE": value}
         out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
@@ -291,15 +301,15 @@ def test_numba_is_loaded_by_the_first_kernel_called():
     code = """if True:
         import sys
         import numpy as np
-        from visvec.detect import _compiled as C
+        from visvec._kernels import edge_fit as C, jit
         held = C.group_median
         print(type(C.positions).__name__, "numba" in sys.modules)
         if sys.argv[1] == "broken":
             sys.modules["numba"] = None  # an import that fails
         x = np.array([3.0, 1.0, 2.0, 5.0])
         out = held(x, np.array([0, 0, 1, 1]), np.ones(4, np.bool_))
-        print(out.tolist(), type(C.positions).__name__, C.ON, C.group_median is C._group_median,
-              held.dispatcher is (C.group_median if C.ON else None))
+        print(out.tolist(), type(C.positions).__name__, jit.ON, C.group_median is C._group_median,
+              held.dispatcher is (C.group_median if jit.ON else None))
     """
     outs = {}
     for case in ("numba", "broken"):
@@ -323,9 +333,9 @@ def unloadable(monkeypatch):
     def broken(*a, **k):
         raise RuntimeError("cannot cache function: no locator available")
 
-    monkeypatch.setattr(E, "_warm", set())
-    monkeypatch.setattr(_compiled, "ON", True)
-    return lambda name: monkeypatch.setattr(_compiled, name, broken)
+    monkeypatch.setattr(W, "_warm", set())
+    monkeypatch.setattr(jit, "ON", True)
+    return lambda name: monkeypatch.setattr(_home(name), name, broken)
 
 
 def test_kernels_that_do_not_load_leave_the_numpy_path_on(unloadable, capsys):
@@ -334,7 +344,7 @@ def test_kernels_that_do_not_load_leave_the_numpy_path_on(unloadable, capsys):
     unloadable("sample_geometry")
     rig = load_rig(CONFIGS / "triangle.toml")
     pipe = TrianglePipeline(rig)
-    assert _compiled.ON is False
+    assert jit.ON is False
     err = capsys.readouterr().err
     assert "compiled edge fit did not load" in err and "no locator" in err
     rig_img = _frames()[0][1]
@@ -346,26 +356,26 @@ def test_a_first_compilation_is_announced(monkeypatch, capsys):
     a machine, about half a minute) says so on stderr while it runs, once."""
     import time
 
-    monkeypatch.setattr(E, "_warm", set())
-    monkeypatch.setattr(_compiled, "ON", True)
-    monkeypatch.setattr(E, "COMPILE_NOTICE_S", 0.05)
-    E.warm_up()  # loaded (or compiled, on a first run): what it says is not checked here
+    monkeypatch.setattr(W, "_warm", set())
+    monkeypatch.setattr(jit, "ON", True)
+    monkeypatch.setattr(W, "COMPILE_NOTICE_S", 0.05)
+    W.warm_up()  # loaded (or compiled, on a first run): what it says is not checked here
     capsys.readouterr()
-    slow = _compiled.readout_solve
+    slow = KO.readout_solve
 
     def compiling(*a):
         time.sleep(0.3)
         return slow(*a)
 
-    monkeypatch.setattr(E, "_warm", set())
-    monkeypatch.setattr(_compiled, "readout_solve", compiling)
-    E.warm_up()
+    monkeypatch.setattr(W, "_warm", set())
+    monkeypatch.setattr(KO, "readout_solve", compiling)
+    W.warm_up()
     err = capsys.readouterr().err
-    assert err.count("compiling the triangle's kernels") == 1 and _compiled.ON
-    monkeypatch.setattr(E, "_warm", set())
-    monkeypatch.setattr(_compiled, "readout_solve", slow)
-    monkeypatch.setattr(E, "COMPILE_NOTICE_S", 5.0)
-    E.warm_up()
+    assert err.count("compiling the triangle's kernels") == 1 and jit.ON
+    monkeypatch.setattr(W, "_warm", set())
+    monkeypatch.setattr(KO, "readout_solve", slow)
+    monkeypatch.setattr(W, "COMPILE_NOTICE_S", 5.0)
+    W.warm_up()
     assert "compiling" not in capsys.readouterr().err
 
 
@@ -375,25 +385,25 @@ def test_the_compilation_notice_is_said_only_without_a_cache(monkeypatch, capsys
     later `check` and `batch` is; without it, the notice comes at once (issue 59)."""
     import time
 
-    monkeypatch.setattr(_compiled, "ON", True)
-    monkeypatch.setattr(E, "_warm", set())
-    E.warm_up()
+    monkeypatch.setattr(jit, "ON", True)
+    monkeypatch.setattr(W, "_warm", set())
+    W.warm_up()
     capsys.readouterr()
-    assert E._kernels_cached()  # the cache the first warm_up left (or found)
-    slow = _compiled.readout_solve
+    assert W._kernels_cached()  # the cache the first warm_up left (or found)
+    slow = KO.readout_solve
 
     def loading(*a):
         time.sleep(2.0)  # longer than the old 1.5 s threshold
         return slow(*a)
 
-    monkeypatch.setattr(_compiled, "readout_solve", loading)
-    monkeypatch.setattr(E, "_warm", set())
-    E.warm_up()
+    monkeypatch.setattr(KO, "readout_solve", loading)
+    monkeypatch.setattr(W, "_warm", set())
+    W.warm_up()
     assert "compiling" not in capsys.readouterr().err
-    monkeypatch.setattr(_compiled, "readout_solve", slow)
-    monkeypatch.setattr(E, "_kernels_cached", lambda: False)
-    monkeypatch.setattr(E, "_warm", set())
-    E.warm_up()
+    monkeypatch.setattr(KO, "readout_solve", slow)
+    monkeypatch.setattr(W, "_kernels_cached", lambda: False)
+    monkeypatch.setattr(W, "_warm", set())
+    W.warm_up()
     assert capsys.readouterr().err.count("compiling the triangle's kernels") == 1
 
 
@@ -404,9 +414,9 @@ def test_the_pixel_fits_kernels_load_with_a_rig_that_uses_it(unloadable, capsys)
     unloadable("band_lines")
     rig = load_rig(CONFIGS / "triangle.toml")
     TrianglePipeline(rig)
-    assert E._warm == {"edges"} and _compiled.ON is True
+    assert W._warm == {"edges"} and jit.ON is True
     TrianglePipeline(replace(rig, detect=replace(rig.detect, refine="pixels")))
-    assert E._warm == {"edges", "pixels"} and _compiled.ON is False
+    assert W._warm == {"edges", "pixels"} and jit.ON is False
     assert "did not load" in capsys.readouterr().err
 
 
@@ -431,20 +441,20 @@ def test_the_pixel_fits_noise_correlation_compiled_or_not(monkeypatch):
         r = noise[uv[:, 1], uv[:, 0]]
         got = {}
         for flag in (False, True):
-            monkeypatch.setattr(_compiled, "ON", flag)
+            monkeypatch.setattr(jit, "ON", flag)
             got[flag] = photometric._noise_inflation(uv, r, w)
         assert got[True] == pytest.approx(got[False], rel=1e-12, abs=1e-12)
         args = (uv, r, w, photometric._LAGS, photometric.NOISE_LAG_PX,
                 photometric.NOISE_MIN_PAIRS)  # fmt: skip
-        assert _as_python(_compiled.noise_inflation)(*args) == pytest.approx(got[True], rel=1e-12)
+        assert _as_python(KP.noise_inflation)(*args) == pytest.approx(got[True], rel=1e-12)
     assert got[True] > 1.5  # the smoothed noise's
     index = np.full(40, 3, np.int32)
     index[[5, 6, 12]] = [0, 1, 2]
     args = (index, np.array([5, 6, 12]), np.array([1, 7]), np.array([1.0, 2.0, 3.0]),
             np.array([0.5, 1.0, 2.0]))  # fmt: skip
-    pairs, rr, ww = _compiled._lag_sums(*args)
+    pairs, rr, ww = KP._lag_sums(*args)
     assert pairs.tolist() == [1.0, 1.0] and rr.tolist() == [2.0, 3.0]
-    assert _diff((pairs, rr, ww), _compiled._lag_sums.py_func(*args)) == 0.0
+    assert _diff((pairs, rr, ww), KP._lag_sums.py_func(*args)) == 0.0
 
 
 @pytest.fixture(scope="module")
@@ -462,7 +472,7 @@ def pixel_fits():
 
     mp = pytest.MonkeyPatch()
     try:
-        mp.setattr(_compiled, "ON", False)
+        mp.setattr(jit, "ON", False)
         mp.setattr(T, "refine", spy)
         for rig, img in _frames():
             rig = replace(rig, detect=replace(rig.detect, refine="pixels"))
@@ -487,7 +497,7 @@ def test_the_pixel_fit_compiled_or_not(pixel_fits, monkeypatch):
     for a in pixel_fits:
         got = {}
         for flag in (False, True):
-            monkeypatch.setattr(_compiled, "ON", flag)
+            monkeypatch.setattr(jit, "ON", flag)
             got[flag] = P.refine(*a)
         pure, fast = got[False], got[True]
         assert pure.ok == fast.ok and pure.n_pixels == fast.n_pixels
@@ -504,7 +514,7 @@ def test_the_pixel_fit_compiled_or_not(pixel_fits, monkeypatch):
     roll = (RollingShutter(25.0), np.radians([1.0, -2.0, 20.0]))
     got = {}
     for flag in (False, True):
-        monkeypatch.setattr(_compiled, "ON", flag)
+        monkeypatch.setattr(jit, "ON", flag)
         got[flag] = P.refine(*pixel_fits[0][:5], *roll)
     assert got[True].ok and got[True].n_pixels == got[False].n_pixels
     assert np.abs(got[True].xy - got[False].xy).max() < 1e-9
@@ -516,31 +526,31 @@ def test_the_pixel_fit_compiled_or_not(pixel_fits, monkeypatch):
     c = 0.5 * (V[[1, 2, 0]] + V[[2, 0, 1]])
     w = np.maximum(np.asarray(width, float), 0.3)
     reach, clear = P.REACH_WIDTHS * w + P.REACH_PX, P.CLEAR_WIDTHS * w
-    monkeypatch.setattr(_compiled, "ON", True)
+    monkeypatch.setattr(jit, "ON", True)
     bands = P._band(image, n, c, reach, clear, camera)
-    monkeypatch.setattr(_compiled, "ON", False)
+    monkeypatch.setattr(jit, "ON", False)
     assert _diff(bands, P._band(image, n, c, reach, clear, camera)) == 0.0
-    monkeypatch.setattr(_compiled, "band_lines", _as_python(_compiled.band_lines))
-    monkeypatch.setattr(_compiled, "ON", True)
+    monkeypatch.setattr(KP, "band_lines", _as_python(KP.band_lines))
+    monkeypatch.setattr(jit, "ON", True)
     assert _diff(bands, P._band(image, n, c, reach, clear, camera)) == 0.0
     # and through a lens with distortion (the bands' corners through its polynomial)
     lens = replace(camera, dist=np.array([-0.12, 0.03, 0.001, -0.002, 0.0]))
     got = {}
     for flag in (False, True):
-        monkeypatch.setattr(_compiled, "ON", flag)
+        monkeypatch.setattr(jit, "ON", flag)
         got[flag] = P._band(image, n, c, reach, clear, lens)
     assert len(got[True][1]) > 1000 and _diff(got[True], got[False]) == 0.0
     monkeypatch.undo()
     assert _diff(got[True], P._band(image, n, c, reach, clear, lens)) == 0.0
-    monkeypatch.setattr(_compiled, "ON", True)
+    monkeypatch.setattr(jit, "ON", True)
     x, y, _, counts = bands
     args = (x, y, counts, n, c, w, V.mean(axis=0), 50.0, P.GN_STEPS)
     table = (P._PHI, P.PHI_RANGE, 1.0 / P.PHI_STEP)
-    fast = _compiled._pixel_gn(*args, *table)
+    fast = KP._pixel_gn(*args, *table)
     # the same named result from both (a NamedTuple Numba builds as a tuple)
     assert type(fast).__name__ == "GaussNewtonSteps" and fast.ok is True
     assert type(P._gauss_newton(*args)) is type(fast)
-    for as_python, pure in zip(_as_python(_compiled._pixel_gn)(*args, *table),
+    for as_python, pure in zip(_as_python(KP._pixel_gn)(*args, *table),
                                P._gauss_newton(*args), strict=True):  # fmt: skip
         size = max(np.abs(np.asarray(pure, float)).max(), 1.0)
         assert np.abs(np.asarray(as_python, float) - np.asarray(pure, float)).max() <= 1e-9 * size
@@ -549,7 +559,7 @@ def test_the_pixel_fit_compiled_or_not(pixel_fits, monkeypatch):
     assert P.FIRST_STRIDE == 2 and P.GN_STEPS == 2
     xs, ys, cs = P._strided(x, y, counts, 2)
     assert cs.tolist() == [(k + 1) // 2 for k in counts.tolist()] and len(ys) == cs.sum()
-    assert _diff((xs, ys, cs), _compiled._strided(x, y, counts, 2)) == 0.0
+    assert _diff((xs, ys, cs), KP._strided(x, y, counts, 2)) == 0.0
     # and from a run's blur: one step on every pixel; from a blur 30 % off, more
     cold_start = P._solve(x, y, bands[2], counts, n, c, w, V, V.mean(axis=0), 50.0)
     steps = []
@@ -562,7 +572,7 @@ def test_the_pixel_fit_compiled_or_not(pixel_fits, monkeypatch):
         # (the first fit: a step on every other pixel, then one on every pixel)
         assert steps == ([1] * pure[6] if warm else [1, 1])
         assert pure[6] == (1 if start is cold_start[3] else 2 if warm else 1)
-        for got in (_compiled.pixel_solve, _as_python(_compiled.pixel_solve)):
+        for got in (KP.pixel_solve, _as_python(KP.pixel_solve)):
             fast = got(*args, warm, P.SETTINGS)
             assert type(fast) is type(pure) and type(pure).__name__ == "PixelSolve"
             assert fast.ok is True and pure.ok is True
@@ -577,7 +587,7 @@ def test_the_pixel_fit_compiled_or_not(pixel_fits, monkeypatch):
     y3[: counts[0]] += np.random.default_rng(1).normal(0.0, 6.0, counts[0])
     args = (x, y3, bands[2], counts, n, c, w, V, V.mean(axis=0), 50.0)
     pure = P._solve(*args)
-    fast = _compiled.pixel_solve(*args, False, P.SETTINGS)
+    fast = KP.pixel_solve(*args, False, P.SETTINGS)
     assert pure.ok is False and bool(fast.ok) is False
     assert np.array_equal(pure[1], V) and np.array_equal(fast[1], V)
 
@@ -604,9 +614,9 @@ def test_the_bands_cover_compiled_or_not():
             q[2] += 500.0  # outside the box
         q = q.reshape(12, 2)
         box = (0, 0, 99, 89)
-        fast = _compiled.cover(q, *box)
+        fast = KP.cover(q, *box)
         assert np.array_equal(fast, P._cover(q, *box))
-        assert np.array_equal(fast, _compiled.cover.py_func(q, *box))
+        assert np.array_equal(fast, KP.cover.py_func(q, *box))
         assert len(np.unique(fast, axis=0)) == len(fast)
         assert np.array_equal(fast, fast[np.lexsort((fast[:, 0], fast[:, 1]))])
         assert fast[:, 0].min() >= 0 and fast[:, 0].max() <= 99 and fast[:, 1].max() <= 89

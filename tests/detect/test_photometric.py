@@ -7,6 +7,8 @@ from dataclasses import replace
 import cv2
 import numpy as np
 
+from visvec._kernels import jit
+from visvec._kernels import pixel_fit as KP
 from visvec.data import Status
 from visvec.detect import TriangleDetector
 from visvec.detect import triangle as tri
@@ -166,7 +168,7 @@ def test_pixel_fit_sigma_is_honest_under_correlated_noise(rig320, monkeypatch):
     honest = z_rms()
     # the noise taken as white: the numpy path (the compiled one, tested equal to it in
     # tests/detect/test_compiled.py, calls its own kernel) without the inflation
-    monkeypatch.setattr(photometric._compiled, "ON", False)
+    monkeypatch.setattr(photometric.jit, "ON", False)
     monkeypatch.setattr(photometric, "_noise_inflation", lambda *a: 1.0)
     white = z_rms()
     assert 0.75 < honest < 1.3, honest
@@ -278,7 +280,6 @@ def test_the_bands_are_every_pixel_the_rule_takes(rig320, monkeypatch):
     frame (the quadrilaterals only narrow the search: none is missed at their sides),
     through a pinhole and through a strong barrel distortion, compiled and from numpy;
     the ideal coordinates are the lens model's."""
-    from visvec.detect import _compiled
     from visvec.detect import photometric as P
 
     cams = [rig320.camera, replace(rig320.camera, dist=np.array([-0.3, 0.1, 0.0, 0.0, 0.0]))]
@@ -298,7 +299,7 @@ def test_the_bands_are_every_pixel_the_rule_takes(rig320, monkeypatch):
         image = (image % 251).astype(np.uint8)
         want, counts = _band_by_rule(image, n, c, reach, clear, cam)
         for flag in (False, True):
-            monkeypatch.setattr(_compiled, "ON", flag)
+            monkeypatch.setattr(jit, "ON", flag)
             x, grey, uv, got_counts = P._band(image, n, c, reach, clear, cam)
             assert got_counts.tolist() == counts and sum(counts) > 300
             assert np.array_equal(uv, want)
@@ -314,7 +315,6 @@ def test_the_step_and_its_slope_from_the_table_are_the_normal_cdf_and_density():
     too; the compiled kernel's are the same numbers."""
     from scipy.special import ndtr
 
-    from visvec.detect import _compiled
     from visvec.detect import photometric as P
 
     u = np.concatenate([np.linspace(-12.0, 12.0, 20001), [-8.0, 8.0, 0.0]])
@@ -323,7 +323,7 @@ def test_the_step_and_its_slope_from_the_table_are_the_normal_cdf_and_density():
     assert np.abs(slope - np.exp(-0.5 * u * u) / np.sqrt(2.0 * np.pi)).max() < 1e-7
     # between the nodes the error is not zero: the table is interpolated, not looked up
     assert np.abs(step - ndtr(u)).max() > 1e-10
-    kernel = getattr(_compiled._phi_of, "py_func", _compiled._phi_of)
+    kernel = getattr(KP._phi_of, "py_func", KP._phi_of)
     for k in range(0, len(u), 997):
         got = kernel(float(u[k]), P._PHI, P.PHI_RANGE, 1.0 / P.PHI_STEP)
         assert got == (step[k], slope[k])

@@ -5,6 +5,9 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from visvec._kernels import jit
+from visvec._kernels import readout as KO
+from visvec._kernels import rotation as KR
 from visvec.data import Detection, Status
 from visvec.estimate.rotation import (
     initial_rotation,
@@ -234,16 +237,15 @@ def test_readout_evidence_update_is_the_free_fits_explain(rig640, compiled, monk
     the same numbers (1e-12), with a lever arm, a correction already applied, and a
     height carried as a prior; the compiled kernel gives what its Python source does
     (to rounding: 1e-12)."""
-    from visvec.detect import _compiled
     from visvec.estimate.shear import ReadoutEvidence, model_error_design
     from visvec.shutter import shutter_shift
 
-    if compiled and not _compiled.AVAILABLE:
+    if compiled and not jit.AVAILABLE:
         pytest.skip("Numba (the fast extra)")
-    monkeypatch.setattr(_compiled, "ON", compiled)
+    monkeypatch.setattr(jit, "ON", compiled)
     if compiled:  # its Python source (py_func, which coverage follows), checked below
-        kernel = _compiled.readout_frame
-        monkeypatch.setattr(_compiled, "readout_frame", kernel.py_func)
+        kernel = KO.readout_frame
+        monkeypatch.setattr(KO, "readout_frame", kernel.py_func)
 
     cam = rig640.camera
     rng = np.random.default_rng(5)
@@ -272,7 +274,7 @@ def test_readout_evidence_update_is_the_free_fits_explain(rig640, compiled, monk
     np.testing.assert_allclose(ev.rhs, rhs, rtol=1e-9, atol=1e-12 * np.abs(rhs).max())
     assert ev.chi2 == pytest.approx(chi2, rel=1e-9) and ev.n == 6 and ev.dof == 6 * 2
     if compiled:  # and the compiled kernel gives what its source does
-        monkeypatch.setattr(_compiled, "readout_frame", kernel)
+        monkeypatch.setattr(KO, "readout_frame", kernel)
         again = ReadoutEvidence.for_camera(cam, 30.0)
         for args in added:
             again.add(*args)
@@ -281,11 +283,11 @@ def test_readout_evidence_update_is_the_free_fits_explain(rig640, compiled, monk
         assert again.chi2 == pytest.approx(ev.chi2, rel=1e-12)
         # the posterior (ReadoutEvidence._posterior): compiled, its source, numpy
         got = []
-        for on, solve in ((True, _compiled.readout_solve),
-                          (True, _compiled.readout_solve.py_func), (False, None)):  # fmt: skip
-            monkeypatch.setattr(_compiled, "ON", on)
+        for on, solve in ((True, KO.readout_solve),
+                          (True, KO.readout_solve.py_func), (False, None)):  # fmt: skip
+            monkeypatch.setattr(jit, "ON", on)
             if solve is not None:
-                monkeypatch.setattr(_compiled, "readout_solve", solve)
+                monkeypatch.setattr(KO, "readout_solve", solve)
             ev._cached = None
             got.append(ev._posterior())
         for cov, theta, fit in got[1:]:
@@ -406,12 +408,11 @@ def test_closed_form_start_of_three_points_is_the_whole_array_one(monkeypatch):
     over noisy bearings of points beyond the centre of rotation (one branch in front) and
     of points around it seen from afar (both branches, the better kept), and none where
     neither is; the kernel's Python source gives the same."""
-    from visvec.detect import _compiled
     from visvec.estimate.rotation import _initial_rotation_n, initial_rotation
 
-    if not _compiled.AVAILABLE:
+    if not jit.AVAILABLE:
         pytest.skip("Numba (the fast extra)")
-    monkeypatch.setattr(_compiled, "ON", True)
+    monkeypatch.setattr(jit, "ON", True)
 
     rng = np.random.default_rng(1)
     kinds = {"beyond": 0, "around": 0, "none": 0}
@@ -428,7 +429,7 @@ def test_closed_form_start_of_three_points_is_the_whole_array_one(monkeypatch):
         np.testing.assert_allclose(fast, whole, rtol=0, atol=1e-12)
         kinds["around" if X[0, 2] < 0 else "beyond"] += 1
         if kinds["beyond"] + kinds["around"] < 40:
-            found, R = _compiled.closed_form_3.py_func(t_c, X, xy)
+            found, R = KR.closed_form_3.py_func(t_c, X, xy)
             assert found and np.abs(R - fast).max() < 1e-12
     assert min(kinds.values()) > 50, kinds
 

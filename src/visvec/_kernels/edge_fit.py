@@ -1,12 +1,35 @@
-"""The edge fit's named results (visvec.detect.edges, its compiled kernels in
-visvec.detect._compiled): NamedTuples, which Numba builds and reads as it does plain
-tuples, so that the numpy and the compiled fit return the same names."""
+"""The edge fit's kernels (visvec.detect.edges: its profiles, levels, step positions,
+blur widths, robust lines and their statistics) and its named results.
+
+A frame's edge fit works on a few hundred profiles of a dozen samples each: numpy spends
+most of its time there starting its array operations, not doing them. Each kernel here
+is one of edges' functions written as loops over the profiles, the same arithmetic in
+the same order where the order matters, so that the results agree with the numpy
+functions to rounding (tests/detect/test_compiled.py checks them against each other on
+frames of every kind the tests render). Compiled by Numba with the ``fast`` extra
+(visvec._kernels.jit); the results are NamedTuples, which Numba builds and reads as it
+does plain tuples, so that the numpy and the compiled fit return the same names."""
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import numpy as np
+
+from visvec._kernels.jit import kernel
+
+# Abramowitz & Stegun, Handbook of Mathematical Functions (1964), Eq. 7.1.26, as
+# edges.erf_with_bell evaluates it (Horner, a5 first): the edge fit's step model
+_AS_P = 0.3275911
+_AS_A5 = 1.061405429
+_AS_A4 = -1.453152027
+_AS_A3 = 1.421413741
+_AS_A2 = -0.284496736
+_AS_A1 = 0.254829592
+_SQRT_PI = math.sqrt(math.pi)
+_SQRT_2 = math.sqrt(2.0)
+_SQRT_2PI = math.sqrt(2.0 * math.pi)
 
 
 class EdgeLines(NamedTuple):
@@ -36,3 +59,576 @@ class EdgeLines(NamedTuple):
     spreads: np.ndarray
     sigmas: np.ndarray
     keep: np.ndarray
+
+
+def vertices(normals: np.ndarray, offsets: np.ndarray) -> tuple[np.ndarray, list | None]:
+    """The triangle's vertices (3, 2) in ideal pixels from its three lines n . x = offset
+    (line i opposite vertex i; the edge fit's and the pixel fit's) and, per vertex i,
+    the inverse of the 2x2 matrix [n_j; n_k] of its two lines (Cramer's rule: x = A^-1
+    [o_j, o_k]); all NaN and None when two lines are parallel."""
+    nrm, off = normals.tolist(), offsets.tolist()
+    V = np.empty((3, 2))
+    invs = []
+    for i in range(3):
+        j, k = (i + 1) % 3, (i + 2) % 3
+        (a, b), (c, d) = nrm[j], nrm[k]
+        det = a * d - b * c
+        if det == 0.0:
+            return np.full((3, 2), np.nan), None
+        inv = ((d / det, -b / det), (-c / det, a / det))
+        V[i] = (inv[0][0] * off[j] + inv[0][1] * off[k], inv[1][0] * off[j] + inv[1][1] * off[k])
+        invs.append(inv)
+    return V, invs
+
+
+# ---------------------------------------------------------------- profiles (_sample)
+def _sample_geometry(corners, off, offs, trims, spacing, max_per_edge):
+    """edges._sample but for its cv2.remap: the profiles' bases, normals, edge, index
+    along the edge, t in [-1, 1], distance along, the edges' lengths and the sample
+    maps (float32, x and y)."""
+    A = np.empty((3, 2))
+    D = np.empty((3, 2))
+    length = np.empty(3)
+    for i in range(3):
+        a = (i + 1) % 3
+        b = (i + 2) % 3
+        A[i, 0] = corners[a, 0]
+        A[i, 1] = corners[a, 1]
+        D[i, 0] = corners[b, 0] - corners[a, 0]
+        D[i, 1] = corners[b, 1] - corners[a, 1]
+        length[i] = math.sqrt(D[i, 0] * D[i, 0] + D[i, 1] * D[i, 1])
+        d = max(length[i], 1e-9)
+        D[i, 0] = D[i, 0] / d
+        D[i, 1] = D[i, 1] / d
+    ax = corners[1, 0] - corners[0, 0]
+    ay = corners[1, 1] - corners[0, 1]
+    bx = corners[2, 0] - corners[0, 0]
+    by = corners[2, 1] - corners[0, 1]
+    inward = 1.0 if ax * by - ay * bx > 0 else -1.0
+    N = np.empty((3, 2))
+    m = np.empty(3, np.int64)
+    s0 = np.empty(3)
+    s1 = np.empty(3)
+    for i in range(3):
+        N[i, 0] = -inward * D[i, 1]
+        N[i, 1] = inward * D[i, 0]
+        s0[i] = min(trims[(i + 1) % 3], 0.4 * length[i])
+        s1[i] = length[i] - min(trims[(i + 2) % 3], 0.4 * length[i])
+        m[i] = int(min(max((s1[i] - s0[i]) / spacing, 4.0), max_per_edge))
+    total = m[0] + m[1] + m[2]
+    n_s = len(offs)
+    bases = np.empty((total, 2))
+    normals = np.empty((total, 2))
+    gid = np.empty(total, np.int64)
+    k = np.empty(total, np.int64)
+    tt = np.empty(total)
+    along = np.empty(total)
+    map_x = np.empty((total, n_s), np.float32)
+    map_y = np.empty((total, n_s), np.float32)
+    p = 0
+    for i in range(3):
+        for j in range(m[i]):
+            frac = j / (m[i] - 1)
+            al = s0[i] + frac * (s1[i] - s0[i])
+            gid[p] = i
+            k[p] = j
+            tt[p] = 2.0 * frac - 1.0
+            along[p] = al
+            bases[p, 0] = A[i, 0] + al * D[i, 0]
+            bases[p, 1] = A[i, 1] + al * D[i, 1]
+            normals[p, 0] = N[i, 0]
+            normals[p, 1] = N[i, 1]
+            bx0 = bases[p, 0] - off[0]
+            by0 = bases[p, 1] - off[1]
+            for q in range(n_s):
+                map_x[p, q] = bx0 + offs[q] * N[i, 0]
+                map_y[p, q] = by0 + offs[q] * N[i, 1]
+            p += 1
+    return bases, normals, gid, k, tt, along, map_x, map_y, length
+
+
+# ------------------------------------------------------- levels (_level_lines and co)
+def _group_linear(t, y, gid, keep, use_keep):
+    """edges._group_linear for one y: each edge's least-squares line of y against t
+    (over ``keep`` when use_keep), evaluated at every t."""
+    w = np.zeros(3)
+    st = np.zeros(3)
+    stt = np.zeros(3)
+    sy = np.zeros(3)
+    sty = np.zeros(3)
+    for p in range(len(t)):
+        if use_keep and not keep[p]:
+            continue
+        g = gid[p]
+        w[g] += 1.0
+        st[g] += t[p]
+        stt[g] += t[p] * t[p]
+        sy[g] += y[p]
+        sty[g] += t[p] * y[p]
+    slope = np.zeros(3)
+    icpt = np.zeros(3)
+    for g in range(3):
+        den = w[g] * stt[g] - st[g] * st[g]
+        if abs(den) > 1e-12:
+            slope[g] = (w[g] * sty[g] - st[g] * sy[g]) / den
+        icpt[g] = (sy[g] - slope[g] * st[g]) / max(w[g], 1.0)
+    out = np.empty(len(t))
+    for p in range(len(t)):
+        out[p] = icpt[gid[p]] + slope[gid[p]] * t[p]
+    return out
+
+
+def _levels_suspect(r_lo, r_hi, lo_raw, hi_raw, starts, suspect_rms, suspect_max):
+    """edges._levels_suspect (the edges' profiles from ``starts`` (4,) on)."""
+    for row in range(2):
+        raw = lo_raw if row == 0 else hi_raw
+        r = r_lo if row == 0 else r_hi
+        for g in range(3):
+            a, b = starts[g], starts[g + 1]
+            c = b - a
+            # the raw levels are float32 (numpy's mean of the float32 samples): their
+            # differences and sum of squares too, as numpy takes them
+            s = np.float32(0.0)
+            for p in range(a, b - 1):
+                d = raw[p + 1] - raw[p]
+                s += d * d
+            noise2 = max(np.float64(s) / (2.0 * max(c - 1, 1)), 1e-6)
+            rs = 0.0
+            rmax = 0.0
+            for p in range(a, b):
+                r2 = r[p] * r[p]
+                rs += r2
+                rmax = max(rmax, r2)
+            if rs > suspect_rms**2 * max(c - 2, 1) * noise2:
+                return True
+            if rmax > suspect_max**2 * noise2:
+                return True
+    return False
+
+
+def _level_lines(t, lo_raw, hi_raw, gid, starts, outlier_sigmas, outlier_min,
+                 suspect_rms, suspect_max):  # fmt: skip
+    """edges._level_lines: lo, hi on the final lines and the profiles whose levels
+    passed."""
+    m_all = len(t)
+    none = np.zeros(0, np.bool_)
+    lo = _group_linear(t, lo_raw, gid, none, False)
+    hi = _group_linear(t, hi_raw, gid, none, False)
+    ok = np.ones(m_all, np.bool_)
+    if not _levels_suspect(lo_raw - lo, hi_raw - hi, lo_raw, hi_raw, starts, suspect_rms,
+                           suspect_max):  # fmt: skip
+        return lo, hi, ok
+    res_lo = np.empty(m_all)
+    res_hi = np.empty(m_all)
+    lim_lo = np.empty(3)
+    lim_hi = np.empty(3)
+    for g in range(3):
+        a, c = starts[g], starts[g + 1] - starts[g]
+        n0 = c // 2
+        # resistant lines through the medians of each half's levels, at the halves'
+        # middle t (t ascends along the edge)
+        m_lo0 = np.median(lo_raw[a : a + n0].astype(np.float64))
+        m_lo1 = np.median(lo_raw[a + n0 : a + c].astype(np.float64))
+        m_hi0 = np.median(hi_raw[a : a + n0].astype(np.float64))
+        m_hi1 = np.median(hi_raw[a + n0 : a + c].astype(np.float64))
+        t0 = 0.5 * (t[a + (n0 - 1) // 2] + t[a + n0 // 2])
+        t1 = 0.5 * (t[a + n0 + (c - n0 - 1) // 2] + t[a + n0 + (c - n0) // 2])
+        dt = t1 - t0 if abs(t1 - t0) > 1e-9 else 1.0
+        s_lo = (m_lo1 - m_lo0) / dt
+        s_hi = (m_hi1 - m_hi0) / dt
+        for p in range(a, a + c):
+            u = t[p] - t0
+            res_lo[p] = abs(lo_raw[p] - m_lo0 - s_lo * u)
+            res_hi[p] = abs(hi_raw[p] - m_hi0 - s_hi * u)
+        lim_lo[g] = max(outlier_sigmas * 1.4826 * np.median(res_lo[a : a + c]), outlier_min)
+        lim_hi[g] = max(outlier_sigmas * 1.4826 * np.median(res_hi[a : a + c]), outlier_min)
+    have = False
+    new = np.empty(m_all, np.bool_)
+    for _ in range(2):
+        cnt = np.zeros(3)
+        for p in range(m_all):
+            g = gid[p]
+            new[p] = res_lo[p] <= lim_lo[g] and res_hi[p] <= lim_hi[g]
+            if new[p]:
+                cnt[g] += 1.0
+        for p in range(m_all):
+            if cnt[gid[p]] < 5:
+                new[p] = True
+        if have:
+            same = True
+            for p in range(m_all):
+                if new[p] != ok[p]:
+                    same = False
+                    break
+            if same:
+                break
+        ok = new.copy()
+        have = True
+        every = True
+        for p in range(m_all):
+            if not ok[p]:
+                every = False
+                break
+        lo = _group_linear(t, lo_raw, gid, ok, not every)
+        hi = _group_linear(t, hi_raw, gid, ok, not every)
+        for p in range(m_all):
+            res_lo[p] = abs(lo_raw[p] - lo[p])
+            res_hi[p] = abs(hi_raw[p] - hi[p])
+    return lo, hi, ok
+
+
+# ------------------------------------------------------------------ step positions
+def _positions(vals, t, gid, half, step, width, n_ext, ends, gn_steps,
+               outlier_sigmas, outlier_min, suspect_rms, suspect_max):  # fmt: skip
+    """edges._positions: each profile's step position, its step height, per edge the
+    mid level and the levels' scatter, and the profiles whose levels agree (the edges'
+    profiles one after the other, as _sample gives them)."""
+    m_all = vals.shape[0]
+    starts = np.zeros(4, np.int64)
+    for p in range(m_all):
+        starts[gid[p] + 1] += 1
+    for g in range(3):
+        starts[g + 1] += starts[g]
+    n_tot = vals.shape[1]
+    # the means of the first and last ``ends`` samples, in float32 as numpy takes the
+    # mean of float32 samples
+    lo_raw = np.empty(m_all, np.float32)
+    hi_raw = np.empty(m_all, np.float32)
+    n_ends = np.float32(ends)
+    for p in range(m_all):
+        a = np.float32(0.0)
+        b = np.float32(0.0)
+        for j in range(ends):
+            a += vals[p, j]
+            b += vals[p, n_tot - ends + j]
+        lo_raw[p] = a / n_ends
+        hi_raw[p] = b / n_ends
+    lo, hi, level_ok = _level_lines(t, lo_raw, hi_raw, gid, starts, outlier_sigmas,
+                                    outlier_min, suspect_rms, suspect_max)  # fmt: skip
+    s_in = n_tot - 2 * n_ext
+    e = np.empty(m_all)
+    f = np.empty(s_in)
+    fit = len(width) == 3
+    for p in range(m_all):
+        h = hi[p] - lo[p]
+        safe = h if abs(h) > 1e-6 else 1e-6
+        total = 0.0
+        for j in range(s_in):
+            f[j] = (vals[p, n_ext + j] - lo[p]) / safe
+            total += f[j]
+        ep = half - step * (total - 0.5 * (f[0] + f[s_in - 1]))
+        if fit:
+            s2 = _SQRT_2 * width[gid[p]]
+            gden = _SQRT_PI * s2
+            for _ in range(gn_steps):
+                num = 0.0
+                den = 0.0
+                for j in range(s_in):
+                    u = (-half + j * step - ep) / s2
+                    bell = math.exp(-u * u)
+                    q = 1.0 / (_AS_P * abs(u) + 1.0)
+                    y = ((((_AS_A5 * q + _AS_A4) * q + _AS_A3) * q + _AS_A2) * q + _AS_A1) * q
+                    erf = 1.0 - y * bell
+                    if u < 0.0:
+                        erf = -erf
+                    r = f[j] - 0.5 * (1.0 + erf)
+                    g = bell / gden
+                    num += r * g
+                    den += g * g
+                ep = ep - min(max(num / max(den, 1e-12), -0.5), 0.5)
+        e[p] = ep
+    cnt = np.zeros(3)
+    s_lo = np.zeros(3)
+    s_hi = np.zeros(3)
+    s_res = np.zeros(3)
+    for p in range(m_all):
+        if level_ok[p]:
+            g = gid[p]
+            cnt[g] += 1.0
+            s_lo[g] += lo[p]
+            s_hi[g] += hi[p]
+            res = 0.5 * (lo_raw[p] + hi_raw[p] - lo[p] - hi[p])
+            s_res[g] += res * res
+    mid = np.empty(3)
+    level_sd = np.empty(3)
+    for g in range(3):
+        c = max(cnt[g], 1.0)
+        mid[g] = (s_lo[g] + s_hi[g]) / (2.0 * c)
+        level_sd[g] = math.sqrt(s_res[g] / max(c - 2.0, 1.0))
+    return e, hi_raw - lo_raw, mid, level_sd, level_ok
+
+
+# ---------------------------------------------------------------------- blur widths
+def _widths(vals, n_ext, e, clear, gid, half, step, reach_min):
+    """edges._widths on the profiles vals[:, n_ext : -n_ext]."""
+    m_all = vals.shape[0]
+    n_bins = vals.shape[1] - 2 * n_ext - 1
+    nb3 = 3 * n_bins
+    sums = np.zeros((3, nb3))
+    cnt = np.zeros((3, nb3))
+    for p in range(m_all):
+        if not clear[p]:
+            continue
+        k = int(np.rint(e[p] / step))
+        g = gid[p]
+        for j in range(n_bins):
+            b = j - k + n_bins
+            sums[g, b] += np.float64(vals[p, n_ext + j + 1] - vals[p, n_ext + j])
+            cnt[g, b] += 1.0
+    x = np.empty(nb3)
+    for b in range(nb3):
+        x[b] = -half + (b - n_bins + 0.5) * step
+    g_all = np.zeros((3, nb3))
+    for g in range(3):
+        top = 0.0
+        for b in range(nb3):
+            top = max(top, cnt[g, b])
+        for b in range(nb3):
+            if cnt[g, b] > 0 and cnt[g, b] >= 0.5 * top and abs(x[b]) <= half:
+                g_all[g, b] = sums[g, b] / max(cnt[g, b], 1.0)
+    w = np.empty(3)
+    reach = np.full(3, np.inf)
+    rounds = 2 if half > reach_min else 1
+    for _ in range(rounds):
+        for g in range(3):
+            tot = 0.0
+            gx = 0.0
+            for b in range(nb3):
+                if abs(x[b]) <= reach[g]:
+                    tot += g_all[g, b]
+                    gx += g_all[g, b] * x[b]
+            safe = tot if tot > 0 else 1.0
+            c = gx / safe
+            w2 = 0.0
+            for b in range(nb3):
+                if abs(x[b]) <= reach[g]:
+                    w2 += g_all[g, b] * (x[b] - c) ** 2
+            w2 = w2 / safe
+            if tot > 0 and w2 > 0:
+                w[g] = min(math.sqrt(w2), half / 2.0)
+            else:
+                w[g] = half / 3.0
+        for g in range(3):
+            reach[g] = max(4.0 * w[g], reach_min)
+    return w
+
+
+def _group_median(a, gid, keep):
+    """edges._group_median: (3,) the median of ``a`` over each edge's kept points, 0
+    where an edge keeps none."""
+    out = np.zeros(3)
+    for g in range(3):
+        cnt = 0
+        for p in range(len(a)):
+            if gid[p] == g and keep[p]:
+                cnt += 1
+        if cnt:
+            v = np.empty(cnt)
+            q = 0
+            for p in range(len(a)):
+                if gid[p] == g and keep[p]:
+                    v[q] = a[p]
+                    q += 1
+            out[g] = np.median(v)
+    return out
+
+
+# ------------------------------------------------------------------- robust lines
+def _group_tls(x, y, gid, keep):
+    """edges._group_tls."""
+    k = np.zeros(3)
+    sx = np.zeros(3)
+    sy = np.zeros(3)
+    for p in range(len(x)):
+        if keep[p]:
+            g = gid[p]
+            k[g] += 1.0
+            sx[g] += x[p]
+            sy[g] += y[p]
+    c = np.empty((3, 2))
+    for g in range(3):
+        kk = max(k[g], 1.0)
+        c[g, 0] = sx[g] / kk
+        c[g, 1] = sy[g] / kk
+    dx = np.empty(len(x))
+    dy = np.empty(len(x))
+    sxx = np.zeros(3)
+    syy = np.zeros(3)
+    sxy = np.zeros(3)
+    for p in range(len(x)):
+        g = gid[p]
+        dx[p] = x[p] - c[g, 0]
+        dy[p] = y[p] - c[g, 1]
+        if keep[p]:
+            sxx[g] += dx[p] * dx[p]
+            syy[g] += dy[p] * dy[p]
+            sxy[g] += dx[p] * dy[p]
+    d = np.empty((3, 2))
+    n = np.empty((3, 2))
+    for g in range(3):
+        a = 0.5 * math.atan2(2.0 * sxy[g], sxx[g] - syy[g])
+        d[g, 0] = math.cos(a)
+        d[g, 1] = math.sin(a)
+        n[g, 0] = -d[g, 1]
+        n[g, 1] = d[g, 0]
+    return k, c, d, n, dx, dy
+
+
+def _robust_lines(x, y, gid, use, floor, rounds, inflation):
+    """edges._robust_lines: normals, offsets, centres, spreads, sigmas and the inliers."""
+    m_all = len(x)
+    keep = use.copy()
+    k, c, d, n, dx, dy = _group_tls(x, y, gid, keep)
+    active = np.ones(3, np.bool_)
+    a = np.empty(m_all)
+    new = np.empty(m_all, np.bool_)
+    for _ in range(rounds):
+        sigma = np.empty(3)
+        for p in range(m_all):
+            g = gid[p]
+            a[p] = abs(dx[p] * n[g, 0] + dy[p] * n[g, 1])
+        med = _group_median(a, gid, keep)
+        for g in range(3):
+            sigma[g] = max(1.4826 * med[g], floor)
+        changed = np.zeros(3, np.bool_)
+        n_new = np.zeros(3)
+        for p in range(m_all):
+            g = gid[p]
+            new[p] = use[p] and a[p] <= max(3.5 * sigma[g], 0.25)
+            if new[p] != keep[p]:
+                changed[g] = True
+            if new[p]:
+                n_new[g] += 1.0
+        any_active = False
+        for g in range(3):
+            active[g] = active[g] and changed[g] and n_new[g] >= 5
+            any_active = any_active or active[g]
+        if not any_active:
+            break
+        for p in range(m_all):
+            if active[gid[p]]:
+                keep[p] = new[p]
+        k, c, d, n, dx, dy = _group_tls(x, y, gid, keep)
+    rss = np.zeros(3)
+    spread = np.zeros(3)
+    for p in range(m_all):
+        if keep[p]:
+            g = gid[p]
+            r = dx[p] * n[g, 0] + dy[p] * n[g, 1]
+            t = dx[p] * d[g, 0] + dy[p] * d[g, 1]
+            rss[g] += r * r
+            spread[g] += t * t
+    sigmas = np.empty(3)
+    offset = np.empty(3)
+    for g in range(3):
+        sigmas[g] = max(math.sqrt(rss[g] / max(k[g] - 2.0, 1.0) * inflation), floor)
+        offset[g] = n[g, 0] * c[g, 0] + n[g, 1] * c[g, 1]
+    return EdgeLines(n, offset, c, spread, sigmas, keep)
+
+
+def _inward_lines(x, y, gid, clear, floor, rounds, inflation):
+    """edges._lines after its points: each edge's points with a clear step (all of them
+    where fewer than 5 are clear) through _robust_lines, the normals turned into the
+    triangle (towards the mean of the edges' centres)."""
+    m_all = len(x)
+    n_clear = np.zeros(3)
+    for p in range(m_all):
+        if clear[p]:
+            n_clear[gid[p]] += 1.0
+    use = np.empty(m_all, np.bool_)
+    for p in range(m_all):
+        use[p] = clear[p] or n_clear[gid[p]] < 5
+    n, offset, c, spread, sigmas, keep = robust_lines(x, y, gid, use, floor, rounds, inflation)
+    sx = c[0, 0] + c[1, 0] + c[2, 0]
+    sy = c[0, 1] + c[1, 1] + c[2, 1]
+    for g in range(3):
+        if n[g, 0] * sx + n[g, 1] * sy < 3.0 * offset[g]:
+            n[g, 0], n[g, 1], offset[g] = -n[g, 0], -n[g, 1], -offset[g]
+    return EdgeLines(n, offset, c, spread, sigmas, keep)
+
+
+# ------------------------------------------------- a fine pass's lines (_edge_fit)
+def _level_gain(width, half, step):
+    """edges._level_gain: (3,) px per unit of relative mid-level error, the erf model's
+    sum(g) / sum(g^2) over the window's samples."""
+    x = np.arange(-half, half + 1e-9, step)
+    out = np.empty(3)
+    for e in range(3):
+        w = width[e]
+        s1 = 0.0
+        s2 = 0.0
+        for k in range(x.shape[0]):
+            g = math.exp(-0.5 * (x[k] / w) ** 2) / (_SQRT_2PI * w)
+            s1 += g
+            s2 += g * g
+        out[e] = s1 / s2
+    return out
+
+
+def _edge_stats(sigmas, level_px, h_mid, gid, keep, along, trims, lengths):
+    """edges._edge_fit's statistics: each edge's per-point sigma with the levels' error
+    added, inlier count (float), outlier share, and how far its inliers stop short of
+    its two ends beyond the trims ((3, 2); the whole length without inliers)."""
+    counts = np.zeros(3)
+    n_profiles = np.zeros(3)
+    s_min = np.full(3, np.inf)
+    s_max = np.full(3, -np.inf)
+    for j in range(gid.shape[0]):
+        e = gid[j]
+        n_profiles[e] += 1.0
+        if keep[j]:
+            counts[e] += 1.0
+            s_min[e] = min(s_min[e], along[j])
+            s_max[e] = max(s_max[e], along[j])
+    sig = np.empty(3)
+    outl = np.empty(3)
+    gaps = np.empty((3, 2))
+    for e in range(3):
+        sig[e] = math.hypot(sigmas[e], level_px[e] / max(abs(h_mid[e]), 1e-6))
+        outl[e] = 1.0 - counts[e] / n_profiles[e]
+        if counts[e] > 0:
+            gaps[e, 0] = s_min[e] - trims[(e + 1) % 3]
+            gaps[e, 1] = lengths[e] - trims[(e + 2) % 3] - s_max[e]
+        else:
+            gaps[e, 0] = gaps[e, 1] = lengths[e]
+    return sig, counts, outl, gaps
+
+
+def _edge_lag_sums(ideal, gid, keep, normals, offsets, sigmas, lags):
+    """edges.lag_sums: per lag j = 0..lags, the sum of z_k z_(k + j) over the inlier
+    pairs j profiles apart on one edge (z the residual from the edge's line over its
+    sigma) and their count."""
+    m = gid.shape[0]
+    z = np.zeros(m)
+    for k in range(m):
+        if keep[k]:
+            e = gid[k]
+            r = ideal[k, 0] * normals[e, 0] + ideal[k, 1] * normals[e, 1] - offsets[e]
+            z[k] = r / sigmas[e]
+    out = np.zeros((2, lags + 1))
+    for j in range(lags + 1):
+        s = 0.0
+        p = 0
+        for k in range(m - j):
+            if keep[k] and keep[k + j] and gid[k] == gid[k + j]:
+                s += z[k] * z[k + j]
+                p += 1
+        out[0, j] = s
+        out[1, j] = p
+    return out
+
+
+sample_geometry = kernel(globals(), "sample_geometry", _sample_geometry)
+_group_linear = kernel(globals(), "_group_linear", _group_linear)
+_levels_suspect = kernel(globals(), "_levels_suspect", _levels_suspect)
+_level_lines = kernel(globals(), "_level_lines", _level_lines)
+positions = kernel(globals(), "positions", _positions)
+widths = kernel(globals(), "widths", _widths)
+_group_tls = kernel(globals(), "_group_tls", _group_tls)
+group_median = kernel(globals(), "group_median", _group_median)
+_group_median = kernel(globals(), "_group_median", _group_median)
+robust_lines = kernel(globals(), "robust_lines", _robust_lines)
+inward_lines = kernel(globals(), "inward_lines", _inward_lines)
+level_gain = kernel(globals(), "level_gain", _level_gain)
+edge_stats = kernel(globals(), "edge_stats", _edge_stats)
+edge_lag_sums = kernel(globals(), "edge_lag_sums", _edge_lag_sums)

@@ -11,16 +11,15 @@ are the intersections of the lines, with a covariance from the fit residuals.
 from __future__ import annotations
 
 import math
-import sys
-import threading
 from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
 
-from visvec._kernels.edge_fit import EdgeLines
+from visvec._kernels import edge_fit as kernels
+from visvec._kernels import jit
+from visvec._kernels.edge_fit import EdgeLines, vertices
 from visvec.camera import CameraModel
-from visvec.detect import _compiled
 from visvec.noise import CORRELATION_LAGS
 from visvec.shutter import RollingShutter, unroll
 
@@ -230,8 +229,8 @@ def _sorted_medians(table: np.ndarray, k: np.ndarray) -> np.ndarray:
 def _group_median(a: np.ndarray, gid: np.ndarray, index: np.ndarray, keep: np.ndarray):
     """(3,) median of ``a`` over each edge's kept points (index: position along the edge),
     the same value as np.median: one sort of a (3, longest edge) table padded with inf."""
-    if _compiled.ON:
-        return _compiled.group_median(np.asarray(a, float), gid, keep)
+    if jit.ON:
+        return kernels.group_median(np.asarray(a, float), gid, keep)
     table = np.full((3, int(index.max()) + 1), np.inf)
     table[gid[keep], index[keep]] = a[keep]
     table.sort(axis=1)
@@ -252,8 +251,8 @@ def _robust_lines(
     iterative outlier rejection (3.5 robust sigmas, sigma from the median absolute
     residual), all three edges at once. An edge stops iterating when its inliers no
     longer change or would fall under 5. Normals not yet turned into the triangle."""
-    if _compiled.ON:
-        return _compiled.robust_lines(x, y, gid, use, float(floor), int(rounds),
+    if jit.ON:
+        return kernels.robust_lines(x, y, gid, use, float(floor), int(rounds),
                                       EDGE_VARIANCE_INFLATION)  # fmt: skip
     keep = use.copy()
     k, c, d, n, dx, dy = _group_tls(x, y, gid, keep)
@@ -393,9 +392,9 @@ def _sample(
     edge t in [-1, 1] (M,), distance from the edge's first end (M,), values (M, S), and
     each edge's length (3,).
     """
-    if _compiled.ON and np.isfinite(corners).all() and np.isfinite(trims).all():
+    if jit.ON and np.isfinite(corners).all() and np.isfinite(trims).all():
         offs = np.arange(-half, half + 1e-9, step)
-        bases, normals, gid, k, tt, along, map_x, map_y, length = _compiled.sample_geometry(
+        bases, normals, gid, k, tt, along, map_x, map_y, length = kernels.sample_geometry(
             corners, off, offs, trims, float(spacing), MAX_PROFILES_PER_EDGE
         )
         vals = cv2.remap(roi, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
@@ -483,9 +482,9 @@ def _positions(
     """
     n_ext = int(round(ext / step))
     ends = max(2, int(1.0 / step)) + n_ext
-    if _compiled.ON:
+    if jit.ON:
         w = _NO_WIDTH if width is None else np.asarray(width, float)
-        return _compiled.positions(vals, t, gid, float(half), float(step), w, n_ext, ends,
+        return kernels.positions(vals, t, gid, float(half), float(step), w, n_ext, ends,
                                    GN_STEPS, LEVEL_OUTLIER_SIGMAS, LEVEL_OUTLIER_MIN,
                                    LEVEL_SUSPECT_RMS, LEVEL_SUSPECT_MAX)  # fmt: skip
     # the means of the first and last ``ends`` samples (np.add.reduce: mean without
@@ -528,8 +527,8 @@ def _level_gain(width: np.ndarray, half: float, step: float) -> np.ndarray:
     profiles: it moves the whole line and is not in the edge points' residuals. A level
     error with opposite signs on the two sides shifts nothing (symmetric slope).
     """
-    if _compiled.ON:
-        return _compiled.level_gain(np.asarray(width, float), float(half), float(step))
+    if jit.ON:
+        return kernels.level_gain(np.asarray(width, float), float(half), float(step))
     w = np.asarray(width, float)
     x = np.arange(-half, half + 1e-9, step)[None, :]
     g = np.exp(-0.5 * (x / w[:, None]) ** 2) / (np.sqrt(2.0 * np.pi) * w[:, None])
@@ -555,8 +554,8 @@ def _widths(
     second moment (10-90 % of a 1920x1080 webcam's cold widths 0.54-1.06 px over 8 px,
     0.77-0.89 within 4 widths).
     """
-    if _compiled.ON:
-        return _compiled.widths(vals, 0, e, clear, gid, float(half), float(step),
+    if jit.ON:
+        return kernels.widths(vals, 0, e, clear, gid, float(half), float(step),
                                 WIDTH_REACH_MIN_PX)  # fmt: skip
     d = np.diff(vals, axis=1)
     n_bins = d.shape[1]
@@ -605,8 +604,8 @@ def _edge_fit(normals, offsets, centres, spreads, sigmas, level_px, h_mid, mid, 
               keep, along, trims, lengths, lags=None) -> EdgeFit:  # fmt: skip
     """A fine pass's EdgeFit: its lines with their statistics (per edge: inliers,
     outlier share, contrast, and how far the inliers stop short of the ends)."""
-    if _compiled.ON:  # the same statistics, compiled (the fast extra)
-        sigmas, counts, outl, gaps = _compiled.edge_stats(
+    if jit.ON:  # the same statistics, compiled (the fast extra)
+        sigmas, counts, outl, gaps = kernels.edge_stats(
             sigmas, level_px, h_mid, gid, keep, along, trims, lengths
         )
         return EdgeFit(normals, offsets, centres, spreads, counts, sigmas, outl, h_mid, mid,
@@ -699,8 +698,8 @@ def _lines(raw, pts_px, pr: _Profiles, camera, shutter, rate_c, sigma_floor,
     if shutter is not None and rate_c is not None:
         ideal = unroll(raw, pts_px[:, 1], camera, rate_c, shutter.readout_ms, shutter.lever) * f
     gid, clear = pr.gid, pr.clear
-    if _compiled.ON:  # the same, compiled (the fast extra)
-        out = _compiled.inward_lines(ideal[:, 0], ideal[:, 1], gid, clear, float(sigma_floor),
+    if jit.ON:  # the same, compiled (the fast extra)
+        out = kernels.inward_lines(ideal[:, 0], ideal[:, 1], gid, clear, float(sigma_floor),
                                      int(rounds), EDGE_VARIANCE_INFLATION)  # fmt: skip
         return out, ideal
     # an edge's points with a clear step; all of them if fewer than 5 are clear
@@ -719,8 +718,8 @@ def lag_sums(ideal, gid, keep, normals, offsets, sigmas) -> np.ndarray:
     """(2, CORRELATION_LAGS + 1): the edge points' residuals from their lines over the
     edge's sigma (outliers 0), sum_k z_k z_(k + j) and the pairs of inliers j profiles
     apart on one edge, j = 0..CORRELATION_LAGS (see visvec.noise.LearnedCorrelation)."""
-    if _compiled.ON:  # the same, compiled (the fast extra)
-        return _compiled.edge_lag_sums(ideal, gid, keep, normals, offsets, sigmas, CORRELATION_LAGS)
+    if jit.ON:  # the same, compiled (the fast extra)
+        return kernels.edge_lag_sums(ideal, gid, keep, normals, offsets, sigmas, CORRELATION_LAGS)
     r = ideal[:, 0] * normals[gid, 0] + ideal[:, 1] * normals[gid, 1] - offsets[gid]
     z = np.where(keep, r / sigmas[gid], 0.0)
     out = np.zeros((2, CORRELATION_LAGS + 1))
@@ -819,7 +818,7 @@ def fit_edges(
             raw, pts_px, pr, camera, shutter, rate_c, sigma_floor, 3 if npass == 1 else 1
         )
         normals_l, offsets, keep = lines.normals, lines.offsets, lines.keep
-        new = camera.distort(_vertices(normals_l, offsets)[0] / f)
+        new = camera.distort(vertices(normals_l, offsets)[0] / f)
         size = float(sides.max())
         failed = not np.isfinite(new).all() or np.abs(new - corners).max() > 0.25 * size + 3.0
         if npass == 0 and not failed:
@@ -861,92 +860,6 @@ def fit_edges(
     return fit
 
 
-# the kernels loaded so far: "edges" (the edge fit's and the attitude fit's, every
-# triangle rig's), "pixels" (the pixel fit's)
-_warm: set[str] = set()
-# warm_up says it is compiling at once when Numba has no cache of the kernels; with a
-# cache (loaded in one to three seconds, more on a busy machine), only if it takes longer
-# than this (s): a cache that no longer fits the code is compiled again
-COMPILE_NOTICE_S = 10.0
-
-
-def _compile_notice() -> None:
-    print("visvec: compiling the triangle's kernels (the fast extra), once on this "
-          "machine: about half a minute", file=sys.stderr, flush=True)  # fmt: skip
-
-
-def _kernels_cached() -> bool:
-    """Whether Numba's cache holds the triangle's kernels (its index files, beside the
-    module or under NUMBA_CACHE_DIR)."""
-    import glob
-    import os
-
-    here = os.path.dirname(_compiled.__file__)
-    places = [os.path.join(here, "__pycache__")]
-    if os.environ.get("NUMBA_CACHE_DIR"):
-        places.append(os.path.join(os.environ["NUMBA_CACHE_DIR"], "**"))
-    return any(glob.glob(os.path.join(p, "_compiled.*.nbi"), recursive=True) for p in places)
-
-
-def warm_up(pixel_fit: bool = False) -> None:
-    """Load (or, the first time on a machine, compile) the compiled kernels now, not on
-    a camera's first frame: an edge fit, cold and tracked, of a triangle drawn on a small
-    image, which calls each kernel with each kind of argument a frame gives it, and an
-    attitude fit of three points and its rolling-shutter evidence (visvec.estimate);
-    with ``pixel_fit`` the pixel fit's too (visvec.detect.photometric: a rig with
-    refine = "pixels"). A few milliseconds once they are loaded; the first time on a
-    machine about 25 s (30 s with the pixel fit), announced on stderr when Numba has no
-    cache of them (or loading takes over COMPILE_NOTICE_S); without Numba, nothing.
-    Kernels that do not load (a Numba that cannot compile here, no writable place for
-    its cache: NUMBA_CACHE_DIR names one) leave the numpy path on, with a line on
-    stderr."""
-    todo = {"edges", "pixels"} if pixel_fit else {"edges"}
-    todo -= _warm
-    if not todo or not _compiled.ON:
-        return
-    _warm.update(todo)
-    img = np.full((96, 96), 60, np.uint8)
-    corners = np.array([[80.0, 48.0], [20.0, 20.0], [20.0, 76.0]])
-    cv2.fillPoly(img, [np.rint(corners).astype(np.int32)], 120)
-    img = cv2.GaussianBlur(img, (0, 0), 0.8)
-    cam = CameraModel(96, 96, 80.0, 80.0, 47.5, 47.5, np.zeros(5))
-    # loaded from the cache in a fraction of a second; compiling takes long enough that
-    # the operator is told why nothing happens
-    cached = _kernels_cached()
-    if not cached:
-        _compile_notice()  # said before the work, not raced against it
-    notice = threading.Timer(COMPILE_NOTICE_S, _compile_notice)
-    notice.daemon = True
-    if cached:
-        notice.start()
-    try:
-        fit = fit_edges(img, corners, cam)
-        fit_edges(img, corners, cam, width=fit.width)
-        # the triangle's attitude fit (visvec.estimate.rotation._fit_with_shift)
-        X = np.array([[0.0, 0.0, 1000.0], [100.0, 0.0, 1000.0], [0.0, 100.0, 1000.0]])
-        xy = X[:, :2] / X[:, 2:]
-        _compiled.closed_form_3(np.zeros(3), X, xy)
-        _compiled.gn_shift(np.eye(3), np.zeros(3), X, xy, np.eye(6), np.array([0.0, 0.0, 1.0]),
-                           0.0, 1.0, 15, 1e-12, 1e-3)  # fmt: skip
-        # and its frame's rolling-shutter evidence (visvec.estimate.shear)
-        _compiled.readout_frame(np.eye(6)[:, :4].copy(), np.eye(6), np.zeros(6), xy, np.ones(3),
-                                np.zeros(3), np.zeros(3), 1.0, 2.0, 1.0, 1.0, 0.0,
-                                np.zeros((10, 10)), np.zeros(10))  # fmt: skip
-        _compiled.readout_solve(np.eye(10), np.eye(10), np.zeros(10), 0.0, 0.0)
-        if "pixels" in todo:
-            # visvec.detect.photometric imports this module
-            from visvec.detect.photometric import refine
-
-            if not refine(img, fit.normals, fit.offsets, fit.width, cam).ok:
-                raise RuntimeError("the pixel fit's kernels gave no fit on the warm-up image")
-    except Exception as exc:  # noqa: BLE001 - any failure of Numba's: numpy instead
-        _compiled.ON = False
-        print(f"visvec: the compiled edge fit did not load ({type(exc).__name__}: {exc}); "
-              "the numpy one runs (VISVEC_PURE=1 skips the attempt)", file=sys.stderr)  # fmt: skip
-    finally:
-        notice.cancel()
-
-
 # the rate step (rad/s) of the edge fit's shutter gain: 0.6 deg/s, a few hundredths of a
 # pixel over a 25 ms readout (linear; far above rounding)
 SHUTTER_GAIN_STEP = 0.01
@@ -973,35 +886,15 @@ def _shutter_gain(
     column, which curves the edges; the vertex-level matrix then missed the vertices'
     move by up to half at the apex (10 deg/s, 25 ms), enough to put a first frame's
     chi-square several times over its degrees of freedom."""
-    V = [_vertices(normals, offsets)[0].ravel()]
+    V = [vertices(normals, offsets)[0].ravel()]
     for k in range(1, 4):
         w = np.array(omega_c, float)
         w[k - 1] += SHUTTER_GAIN_STEP
         p = unroll(xy, rows, camera, w, shutter.readout_ms, shutter.lever)
         _, c, _, n, _, _ = _group_tls(p[:, 0], p[:, 1], gid, keep)
         n = n * np.where(np.sum(n * normals, axis=1) < 0.0, -1.0, 1.0)[:, None]
-        V.append(_vertices(n, np.sum(n * c, axis=1))[0].ravel())
+        V.append(vertices(n, np.sum(n * c, axis=1))[0].ravel())
     return np.column_stack([(V[k] - V[0]) / SHUTTER_GAIN_STEP for k in (1, 2, 3)])
-
-
-def _vertices(normals: np.ndarray, offsets: np.ndarray) -> tuple[np.ndarray, list | None]:
-    """Vertices (3, 2) in ideal pixels of the lines n . x = offset (line i opposite
-    vertex i) and, per vertex i, the inverse of the 2x2 matrix [n_j; n_k] of its two
-    lines (Cramer's rule: x = A^-1 [o_j, o_k]); all NaN and None when two lines are
-    parallel."""
-    nrm, off = normals.tolist(), offsets.tolist()
-    V = np.empty((3, 2))
-    invs = []
-    for i in range(3):
-        j, k = (i + 1) % 3, (i + 2) % 3
-        (a, b), (c, d) = nrm[j], nrm[k]
-        det = a * d - b * c
-        if det == 0.0:
-            return np.full((3, 2), np.nan), None
-        inv = ((d / det, -b / det), (-c / det, a / det))
-        V[i] = (inv[0][0] * off[j] + inv[0][1] * off[k], inv[1][0] * off[j] + inv[1][1] * off[k])
-        invs.append(inv)
-    return V, invs
 
 
 def intersect(fit: EdgeFit, with_cov: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
@@ -1013,7 +906,7 @@ def intersect(fit: EdgeFit, with_cov: bool = True) -> tuple[np.ndarray, np.ndarr
     eps_o + eps_a * s(x), s = along-line distance from the centre. Stacking the six line
     errors, vertex displacements are linear in them: cov = J diag(var) J^T.
     """
-    V, invs = _vertices(fit.normals, fit.offsets)
+    V, invs = vertices(fit.normals, fit.offsets)
     if not with_cov:
         return V, None
     if invs is None:

@@ -33,7 +33,7 @@ Phi and its derivative phi are read from a table of their values and slopes by c
 Hermite interpolation (_phi_of, to 1e-7 of the contrast). With the fast extra the pixels'
 selection and the whole solve from the bands' pixels (_solve: the Gauss-Newton steps,
 the bands' check, the noise correlation, the vertices' covariance) run compiled
-(visvec.detect._compiled, tested equal to the numpy functions here).
+(visvec._kernels.pixel_fit, tested equal to the numpy functions here).
 """
 
 from __future__ import annotations
@@ -44,10 +44,11 @@ from itertools import pairwise
 
 import numpy as np
 
+from visvec._kernels import jit
+from visvec._kernels import pixel_fit as kernels
+from visvec._kernels.edge_fit import vertices
 from visvec._kernels.pixel_fit import GaussNewtonSteps, PixelFitSettings, PixelSolve
 from visvec.camera import CameraModel
-from visvec.detect import _compiled
-from visvec.detect.edges import _vertices
 from visvec.shutter import RollingShutter, unroll
 
 GN_STEPS = 2
@@ -174,8 +175,9 @@ def _pinhole(uv: np.ndarray, cx: float, cy: float, aspect: float) -> np.ndarray:
 
 def _intersections(n: np.ndarray, c: np.ndarray) -> tuple[np.ndarray, list | None]:
     """Vertices (3, 2) of the lines n_i . (x - c_i) = 0 (vertex i on lines i+1, i+2),
-    and per vertex the inverse of its lines' 2x2 normal matrix (edges._vertices)."""
-    return _vertices(n, np.add.reduce(n * c, axis=1))
+    and per vertex the inverse of its lines' 2x2 normal matrix
+    (visvec._kernels.edge_fit.vertices)."""
+    return vertices(n, np.add.reduce(n * c, axis=1))
 
 
 def _vertex_gain(n: np.ndarray, c: np.ndarray, V: np.ndarray, invs: list) -> np.ndarray:
@@ -258,9 +260,9 @@ def _band(image, n, c, reach, clear, camera, roll=None):
     triangle near a vertex), each edge's in raster order: their ideal coordinates
     (M, 2), grey levels (M,), places in the frame (column, row) (M, 2), and each edge's
     count (3,); or None."""
-    if _compiled.ON and roll is None:  # the same pixels in the same order, all compiled
+    if jit.ON and roll is None:  # the same pixels in the same order, all compiled
         grid, cx, cy, aspect, lens = _IdealGrid.of(camera)
-        found, *bands = _compiled.band_lines(
+        found, *bands = kernels.band_lines(
             image, n, c, np.asarray(reach, float), np.asarray(clear, float), camera.fx,
             camera.fy, camera.cx, camera.cy, camera.dist, camera.width - 1, camera.height - 1,
             grid, cx, cy, aspect, lens)  # fmt: skip
@@ -291,7 +293,7 @@ def _band(image, n, c, reach, clear, camera, roll=None):
     # the pixels the three bands cover; the exact check below gives each pixel to each
     # edge whose rule it meets
     grid, cx, cy, aspect, lens = _IdealGrid.of(camera)
-    cover = _compiled.cover if _compiled.ON else _cover
+    cover = kernels.cover if jit.ON else _cover
     pts = cover(q_px, int(lo[0]), int(lo[1]), int(hi[0]), int(hi[1]))
     if not len(pts):
         return None
@@ -302,9 +304,9 @@ def _band(image, n, c, reach, clear, camera, roll=None):
         x += np.take(grid.reshape(-1, 2), flat, axis=0)
     if roll is not None:
         x = _unrolled(x / camera.fx, pts[:, 1], camera, roll) * camera.fx
-    if _compiled.ON:  # the unrolled coordinates given, the rest compiled
+    if jit.ON:  # the unrolled coordinates given, the rest compiled
         reach, clear = np.asarray(reach, float), np.asarray(clear, float)
-        return _compiled.band_pixels(pts, x, grid, cx, cy, aspect, lens, image, n, o, reach,
+        return kernels.band_pixels(pts, x, grid, cx, cy, aspect, lens, image, n, o, reach,
                                      clear)  # fmt: skip
     grey = np.take(image.reshape(-1), flat)
     d = x @ n.T - o  # (P, 3)
@@ -340,7 +342,7 @@ def _phi_nodes() -> np.ndarray:
 
 
 _PHI = _phi_nodes()
-# the constants as the compiled solve takes them (visvec.detect._compiled.pixel_solve)
+# the constants as the compiled solve takes them (visvec.detect.kernels.pixel_solve)
 SETTINGS = PixelFitSettings(GN_STEPS, FIRST_STRIDE, _LAGS, NOISE_LAG_PX, NOISE_MIN_PAIRS,
                             EDGE_RMS_RATIO, WIDTH_SETTLED, WARM_STEPS, _PHI, PHI_RANGE,
                             1.0 / PHI_STEP)  # fmt: skip
@@ -454,8 +456,8 @@ def _noise_inflation(uv: np.ndarray, r: np.ndarray, w: np.ndarray) -> float:
     covariance. Only the part of the sum beyond twice its own sampling scatter counts,
     and never below 1: sensor noise gives 1 (1.00-1.01 on average), Motion-JPEG at
     quality 75 about 2.5."""
-    if _compiled.ON:  # the same, compiled (the fast extra)
-        return _compiled.noise_inflation(uv, r, w, _LAGS, NOISE_LAG_PX, NOISE_MIN_PAIRS)
+    if jit.ON:  # the same, compiled (the fast extra)
+        return kernels.noise_inflation(uv, r, w, _LAGS, NOISE_LAG_PX, NOISE_MIN_PAIRS)
     var = float(r @ r) / len(r)
     den = float(w @ w)
     if not (var > 0 and den > 0):
@@ -531,8 +533,8 @@ def refine(image: np.ndarray, normals: np.ndarray, offsets: np.ndarray, width: n
     warm = blur is not None and math.isfinite(blur)
     if warm:
         w = np.full(3, max(float(blur), 0.3))
-    if _compiled.ON:  # the same, compiled
-        fit = _compiled.pixel_solve(x, y, uv, counts, n, c, w, V, centroid, scale, warm,
+    if jit.ON:  # the same, compiled
+        fit = kernels.pixel_solve(x, y, uv, counts, n, c, w, V, centroid, scale, warm,
                                     SETTINGS)  # fmt: skip
     else:
         fit = _solve(x, y, uv, counts, n, c, w, V, centroid, scale, warm)

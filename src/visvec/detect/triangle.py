@@ -27,9 +27,9 @@ from visvec.detect.edges import (
     fit_edges,
     intersect,
     side_lengths,
-    warm_up,
 )
 from visvec.detect.photometric import PhotometricFit, refine
+from visvec.detect.warm import warm_up
 from visvec.errors import ConfigError
 from visvec.geometry import project_target
 from visvec.noise import LearnedCorrelation

@@ -25,7 +25,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from visvec.detect import _compiled
+from visvec._kernels import jit
+from visvec._kernels import rotation as kernels
 from visvec.rotations import expmap, expmap_xyz
 
 MAX_ITERATIONS = 15
@@ -124,11 +125,11 @@ def initial_rotation(t_c: np.ndarray, p_n: np.ndarray, xy: np.ndarray) -> np.nda
     a geometry that is off) is clamped to zero: the start is then approximate and
     Gauss-Newton finishes the job.
     """
-    if len(xy) == 3 and _compiled.ON:
+    if len(xy) == 3 and jit.ON:
         # the triangle's cold frames, compiled with the fast extra (the same steps for
         # three points: 5 us instead of 46)
         c = np.ascontiguousarray
-        found, R = _compiled.closed_form_3(c(t_c, float), c(p_n, float), c(xy, float))
+        found, R = kernels.closed_form_3(c(t_c, float), c(p_n, float), c(xy, float))
         return R if found else None
     return _initial_rotation_n(t_c, p_n, xy)
 
@@ -245,13 +246,13 @@ def _fit_with_shift(
     t_c: np.ndarray, X: np.ndarray, xy: np.ndarray, W: np.ndarray, R: np.ndarray, prior
 ) -> RotationFit:
     """:func:`fit_rotation` with the ShiftPrior ``prior``: Gauss-Newton in (d, s). With
-    the fast extra the iterations run compiled (visvec.detect._compiled.gn_shift, the
+    the fast extra the iterations run compiled (visvec.detect.kernels.gn_shift, the
     same steps: a frame's fit in 10 us instead of 60)."""
     w_s = 1.0 / prior.sigma**2
-    if _compiled.ON:
+    if jit.ON:
         # C-ordered float64 arrays, the one signature the kernel is compiled for
         c = np.ascontiguousarray
-        R, s, r, J, N, it, converged = _compiled.gn_shift(
+        R, s, r, J, N, it, converged = kernels.gn_shift(
             c(R, float), c(t_c, float), c(X, float), c(xy, float), c(W, float),
             c(prior.axis, float), float(prior.mean), w_s, MAX_ITERATIONS, STEP_TOL_RAD**2,
             STEP_TOL_SHIFT,

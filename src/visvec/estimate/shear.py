@@ -58,8 +58,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from visvec._kernels import jit
+from visvec._kernels import readout as kernels
 from visvec.camera import CameraModel
-from visvec.detect import _compiled
 from visvec.estimate.triangle_full import VertexResidual
 from visvec.shutter import shutter_shift
 
@@ -194,10 +195,10 @@ class ReadoutEvidence:
         # b = D^T P D for the design D)
         J, W, r = residual.J, residual.W, residual.r
         ka = applied_ms / 1000.0
-        if _compiled.ON:  # the same, compiled (the fast extra): 60 -> 10 us a frame
+        if jit.ON:  # the same, compiled (the fast extra): 60 -> 10 us a frame
             c = np.ascontiguousarray
             lever_ = np.zeros(3) if lever is None else c(lever, float)
-            ok, term = _compiled.readout_frame(
+            ok, term = kernels.readout_frame(
                 c(J, float), c(W, float), c(r, float), c(xy, float), c(rows, float),
                 c(omega_c, float), lever_, float(camera.cy), float(camera.height),
                 1.0 / camera.fx, 1.0 / camera.fy, ka, self.info, self.rhs,
@@ -239,8 +240,8 @@ class ReadoutEvidence:
         chi-square per degree of freedom they leave. Frames without a rate (the readout
         unseen: info[0, 0] = 0) leave the readout at 0."""
         if self._cached is None:
-            if _compiled.ON:  # the same, compiled (the fast extra)
-                self._cached = _compiled.readout_solve(
+            if jit.ON:  # the same, compiled (the fast extra)
+                self._cached = kernels.readout_solve(
                     self.info, self._prior_info, self.rhs, self.chi2, self.dof
                 )
                 return self._cached

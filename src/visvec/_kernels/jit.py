@@ -1,0 +1,97 @@
+"""How the detectors' and estimators' kernels are compiled: through Numba, lazily.
+
+The kernels (visvec._kernels.edge_fit, pixel_fit, rotation, readout) are plain Python
+functions written as loops over profiles, pixels or points. Each module names its
+kernels with :func:`kernel`; with the ``fast`` extra each name first holds a _Lazy
+stand-in whose first call imports Numba and puts every kernel's dispatcher in its place
+at once (so that a kernel calling another compiles against the other's dispatcher),
+compiled on first use and cached on disk after that. Numba has wheels for x86-64 and
+aarch64, the flight computers' two architectures.
+
+Without Numba, with ``VISVEC_PURE=1``, or when the kernels do not load
+(visvec.detect.warm.warm_up turns :data:`ON` off), the detectors and estimators run
+their numpy functions.
+"""
+
+from __future__ import annotations
+
+import sys
+import threading
+
+from visvec._kernels import AVAILABLE
+
+numba = None  # the module, once loaded
+# whether the kernels run: the detectors and estimators look here on every call;
+# detect.warm.warm_up turns it off when they do not load
+ON = AVAILABLE
+
+# every kernel made so far: (the namespace that holds it, its name there, its _Lazy)
+_KERNELS: list = []
+_LOADING = threading.Lock()
+_failed = False  # Numba did not import: every kernel is its plain function
+
+
+class _Lazy:
+    """A kernel before Numba is loaded: its first call loads every kernel (_load) and
+    is passed on to its dispatcher (or, where Numba did not import, to the plain
+    function). ``py_func``: the kernel as Python, as a dispatcher's."""
+
+    def __init__(self, name, f):
+        self.__name__ = name
+        self.py_func = f
+        self.dispatcher = None
+
+    def __call__(self, *args):
+        if self.dispatcher is None:
+            _load()
+        # (after a Numba that did not import: the plain function)
+        return (self.py_func if self.dispatcher is None else self.dispatcher)(*args)
+
+
+def _load():
+    """Import Numba and put the dispatcher of every kernel not yet made in its place
+    among its module's names, all at once (where nothing else was put there; a module
+    imported later has its kernels made on their first call). A Numba that cannot be
+    imported turns the kernels off (ON) and leaves the plain functions in their
+    places."""
+    global numba, ON, _failed
+    with _LOADING:
+        todo = [e for e in _KERNELS if e[2].dispatcher is None]
+        if _failed or not todo:
+            return
+        made = {}
+        try:
+            import numba as nb
+
+            for _, _, k in todo:
+                if id(k.py_func) not in made:
+                    # cache: compiled once per machine, loaded from disk after that;
+                    # nogil: the live paths' threads run beside it; no fastmath: sums
+                    # taken in the order written
+                    made[id(k.py_func)] = nb.njit(cache=True, nogil=True)(k.py_func)
+        except Exception as exc:  # a Numba that cannot import here or make them: numpy
+            ON = False
+            _failed = True
+            for names, name, k in _KERNELS:
+                if names[name] is k:
+                    names[name] = k.py_func
+            if not isinstance(exc, ImportError):
+                raise  # (warm_up says why)
+            print(f"visvec: Numba did not import ({exc}); the numpy path runs",
+                  file=sys.stderr)  # fmt: skip
+            return
+        for names, name, k in todo:
+            k.dispatcher = made[id(k.py_func)]
+            if names[name] is k:
+                names[name] = k.dispatcher
+        numba = nb
+
+
+def kernel(names: dict, name: str, f):
+    """The kernel ``f`` known as ``name`` in the module whose globals are ``names``:
+    compiled on its first call (with the fast extra), else the plain function."""
+    if not AVAILABLE:
+        return f
+    lazy = _Lazy(name, f)
+    _KERNELS.append((names, name, lazy))
+    return lazy
