@@ -344,13 +344,14 @@ def _band_lines(image, n, c, reach, clear, fx, fy, cx, cy, dist, last_col, last_
     return True, xs, ys, uv, counts
 
 
-def _phi_of(u, table, rng, inv_step):
-    """photometric._phi_of at one u: Phi(u) and phi(u) from ``table`` (photometric._PHI,
-    its nodes 1 / ``inv_step`` apart from -``rng``), the same expressions in the same
-    order."""
-    t = (min(max(u, -rng), rng) + rng) * inv_step
+def phi_of(u, table, rng, inv_step):
+    """Phi(u) and phi(u), the blurred step and its slope, by cubic Hermite interpolation
+    in ``table`` (photometric._PHI: values and slopes at nodes 1 / ``inv_step`` apart
+    from -``rng``). Written once for both paths: ``u`` an array (photometric's numpy
+    fit) or one float (the compiled fit, pixel by pixel, as _phi_of)."""
+    t = (np.minimum(np.maximum(u, -rng), rng) + rng) * inv_step
     # (unsigned: Numba indexes the table without checking for a negative index)
-    i = min(np.uint64(t), np.uint64(table.shape[0] - 2))
+    i = np.minimum(np.uint64(t), np.uint64(table.shape[0] - 2))
     f = t - i
     f2 = f * f
     f3 = f2 * f
@@ -575,7 +576,7 @@ _cover = kernel(globals(), "_cover", _cover)
 _band_pixels = kernel(globals(), "_band_pixels", _band_pixels)
 distorted = kernel(globals(), "distorted", _distorted)
 band_lines = kernel(globals(), "band_lines", _band_lines)
-_phi_of = kernel(globals(), "_phi_of", _phi_of)
+_phi_of = kernel(globals(), "_phi_of", phi_of)
 _pixel_gn = kernel(globals(), "_pixel_gn", _pixel_gn)
 _strided = kernel(globals(), "_strided", _strided)
 pixel_solve = kernel(globals(), "pixel_solve", _pixel_solve)

@@ -10,30 +10,10 @@ import math
 import numpy as np
 
 from visvec._kernels.jit import kernel
+from visvec.rotations import expmap_xyz
 
 
 # ------------------------------------- the triangle's attitude (estimate.rotation)
-def _expmap(w0, w1, w2):
-    """visvec.rotations.expmap_xyz: Rodrigues' formula, its series below 1e-8 rad."""
-    t2 = w0 * w0 + w1 * w1 + w2 * w2
-    if t2 < 1e-16:
-        a, b = 1.0, 0.5
-    else:
-        t = math.sqrt(t2)
-        a, b = math.sin(t) / t, (1.0 - math.cos(t)) / t2
-    E = np.empty((3, 3))
-    E[0, 0] = 1.0 - b * (w1 * w1 + w2 * w2)
-    E[0, 1] = b * w0 * w1 - a * w2
-    E[0, 2] = b * w0 * w2 + a * w1
-    E[1, 0] = b * w0 * w1 + a * w2
-    E[1, 1] = 1.0 - b * (w0 * w0 + w2 * w2)
-    E[1, 2] = b * w1 * w2 - a * w0
-    E[2, 0] = b * w0 * w2 - a * w1
-    E[2, 1] = b * w1 * w2 + a * w0
-    E[2, 2] = 1.0 - b * (w0 * w0 + w1 * w1)
-    return E
-
-
 def _closed_form_3(t_c, X, xy):
     """visvec.estimate.rotation.initial_rotation for three points: the closed-form
     rotation from three bearings (each branch of the depths in front, Procrustes by SVD;
@@ -128,7 +108,7 @@ def _gn_shift(R, t_c, X, xy, W, axis, mean, w_s, max_iterations, tol_rad2, tol_s
         g = JtW @ r
         g[3] += (s - mean) * w_s
         step = -np.linalg.solve(N, g)
-        R = _expmap(step[0], step[1], step[2]) @ R
+        R = _expmap(step[0], step[1], step[2]) @ R  # Rodrigues: rotations.expmap_xyz
         s += step[3]
         if step[0] ** 2 + step[1] ** 2 + step[2] ** 2 < tol_rad2 and abs(step[3]) < tol_shift:
             converged = True
@@ -137,6 +117,6 @@ def _gn_shift(R, t_c, X, xy, W, axis, mean, w_s, max_iterations, tol_rad2, tol_s
     return R, s, r, J, N, it, converged
 
 
-_expmap = kernel(globals(), "_expmap", _expmap)
+_expmap = kernel(globals(), "_expmap", expmap_xyz)
 gn_shift = kernel(globals(), "gn_shift", _gn_shift)
 closed_form_3 = kernel(globals(), "closed_form_3", _closed_form_3)

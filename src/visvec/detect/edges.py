@@ -18,7 +18,7 @@ import numpy as np
 
 from visvec._kernels import edge_fit as kernels
 from visvec._kernels import jit
-from visvec._kernels.edge_fit import EdgeLines, vertices
+from visvec._kernels.edge_fit import EdgeLines, erf_with_bell, vertices
 from visvec.camera import CameraModel
 from visvec.noise import CORRELATION_LAGS
 from visvec.shutter import RollingShutter, unroll
@@ -428,30 +428,6 @@ def _sample(
     map_y = (b[:, 1:2] + offs * normals[:, 1:2]).astype(np.float32)
     vals = cv2.remap(roi, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     return bases, normals, gid, k, tt, along, vals, length
-
-
-# Abramowitz & Stegun, Handbook of Mathematical Functions (1964), Eq. 7.1.26:
-# erf(x) = 1 - (a1 t + a2 t^2 + ... + a5 t^5) exp(-x^2), t = 1 / (1 + p x), x >= 0,
-# absolute error under 1.5e-7
-_AS_P = 0.3275911
-_AS_A = (1.061405429, -1.453152027, 1.421413741, -0.284496736, 0.254829592)  # a5 .. a1
-
-
-def erf_with_bell(u: np.ndarray, bell: np.ndarray) -> np.ndarray:
-    """erf(u) to 1.5e-7 (Abramowitz & Stegun 7.1.26) given ``bell`` = exp(-u^2), which
-    the edge step's Gauss-Newton needs anyway: half the time of scipy's erf here (an
-    edge point moves by about 1e-7 px against it)."""
-    t = np.abs(u)
-    t *= _AS_P
-    t += 1.0
-    np.reciprocal(t, out=t)
-    y = t * _AS_A[0]
-    for a in _AS_A[1:]:
-        y += a
-        y *= t
-    y *= bell
-    np.subtract(1.0, y, out=y)
-    return np.copysign(y, u, out=y)
 
 
 def _positions(

@@ -47,7 +47,7 @@ import numpy as np
 from visvec._kernels import jit
 from visvec._kernels import pixel_fit as kernels
 from visvec._kernels.edge_fit import vertices
-from visvec._kernels.pixel_fit import GaussNewtonSteps, PixelFitSettings, PixelSolve
+from visvec._kernels.pixel_fit import GaussNewtonSteps, PixelFitSettings, PixelSolve, phi_of
 from visvec.camera import CameraModel
 from visvec.shutter import RollingShutter, unroll
 
@@ -349,21 +349,9 @@ SETTINGS = PixelFitSettings(GN_STEPS, FIRST_STRIDE, _LAGS, NOISE_LAG_PX, NOISE_M
 
 
 def _phi_of(u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Phi(u) and phi(u) from the table (_PHI; the compiled fit evaluates the same
-    expressions in the same order)."""
-    t = (np.clip(u, -PHI_RANGE, PHI_RANGE) + PHI_RANGE) * (1.0 / PHI_STEP)
-    i = np.minimum(t.astype(np.int64), len(_PHI) - 2)
-    f = t - i
-    f2 = f * f
-    f3 = f2 * f
-    h00 = 2.0 * f3 - 3.0 * f2 + 1.0
-    h10 = f3 - 2.0 * f2 + f
-    h01 = 3.0 * f2 - 2.0 * f3
-    h11 = f3 - f2
-    a, b = _PHI[i], _PHI[i + 1]
-    step = h00 * a[:, 0] + h10 * a[:, 1] + h01 * b[:, 0] + h11 * b[:, 1]
-    slope = h00 * a[:, 2] + h10 * a[:, 3] + h01 * b[:, 2] + h11 * b[:, 3]
-    return step, slope
+    """Phi(u) and phi(u) from the table _PHI (visvec._kernels.pixel_fit.phi_of, which
+    the compiled fit evaluates too)."""
+    return phi_of(u, _PHI, PHI_RANGE, 1.0 / PHI_STEP)
 
 
 def _gauss_newton(x, y, counts, n, c, w, centroid, scale, steps):
