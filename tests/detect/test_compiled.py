@@ -328,11 +328,14 @@ def test_numba_is_loaded_by_the_first_kernel_called():
 @pytest.fixture
 def unloadable(monkeypatch):
     """Nothing loaded yet and the kernels on; ``unloadable(name)`` makes that kernel
-    fail as a Numba that cannot compile or cache here does."""
+    fail as a Numba that cannot compile or cache here does. Every kernel's name is
+    restored after (jit.off puts the plain functions in their places)."""
 
     def broken(*a, **k):
         raise RuntimeError("cannot cache function: no locator available")
 
+    for names, name, _ in jit._KERNELS:
+        monkeypatch.setitem(names, name, names[name])
     monkeypatch.setattr(W, "_warm", set())
     monkeypatch.setattr(jit, "ON", True)
     return lambda name: monkeypatch.setattr(_home(name), name, broken)
@@ -340,11 +343,18 @@ def unloadable(monkeypatch):
 
 def test_kernels_that_do_not_load_leave_the_numpy_path_on(unloadable, capsys):
     """A Numba that cannot compile or cache here: the detector is made, says so once on
-    stderr, and runs on numpy."""
+    stderr, and runs on numpy: the kernels written once for both paths (the attitude
+    fit's) then run as Python, calling the plain functions they call."""
+    from visvec.rotations import expmap_xyz
+
     unloadable("sample_geometry")
     rig = load_rig(CONFIGS / "triangle.toml")
     pipe = TrianglePipeline(rig)
     assert jit.ON is False
+    assert (
+        KR._expmap is expmap_xyz
+        and KR._residuals_and_jacobian_shift is KR.residuals_and_jacobian_shift
+    )
     err = capsys.readouterr().err
     assert "compiled edge fit did not load" in err and "no locator" in err
     rig_img = _frames()[0][1]

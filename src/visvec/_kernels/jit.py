@@ -87,6 +87,18 @@ def _load():
         numba = nb
 
 
+def off() -> None:
+    """Turn the kernels off (kernels that did not load: warm_up) and put every plain
+    function back in its place, so that a kernel's Python source run as the numpy path
+    calls the plain functions it calls, never a dispatcher that cannot compile."""
+    global ON
+    with _LOADING:
+        ON = False
+        for names, name, k in _KERNELS:
+            if names[name] is k or names[name] is k.dispatcher:
+                names[name] = k.py_func
+
+
 def kernel(names: dict, name: str, f):
     """The kernel ``f`` known as ``name`` in the module whose globals are ``names``:
     compiled on its first call (with the fast extra), else the plain function."""

@@ -14,7 +14,8 @@ from visvec._kernels.jit import kernel
 # ------------------------- an undeclared rolling shutter's evidence (estimate.shear)
 def _readout_frame(J, W, r, xy, rows, omega, lever, cy, height, ifx, ify, ka, info, rhs):
     """One frame of visvec.estimate.shear.ReadoutEvidence.add: its design (-shutter_shift
-    of a 1 s readout beside shear.model_error_design) and what the free fit's weight
+    of a 1 s readout beside shear.model_error_design, written out for three vertices;
+    tests/estimate/test_triangle.py checks it against the two) and what the free fit's weight
     P = W - W J C0 J^T W leaves of it, added to ``info`` and ``rhs`` in place. Returns
     (False, 0) when J^T W J is singular (nothing added), else (True, the frame's
     chi-square term)."""
@@ -54,7 +55,7 @@ def _readout_solve(info, prior_info, rhs, chi2, dof):
     chi-square per degree of freedom they leave)."""
     A = info + prior_info
     if A[0, 0] <= 0:
-        A[0, 0] = 1.0
+        A[0, 0] = 1.0  # its row and rhs are 0: k = 0, and readout_ms() says NaN
     cov = np.linalg.inv(A)
     theta = cov @ rhs
     left = dof - np.sum(cov * info)

@@ -14,15 +14,16 @@ from visvec.rotations import expmap_xyz
 
 
 # ------------------------------------- the triangle's attitude (estimate.rotation)
-def _closed_form_3(t_c, X, xy):
-    """visvec.estimate.rotation.initial_rotation for three points: the closed-form
-    rotation from three bearings (each branch of the depths in front, Procrustes by SVD;
-    the better reprojecting of two). Returns (found, R)."""
+def _closed_form(t_c, X, xy):
+    """visvec.estimate.rotation.initial_rotation: the closed-form rotation from N
+    bearings (each branch of the depths in front, Procrustes by SVD; the better
+    reprojecting of two). Returns (found, R)."""
+    n_pts = X.shape[0]
     tt = t_c[0] * t_c[0] + t_c[1] * t_c[1] + t_c[2] * t_c[2]
-    b = np.empty((3, 3))
-    bt = np.empty(3)
-    root = np.empty(3)
-    for i in range(3):
+    b = np.empty((n_pts, 3))
+    bt = np.empty(n_pts)
+    root = np.empty(n_pts)
+    for i in range(n_pts):
         n = math.sqrt(xy[i, 0] * xy[i, 0] + xy[i, 1] * xy[i, 1] + 1.0)
         b[i, 0], b[i, 1], b[i, 2] = xy[i, 0] / n, xy[i, 1] / n, 1.0 / n
         bt[i] = b[i, 0] * t_c[0] + b[i, 1] * t_c[1] + b[i, 2] * t_c[2]
@@ -35,14 +36,8 @@ def _closed_form_3(t_c, X, xy):
         lam = bt + sign * root
         if lam.min() <= 0:
             continue
-        V = np.empty((3, 3))
-        for k in range(3):
-            for j in range(3):
-                V[k, j] = lam[k] * b[k, j] - t_c[j]
-        H = np.empty((3, 3))
-        for i in range(3):
-            for j in range(3):
-                H[i, j] = X[0, i] * V[0, j] + X[1, i] * V[1, j] + X[2, i] * V[2, j]
+        # Procrustes (Kabsch): R maps each X to lam b - t_c
+        H = np.ascontiguousarray(X.T) @ (lam.reshape(n_pts, 1) * b - t_c)
         U, _, Vt = np.linalg.svd(H)
         d = np.linalg.det(U) * np.linalg.det(Vt)
         s = 1.0 if d == 0.0 else math.copysign(1.0, d)
@@ -50,15 +45,9 @@ def _closed_form_3(t_c, X, xy):
         for i in range(3):
             for j in range(3):
                 R[i, j] = Vt[0, i] * U[j, 0] + Vt[1, i] * U[j, 1] + s * Vt[2, i] * U[j, 2]
-        cost = 0.0
-        behind = False
-        for k in range(3):
-            p0 = R[0, 0] * X[k, 0] + R[0, 1] * X[k, 1] + R[0, 2] * X[k, 2] + t_c[0]
-            p1 = R[1, 0] * X[k, 0] + R[1, 1] * X[k, 1] + R[1, 2] * X[k, 2] + t_c[1]
-            p2 = R[2, 0] * X[k, 0] + R[2, 1] * X[k, 1] + R[2, 2] * X[k, 2] + t_c[2]
-            if p2 <= 0:
-                behind = True
-            cost += (p0 / p2 - xy[k, 0]) ** 2 + (p1 / p2 - xy[k, 1]) ** 2
+        p = X @ R.T + t_c
+        behind = p[:, 2].min() <= 0
+        cost = np.sum((p[:, 0] / p[:, 2] - xy[:, 0]) ** 2 + (p[:, 1] / p[:, 2] - xy[:, 1]) ** 2)
         if behind:
             continue
         n_found += 1
@@ -67,38 +56,45 @@ def _closed_form_3(t_c, X, xy):
     return n_found > 0, best
 
 
-def _gn_shift(R, t_c, X, xy, W, axis, mean, w_s, max_iterations, tol_rad2, tol_shift):
-    """visvec.estimate.rotation._gauss_newton_shift, in (d, s): each iteration its
-    residuals and Jacobian (residuals_and_jacobian_shift), the normal equations with the
-    shift's prior, the step, R <- exp([d]x) R. Returns (R, s, r, J, N, iterations,
-    converged), r after the last small step to second order in it."""
+def residuals_and_jacobian_shift(R, t_c, X, xy, axis):
+    """The residuals (2N,) of the points X (N, 3) seen at normalised xy (N, 2), (u, v)
+    interleaved, and their (2N, 4) Jacobian in the update R <- exp([d]x) R (columns d)
+    and a shift s of every point along ``axis`` (column s): with q = R X, p = q + t_c,
+    (u, v) = (p_x, p_y) / p_z,
+    d(u)/dd = (-q_y u, q_z + q_x u, -q_y) / p_z, d(v)/dd = (-(q_y v + q_z), q_x v, q_x) / p_z
+    and, e = R axis, d(u, v)/ds = (e_x - u e_z, e_y - v e_z) / p_z."""
+    q = X @ R.T
+    iz = 1.0 / (q[:, 2] + t_c[2])
+    u = (q[:, 0] + t_c[0]) * iz
+    v = (q[:, 1] + t_c[1]) * iz
     n = X.shape[0]
-    s = mean
     r = np.empty(2 * n)
-    J = np.empty((2 * n, 4))
+    r[0::2] = u - xy[:, 0]
+    r[1::2] = v - xy[:, 1]
+    qx, qy, qz = q[:, 0], q[:, 1], q[:, 2]
+    e = R @ axis
+    J = np.empty((n, 2, 4))
+    J[:, 0, 0] = -qy * u * iz
+    J[:, 0, 1] = (qz + qx * u) * iz
+    J[:, 0, 2] = -qy * iz
+    J[:, 0, 3] = (e[0] - u * e[2]) * iz
+    J[:, 1, 0] = -(qy * v + qz) * iz
+    J[:, 1, 1] = qx * v * iz
+    J[:, 1, 2] = qx * iz
+    J[:, 1, 3] = (e[1] - v * e[2]) * iz
+    return r, J.reshape(2 * n, 4)
+
+
+def _gn_shift(R, t_c, X, xy, W, axis, mean, w_s, max_iterations, tol_rad2, tol_shift):
+    """visvec.estimate.rotation._fit_with_shift's Gauss-Newton in (d, s): each iteration
+    its residuals and Jacobian (residuals_and_jacobian_shift), the normal equations with
+    the shift's prior (s - mean)^2 w_s, the step, R <- exp([d]x) R. Returns (R, s, r, J,
+    N, iterations, converged), r after the last small step to second order in it."""
+    s = mean
     converged = False
     it = 0
     while True:
-        e0 = R[0, 0] * axis[0] + R[0, 1] * axis[1] + R[0, 2] * axis[2]
-        e1 = R[1, 0] * axis[0] + R[1, 1] * axis[1] + R[1, 2] * axis[2]
-        e2 = R[2, 0] * axis[0] + R[2, 1] * axis[1] + R[2, 2] * axis[2]
-        for i in range(n):
-            x0, x1, x2 = X[i, 0] + s * axis[0], X[i, 1] + s * axis[1], X[i, 2] + s * axis[2]
-            qx = R[0, 0] * x0 + R[0, 1] * x1 + R[0, 2] * x2
-            qy = R[1, 0] * x0 + R[1, 1] * x1 + R[1, 2] * x2
-            qz = R[2, 0] * x0 + R[2, 1] * x1 + R[2, 2] * x2
-            iz = 1.0 / (qz + t_c[2])
-            u, v = (qx + t_c[0]) * iz, (qy + t_c[1]) * iz
-            r[2 * i] = u - xy[i, 0]
-            r[2 * i + 1] = v - xy[i, 1]
-            J[2 * i, 0] = -qy * u * iz
-            J[2 * i, 1] = (qz + qx * u) * iz
-            J[2 * i, 2] = -qy * iz
-            J[2 * i, 3] = (e0 - u * e2) * iz
-            J[2 * i + 1, 0] = -(qy * v + qz) * iz
-            J[2 * i + 1, 1] = qx * v * iz
-            J[2 * i + 1, 2] = qx * iz
-            J[2 * i + 1, 3] = (e1 - v * e2) * iz
+        r, J = _residuals_and_jacobian_shift(R, t_c, X + s * axis, xy, axis)
         JtW = J.T @ W
         N = JtW @ J
         N[3, 3] += w_s
@@ -112,11 +108,15 @@ def _gn_shift(R, t_c, X, xy, W, axis, mean, w_s, max_iterations, tol_rad2, tol_s
         s += step[3]
         if step[0] ** 2 + step[1] ** 2 + step[2] ** 2 < tol_rad2 and abs(step[3]) < tol_shift:
             converged = True
+            # the residual after this last small step, to second order in it
             r = r + J @ step
             break
     return R, s, r, J, N, it, converged
 
 
 _expmap = kernel(globals(), "_expmap", expmap_xyz)
+_residuals_and_jacobian_shift = kernel(
+    globals(), "_residuals_and_jacobian_shift", residuals_and_jacobian_shift
+)
 gn_shift = kernel(globals(), "gn_shift", _gn_shift)
-closed_form_3 = kernel(globals(), "closed_form_3", _closed_form_3)
+closed_form = kernel(globals(), "closed_form", _closed_form)

@@ -342,7 +342,7 @@ def _phi_nodes() -> np.ndarray:
 
 
 _PHI = _phi_nodes()
-# the constants as the compiled solve takes them (visvec.detect.kernels.pixel_solve)
+# the constants as the compiled solve takes them (visvec._kernels.pixel_fit.pixel_solve)
 SETTINGS = PixelFitSettings(GN_STEPS, FIRST_STRIDE, _LAGS, NOISE_LAG_PX, NOISE_MIN_PAIRS,
                             EDGE_RMS_RATIO, WIDTH_SETTLED, WARM_STEPS, _PHI, PHI_RANGE,
                             1.0 / PHI_STEP)  # fmt: skip

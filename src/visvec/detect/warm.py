@@ -84,7 +84,7 @@ def warm_up(pixel_fit: bool = False) -> None:
         # the triangle's attitude fit (visvec.estimate.rotation._fit_with_shift)
         X = np.array([[0.0, 0.0, 1000.0], [100.0, 0.0, 1000.0], [0.0, 100.0, 1000.0]])
         xy = X[:, :2] / X[:, 2:]
-        rotation_kernels.closed_form_3(np.zeros(3), X, xy)
+        rotation_kernels.closed_form(np.zeros(3), X, xy)
         rotation_kernels.gn_shift(np.eye(3), np.zeros(3), X, xy, np.eye(6),
                                   np.array([0.0, 0.0, 1.0]), 0.0, 1.0, 15, 1e-12,
                                   1e-3)  # fmt: skip
@@ -97,7 +97,7 @@ def warm_up(pixel_fit: bool = False) -> None:
             if not refine(img, fit.normals, fit.offsets, fit.width, cam).ok:
                 raise RuntimeError("the pixel fit's kernels gave no fit on the warm-up image")
     except Exception as exc:  # noqa: BLE001 - any failure of Numba's: numpy instead
-        jit.ON = False
+        jit.off()
         print(f"visvec: the compiled edge fit did not load ({type(exc).__name__}: {exc}); "
               "the numpy one runs (VISVEC_PURE=1 skips the attempt)", file=sys.stderr)  # fmt: skip
     finally:

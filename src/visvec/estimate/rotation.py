@@ -27,6 +27,7 @@ import numpy as np
 
 from visvec._kernels import jit
 from visvec._kernels import rotation as kernels
+from visvec._kernels.rotation import residuals_and_jacobian_shift  # noqa: F401 (its home)
 from visvec.rotations import expmap, expmap_xyz
 
 MAX_ITERATIONS = 15
@@ -104,14 +105,6 @@ def residuals_and_jacobian(
     return r, J.reshape(-1, 3)
 
 
-def _procrustes(X: np.ndarray, V: np.ndarray) -> np.ndarray:
-    """Rotation R minimising sum |V_i - R X_i|^2 (Kabsch by SVD, the det < 0 branch
-    corrected to a proper rotation)."""
-    U, _, Vt = np.linalg.svd(X.T @ V)
-    d = np.sign(np.linalg.det(Vt.T @ U.T)) or 1.0
-    return Vt.T @ np.diag([1.0, 1.0, d]) @ U.T
-
-
 def initial_rotation(t_c: np.ndarray, p_n: np.ndarray, xy: np.ndarray) -> np.ndarray | None:
     """Closed-form R from bearings, given the known offset t_c of Eq. (1).
 
@@ -125,39 +118,11 @@ def initial_rotation(t_c: np.ndarray, p_n: np.ndarray, xy: np.ndarray) -> np.nda
     a geometry that is off) is clamped to zero: the start is then approximate and
     Gauss-Newton finishes the job.
     """
-    if len(xy) == 3 and jit.ON:
-        # the triangle's cold frames, compiled with the fast extra (the same steps for
-        # three points: 5 us instead of 46)
-        c = np.ascontiguousarray
-        found, R = kernels.closed_form_3(c(t_c, float), c(p_n, float), c(xy, float))
-        return R if found else None
-    return _initial_rotation_n(t_c, p_n, xy)
-
-
-def _initial_rotation_n(t_c: np.ndarray, p_n: np.ndarray, xy: np.ndarray) -> np.ndarray | None:
-    """:func:`initial_rotation` for any number of points, in whole arrays."""
-    b = np.empty((len(xy), 3))
-    b[:, :2] = xy
-    b[:, 2] = 1.0
-    b /= np.sqrt(np.einsum("ij,ij->i", b, b))[:, None]
-    bt = b @ t_c
-    disc = bt**2 - t_c @ t_c + np.einsum("ij,ij->i", p_n, p_n)
-    root = np.sqrt(np.maximum(disc, 0.0))
-    found = []
-    for sign in (1.0, -1.0):
-        lam = bt + sign * root
-        if lam.min() <= 0:
-            continue
-        R = _procrustes(p_n, lam[:, None] * b - t_c)
-        p = p_n @ R.T + t_c
-        if p[:, 2].min() <= 0:
-            continue
-        found.append((R, p))
-    if len(found) < 2:
-        # one branch in front (a ceiling target: the - root is behind the camera)
-        return found[0][0] if found else None
-    costs = [float(np.sum((p[:, :2] / p[:, 2:3] - xy) ** 2)) for _, p in found]
-    return found[int(np.argmin(costs))][0]
+    # one implementation (visvec._kernels.rotation), compiled with the fast extra
+    closed_form = kernels.closed_form if jit.ON else kernels._closed_form
+    c = np.ascontiguousarray
+    found, R = closed_form(c(t_c, float), c(p_n, float), c(xy, float))
+    return R if found else None
 
 
 def shift_jacobian(R: np.ndarray, t_c: np.ndarray, X: np.ndarray, axis: np.ndarray):
@@ -169,33 +134,6 @@ def shift_jacobian(R: np.ndarray, t_c: np.ndarray, X: np.ndarray, axis: np.ndarr
     u, v = p[:, 0] * iz, p[:, 1] * iz
     e = R @ axis
     return np.column_stack([(e[0] - u * e[2]) * iz, (e[1] - v * e[2]) * iz]).ravel()
-
-
-def residuals_and_jacobian_shift(
-    R: np.ndarray, t_c: np.ndarray, X: np.ndarray, xy: np.ndarray, axis: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`residuals_and_jacobian` and :func:`shift_jacobian` in one (2N, 4) Jacobian
-    (columns d, then s), for the Gauss-Newton of :func:`_fit_with_shift`: the projection
-    is computed once and the Jacobian filled in place (the same values)."""
-    q = X @ R.T
-    p = q + t_c
-    iz = 1.0 / p[:, 2]
-    u, v = p[:, 0] * iz, p[:, 1] * iz
-    r = np.empty(2 * len(X))
-    r[0::2] = u - xy[:, 0]
-    r[1::2] = v - xy[:, 1]
-    qx, qy, qz = q[:, 0], q[:, 1], q[:, 2]
-    e = R @ axis
-    J = np.empty((len(X), 2, 4))
-    J[:, 0, 0] = -qy * u * iz
-    J[:, 0, 1] = (qz + qx * u) * iz
-    J[:, 0, 2] = -qy * iz
-    J[:, 0, 3] = (e[0] - u * e[2]) * iz
-    J[:, 1, 0] = -(qy * v + qz) * iz
-    J[:, 1, 1] = qx * v * iz
-    J[:, 1, 2] = qx * iz
-    J[:, 1, 3] = (e[1] - v * e[2]) * iz
-    return r, J.reshape(-1, 4)
 
 
 def fit_rotation(
@@ -245,50 +183,21 @@ def fit_rotation(
 def _fit_with_shift(
     t_c: np.ndarray, X: np.ndarray, xy: np.ndarray, W: np.ndarray, R: np.ndarray, prior
 ) -> RotationFit:
-    """:func:`fit_rotation` with the ShiftPrior ``prior``: Gauss-Newton in (d, s). With
-    the fast extra the iterations run compiled (visvec.detect.kernels.gn_shift, the
-    same steps: a frame's fit in 10 us instead of 60)."""
+    """:func:`fit_rotation` with the ShiftPrior ``prior``: Gauss-Newton in (d, s)
+    (visvec._kernels.rotation.gn_shift, compiled with the fast extra)."""
     w_s = 1.0 / prior.sigma**2
-    if jit.ON:
-        # C-ordered float64 arrays, the one signature the kernel is compiled for
-        c = np.ascontiguousarray
-        R, s, r, J, N, it, converged = kernels.gn_shift(
-            c(R, float), c(t_c, float), c(X, float), c(xy, float), c(W, float),
-            c(prior.axis, float), float(prior.mean), w_s, MAX_ITERATIONS, STEP_TOL_RAD**2,
-            STEP_TOL_SHIFT,
-        )  # fmt: skip
-    else:
-        R, s, r, J, N, it, converged = _gauss_newton_shift(t_c, X, xy, W, R, prior, w_s)
+    # one implementation (visvec._kernels.rotation), compiled with the fast extra; its
+    # arguments C-ordered float64 arrays, the one signature the kernel is compiled for
+    gauss_newton = kernels.gn_shift if jit.ON else kernels._gn_shift
+    c = np.ascontiguousarray
+    R, s, r, J, N, it, converged = gauss_newton(
+        c(R, float), c(t_c, float), c(X, float), c(xy, float), c(W, float),
+        c(prior.axis, float), float(prior.mean), w_s, MAX_ITERATIONS, STEP_TOL_RAD**2,
+        STEP_TOL_SHIFT,
+    )  # fmt: skip
     cov_p = np.linalg.inv(N)
     chi2 = float(r @ W @ r) + (s - prior.mean) ** 2 * w_s
     return RotationFit(R, cov_p[:3, :3], chi2, r, it, converged, s, J, cov_p)
-
-
-def _gauss_newton_shift(t_c, X, xy, W, R, prior, w_s):
-    """_fit_with_shift's iterations in numpy: (R, s, r, J, N, iterations, converged),
-    r after the last small step to second order in it."""
-    s = prior.mean
-    converged = False
-    it = 0
-    while True:
-        r, J = residuals_and_jacobian_shift(R, t_c, X + s * prior.axis, xy, prior.axis)
-        JtW = J.T @ W
-        N = JtW @ J
-        N[3, 3] += w_s
-        if it == MAX_ITERATIONS:
-            break
-        it += 1
-        g = JtW @ r
-        g[3] += (s - prior.mean) * w_s
-        step = -np.linalg.solve(N, g)
-        R = expmap(step[:3]) @ R
-        s += step[3]
-        if step[:3] @ step[:3] < STEP_TOL_RAD**2 and abs(step[3]) < STEP_TOL_SHIFT:
-            converged = True
-            # the residual after this last small step, to second order in it
-            r = r + J @ step
-            break
-    return R, s, r, J, N, it, converged
 
 
 def _jacobian_table() -> np.ndarray:

@@ -62,7 +62,6 @@ from visvec._kernels import jit
 from visvec._kernels import readout as kernels
 from visvec.camera import CameraModel
 from visvec.estimate.triangle_full import VertexResidual
-from visvec.shutter import shutter_shift
 
 # a rolling shutter is reported when the run's readout estimate is this many of its
 # sigma from zero and at least this long (ms)
@@ -195,37 +194,18 @@ class ReadoutEvidence:
         # b = D^T P D for the design D)
         J, W, r = residual.J, residual.W, residual.r
         ka = applied_ms / 1000.0
-        if jit.ON:  # the same, compiled (the fast extra): 60 -> 10 us a frame
-            c = np.ascontiguousarray
-            lever_ = np.zeros(3) if lever is None else c(lever, float)
-            ok, term = kernels.readout_frame(
-                c(J, float), c(W, float), c(r, float), c(xy, float), c(rows, float),
-                c(omega_c, float), lever_, float(camera.cy), float(camera.height),
-                1.0 / camera.fx, 1.0 / camera.fy, ka, self.info, self.rhs,
-            )  # fmt: skip
-            if not ok:
-                return
+        # one implementation (visvec._kernels.readout), compiled with the fast extra
+        # (60 -> 10 us a frame); its arguments C-ordered float64 arrays
+        readout_frame = kernels.readout_frame if jit.ON else kernels._readout_frame
+        c = np.ascontiguousarray
+        lever_ = np.zeros(3) if lever is None else c(lever, float)
+        ok, term = readout_frame(
+            c(J, float), c(W, float), c(r, float), c(xy, float), c(rows, float),
+            c(omega_c, float), lever_, float(camera.cy), float(camera.height),
+            1.0 / camera.fx, 1.0 / camera.fy, ka, self.info, self.rhs,
+        )  # fmt: skip
+        if ok:  # (vertices that alone do not fix the parameters measure nothing here)
             self._added(float(term), J.shape[1])
-            return
-        JW = J.T @ W
-        try:
-            C0 = np.linalg.inv(JW @ J)
-        except np.linalg.LinAlgError:
-            return  # vertices that alone do not fix the parameters measure nothing here
-        P = W - JW.T @ C0 @ JW
-        # seen = centre row - A omega readout: the pattern of a unit (1 s) readout
-        design = np.column_stack([
-            -shutter_shift(xy, rows, camera, 1000.0, omega_c, lever),
-            model_error_design(xy, camera),
-        ])  # fmt: skip
-        PD = P @ design
-        a, b = -(PD.T @ r), design.T @ PD
-        self.info += b
-        self.rhs += a + b[:, 0] * ka
-        # the chi-square of theta is chi2 - 2 theta.rhs + theta.info.theta (+ priors): a
-        # frame's r W r, with its residuals' share of k taken as k - ka, gains 2 ka a0 +
-        # ka^2 b00
-        self._added(float(r @ P @ r) + 2.0 * ka * a[0] + ka * ka * b[0, 0], J.shape[1])
 
     def _added(self, chi2_term: float, n_fitted: int) -> None:
         """A frame's chi-square term added; its degrees of freedom are 6 less the fit's
@@ -240,18 +220,9 @@ class ReadoutEvidence:
         chi-square per degree of freedom they leave. Frames without a rate (the readout
         unseen: info[0, 0] = 0) leave the readout at 0."""
         if self._cached is None:
-            if jit.ON:  # the same, compiled (the fast extra)
-                self._cached = kernels.readout_solve(
-                    self.info, self._prior_info, self.rhs, self.chi2, self.dof
-                )
-                return self._cached
-            A = self.info + self._prior_info
-            if A[0, 0] <= 0:
-                A[0, 0] = 1.0  # its row and rhs are 0: k = 0, and readout_ms() says NaN
-            cov = np.linalg.inv(A)
-            theta = cov @ self.rhs
-            left = self.dof - float(np.vdot(cov, self.info))
-            self._cached = (cov, theta, (self.chi2 - float(theta @ self.rhs)) / max(left, 1.0))
+            # one implementation (visvec._kernels.readout), compiled with the fast extra
+            solve = kernels.readout_solve if jit.ON else kernels._readout_solve
+            self._cached = solve(self.info, self._prior_info, self.rhs, self.chi2, self.dof)
         return self._cached
 
     def _solve(self) -> tuple[float, float, float]:
