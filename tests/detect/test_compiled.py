@@ -179,7 +179,8 @@ def _as_python(kernel):
     inner = {n: getattr(_home(n), n) for n in ("_group_linear", "_levels_suspect",
                                                  "_level_lines", "_group_tls",
                                                  "_group_median", "_lag_sums", "_erf_with_bell",
-                                                 "_phi_of", "_pixel_gn", "_strided",
+                                                 "_phi_of", "_across_edge", "_pixel_residual",
+                                                 "_pixel_gn", "_strided",
                                                  "noise_inflation", "_cover",
                                                  "_band_pixels")}  # fmt: skip
 

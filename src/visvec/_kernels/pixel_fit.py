@@ -364,6 +364,29 @@ def phi_of(u, table, rng, inv_step):
     return step, slope
 
 
+def across_edge(x0, x1, cx, cy, nx, ny, we):
+    """A pixel at (x0, x1) (ideal px) against its edge's line through (cx, cy) with
+    unit normal (nx, ny) and blur width ``we``: u = n . (x - c) / w, its distance across
+    the line in blur widths, and perp = n_perp . (x - c), its place along it (px).
+    Written once for both paths: arrays (photometric's numpy fit) or floats (the
+    compiled one, pixel by pixel)."""
+    rx, ry = x0 - cx, x1 - cy
+    return (rx * nx + ry * ny) / we, rx * -ny + ry * nx
+
+
+def pixel_residual(y, X, Y, T, slope, level, we):
+    """The pixel fit's model at a pixel and what it leaves: the board's level plane
+    level[0:3] . (1, X, Y) plus the step T = Phi(u) times the contrast's plane C =
+    level[3:6] . (1, X, Y) (X, Y the pixel about the centroid, scaled), against the grey
+    level y. Returns the residual r = y - model (grey levels) and g = C phi(u) / w,
+    dI / d(distance across the line) (grey levels per px), from which the line's
+    Jacobian columns follow: (g perp, -g, -g u) for its turn about c, its offset and its
+    blur width. Written once for both paths (arrays or floats, as across_edge)."""
+    C = level[3] + level[4] * X + level[5] * Y
+    r = y - (level[0] + level[1] * X + level[2] * Y + T * C)
+    return r, C * slope / we
+
+
 def _pixel_gn(x, y, counts, n, c, w, centroid, scale, steps, table, rng, inv_step):
     """photometric._gauss_newton compiled: the same model, parameters and steps; each
     edge's Jacobian (9, m_e) filled pixel by pixel, its normal equations by BLAS. The
@@ -405,11 +428,10 @@ def _pixel_gn(x, y, counts, n, c, w, centroid, scale, steps, table, rng, inv_ste
             nx, ny, cx, cy, we = n[e, 0], n[e, 1], c[e, 0], c[e, 1], w[e]
             for k in range(counts[e]):
                 p = bounds[e] + k
-                rx, ry = x[p, 0] - cx, x[p, 1] - cy
-                u = (rx * nx + ry * ny) / we
+                u, perp = _across_edge(x[p, 0], x[p, 1], cx, cy, nx, ny, we)
                 T, slope = _phi_of(u, table, rng, inv_step)
                 u_all[p] = u
-                perp_all[p] = rx * -ny + ry * nx
+                perp_all[p] = perp
                 slope_all[p] = slope
                 Je[6, k] = T
                 Je[7, k] = T * Je[4, k]
@@ -434,10 +456,7 @@ def _pixel_gn(x, y, counts, n, c, w, centroid, scale, steps, table, rng, inv_ste
             we = w[e]
             for k in range(counts[e]):
                 p = bounds[e] + k
-                X, Y, T = Je[4, k], Je[5, k], Je[6, k]
-                C = level[3] + level[4] * X + level[5] * Y
-                r = y[p] - (level[0] + level[1] * X + level[2] * Y + T * C)
-                g = C * slope_all[p] / we
+                r, g = _pixel_residual(y[p], Je[4, k], Je[5, k], Je[6, k], slope_all[p], level, we)
                 rss += r * r
                 r_all[p] = r
                 g_all[p] = g
@@ -577,6 +596,8 @@ _band_pixels = kernel(globals(), "_band_pixels", _band_pixels)
 distorted = kernel(globals(), "distorted", _distorted)
 band_lines = kernel(globals(), "band_lines", _band_lines)
 _phi_of = kernel(globals(), "_phi_of", phi_of)
+_across_edge = kernel(globals(), "_across_edge", across_edge)
+_pixel_residual = kernel(globals(), "_pixel_residual", pixel_residual)
 _pixel_gn = kernel(globals(), "_pixel_gn", _pixel_gn)
 _strided = kernel(globals(), "_strided", _strided)
 pixel_solve = kernel(globals(), "pixel_solve", _pixel_solve)

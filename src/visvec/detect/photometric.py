@@ -47,7 +47,14 @@ import numpy as np
 from visvec._kernels import jit
 from visvec._kernels import pixel_fit as kernels
 from visvec._kernels.edge_fit import vertices
-from visvec._kernels.pixel_fit import GaussNewtonSteps, PixelFitSettings, PixelSolve, phi_of
+from visvec._kernels.pixel_fit import (
+    GaussNewtonSteps,
+    PixelFitSettings,
+    PixelSolve,
+    across_edge,
+    phi_of,
+    pixel_residual,
+)
 from visvec.camera import CameraModel
 from visvec.shutter import RollingShutter, unroll
 
@@ -384,12 +391,10 @@ def _gauss_newton(x, y, counts, n, c, w, centroid, scale, steps):
         rss = 0.0
         steps_ = []
         for i, (xe, Je) in enumerate(zip(xs, jac, strict=True)):
-            nx, ny = n[i]
-            rx, ry = xe[:, 0] - c[i, 0], xe[:, 1] - c[i, 1]
-            u = (rx * nx + ry * ny) / w[i]
+            u, perp = across_edge(xe[:, 0], xe[:, 1], c[i, 0], c[i, 1], n[i, 0], n[i, 1], w[i])
             T, slope = _phi_of(u)
             Je[:, 6:9] = Je[:, 3:6] * T[:, None]
-            steps_.append((u, rx * -ny + ry * nx, slope))
+            steps_.append((u, perp, slope))
         if it == 0:
             A = np.concatenate([Je[:, 3:9] for Je in jac])
             try:
@@ -399,10 +404,8 @@ def _gauss_newton(x, y, counts, n, c, w, centroid, scale, steps):
         for i, Je in enumerate(jac):
             u, perp, slope = steps_[i]
             ye = y[bounds[i] : bounds[i + 1]]
-            C = Je[:, 3:6] @ level[3:]
-            r = ye - Je[:, 3:9] @ level
+            r, g = pixel_residual(ye, Je[:, 4], Je[:, 5], Je[:, 6], slope, level, w[i])
             rss += float(r @ r)
-            g = C * slope / w[i]  # dI / d(distance)
             Je[:, 0] = g * perp
             Je[:, 1] = -g
             Je[:, 2] = -g * u
