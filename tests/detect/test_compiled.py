@@ -163,10 +163,15 @@ def test_the_kernels_run_as_python_give_what_compiled_gives(calls):
         "_lines": (KE.inward_lines, lambda a, k: _inward_args(*a)),
         "lag_sums": (KE.edge_lag_sums, lambda a, k: (*a, E.CORRELATION_LAGS)),
     }
+    # to the bit, but for the step positions and the level gain: written once for the
+    # numpy path too (edge_fit.step_residual, _level_gain), they take numpy's exp and
+    # sums, which may differ from the C library's exp and the loop's sums that Numba
+    # makes in the last bit of a value
+    exact = {"_positions": 1e-15, "_level_gain": 1e-14}
     for name, (kernel, to_args) in kernels.items():
         for a, k in calls[name][1][:2]:
             args = to_args(a, k)
-            assert _diff(kernel(*args), _as_python(kernel)(*args)) == 0.0, name
+            assert _diff(kernel(*args), _as_python(kernel)(*args)) <= exact.get(name, 0.0), name
 
 
 def _home(name):
@@ -179,6 +184,7 @@ def _as_python(kernel):
     inner = {n: getattr(_home(n), n) for n in ("_group_linear", "_levels_suspect",
                                                  "_level_lines", "_group_tls",
                                                  "_group_median", "_lag_sums", "_erf_with_bell",
+                                                 "_step_residual",
                                                  "_phi_of", "_across_edge", "_pixel_residual",
                                                  "_pixel_gn", "_strided",
                                                  "noise_inflation", "_cover",

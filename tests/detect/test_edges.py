@@ -336,7 +336,7 @@ def test_fast_erf_is_within_abramowitz_stegun_bound():
     within the formula's 1.5e-7 of scipy's, odd, and exact at 0 and far out."""
     from scipy.special import erf
 
-    from visvec.detect.edges import erf_with_bell
+    from visvec._kernels.edge_fit import erf_with_bell
 
     u = np.concatenate([np.linspace(-6.0, 6.0, 20001), [0.0, -0.0, 30.0, -30.0]])
     got = erf_with_bell(u, np.exp(-u * u))

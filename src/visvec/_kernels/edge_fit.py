@@ -72,6 +72,20 @@ def erf_with_bell(u, bell):
     return np.copysign(1.0 - y * bell, u)
 
 
+def step_residual(f, x, e, s2):
+    """The edge fit's blurred step at a profile's sample: with the sample at ``x`` (px
+    along the inward normal), the step at ``e`` and s2 = sqrt(2) w (w its blur width),
+    u = (x - e) / s2; returns the residual f - (1 + erf(u)) / 2 of the normalised level
+    ``f`` and the model's slope g = exp(-u^2) / (sqrt(pi) s2) (-d residual / d e, per
+    px), which the position's Gauss-Newton step sum(r g) / sum(g^2) takes. Written once
+    for both paths: arrays (edges' numpy fit, broadcast) or floats (the compiled one)."""
+    u = (x - e) / s2
+    bell = np.exp(-u * u)
+    # (the kernel's name: compiled within a compiled caller, the plain function on the
+    # numpy path, where it is one without Numba or after jit.off)
+    return f - 0.5 * (1.0 + _erf_with_bell(u, bell)), bell / (_SQRT_PI * s2)
+
+
 def vertices(normals: np.ndarray, offsets: np.ndarray) -> tuple[np.ndarray, list | None]:
     """The triangle's vertices (3, 2) in ideal pixels from its three lines n . x = offset
     (line i opposite vertex i; the edge fit's and the pixel fit's) and, per vertex i,
@@ -330,15 +344,11 @@ def _positions(vals, t, gid, half, step, width, n_ext, ends, gn_steps,
         ep = half - step * (total - 0.5 * (f[0] + f[s_in - 1]))
         if fit:
             s2 = _SQRT_2 * width[gid[p]]
-            gden = _SQRT_PI * s2
             for _ in range(gn_steps):
                 num = 0.0
                 den = 0.0
                 for j in range(s_in):
-                    u = (-half + j * step - ep) / s2
-                    bell = math.exp(-u * u)
-                    r = f[j] - 0.5 * (1.0 + _erf_with_bell(u, bell))
-                    g = bell / gden
+                    r, g = _step_residual(f[j], -half + j * step, ep, s2)
                     num += r * g
                     den += g * g
                 ep = ep - min(max(num / max(den, 1e-12), -0.5), 0.5)
@@ -556,18 +566,13 @@ def _inward_lines(x, y, gid, clear, floor, rounds, inflation):
 # ------------------------------------------------- a fine pass's lines (_edge_fit)
 def _level_gain(width, half, step):
     """edges._level_gain: (3,) px per unit of relative mid-level error, the erf model's
-    sum(g) / sum(g^2) over the window's samples."""
+    sum(g) / sum(g^2) over the window's samples, g = exp(-x^2 / 2 w^2) / (sqrt(2 pi) w).
+    One implementation: the numpy path runs it as Python, the fast extra compiles it."""
     x = np.arange(-half, half + 1e-9, step)
     out = np.empty(3)
     for e in range(3):
-        w = width[e]
-        s1 = 0.0
-        s2 = 0.0
-        for k in range(x.shape[0]):
-            g = math.exp(-0.5 * (x[k] / w) ** 2) / (_SQRT_2PI * w)
-            s1 += g
-            s2 += g * g
-        out[e] = s1 / s2
+        g = np.exp(-0.5 * (x / width[e]) ** 2) / (_SQRT_2PI * width[e])
+        out[e] = np.sum(g) / np.sum(g * g)
     return out
 
 
@@ -625,6 +630,7 @@ def _edge_lag_sums(ideal, gid, keep, normals, offsets, sigmas, lags):
 
 
 _erf_with_bell = kernel(globals(), "_erf_with_bell", erf_with_bell)
+_step_residual = kernel(globals(), "_step_residual", step_residual)
 sample_geometry = kernel(globals(), "sample_geometry", _sample_geometry)
 _group_linear = kernel(globals(), "_group_linear", _group_linear)
 _levels_suspect = kernel(globals(), "_levels_suspect", _levels_suspect)

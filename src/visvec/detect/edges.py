@@ -18,7 +18,7 @@ import numpy as np
 
 from visvec._kernels import edge_fit as kernels
 from visvec._kernels import jit
-from visvec._kernels.edge_fit import EdgeLines, erf_with_bell, vertices
+from visvec._kernels.edge_fit import EdgeLines, step_residual, vertices
 from visvec.camera import CameraModel
 from visvec.noise import CORRELATION_LAGS
 from visvec.shutter import RollingShutter, unroll
@@ -478,10 +478,7 @@ def _positions(
         x = np.arange(-half, half + 1e-9, step)[None, :]
         s2 = (np.sqrt(2.0) * width[gid])[:, None]
         for _ in range(GN_STEPS):
-            u = (x - e[:, None]) / s2
-            bell = np.exp(-u * u)
-            r = f - 0.5 * (1.0 + erf_with_bell(u, bell))
-            g = bell / (np.sqrt(np.pi) * s2)
+            r, g = step_residual(f, x, e[:, None], s2)
             e = e - np.clip((r * g).sum(axis=1) / np.maximum((g * g).sum(axis=1), 1e-12), -0.5, 0.5)
     w = level_ok.astype(float)
     cnt = np.maximum(np.bincount(gid, w, 3), 1)
@@ -503,12 +500,9 @@ def _level_gain(width: np.ndarray, half: float, step: float) -> np.ndarray:
     profiles: it moves the whole line and is not in the edge points' residuals. A level
     error with opposite signs on the two sides shifts nothing (symmetric slope).
     """
-    if jit.ON:
-        return kernels.level_gain(np.asarray(width, float), float(half), float(step))
-    w = np.asarray(width, float)
-    x = np.arange(-half, half + 1e-9, step)[None, :]
-    g = np.exp(-0.5 * (x / w[:, None]) ** 2) / (np.sqrt(2.0 * np.pi) * w[:, None])
-    return g.sum(axis=1) / (g * g).sum(axis=1)
+    # one implementation (visvec._kernels.edge_fit), compiled with the fast extra
+    gain = kernels.level_gain if jit.ON else kernels._level_gain
+    return gain(np.asarray(width, float), float(half), float(step))
 
 
 def _widths(
