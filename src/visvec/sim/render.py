@@ -290,6 +290,19 @@ def render_frame(
     exposure_ms : float
         Each row's exposure time (ms, as the rig's [camera] exposure_ms): motion blur
         while the platform turns.
+
+    Returns
+    -------
+    ndarray of uint8, shape (H, W)
+        The grey frame (the rig's camera's size), through the scene's blur, noise and,
+        with ``scene.webcam``, a webcam's image chain.
+
+    Examples
+    --------
+    >>> from visvec.api import Scene, load_rig, render_frame
+    >>> rig = load_rig("configs/triangle.toml")  # doctest: +SKIP
+    >>> render_frame(rig, np.eye(3), Scene(), rng=1).shape  # doctest: +SKIP
+    (480, 640)
     """
     rng = np.random.default_rng(rng)
     g = scene.tone_gamma
