@@ -146,6 +146,32 @@ def test_the_frames_reach_the_kernels_robust_branches(calls):
     assert sum(not f(*a, **k)[5][a[4]].all() for a, k in args) >= 3
 
 
+def test_the_fits_name_their_results_alike_compiled_or_not(calls, monkeypatch):
+    """The step positions, the lines' scatter and the attitude fit's steps are the same
+    NamedTuples from the numpy path and the compiled one, field by field equal."""
+    f, args = calls["_positions"]
+    a, k = args[0]
+    got = []
+    for flag in (False, True):
+        monkeypatch.setattr(jit, "ON", flag)
+        got.append(f(*a, **k))
+    assert type(got[0]) is type(got[1]) is KE.StepPositions
+    assert np.abs(got[0].e - got[1].e).max() < 1e-9
+    rng = np.random.default_rng(3)
+    x, y = rng.normal(0.0, 50.0, 90), rng.normal(0.0, 50.0, 90)
+    gid, keep = np.repeat(np.arange(3), 30), rng.random(90) > 0.2
+    numpy_, compiled = E._group_tls(x, y, gid, keep), KE._group_tls(x, y, gid, keep)
+    assert type(numpy_) is type(compiled) is KE.LineScatter
+    assert np.abs(numpy_.normal - compiled.normal).max() < 1e-12
+    X = np.array([[0.0, 0.0, 0.0], [100.0, 0.0, 0.0], [0.0, 100.0, 0.0]])
+    t_c = np.array([5.0, 3.0, 1000.0])
+    xy = (X[:, :2] + t_c[:2]) / (X[:, 2:] + t_c[2])
+    args = (np.eye(3), t_c, X, xy, np.eye(6), np.array([0.0, 0.0, 1.0]), 0.0, 1.0, 15, 1e-12, 1e-3)
+    fits = KR.gn_shift(*args), KR._gn_shift(*args)
+    assert type(fits[0]) is type(fits[1]) is KR.ShiftFit and fits[0].converged
+    assert fits[0].iterations == fits[1].iterations and abs(fits[0].s - fits[1].s) < 1e-9
+
+
 def test_the_kernels_run_as_python_give_what_compiled_gives(calls):
     """Each kernel's Python source (Numba's py_func, which coverage can follow) gives
     the compiled kernel's result: what the tests above check is the code here."""

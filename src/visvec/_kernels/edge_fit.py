@@ -72,6 +72,60 @@ def erf_with_bell(u, bell):
     return np.copysign(1.0 - y * bell, u)
 
 
+class StepPositions(NamedTuple):
+    """Each profile's step and its edge's levels (edges._positions and its kernel).
+
+    Attributes
+    ----------
+    e : ndarray, shape (P,)
+        Each profile's sub-pixel step position along its inward normal (px, from the
+        profile's centre).
+    heights : ndarray, shape (P,)
+        Each profile's step height, its inner end's level less its outer end's (grey
+        levels).
+    mid : ndarray, shape (3,)
+        Each edge's mid level over the profiles whose levels agree (grey levels).
+    level_sd : ndarray, shape (3,)
+        The scatter of those profiles' mid levels about their edge's level lines (grey
+        levels).
+    level_ok : ndarray of bool, shape (P,)
+        The profiles whose levels agree with their edge's (the others have something
+        else in their window).
+    """
+
+    e: np.ndarray
+    heights: np.ndarray
+    mid: np.ndarray
+    level_sd: np.ndarray
+    level_ok: np.ndarray
+
+
+class LineScatter(NamedTuple):
+    """The total-least-squares line through each edge's kept points (edges._group_tls
+    and its kernel).
+
+    Attributes
+    ----------
+    count : ndarray, shape (3,)
+        Each edge's kept points (float).
+    centre : ndarray, shape (3, 2)
+        Their mean (px).
+    direction : ndarray, shape (3, 2)
+        The line's unit direction (the scatter's principal axis).
+    normal : ndarray, shape (3, 2)
+        Its unit normal (the direction turned by +90 deg).
+    dx, dy : ndarray, shape (M,)
+        Every point's coordinates about its edge's centre (px).
+    """
+
+    count: np.ndarray
+    centre: np.ndarray
+    direction: np.ndarray
+    normal: np.ndarray
+    dx: np.ndarray
+    dy: np.ndarray
+
+
 def step_residual(f, x, e, s2):
     """The edge fit's blurred step at a profile's sample: with the sample at ``x`` (px
     along the inward normal), the step at ``e`` and s2 = sqrt(2) w (w its blur width),
@@ -371,7 +425,7 @@ def _positions(vals, t, gid, half, step, width, n_ext, ends, gn_steps,
         c = max(cnt[g], 1.0)
         mid[g] = (s_lo[g] + s_hi[g]) / (2.0 * c)
         level_sd[g] = math.sqrt(s_res[g] / max(c - 2.0, 1.0))
-    return e, hi_raw - lo_raw, mid, level_sd, level_ok
+    return StepPositions(e, hi_raw - lo_raw, mid, level_sd, level_ok)
 
 
 # ---------------------------------------------------------------------- blur widths
@@ -487,7 +541,7 @@ def _group_tls(x, y, gid, keep):
         d[g, 1] = math.sin(a)
         n[g, 0] = -d[g, 1]
         n[g, 1] = d[g, 0]
-    return k, c, d, n, dx, dy
+    return LineScatter(k, c, d, n, dx, dy)
 
 
 def _robust_lines(x, y, gid, use, floor, rounds, inflation):

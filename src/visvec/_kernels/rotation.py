@@ -6,11 +6,43 @@ compiled by Numba with the ``fast`` extra (visvec._kernels.jit)."""
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 
 from visvec._kernels.jit import kernel
 from visvec.rotations import expmap_xyz
+
+
+class ShiftFit(NamedTuple):
+    """The attitude fit's Gauss-Newton with the target's height (gn_shift).
+
+    Attributes
+    ----------
+    R : ndarray, shape (3, 3)
+        The rotation found.
+    s : float
+        The points' shift along the prior's axis (mm).
+    r : ndarray, shape (2N,)
+        The residuals (normalised image units, u and v interleaved), after the last
+        small step to second order in it.
+    J : ndarray, shape (2N, 4)
+        Their Jacobian in (d, s) at the last iteration.
+    N : ndarray, shape (4, 4)
+        The normal matrix J^T W J with the shift's prior.
+    iterations : int
+        The Gauss-Newton steps taken.
+    converged : bool
+        Whether the last step was below the tolerances.
+    """
+
+    R: np.ndarray
+    s: float
+    r: np.ndarray
+    J: np.ndarray
+    N: np.ndarray
+    iterations: int
+    converged: bool
 
 
 # ------------------------------------- the triangle's attitude (estimate.rotation)
@@ -89,7 +121,7 @@ def _gn_shift(R, t_c, X, xy, W, axis, mean, w_s, max_iterations, tol_rad2, tol_s
     """visvec.estimate.rotation._fit_with_shift's Gauss-Newton in (d, s): each iteration
     its residuals and Jacobian (residuals_and_jacobian_shift), the normal equations with
     the shift's prior (s - mean)^2 w_s, the step, R <- exp([d]x) R. Returns (R, s, r, J,
-    N, iterations, converged), r after the last small step to second order in it."""
+    N, iterations, converged) as a ShiftFit."""
     s = mean
     converged = False
     it = 0
@@ -111,7 +143,7 @@ def _gn_shift(R, t_c, X, xy, W, axis, mean, w_s, max_iterations, tol_rad2, tol_s
             # the residual after this last small step, to second order in it
             r = r + J @ step
             break
-    return R, s, r, J, N, it, converged
+    return ShiftFit(R, s, r, J, N, it, converged)
 
 
 _expmap = kernel(globals(), "_expmap", expmap_xyz)

@@ -18,7 +18,13 @@ import numpy as np
 
 from visvec._kernels import edge_fit as kernels
 from visvec._kernels import jit
-from visvec._kernels.edge_fit import EdgeLines, step_residual, vertices
+from visvec._kernels.edge_fit import (
+    EdgeLines,
+    LineScatter,
+    StepPositions,
+    step_residual,
+    vertices,
+)
 from visvec.camera import CameraModel
 from visvec.noise import CORRELATION_LAGS
 from visvec.shutter import RollingShutter, unroll
@@ -192,9 +198,7 @@ def _group_linear(
     return out
 
 
-def _group_tls(
-    x: np.ndarray, y: np.ndarray, gid: np.ndarray, keep: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def _group_tls(x: np.ndarray, y: np.ndarray, gid: np.ndarray, keep: np.ndarray) -> LineScatter:
     """Total-least-squares line through each edge's kept points (x, y), all three at once.
 
     Returns the count (3,), centre (3, 2), unit direction (3, 2), unit normal (3, 2) and
@@ -217,7 +221,7 @@ def _group_tls(
     d[:, 0], d[:, 1] = np.cos(a), np.sin(a)
     n = np.empty((3, 2))
     n[:, 0], n[:, 1] = -d[:, 1], d[:, 0]
-    return k, c, d, n, dx, dy
+    return LineScatter(k, c, d, n, dx, dy)
 
 
 def _sorted_medians(table: np.ndarray, k: np.ndarray) -> np.ndarray:
@@ -438,7 +442,7 @@ def _positions(
     step: float,
     width: np.ndarray | None,
     ext: float = 0.0,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+) -> StepPositions:
     """Sub-pixel step position of each profile (offset along the inward normal), the
     local step height, the per-edge mid level, the per-edge scatter of the profiles'
     mid levels about it, and the mask of profiles whose levels agree with their edge's
@@ -486,7 +490,7 @@ def _positions(
     # scatter of each profile's mid level about the edge's fitted mid-level line
     res = 0.5 * (lo_raw + hi_raw - lo - hi)
     level_sd = np.sqrt(np.bincount(gid, w * res * res, 3) / np.maximum(cnt - 2, 1))
-    return e, hi_raw - lo_raw, mid, level_sd, level_ok
+    return StepPositions(e, hi_raw - lo_raw, mid, level_sd, level_ok)
 
 
 def _level_gain(width: np.ndarray, half: float, step: float) -> np.ndarray:
