@@ -17,6 +17,16 @@ import numpy as np
 from visvec._kernels.jit import kernel
 from visvec.camera import _distorted
 
+# the level model: the board's level and the triangle's contrast each N_LEVELS terms in
+# the pixel's place about the centroid, scaled: (1, X, Y, X^2 + Y^2), a lighting
+# gradient and a lens's radial falloff (vignetting: I0 (1 - k |x - x0|^2) about any
+# centre x0 is in their span)
+N_LEVELS = 4
+# the fit's parameters: 3 lines x (rotation, offset), 3 widths, 2 N_LEVELS levels
+N_PARAMS = 9 + 2 * N_LEVELS
+# an edge's Jacobian columns: its line's rotation and offset, its width, the levels
+N_EDGE = 3 + 2 * N_LEVELS
+
 
 class GaussNewtonSteps(NamedTuple):
     """After the pixel fit's Gauss-Newton steps (photometric._gauss_newton).
@@ -29,12 +39,12 @@ class GaussNewtonSteps(NamedTuple):
         The lines' centres (ideal px).
     w : ndarray, shape (3,)
         The edges' blur widths (px, the model's w).
-    level : ndarray, shape (6,)
-        The level planes' coefficients: the board's (1, x, y), then the contrast's
-        (grey levels; x, y about the centroid, scaled).
-    H : ndarray, shape (15, 15)
+    level : ndarray, shape (2 N_LEVELS,)
+        The level model's coefficients: the board's (1, X, Y, X^2 + Y^2), then the
+        contrast's (grey levels; X, Y about the centroid, scaled).
+    H : ndarray, shape (N_PARAMS, N_PARAMS)
         The last step's normal matrix J^T J.
-    b : ndarray, shape (15,)
+    b : ndarray, shape (N_PARAMS,)
         The last step's J^T r.
     rss : float
         The residual sum of squares after the last step, as Gauss-Newton predicts it
@@ -374,32 +384,33 @@ def across_edge(x0, x1, cx, cy, nx, ny, we):
     return (rx * nx + ry * ny) / we, rx * -ny + ry * nx
 
 
-def pixel_residual(y, X, Y, T, slope, level, we):
-    """The pixel fit's model at a pixel and what it leaves: the board's level plane
-    level[0:3] . (1, X, Y) plus the step T = Phi(u) times the contrast's plane C =
-    level[3:6] . (1, X, Y) (X, Y the pixel about the centroid, scaled), against the grey
-    level y. Returns the residual r = y - model (grey levels) and g = C phi(u) / w,
-    dI / d(distance across the line) (grey levels per px), from which the line's
-    Jacobian columns follow: (g perp, -g, -g u) for its turn about c, its offset and its
-    blur width. Written once for both paths (arrays or floats, as across_edge)."""
-    C = level[3] + level[4] * X + level[5] * Y
-    r = y - (level[0] + level[1] * X + level[2] * Y + T * C)
+def pixel_residual(y, X, Y, R2, T, slope, level, we):
+    """The pixel fit's model at a pixel and what it leaves: the board's level
+    level[0:4] . (1, X, Y, R2) plus the step T = Phi(u) times the contrast C =
+    level[4:8] . (1, X, Y, R2) (X, Y the pixel about the centroid, scaled; R2 = X^2 + Y^2:
+    a lens's radial falloff), against the grey level y. Returns the residual r = y -
+    model (grey levels) and g = C phi(u) / w, dI / d(distance across the line) (grey
+    levels per px), from which the line's Jacobian columns follow: (g perp, -g, -g u)
+    for its turn about c, its offset and its blur width. Written once for both paths
+    (arrays or floats, as across_edge)."""
+    C = level[4] + level[5] * X + level[6] * Y + level[7] * R2
+    r = y - (level[0] + level[1] * X + level[2] * Y + level[3] * R2 + T * C)
     return r, C * slope / we
 
 
 def _pixel_gn(x, y, counts, n, c, w, centroid, scale, steps, table, rng, inv_step):
     """photometric._gauss_newton compiled: the same model, parameters and steps; each
-    edge's Jacobian (9, m_e) filled pixel by pixel, its normal equations by BLAS. The
-    three edges' Jacobians lie one after another in one buffer, each C-contiguous, so
-    that BLAS takes them in place (a copy of each edge's columns of one (9, m) array
-    cost a tenth of a step)."""
+    edge's Jacobian (N_EDGE, m_e) filled pixel by pixel, its normal equations by BLAS.
+    The three edges' Jacobians lie one after another in one buffer, each C-contiguous,
+    so that BLAS takes them in place (a copy of each edge's columns of one (N_EDGE, m)
+    array cost a tenth of a step)."""
     m = len(y)
     n = n.copy()
     c = c.copy()
     w = w.copy()
-    H = np.zeros((15, 15))
-    b = np.zeros(15)
-    level = np.zeros(6)
+    H = np.zeros((N_PARAMS, N_PARAMS))
+    b = np.zeros(N_PARAMS)
+    level = np.zeros(2 * N_LEVELS)
     r_all = np.empty(m)
     g_all = np.empty(m)
     u_all = np.empty(m)
@@ -408,23 +419,27 @@ def _pixel_gn(x, y, counts, n, c, w, centroid, scale, steps, table, rng, inv_ste
     bounds = np.zeros(4, np.int64)
     for e in range(3):
         bounds[e + 1] = bounds[e] + counts[e]
-    buf = np.empty(9 * m)
-    # the board's plane's columns (1, x, y about the centroid, scaled), then T times them
+    buf = np.empty(N_EDGE * m)
+    # the board's level columns (1, X, Y, X^2 + Y^2 about the centroid, scaled), then T
+    # times them
     for e in range(3):
-        Je = buf[9 * bounds[e] : 9 * bounds[e + 1]].reshape((9, counts[e]))
+        Je = buf[N_EDGE * bounds[e] : N_EDGE * bounds[e + 1]].reshape((N_EDGE, counts[e]))
         for k in range(counts[e]):
             p = bounds[e] + k
+            X = (x[p, 0] - centroid[0]) / scale
+            Y = (x[p, 1] - centroid[1]) / scale
             Je[3, k] = 1.0
-            Je[4, k] = (x[p, 0] - centroid[0]) / scale
-            Je[5, k] = (x[p, 1] - centroid[1]) / scale
-    # each edge's parameters: its line's rotation and offset, its width, the six levels
-    idx = np.empty(9, np.int64)
-    for q in range(6):
+            Je[4, k] = X
+            Je[5, k] = Y
+            Je[6, k] = X * X + Y * Y
+    # each edge's parameters: its line's rotation and offset, its width, the levels
+    idx = np.empty(N_EDGE, np.int64)
+    for q in range(2 * N_LEVELS):
         idx[3 + q] = 9 + q
     rss = 0.0
     for it in range(steps):
         for e in range(3):
-            Je = buf[9 * bounds[e] : 9 * bounds[e + 1]].reshape((9, counts[e]))
+            Je = buf[N_EDGE * bounds[e] : N_EDGE * bounds[e + 1]].reshape((N_EDGE, counts[e]))
             nx, ny, cx, cy, we = n[e, 0], n[e, 1], c[e, 0], c[e, 1], w[e]
             for k in range(counts[e]):
                 p = bounds[e] + k
@@ -433,15 +448,15 @@ def _pixel_gn(x, y, counts, n, c, w, centroid, scale, steps, table, rng, inv_ste
                 u_all[p] = u
                 perp_all[p] = perp
                 slope_all[p] = slope
-                Je[6, k] = T
-                Je[7, k] = T * Je[4, k]
-                Je[8, k] = T * Je[5, k]
+                for q in range(N_LEVELS):
+                    Je[3 + N_LEVELS + q, k] = T * Je[3 + q, k]
         if it == 0:
             # the levels from the starting lines, by linear least squares
-            AtA = np.zeros((6, 6))
-            Aty = np.zeros(6)
+            AtA = np.zeros((2 * N_LEVELS, 2 * N_LEVELS))
+            Aty = np.zeros(2 * N_LEVELS)
             for e in range(3):
-                A = buf[9 * bounds[e] : 9 * bounds[e + 1]].reshape((9, counts[e]))[3:9]
+                Je = buf[N_EDGE * bounds[e] : N_EDGE * bounds[e + 1]].reshape((N_EDGE, counts[e]))
+                A = Je[3:]
                 AtA += A @ A.T
                 Aty += A @ y[bounds[e] : bounds[e + 1]]
             try:
@@ -452,11 +467,12 @@ def _pixel_gn(x, y, counts, n, c, w, centroid, scale, steps, table, rng, inv_ste
         b[:] = 0.0
         rss = 0.0
         for e in range(3):
-            Je = buf[9 * bounds[e] : 9 * bounds[e + 1]].reshape((9, counts[e]))
+            Je = buf[N_EDGE * bounds[e] : N_EDGE * bounds[e + 1]].reshape((N_EDGE, counts[e]))
             we = w[e]
             for k in range(counts[e]):
                 p = bounds[e] + k
-                r, g = _pixel_residual(y[p], Je[4, k], Je[5, k], Je[6, k], slope_all[p], level, we)
+                r, g = _pixel_residual(y[p], Je[4, k], Je[5, k], Je[6, k], Je[3 + N_LEVELS, k],
+                                       slope_all[p], level, we)  # fmt: skip
                 rss += r * r
                 r_all[p] = r
                 g_all[p] = g
@@ -466,9 +482,9 @@ def _pixel_gn(x, y, counts, n, c, w, centroid, scale, steps, table, rng, inv_ste
             He = Je @ Je.T
             be = Je @ r_all[bounds[e] : bounds[e + 1]]
             idx[0], idx[1], idx[2] = 2 * e, 2 * e + 1, 6 + e
-            for q in range(9):
+            for q in range(N_EDGE):
                 b[idx[q]] += be[q]
-                for s in range(9):
+                for s in range(N_EDGE):
                     H[idx[q], idx[s]] += He[q, s]
         try:
             step = np.linalg.solve(H, b)
@@ -483,7 +499,7 @@ def _pixel_gn(x, y, counts, n, c, w, centroid, scale, steps, table, rng, inv_ste
             c[e, 0] += oo * n0
             c[e, 1] += oo * n1
             w[e] = max(w[e] + step[6 + e], 0.2)
-        for q in range(6):
+        for q in range(2 * N_LEVELS):
             level[q] += step[9 + q]
         rss -= step @ b
     return GaussNewtonSteps(n, c, w, level, H, b, rss, r_all, g_all, True)
@@ -541,7 +557,7 @@ def _pixel_solve(x, y, uv, counts, n, c, w, V, centroid, scale, warm, st):
     if not ok:
         return PixelSolve(False, V, fail, w, math.nan, 1.0, steps)
     m = len(y)
-    s2 = max(rss, 0.0) / max(m - 15, 1)
+    s2 = max(rss, 0.0) / max(m - N_PARAMS, 1)
     rms = np.empty(3)
     start = 0
     for e in range(3):

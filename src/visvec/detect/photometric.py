@@ -14,15 +14,17 @@ x a pixel's ideal (undistorted) coordinates, e the one edge the pixel is near,
 d_e(x) = n_e . (x - c_e) - o_e its signed distance to that edge's line (inward
 positive), w_e the edge's blur width, Phi the standard normal CDF (a Gaussian blur of a
 straight step; the pixel's box response is taken as part of the Gaussian,
-w^2 = sigma_blur^2 + 1/12), and L, C the board level and the triangle's contrast, each a
-plane across the image (a lighting gradient). Pixels less than CLEAR_WIDTHS blur
-widths inside another edge (the vertices' neighbourhoods, where a blurred corner is no
-longer a step) are left out; under a rolling shutter each pixel is fitted where the
-centre row's exposure would have seen it (see refine). The parameters: each line's
-rotation about its centre and its offset, the three widths, the six level
-coefficients; the lines give the vertices, whose covariance
-follows from the fit's (the residuals' variance times (J^T J)^-1), so that the lines'
-errors through the shared levels are correlated as they are.
+w^2 = sigma_blur^2 + 1/12), and L, C the board level and the triangle's contrast, each
+linear in (1, X, Y, X^2 + Y^2), X, Y the pixel's place about the triangle's centroid: a
+lighting gradient and a lens's radial falloff (vignetting, which a plane left in the
+residuals: through a simulated webcam its tilts 1.2x the edge lines', 0.8x with it).
+Pixels less than CLEAR_WIDTHS blur widths inside another edge (the vertices'
+neighbourhoods, where a blurred corner is no longer a step) are left out; under a
+rolling shutter each pixel is fitted where the centre row's exposure would have seen it
+(see refine). The parameters: each line's rotation about its centre and its offset, the
+three widths, the eight level coefficients; the lines give the vertices, whose
+covariance follows from the fit's (the residuals' variance times (J^T J)^-1), so that
+the lines' errors through the shared levels are correlated as they are.
 
 The fit starts from the edge lines and their blur widths (a run's first fit: two
 Gauss-Newton steps, the first on every other pixel) or, once the run has a blur width of
@@ -48,6 +50,8 @@ from visvec._kernels import jit
 from visvec._kernels import pixel_fit as kernels
 from visvec._kernels.edge_fit import vertices
 from visvec._kernels.pixel_fit import (
+    N_LEVELS,
+    N_PARAMS,
     GaussNewtonSteps,
     PixelFitSettings,
     PixelSolve,
@@ -105,7 +109,6 @@ def _half_plane(L: int) -> np.ndarray:
 
 
 _LAGS = _half_plane(NOISE_LAG_PX)
-N_PARAMS = 15  # 3 lines x (rotation, offset), 3 widths, 6 level coefficients
 _SQRT_2PI = math.sqrt(2.0 * math.pi)
 _SQRT_2 = math.sqrt(2.0)
 
@@ -372,17 +375,18 @@ def _gauss_newton(x, y, counts, n, c, w, centroid, scale, steps):
     n, c, w = n.copy(), c.copy(), w.copy()
     bounds = np.concatenate([[0], np.cumsum(counts)])
     xs = [x[bounds[i] : bounds[i + 1]] for i in range(3)]
-    # per edge, its pixels' Jacobian (m_e, 9): rotation about c (d(d)/d(theta) =
-    # n_perp . (x - c)), offset, width, then the six level coefficients, whose first
-    # three (the board's plane: 1, x, y) never change
+    # per edge, its pixels' Jacobian (m_e, 3 + 2 N_LEVELS): rotation about c (d(d)/d(theta)
+    # = n_perp . (x - c)), offset, width, then the level coefficients, whose first
+    # N_LEVELS (the board's: 1, X, Y, X^2 + Y^2) never change
     jac = []
     for xe in xs:
-        Je = np.empty((len(xe), 9), order="F")
+        Je = np.empty((len(xe), 3 + 2 * N_LEVELS), order="F")
         Je[:, 3] = 1.0
         Je[:, 4:6] = (xe - centroid) / scale
+        Je[:, 6] = Je[:, 4] * Je[:, 4] + Je[:, 5] * Je[:, 5]
         jac.append(Je)
-    idx = [[2 * i, 2 * i + 1, 6 + i, 9, 10, 11, 12, 13, 14] for i in range(3)]
-    level = np.zeros(6)
+    idx = [[2 * i, 2 * i + 1, 6 + i, *range(9, N_PARAMS)] for i in range(3)]
+    level = np.zeros(2 * N_LEVELS)
     H, b, rss = np.zeros((N_PARAMS, N_PARAMS)), np.zeros(N_PARAMS), 0.0
     r_all, g_all = np.empty(len(y)), np.empty(len(y))
     for it in range(steps):
@@ -393,10 +397,10 @@ def _gauss_newton(x, y, counts, n, c, w, centroid, scale, steps):
         for i, (xe, Je) in enumerate(zip(xs, jac, strict=True)):
             u, perp = across_edge(xe[:, 0], xe[:, 1], c[i, 0], c[i, 1], n[i, 0], n[i, 1], w[i])
             T, slope = _phi_of(u)
-            Je[:, 6:9] = Je[:, 3:6] * T[:, None]
+            Je[:, 3 + N_LEVELS :] = Je[:, 3 : 3 + N_LEVELS] * T[:, None]
             steps_.append((u, perp, slope))
         if it == 0:
-            A = np.concatenate([Je[:, 3:9] for Je in jac])
+            A = np.concatenate([Je[:, 3:] for Je in jac])
             try:
                 level = np.linalg.solve(A.T @ A, A.T @ y)
             except np.linalg.LinAlgError:
@@ -404,7 +408,8 @@ def _gauss_newton(x, y, counts, n, c, w, centroid, scale, steps):
         for i, Je in enumerate(jac):
             u, perp, slope = steps_[i]
             ye = y[bounds[i] : bounds[i + 1]]
-            r, g = pixel_residual(ye, Je[:, 4], Je[:, 5], Je[:, 6], slope, level, w[i])
+            r, g = pixel_residual(ye, Je[:, 4], Je[:, 5], Je[:, 6], Je[:, 3 + N_LEVELS], slope,
+                                  level, w[i])  # fmt: skip
             rss += float(r @ r)
             Je[:, 0] = g * perp
             Je[:, 1] = -g
@@ -423,7 +428,7 @@ def _gauss_newton(x, y, counts, n, c, w, centroid, scale, steps):
             n[i] = [cs * n[i, 0] - sn * n[i, 1], sn * n[i, 0] + cs * n[i, 1]]
             c[i] = c[i] + oo * n[i]
         w = np.maximum(w + step[6:9], 0.2)
-        level = level + step[9:15]
+        level = level + step[9:N_PARAMS]
         rss -= float(step @ b)
     return GaussNewtonSteps(n, c, w, level, H, b, rss, r_all, g_all, True)
 
