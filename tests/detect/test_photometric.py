@@ -26,28 +26,37 @@ def _pixels(rig):
     return replace(rig, detect=replace(rig.detect, refine="pixels"))
 
 
+def _pixels_against_lines(rig, frames):
+    """Both fits on ``frames`` ((R, image) pairs): the vertices' error RMS of each
+    (normalised image units) and the error-over-sigma RMS of the pixel fit's."""
+    dets = {k: TriangleDetector(r) for k, r in (("lines", rig), ("pixels", _pixels(rig)))}
+    err = {k: [] for k in dets}
+    z = []
+    for R, img in frames:
+        truth = rig.camera.undistort(project_target(rig, R))
+        for name, det in dets.items():
+            d = det.detect(img)
+            assert d.status is Status.OK, d.reason
+            e = (d.points_n - truth).ravel()
+            err[name].append(e)
+            if name == "pixels":
+                z.append(e / np.sqrt(np.diag(d.cov_n)))
+    rms = {k: float(np.sqrt(np.mean(np.square(v)))) for k, v in err.items()}
+    return rms, float(np.sqrt(np.mean(np.square(z))))
+
+
 def test_pixel_fit_is_more_precise_than_the_lines_and_its_sigma_is_honest(rig320):
     """Ten attitudes, four noise draws each, 320x240: the vertices of the pixel fit err
     about 0.75x as much as the edge lines' (benchmarks/triangle_crb.py: at 1.0-1.25x
     the Cramér-Rao bound against the lines' 1.35-1.9x), and their error over their
     sigma has unit RMS."""
-    dets = {k: TriangleDetector(r) for k, r in (("lines", rig320), ("pixels", _pixels(rig320)))}
-    err = {k: [] for k in dets}
-    z = []
-    for k, R in enumerate(attitudes(10, 21)):
-        truth = rig320.camera.undistort(project_target(rig320, R))
-        for j in range(4):
-            img = render_frame(rig320, R, Scene(), rng=700 + 10 * k + j)
-            for name, det in dets.items():
-                d = det.detect(img)
-                assert d.status is Status.OK, d.reason
-                e = (d.points_n - truth).ravel()
-                err[name].append(e)
-                if name == "pixels":
-                    z.append(e / np.sqrt(np.diag(d.cov_n)))
-    rms = {k: float(np.sqrt(np.mean(np.square(v)))) for k, v in err.items()}
+    frames = [
+        (R, render_frame(rig320, R, Scene(), rng=700 + 10 * k + j))
+        for k, R in enumerate(attitudes(10, 21))
+        for j in range(4)
+    ]
+    rms, zr = _pixels_against_lines(rig320, frames)
     assert rms["pixels"] < 0.85 * rms["lines"], rms
-    zr = float(np.sqrt(np.mean(np.square(z))))
     assert 0.8 < zr < 1.2, zr
 
 
@@ -61,22 +70,12 @@ def test_a_lens_falloff_is_in_the_level_model(rig320):
 
     chain = WebcamChain(vignetting=0.35, gain_sigma=0.0, bayer=False, chromatic_aberration=0.0,
                         hot_pixels=0.0, srgb=False, jpeg_quality=0)  # fmt: skip
-    dets = {k: TriangleDetector(r) for k, r in (("lines", rig320), ("pixels", _pixels(rig320)))}
-    err = {k: [] for k in dets}
-    z = []
-    for k, R in enumerate(attitudes(12, 23)):
-        truth = rig320.camera.undistort(project_target(rig320, R))
-        img = render_frame(rig320, R, Scene(webcam=replace(chain, seed=k)), rng=900 + k)
-        for name, det in dets.items():
-            d = det.detect(img)
-            assert d.status is Status.OK, d.reason
-            e = (d.points_n - truth).ravel()
-            err[name].append(e)
-            if name == "pixels":
-                z.append(e / np.sqrt(np.diag(d.cov_n)))
-    rms = {k: float(np.sqrt(np.mean(np.square(v)))) for k, v in err.items()}
+    frames = [
+        (R, render_frame(rig320, R, Scene(webcam=replace(chain, seed=k)), rng=900 + k))
+        for k, R in enumerate(attitudes(12, 23))
+    ]
+    rms, zr = _pixels_against_lines(rig320, frames)
     assert rms["pixels"] < 0.85 * rms["lines"], rms
-    zr = float(np.sqrt(np.mean(np.square(z))))
     assert 0.7 < zr < 1.3, zr
 
 
