@@ -583,6 +583,7 @@ def test_the_pixel_fit_compiled_or_not(pixel_fits, monkeypatch):
         monkeypatch.setattr(jit, "ON", flag)
         got[flag] = P._band(image, n, c, reach, clear, lens)
     assert len(got[True][1]) > 1000 and _diff(got[True], got[False]) == 0.0
+    assert type(got[True]) is type(got[False]) is KP.BandPixels
     monkeypatch.undo()
     assert _diff(got[True], P._band(image, n, c, reach, clear, lens)) == 0.0
     monkeypatch.setattr(jit, "ON", True)

@@ -28,6 +28,28 @@ N_PARAMS = 9 + 2 * N_LEVELS
 N_EDGE = 3 + 2 * N_LEVELS
 
 
+class BandPixels(NamedTuple):
+    """The pixels the fit takes (photometric._band and its kernels): each edge's band's,
+    edge after edge, in raster order.
+
+    Attributes
+    ----------
+    x : ndarray, shape (M, 2)
+        Their ideal (undistorted) coordinates (px).
+    y : ndarray, shape (M,)
+        Their grey levels.
+    uv : ndarray of int, shape (M, 2)
+        Their places in the frame (column, row).
+    counts : ndarray of int, shape (3,)
+        Each edge's number of pixels.
+    """
+
+    x: np.ndarray
+    y: np.ndarray
+    uv: np.ndarray
+    counts: np.ndarray
+
+
 class GaussNewtonSteps(NamedTuple):
     """After the pixel fit's Gauss-Newton steps (photometric._gauss_newton).
 
@@ -258,7 +280,7 @@ def _band_pixels(pts, given, grid, cx, cy, aspect, lens, image, n, o, reach, cle
             uv[k, 0] = col
             uv[k, 1] = row
             k += 1
-    return xs, ys, uv, counts
+    return BandPixels(xs, ys, uv, counts)
 
 
 def _cover(q, lo0, lo1, hi0, hi1):
@@ -339,19 +361,18 @@ def _band_lines(image, n, c, reach, clear, fx, fy, cx, cy, dist, last_col, last_
             q[4 * i + s, 1] = fy * yd + cy
     empty = (np.empty((0, 2)), np.empty(0), np.empty((0, 2), np.int64), np.zeros(3, np.int64))
     if not np.all(np.isfinite(q)):
-        return False, *empty
+        return False, BandPixels(*empty)
     lo0 = max(math.floor(q[:, 0].min()) - 1, 0)
     lo1 = max(math.floor(q[:, 1].min()) - 1, 0)
     hi0 = min(math.ceil(q[:, 0].max()) + 1, last_col)
     hi1 = min(math.ceil(q[:, 1].max()) + 1, last_row)
     if hi0 <= lo0 or hi1 <= lo1:
-        return False, *empty
+        return False, BandPixels(*empty)
     pts = _cover(q, lo0, lo1, hi0, hi1)
     if len(pts) == 0:
-        return False, *empty
-    xs, ys, uv, counts = _band_pixels(pts, np.empty((0, 2)), grid, gcx, gcy, aspect, lens, image,
-                                      n, o, reach, clear)  # fmt: skip
-    return True, xs, ys, uv, counts
+        return False, BandPixels(*empty)
+    return True, _band_pixels(pts, np.empty((0, 2)), grid, gcx, gcy, aspect, lens, image, n, o,
+                              reach, clear)  # fmt: skip
 
 
 def phi_of(u, table, rng, inv_step):

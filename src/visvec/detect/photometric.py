@@ -52,6 +52,7 @@ from visvec._kernels.edge_fit import vertices
 from visvec._kernels.pixel_fit import (
     N_LEVELS,
     N_PARAMS,
+    BandPixels,
     GaussNewtonSteps,
     PixelFitSettings,
     PixelSolve,
@@ -269,14 +270,14 @@ def _band(image, n, c, reach, clear, camera, roll=None):
     Returns the pixels edge after edge (a pixel may be two edges', deep inside the
     triangle near a vertex), each edge's in raster order: their ideal coordinates
     (M, 2), grey levels (M,), places in the frame (column, row) (M, 2), and each edge's
-    count (3,); or None."""
+    count (3,), as a BandPixels (numpy and compiled alike); or None."""
     if jit.ON and roll is None:  # the same pixels in the same order, all compiled
         grid, cx, cy, aspect, lens = _IdealGrid.of(camera)
-        found, *bands = kernels.band_lines(
+        found, bands = kernels.band_lines(
             image, n, c, np.asarray(reach, float), np.asarray(clear, float), camera.fx,
             camera.fy, camera.cx, camera.cy, camera.dist, camera.width - 1, camera.height - 1,
             grid, cx, cy, aspect, lens)  # fmt: skip
-        return tuple(bands) if found else None
+        return bands if found else None
     nn = n.tolist()
     o = np.einsum("ij,ij->i", n, c)
     ol = o.tolist()
@@ -326,9 +327,9 @@ def _band(image, n, c, reach, clear, camera, roll=None):
         # a pixel is the nearest edge's: within its reach and clear of the other two
         keeps.append((np.abs(d[:, i]) < reach[i]) & (d[:, j] > clear[j]) & (d[:, k] > clear[k]))
     counts = np.array([np.count_nonzero(k) for k in keeps], np.int64)
-    return (np.concatenate([x[k] for k in keeps]),
-            np.concatenate([grey[k] for k in keeps]).astype(float),
-            np.concatenate([pts[k] for k in keeps]), counts)  # fmt: skip
+    return BandPixels(np.concatenate([x[k] for k in keeps]),
+                      np.concatenate([grey[k] for k in keeps]).astype(float),
+                      np.concatenate([pts[k] for k in keeps]), counts)  # fmt: skip
 
 
 # The blurred step Phi(u) and its slope phi(u) (the standard normal CDF and density) by
