@@ -27,7 +27,7 @@ import numpy as np
 
 from visvec._kernels import jit
 from visvec._kernels import rotation as kernels
-from visvec._kernels.rotation import residuals_and_jacobian_shift  # noqa: F401 (its home)
+from visvec._kernels.rotation import residuals_and_jacobian_shift
 from visvec.rotations import expmap, expmap_xyz
 
 MAX_ITERATIONS = 15
@@ -84,25 +84,16 @@ def residuals_and_jacobian(
     to a left rotation increment d (R_CN <- exp([d]x) R_CN).
 
     With q = R_CN P_N and p = q + t_c: dp/dd = -[q]x, and the pinhole projection
-    (x/z, y/z) has d/dp = [[1/z, 0, -x/z^2], [0, 1/z, -y/z^2]].
+    (x/z, y/z) has d/dp = [[1/z, 0, -x/z^2], [0, 1/z, -y/z^2]]: the first three columns
+    of visvec._kernels.rotation.residuals_and_jacobian_shift, the one place the
+    equations are written.
     """
-    q = p_n @ R_cn.T
-    p = q + t_c
-    iz = 1.0 / p[:, 2]
-    proj = p[:, :2] * iz[:, None]
-    r = (proj - xy).ravel()
-    # row k of -(dproj/dp) [q]x is -a_k^T [q]x = (q x a_k)^T, with the rows of dproj/dp
-    # a_u = (1, 0, -u) / z and a_v = (0, 1, -v) / z
-    qx, qy, qz = q[:, 0], q[:, 1], q[:, 2]
-    u, v = proj[:, 0], proj[:, 1]
-    J = np.empty((len(p), 2, 3))
-    J[:, 0, 0] = -qy * u * iz
-    J[:, 0, 1] = (qz + qx * u) * iz
-    J[:, 0, 2] = -qy * iz
-    J[:, 1, 0] = -(qy * v + qz) * iz
-    J[:, 1, 1] = qx * v * iz
-    J[:, 1, 2] = qx * iz
-    return r, J.reshape(-1, 3)
+    r, J = residuals_and_jacobian_shift(R_cn, t_c, p_n, xy, _NO_AXIS)
+    return r, np.ascontiguousarray(J[:, :3])
+
+
+# no shift: the Jacobian's fourth column, which residuals_and_jacobian leaves out
+_NO_AXIS = np.zeros(3)
 
 
 def initial_rotation(t_c: np.ndarray, p_n: np.ndarray, xy: np.ndarray) -> np.ndarray | None:
