@@ -61,17 +61,13 @@ def residual_rms(calls) -> dict[str, float]:
     sums = dict.fromkeys(map(str, CANDIDATES), 0.0)
     count = 0
     for image, normals, offsets, width, cam in calls:
-        n = np.asarray(normals, float).copy()
-        V, _ = P._intersections(n, n * np.asarray(offsets, float)[:, None])
-        c = 0.5 * (V[[1, 2, 0]] + V[[2, 0, 1]])
-        w = np.maximum(np.asarray(width, float), 0.3)
-        bands = P._band(image, n, c, P.REACH_WIDTHS * w + P.REACH_PX, P.CLEAR_WIDTHS * w, cam)
+        n, V, c, w, bands = P._lines_and_bands(image, normals, offsets, width, cam)
         if bands is None:
             continue
         x, y, _, counts = bands
         level = y.astype(np.int64)
         centroid = V.mean(axis=0)
-        scale = float(np.abs(x - centroid).max())
+        scale = max(float(np.abs(V - centroid).max()), 1.0)  # as refine takes it
         for curve in CANDIDATES:
             lut = tone_lut(curve)
             lin = y.astype(float) if lut is None else lut[level].astype(float)

@@ -444,7 +444,7 @@ def test_the_compilation_notice_is_said_only_without_a_cache(monkeypatch, capsys
     W.warm_up()
     assert "compiling" not in capsys.readouterr().err
     monkeypatch.setattr(KO, "readout_solve", slow)
-    monkeypatch.setattr(W, "_kernels_cached", lambda: False)
+    monkeypatch.setattr(W, "_kernels_cached", lambda *modules: False)
     monkeypatch.setattr(W, "_warm", set())
     W.warm_up()
     assert capsys.readouterr().err.count("compiling the triangle's kernels") == 1
@@ -564,10 +564,7 @@ def test_the_pixel_fit_compiled_or_not(pixel_fits, monkeypatch):
     assert np.abs(got[True].xy - P.refine(*pixel_fits[0][:5]).xy).max() > 0.01  # unrolled
     # the kernels as Python, on the first call's bands
     image, normals, offsets, width, camera = pixel_fits[0][:5]
-    n = np.asarray(normals, float)
-    V, _ = P._intersections(n, n * np.asarray(offsets, float)[:, None])
-    c = 0.5 * (V[[1, 2, 0]] + V[[2, 0, 1]])
-    w = np.maximum(np.asarray(width, float), 0.3)
+    n, V, c, w, _ = P._lines_and_bands(image, normals, offsets, width, camera)
     reach, clear = P.REACH_WIDTHS * w + P.REACH_PX, P.CLEAR_WIDTHS * w
     monkeypatch.setattr(jit, "ON", True)
     bands = P._band(image, n, c, reach, clear, camera)

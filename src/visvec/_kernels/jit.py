@@ -20,7 +20,6 @@ import threading
 
 from visvec._kernels import AVAILABLE
 
-numba = None  # the module, once loaded
 # whether the kernels run: the detectors and estimators look here on every call;
 # detect.warm.warm_up turns it off when they do not load
 ON = AVAILABLE
@@ -54,7 +53,7 @@ def _load():
     imported later has its kernels made on their first call). A Numba that cannot be
     imported turns the kernels off (ON) and leaves the plain functions in their
     places."""
-    global numba, ON, _failed
+    global ON, _failed
     with _LOADING:
         todo = [e for e in _KERNELS if e[2].dispatcher is None]
         if _failed or not todo:
@@ -84,7 +83,6 @@ def _load():
             k.dispatcher = made[id(k.py_func)]
             if names[name] is k:
                 names[name] = k.dispatcher
-        numba = nb
 
 
 def off() -> None:

@@ -366,7 +366,7 @@ def _phi_of(u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _gauss_newton(x, y, counts, n, c, w, centroid, scale, steps):
-    """``steps`` Gauss-Newton steps of the model's 15 parameters from the lines (n, c)
+    """``steps`` Gauss-Newton steps of the model's N_PARAMS parameters from the lines (n, c)
     and widths w, the levels first fitted to the starting lines by linear least squares.
     Returns the lines, widths and levels after the steps; the last step's normal
     equations H, b; the residual sum of squares after it, as Gauss-Newton predicts it
@@ -485,6 +485,18 @@ def _noise_inflation(uv: np.ndarray, r: np.ndarray, w: np.ndarray) -> float:
     return 1.0 + max(excess - 2.0 * scatter, 0.0)
 
 
+def _lines_and_bands(image, normals, offsets, width, camera, roll=None):
+    """:func:`refine`'s start: the lines' normals n (3, 2), their vertices V (3, 2), each
+    line's centre c (3, 2) (the middle between its two vertices), the widths w (3,) (at
+    least 0.3 px) and the bands' pixels (_band: a BandPixels, or None)."""
+    n = np.asarray(normals, float).copy()
+    V, _ = _intersections(n, n * np.asarray(offsets, float)[:, None])
+    c = 0.5 * (V[[1, 2, 0]] + V[[2, 0, 1]])
+    w = np.maximum(np.asarray(width, float), 0.3)
+    bands = _band(image, n, c, REACH_WIDTHS * w + REACH_PX, CLEAR_WIDTHS * w, camera, roll)
+    return n, V, c, w, bands
+
+
 def refine(image: np.ndarray, normals: np.ndarray, offsets: np.ndarray, width: np.ndarray,
            camera: CameraModel, shutter: RollingShutter | None = None,
            rate_c: np.ndarray | None = None, blur: float | None = None,
@@ -508,15 +520,10 @@ def refine(image: np.ndarray, normals: np.ndarray, offsets: np.ndarray, width: n
 
     ``tone``: the camera's tone curve as a table (visvec.tone.tone_lut); the pixels'
     levels are then read as the linear light they encode, which the model describes."""
-    n = np.asarray(normals, float).copy()
-    # each line's centre: the middle between its two vertices
-    V, _ = _intersections(n, n * np.asarray(offsets, float)[:, None])
-    c = 0.5 * (V[[1, 2, 0]] + V[[2, 0, 1]])
-    w = np.maximum(np.asarray(width, float), 0.3)
     roll = None
     if shutter is not None and shutter.readout_ms and rate_c is not None:
         roll = (shutter, np.asarray(rate_c, float))
-    bands = _band(image, n, c, REACH_WIDTHS * w + REACH_PX, CLEAR_WIDTHS * w, camera, roll)
+    n, V, c, w, bands = _lines_and_bands(image, normals, offsets, width, camera, roll)
     counts = np.zeros(3, np.int64) if bands is None else bands[3]
     m = int(counts.sum())
     if m < 3 * N_PARAMS or counts.min() < 10:

@@ -31,10 +31,10 @@ def _compile_notice() -> None:
           "machine: about half a minute", file=sys.stderr, flush=True)  # fmt: skip
 
 
-def _kernels_cached() -> bool:
-    """Whether Numba's cache holds the triangle's kernels (the index files of the edge
-    fit's, the attitude fit's and the readout's modules, beside them or under
-    NUMBA_CACHE_DIR)."""
+def _kernels_cached(modules=("edge_fit", "rotation", "readout")) -> bool:
+    """Whether Numba's cache holds the triangle's kernels (the index files of the
+    ``modules`` of visvec._kernels: by default the edge fit's, the attitude fit's and
+    the readout's; beside them or under NUMBA_CACHE_DIR)."""
     import glob
     import os
 
@@ -43,7 +43,7 @@ def _kernels_cached() -> bool:
         places.append(os.path.join(os.environ["NUMBA_CACHE_DIR"], "**"))
     return all(
         any(glob.glob(os.path.join(p, f"{m}.*.nbi"), recursive=True) for p in places)
-        for m in ("edge_fit", "rotation", "readout")
+        for m in modules
     )
 
 
@@ -71,7 +71,11 @@ def warm_up(pixel_fit: bool = False) -> None:
     cam = CameraModel(96, 96, 80.0, 80.0, 47.5, 47.5, np.zeros(5))
     # loaded from the cache in a fraction of a second; compiling takes long enough that
     # the operator is told why nothing happens
-    cached = _kernels_cached()
+    cached = _kernels_cached(
+        ("edge_fit", "rotation", "readout", "pixel_fit")
+        if "pixels" in todo
+        else ("edge_fit", "rotation", "readout")
+    )
     if not cached:
         _compile_notice()  # said before the work, not raced against it
     notice = threading.Timer(COMPILE_NOTICE_S, _compile_notice)

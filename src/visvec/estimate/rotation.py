@@ -119,12 +119,9 @@ def initial_rotation(t_c: np.ndarray, p_n: np.ndarray, xy: np.ndarray) -> np.nda
 def shift_jacobian(R: np.ndarray, t_c: np.ndarray, X: np.ndarray, axis: np.ndarray):
     """(2N,) derivative of the residuals of :func:`residuals_and_jacobian` with respect
     to a shift s of every point along ``axis``: dp/ds = R axis = e, and
-    d(x/z, y/z) = ((e_x - u e_z) / z, (e_y - v e_z) / z)."""
-    p = X @ R.T + t_c
-    iz = 1.0 / p[:, 2]
-    u, v = p[:, 0] * iz, p[:, 1] * iz
-    e = R @ axis
-    return np.column_stack([(e[0] - u * e[2]) * iz, (e[1] - v * e[2]) * iz]).ravel()
+    d(x/z, y/z) = ((e_x - u e_z) / z, (e_y - v e_z) / z): the fourth column of
+    visvec._kernels.rotation.residuals_and_jacobian_shift."""
+    return residuals_and_jacobian_shift(R, t_c, X, np.zeros((len(X), 2)), axis)[1][:, 3].copy()
 
 
 def fit_rotation(
