@@ -20,6 +20,7 @@ import argparse
 
 import numpy as np
 
+from visvec._kernels import pixel_fit as KP
 from visvec.bench.triangle import random_cases, render_cases, with_refine
 from visvec.detect import photometric as P
 from visvec.detect import triangle as tri
@@ -71,7 +72,8 @@ def residual_rms(calls) -> dict[str, float]:
         for curve in CANDIDATES:
             lut = tone_lut(curve)
             lin = y.astype(float) if lut is None else lut[level].astype(float)
-            fit = P._gauss_newton(x, lin, counts, n, c, w, centroid, scale, GN_STEPS)
+            fit = KP._pixel_gn(x, lin, counts, n, c, w, centroid, scale, GN_STEPS, P._PHI,
+                              P.PHI_RANGE, 1.0 / P.PHI_STEP)  # fmt: skip
             slope = np.ones(256) if lut is None else np.gradient(lut.astype(float))
             r = fit.r / np.maximum(slope[level], 1e-3)
             sums[str(curve)] += float(r @ r)

@@ -5,6 +5,7 @@ a lighting gradient, a light and a head over the triangle, tracked and cold)."""
 
 from __future__ import annotations
 
+import contextlib
 import os
 import subprocess
 import sys
@@ -205,6 +206,12 @@ def _home(name):
     return next(m for m in (KE, KP, KR, KO) if name in vars(m))
 
 
+def _path(compiled):
+    """The compiled kernels, or the numpy path (jit.numpy_path: a kernel written once
+    runs as Python with its numpy twins)."""
+    return contextlib.nullcontext() if compiled else jit.numpy_path()
+
+
 def _as_python(kernel):
     """The kernel and the kernels it calls as plain Python."""
     inner = {n: getattr(_home(n), n) for n in ("_group_linear", "_levels_suspect",
@@ -214,7 +221,10 @@ def _as_python(kernel):
                                                  "_phi_of", "_across_edge", "_pixel_residual",
                                                  "_pixel_gn", "_strided",
                                                  "noise_inflation", "_cover",
-                                                 "_band_pixels")}  # fmt: skip
+                                                 "_band_pixels", "_edge_jacobian",
+                                                 "_board_columns", "_step_columns",
+                                                 "_residual_columns", "_add_edge",
+                                                 "_vertices_and_gain")}  # fmt: skip
 
     def run(*args):
         mp = pytest.MonkeyPatch()
@@ -461,12 +471,33 @@ def test_the_pixel_fits_kernels_load_with_a_rig_that_uses_it(unloadable, capsys)
     TrianglePipeline(replace(rig, detect=replace(rig.detect, refine="pixels")))
     assert W._warm == {"edges", "pixels"} and jit.ON is False
     assert "did not load" in capsys.readouterr().err
+    # the solve, written once, now runs as Python on the numpy twins of its loops
+    assert KP.pixel_solve is KP._pixel_solve and KP._pixel_gn.__name__ == "_pixel_gn"
+    assert KP._step_columns is KP._step_columns_numpy
+    assert KP.noise_inflation is KP._noise_inflation_numpy
+    pipe = TrianglePipeline(replace(rig, detect=replace(rig.detect, refine="pixels")))
+    assert pipe.process(Frame(0, 0.0, _frames()[0][1])).ok
 
 
-def test_the_pixel_fits_noise_correlation_compiled_or_not(monkeypatch):
-    """The pixel fit's noise inflation (photometric._noise_inflation) compiled and from
-    numpy: the same, on white and on correlated noise, a pixel in two bands too; and the
-    kernels run as Python give the compiled results."""
+def test_the_numpy_path_for_a_while():
+    """jit.numpy_path: the kernels off and every name its plain function (a loop's
+    numpy twin where it has one) while it lasts; the compiled kernels back after."""
+    KE.group_median(np.array([1.0]), np.array([0]), np.ones(1, np.bool_))  # all loaded
+    compiled = (KP.pixel_solve, KP._residual_columns, KE.positions)
+    with jit.numpy_path():
+        assert jit.ON is False
+        assert KP.pixel_solve is KP._pixel_solve
+        assert KP._residual_columns is KP._residual_columns_numpy
+        assert KE.positions is KE._positions
+    assert jit.ON is True
+    assert (KP.pixel_solve, KP._residual_columns, KE.positions) == compiled
+    assert type(KP._residual_columns).__name__ == "CPUDispatcher"
+
+
+def test_the_pixel_fits_noise_correlation_compiled_or_not():
+    """The pixel fit's noise inflation (visvec._kernels.pixel_fit.noise_inflation)
+    compiled and its numpy twin: the same, on white and on correlated noise, a pixel in
+    two bands too; and the kernels run as Python give the compiled results."""
     import cv2
 
     from visvec.detect import photometric
@@ -482,13 +513,14 @@ def test_the_pixel_fits_noise_correlation_compiled_or_not(monkeypatch):
         cv2.sepFilter2D(rng.normal(size=(210, 14)), -1, k, k),
     ):
         r = noise[uv[:, 1], uv[:, 0]]
-        got = {}
-        for flag in (False, True):
-            monkeypatch.setattr(jit, "ON", flag)
-            got[flag] = photometric._noise_inflation(uv, r, w)
-        assert got[True] == pytest.approx(got[False], rel=1e-12, abs=1e-12)
         args = (uv, r, w, photometric._LAGS, photometric.NOISE_LAG_PX,
                 photometric.NOISE_MIN_PAIRS)  # fmt: skip
+        got = {}
+        for flag in (False, True):
+            with _path(flag):
+                got[flag] = KP.noise_inflation(*args)
+        assert got[True] == pytest.approx(got[False], rel=1e-12, abs=1e-12)
+        assert got[False] == KP._noise_inflation_numpy(*args)
         assert _as_python(KP.noise_inflation)(*args) == pytest.approx(got[True], rel=1e-12)
     assert got[True] > 1.5  # the smoothed noise's
     index = np.full(40, 3, np.int32)
@@ -515,7 +547,6 @@ def pixel_fits():
 
     mp = pytest.MonkeyPatch()
     try:
-        mp.setattr(jit, "ON", False)
         mp.setattr(T, "refine", spy)
         for rig, img in _frames():
             rig = replace(rig, detect=replace(rig.detect, refine="pixels"))
@@ -528,9 +559,10 @@ def pixel_fits():
 
 
 def test_the_pixel_fit_compiled_or_not(pixel_fits, monkeypatch):
-    """The pixel fit on every call the frames make, compiled and from numpy: the same
-    pixels, the same decisions, vertices within 1e-9 px, covariances within 1e-9 of
-    their size; and its kernels run as Python give the compiled results."""
+    """The pixel fit on every call the frames make, compiled and on the numpy path: the
+    same pixels, the same decisions, vertices within 1e-9 px, covariances within 1e-9
+    of their size; its kernels run as Python give the compiled results; the parts
+    written twice (loops and numpy twins) agree."""
     from visvec.detect import photometric as P
 
     assert len(pixel_fits) >= 10
@@ -540,8 +572,8 @@ def test_the_pixel_fit_compiled_or_not(pixel_fits, monkeypatch):
     for a in pixel_fits:
         got = {}
         for flag in (False, True):
-            monkeypatch.setattr(jit, "ON", flag)
-            got[flag] = P.refine(*a)
+            with _path(flag):
+                got[flag] = P.refine(*a)
         pure, fast = got[False], got[True]
         assert pure.ok == fast.ok and pure.n_pixels == fast.n_pixels
         assert np.abs(pure.xy - fast.xy).max() < 1e-9
@@ -557,8 +589,8 @@ def test_the_pixel_fit_compiled_or_not(pixel_fits, monkeypatch):
     roll = (RollingShutter(25.0), np.radians([1.0, -2.0, 20.0]))
     got = {}
     for flag in (False, True):
-        monkeypatch.setattr(jit, "ON", flag)
-        got[flag] = P.refine(*pixel_fits[0][:5], *roll)
+        with _path(flag):
+            got[flag] = P.refine(*pixel_fits[0][:5], *roll)
     assert got[True].ok and got[True].n_pixels == got[False].n_pixels
     assert np.abs(got[True].xy - got[False].xy).max() < 1e-9
     assert np.abs(got[True].xy - P.refine(*pixel_fits[0][:5]).xy).max() > 0.01  # unrolled
@@ -566,50 +598,68 @@ def test_the_pixel_fit_compiled_or_not(pixel_fits, monkeypatch):
     image, normals, offsets, width, camera = pixel_fits[0][:5]
     n, V, c, w, _ = P._lines_and_bands(image, normals, offsets, width, camera)
     reach, clear = P.REACH_WIDTHS * w + P.REACH_PX, P.CLEAR_WIDTHS * w
-    monkeypatch.setattr(jit, "ON", True)
     bands = P._band(image, n, c, reach, clear, camera)
-    monkeypatch.setattr(jit, "ON", False)
-    assert _diff(bands, P._band(image, n, c, reach, clear, camera)) == 0.0
-    monkeypatch.setattr(KP, "band_lines", _as_python(KP.band_lines))
-    monkeypatch.setattr(jit, "ON", True)
-    assert _diff(bands, P._band(image, n, c, reach, clear, camera)) == 0.0
+    with _path(False):
+        assert _diff(bands, P._band(image, n, c, reach, clear, camera)) == 0.0
+    with monkeypatch.context() as mp:
+        mp.setattr(KP, "band_lines", _as_python(KP.band_lines))
+        assert _diff(bands, P._band(image, n, c, reach, clear, camera)) == 0.0
     # and through a lens with distortion (the bands' corners through its polynomial)
     lens = replace(camera, dist=np.array([-0.12, 0.03, 0.001, -0.002, 0.0]))
     got = {}
     for flag in (False, True):
-        monkeypatch.setattr(jit, "ON", flag)
-        got[flag] = P._band(image, n, c, reach, clear, lens)
+        with _path(flag):
+            got[flag] = P._band(image, n, c, reach, clear, lens)
     assert len(got[True][1]) > 1000 and _diff(got[True], got[False]) == 0.0
     assert type(got[True]) is type(got[False]) is KP.BandPixels
-    monkeypatch.undo()
-    assert _diff(got[True], P._band(image, n, c, reach, clear, lens)) == 0.0
-    monkeypatch.setattr(jit, "ON", True)
     x, y, _, counts = bands
-    args = (x, y, counts, n, c, w, V.mean(axis=0), 50.0, P.GN_STEPS)
     table = (P._PHI, P.PHI_RANGE, 1.0 / P.PHI_STEP)
-    fast = KP._pixel_gn(*args, *table)
+    args = (x, y, counts, n, c, w, V.mean(axis=0), 50.0, P.GN_STEPS, *table)
+    fast = KP._pixel_gn(*args)
     # the same named result from both (a NamedTuple Numba builds as a tuple)
     assert type(fast).__name__ == "GaussNewtonSteps" and fast.ok is True
-    assert type(P._gauss_newton(*args)) is type(fast)
-    for as_python, pure in zip(_as_python(KP._pixel_gn)(*args, *table),
-                               P._gauss_newton(*args), strict=True):  # fmt: skip
-        size = max(np.abs(np.asarray(pure, float)).max(), 1.0)
-        assert np.abs(np.asarray(as_python, float) - np.asarray(pure, float)).max() <= 1e-9 * size
+    with _path(False):
+        pure = KP._pixel_gn(*args)
+    assert type(pure) is type(fast)
+    for as_python, numpy_, compiled in zip(_as_python(KP._pixel_gn)(*args), pure, fast,
+                                           strict=True):  # fmt: skip
+        size = max(np.abs(np.asarray(numpy_, float)).max(), 1.0)
+        assert np.abs(np.asarray(compiled, float) - np.asarray(numpy_, float)).max() <= 1e-9 * size
+        # the loops run as Python are what Numba compiled (to rounding: the systems are
+        # solved by numpy's LAPACK there, by the one Numba links here)
+        assert _diff(as_python, compiled) <= 1e-12 * size
+    # each per-pixel part against its numpy twin, on the buffers of a step
+    m = len(y)
+    outs = []
+    for f in (KP._board_columns, KP._board_columns_numpy):
+        buf = np.full(KP.N_EDGE * m, np.nan)
+        f(x, counts, V.mean(axis=0), 50.0, buf)
+        cols = [np.full(m, np.nan) for _ in range(5)]
+        step = (KP._step_columns, KP._step_columns_numpy)[len(outs)]
+        step(x, counts, n, c, w, buf, *cols[:3], *table)
+        resid = (KP._residual_columns, KP._residual_columns_numpy)[len(outs)]
+        rss = resid(y, counts, buf, *cols[:3], fast.level, w, *cols[3:])
+        outs.append((buf, *cols, rss))
+    assert np.isfinite(outs[0][0]).all() and _diff(outs[0][:-1], outs[1][:-1]) == 0.0
+    assert outs[1][-1] == pytest.approx(outs[0][-1], rel=1e-12)
     # the whole solve: the first step on every other pixel of each band, then the checks,
     # the inflation and the vertices' covariance
     assert P.FIRST_STRIDE == 2 and P.GN_STEPS == 2
-    xs, ys, cs = P._strided(x, y, counts, 2)
+    xs, ys, cs = KP._strided_numpy(x, y, counts, 2)
     assert cs.tolist() == [(k + 1) // 2 for k in counts.tolist()] and len(ys) == cs.sum()
     assert _diff((xs, ys, cs), KP._strided(x, y, counts, 2)) == 0.0
     # and from a run's blur: one step on every pixel; from a blur 30 % off, more
-    cold_start = P._solve(x, y, bands[2], counts, n, c, w, V, V.mean(axis=0), 50.0)
+    args = (x, y, bands[2], counts, n, c, w, V, V.mean(axis=0), 50.0)
+    with _path(False):
+        cold_start = KP.pixel_solve(*args, False, P.SETTINGS)
     steps = []
-    gauss_newton = P._gauss_newton
-    monkeypatch.setattr(P, "_gauss_newton", lambda *a: steps.append(a[-1]) or gauss_newton(*a))
     for start, warm in ((w, False), (cold_start[3], True), (1.3 * cold_start[3], True)):
         args = (x, y, bands[2], counts, n, c, start, V, V.mean(axis=0), 50.0)
         steps.clear()
-        pure = P._solve(*args, warm)
+        with _path(False), monkeypatch.context() as mp:
+            mp.setattr(KP, "_pixel_gn",
+                       lambda *a, gn=KP._pixel_gn: steps.append(a[8]) or gn(*a))  # fmt: skip
+            pure = KP.pixel_solve(*args, warm, P.SETTINGS)
         # (the first fit: a step on every other pixel, then one on every pixel)
         assert steps == ([1] * pure[6] if warm else [1, 1])
         assert pure[6] == (1 if start is cold_start[3] else 2 if warm else 1)
@@ -623,14 +673,14 @@ def test_the_pixel_fit_compiled_or_not(pixel_fits, monkeypatch):
         # each start reaches the same vertices, well within their sigma
         sd = np.sqrt(np.diag(pure[2]))
         assert np.abs((pure[1] - cold_start[1]).ravel() / sd).max() < 0.3
-    # a band whose residuals are three times the others' is not taken, by either
+    # a band whose residuals are three times the others' is not taken, on either path
     y3 = y.copy()
     y3[: counts[0]] += np.random.default_rng(1).normal(0.0, 6.0, counts[0])
-    args = (x, y3, bands[2], counts, n, c, w, V, V.mean(axis=0), 50.0)
-    pure = P._solve(*args)
-    fast = KP.pixel_solve(*args, False, P.SETTINGS)
-    assert pure.ok is False and bool(fast.ok) is False
-    assert np.array_equal(pure[1], V) and np.array_equal(fast[1], V)
+    args = (x, y3, bands[2], counts, n, c, w, V, V.mean(axis=0), 50.0, False, P.SETTINGS)
+    for flag in (False, True):
+        with _path(flag):
+            fit = KP.pixel_solve(*args)
+        assert bool(fit.ok) is False and np.array_equal(fit[1], V)
 
 
 def test_the_bands_cover_compiled_or_not():

@@ -13,7 +13,7 @@ from visvec.data import Status
 from visvec.detect import TriangleDetector
 from visvec.detect import triangle as tri
 from visvec.detect.edges import fit_edges, intersect
-from visvec.detect.photometric import _intersections, _vertex_gain, refine
+from visvec.detect.photometric import _intersections, refine
 from visvec.geometry import project_target
 from visvec.rotations import euler_to_matrix
 from visvec.sim.render import render_frame
@@ -107,8 +107,9 @@ def test_the_vertices_gain_is_the_lines_derivative():
     ang = np.array([0.3, 2.4, 4.4])
     n = np.column_stack([np.cos(ang), np.sin(ang)])
     c = rng.normal(size=(3, 2)) * 5.0
-    V, invs = _intersections(n, c)
-    G = _vertex_gain(n, c, V, invs)
+    V, _ = _intersections(n, c)
+    found, V_, G = KP._vertices_and_gain(n, c)
+    assert found and np.abs(V_ - V).max() < 1e-12
     h = 1e-7
     for i in range(3):
         for k in range(2):
@@ -120,6 +121,9 @@ def test_the_vertices_gain_is_the_lines_derivative():
                 c2[i] = c[i] + h * n[i]
             num = (_intersections(n2, c2)[0] - V).ravel() / h
             np.testing.assert_allclose(G[:, 2 * i + k], num, atol=1e-5)
+    # two lines parallel: no vertices
+    n[1] = -n[0]
+    assert KP._vertices_and_gain(n, c)[0] is False
 
 
 BAND_ROWS = 300  # a band of 300 x 6 px (an edge's band at 640x480 holds ~1300)
@@ -145,7 +149,10 @@ def test_white_noise_leaves_the_covariance_and_correlated_noise_widens_it():
     """The inflation is about 1 for independent pixels and matches what a codec-like
     smoothing of the noise does to a weighted sum of it (its true variance over the
     white-noise formula)."""
-    from visvec.detect.photometric import _noise_inflation
+    from visvec.detect import photometric as P
+
+    def _noise_inflation(uv, r, w):
+        return KP.noise_inflation(uv, r, w, P._LAGS, P.NOISE_LAG_PX, P.NOISE_MIN_PAIRS)
 
     rng = np.random.default_rng(4)
     shape = (BAND_ROWS + 20, 30)
@@ -170,7 +177,6 @@ def test_white_noise_leaves_the_covariance_and_correlated_noise_widens_it():
 def test_pixel_fit_sigma_is_honest_under_correlated_noise(rig320, monkeypatch):
     """Frames whose noise is shared between neighbouring pixels (as a codec's is): the
     pixel fit's error over its sigma keeps a unit RMS; taken as white, it was 1.5-2x."""
-    from visvec.detect import photometric
     from visvec.sim.render import render_clean
 
     rng = np.random.default_rng(9)
@@ -194,11 +200,12 @@ def test_pixel_fit_sigma_is_honest_under_correlated_noise(rig320, monkeypatch):
         return float(np.sqrt(np.mean(np.square(z))))
 
     honest = z_rms()
-    # the noise taken as white: the numpy path (the compiled one, tested equal to it in
-    # tests/detect/test_compiled.py, calls its own kernel) without the inflation
-    monkeypatch.setattr(photometric.jit, "ON", False)
-    monkeypatch.setattr(photometric, "_noise_inflation", lambda *a: 1.0)
-    white = z_rms()
+    # the noise taken as white: the solve run as Python (the compiled one, tested equal
+    # to it in tests/detect/test_compiled.py, is compiled against the kernel) without
+    # the inflation
+    with jit.numpy_path(), monkeypatch.context() as mp:
+        mp.setattr(KP, "noise_inflation", lambda *a: 1.0)
+        white = z_rms()
     assert 0.75 < honest < 1.3, honest
     assert white > 1.3 * honest, (white, honest)
 

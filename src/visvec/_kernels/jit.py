@@ -2,7 +2,8 @@
 
 The kernels (visvec._kernels.edge_fit, pixel_fit, rotation, readout) are plain Python
 functions written as loops over profiles, pixels or points. Each module names its
-kernels with :func:`kernel`; with the ``fast`` extra each name first holds a _Lazy
+kernels with :func:`kernel` (a loop over a frame's pixels with its numpy twin, the
+name's function where the kernels are off); with the ``fast`` extra each name first holds a _Lazy
 stand-in whose first call imports Numba and puts every kernel's dispatcher in its place
 at once (so that a kernel calling another compiles against the other's dispatcher),
 compiled on first use and cached on disk after that. Numba has wheels for x86-64 and
@@ -17,6 +18,7 @@ from __future__ import annotations
 
 import sys
 import threading
+from contextlib import contextmanager
 
 from visvec._kernels import AVAILABLE
 
@@ -33,18 +35,20 @@ _failed = False  # Numba did not import: every kernel is its plain function
 class _Lazy:
     """A kernel before Numba is loaded: its first call loads every kernel (_load) and
     is passed on to its dispatcher (or, where Numba did not import, to the plain
-    function). ``py_func``: the kernel as Python, as a dispatcher's."""
+    function). ``py_func``: the kernel as Python, as a dispatcher's; ``plain``: what
+    runs where the kernels are off (py_func, or its numpy twin)."""
 
-    def __init__(self, name, f):
+    def __init__(self, name, f, plain):
         self.__name__ = name
         self.py_func = f
+        self.plain = plain
         self.dispatcher = None
 
     def __call__(self, *args):
         if self.dispatcher is None:
             _load()
         # (after a Numba that did not import: the plain function)
-        return (self.py_func if self.dispatcher is None else self.dispatcher)(*args)
+        return (self.plain if self.dispatcher is None else self.dispatcher)(*args)
 
 
 def _load():
@@ -73,7 +77,7 @@ def _load():
             _failed = True
             for names, name, k in _KERNELS:
                 if names[name] is k:
-                    names[name] = k.py_func
+                    names[name] = k.plain
             if not isinstance(exc, ImportError):
                 raise  # (warm_up says why)
             print(f"visvec: Numba did not import ({exc}); the numpy path runs",
@@ -94,14 +98,41 @@ def off() -> None:
         ON = False
         for names, name, k in _KERNELS:
             if names[name] is k or names[name] is k.dispatcher:
-                names[name] = k.py_func
+                names[name] = k.plain
 
 
-def kernel(names: dict, name: str, f):
+@contextmanager
+def numpy_path():
+    """The numpy path for a while where the kernels are on (tests and benchmarks that
+    compare the two paths): ON off, and every kernel's name its plain function, so that
+    a kernel's source run as Python calls its numpy twins; both put back after."""
+    global ON
+    with _LOADING:
+        was, swapped = ON, []
+        for names, name, k in _KERNELS:
+            if names[name] is not k.plain:
+                swapped.append((names, name, names[name]))
+                names[name] = k.plain
+        ON = False
+    try:
+        yield
+    finally:
+        with _LOADING:
+            for names, name, f in swapped:
+                names[name] = f
+            ON = was
+
+
+def kernel(names: dict, name: str, f, numpy=None):
     """The kernel ``f`` known as ``name`` in the module whose globals are ``names``:
-    compiled on its first call (with the fast extra), else the plain function."""
+    compiled on its first call (with the fast extra), else the plain function: ``f``
+    run as Python, or ``numpy``, its twin written with numpy on arrays (a loop over a
+    frame's pixels or profiles, which as Python would run several times slower), with
+    the same arguments and result. A kernel's Python source that calls ``name`` then
+    runs on numpy where the kernels are off, and compiled where they are on."""
+    plain = f if numpy is None else numpy
     if not AVAILABLE:
-        return f
-    lazy = _Lazy(name, f)
+        return plain
+    lazy = _Lazy(name, f, plain)
     _KERNELS.append((names, name, lazy))
     return lazy

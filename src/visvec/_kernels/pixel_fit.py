@@ -166,7 +166,7 @@ class PixelFitSettings(NamedTuple):
 
 # ------------------------------------------------- the pixel fit's noise correlation
 def _lag_sums(index, flat, offsets, r, w):
-    """photometric._noise_inflation's sums: per lag (offset in the padded raster), the
+    """_noise_inflation's sums: per lag (offset in the padded raster), the
     band's pixel pairs at that lag and the sums of r r' and w w' over them (``index``:
     each raster cell's pixel, len(r) where none is; ``flat``: each pixel's cell). Lag
     by lag, without a branch: a cell with no pixel gives the zero appended to r and w
@@ -193,8 +193,30 @@ def _lag_sums(index, flat, offsets, r, w):
 
 
 def _noise_inflation(uv, r, w, lags, L, min_pairs):
-    """photometric._noise_inflation compiled: the raster of the band's pixels, the sums
-    over their pairs at each lag (_lag_sums), the inflation from them."""
+    """How much wider the lines' errors are than white noise of the residuals' variance
+    makes them, from the correlation of the residuals between neighbouring pixels.
+
+    A video codec's errors are not white: JPEG's and MPEG's come in 8 x 8 blocks, and
+    neighbouring pixels share them. A line's offset is estimated by sum_k w_k r_k with
+    w the pixels' derivatives g (the fit's Jacobian column); its variance is
+    sum_jk w_j w_k C(j - k), which for white noise is s^2 sum_k w_k^2. With C(lag) =
+    s^2 rho(lag) the correlation of the residuals at that lag (estimated from the band's
+    pixel pairs), the ratio of the two is
+
+        1 + 2 sum_(lags in a half-plane) rho(lag) sum_k w_k w_(k + lag) / sum_k w_k^2,
+
+    the 2-D form of a HAC (heteroskedasticity- and autocorrelation-consistent)
+    covariance's long-run variance (Newey & West, Econometrica 55 (1987), Eq. 2, the
+    lags truncated at ``L`` (photometric.NOISE_LAG_PX) without their taper). It multiplies the fit's
+    covariance. Only the part of the sum beyond twice its own sampling scatter counts,
+    and never below 1: sensor noise gives 1 (1.00-1.01 on average), Motion-JPEG at
+    quality 75 about 2.5.
+
+    ``uv`` (M, 2) the pixels' places in the frame (column, row), ``r`` (M,) their
+    residuals, ``w`` (M,) the weights g; ``lags`` (L', 2) a half-plane's lags (px),
+    those with fewer than ``min_pairs`` pixel pairs left out. Here as loops: the raster
+    of the band's pixels, the sums over their pairs at each lag (_lag_sums), the
+    inflation from them; _noise_inflation_numpy on numpy arrays."""
     n = len(r)
     var = 0.0
     den = 0.0
@@ -227,6 +249,38 @@ def _noise_inflation(uv, r, w, lags, L, min_pairs):
             excess += rr[q] / pairs[q] / var * share
             scatter2 += share * share / pairs[q]
     return 1.0 + max(2.0 * excess - 4.0 * math.sqrt(scatter2), 0.0)
+
+
+def _noise_inflation_numpy(uv, r, w, lags, L, min_pairs):
+    """_noise_inflation with numpy: the raster of the band's pixels, the lags of a
+    half-plane all in one gather."""
+    var = float(r @ r) / len(r)
+    den = float(w @ w)
+    if not (var > 0 and den > 0):
+        return 1.0
+    n = len(uv)
+    # each pixel's index in the band on a raster of the bands' bounding box padded by
+    # L, n (a zero appended to r and w) where no band pixel is; a pixel in two bands:
+    # its last place
+    uv = uv.astype(np.int64) - uv.min(axis=0)
+    width = int(uv[:, 0].max()) + 2 * L + 1
+    flat = (uv[:, 1] + L) * width + (uv[:, 0] + L)
+    index = np.full(int(flat.max()) + L * width + L + 1, n, np.int32)
+    index[flat] = np.arange(n, dtype=np.int32)
+    # per lag (n, lags) the neighbours' indices; the pixel pairs, and the sums of r r'
+    # and w w' over them
+    j = np.take(index, flat[:, None] + (lags[:, 1] * width + lags[:, 0]))
+    pairs = np.count_nonzero(j < n, axis=0).astype(float)
+    rr = r @ np.take(np.append(r, 0.0), j)
+    ww = w @ np.take(np.append(w, 0.0), j)
+    use = pairs >= min_pairs
+    rho = np.where(use, rr / np.maximum(pairs, 1.0) / var, 0.0)
+    share = ww / den  # the weights' overlap at each lag
+    excess = 2.0 * float(rho @ share)
+    # rho's estimates scatter by 1 / sqrt(pairs) each: only an excess beyond twice its
+    # own scatter is taken (white noise would otherwise read as 1.04-1.08 on average)
+    scatter = 2.0 * math.sqrt(float(np.sum(np.where(use, share**2 / np.maximum(pairs, 1.0), 0.0))))
+    return 1.0 + max(excess - 2.0 * scatter, 0.0)
 
 
 # ------------------------------------------------------------------- the pixel fit
@@ -419,12 +473,152 @@ def pixel_residual(y, X, Y, R2, T, slope, level, we):
     return r, C * slope / we
 
 
+# ------------------------------------------- the Gauss-Newton steps' per-pixel parts
+# Each edge's Jacobian is an (N_EDGE, m_e) C-ordered block of one buffer, the edges' one
+# after another (_edge_jacobian), so that BLAS takes each in place: its rows are the
+# line's turn and offset, the width, then the level coefficients (the board's 1, X, Y,
+# X^2 + Y^2, then T = Phi(u) times them: the contrast's). The parts that visit every
+# pixel are written twice, as loops (compiled) and with numpy on the edge's arrays (the
+# path without Numba, where the loops run as Python would be several times slower):
+# the same equations (across_edge, phi_of, pixel_residual), the same order within a
+# value (tests/detect/test_compiled.py checks them against each other).
+def _edge_jacobian(buf, start, count):
+    """The Jacobian block (N_EDGE, count) of the edge whose pixels start at ``start``."""
+    return buf[N_EDGE * start : N_EDGE * (start + count)].reshape((N_EDGE, count))
+
+
+def _board_columns(x, counts, centroid, scale, buf):
+    """The board's level rows of each edge's Jacobian: 1, X, Y, X^2 + Y^2 (X, Y the
+    pixel's ideal coordinates about the centroid, over ``scale``)."""
+    start = 0
+    for e in range(3):
+        Je = _edge_jacobian(buf, start, counts[e])
+        for k in range(counts[e]):
+            X = (x[start + k, 0] - centroid[0]) / scale
+            Y = (x[start + k, 1] - centroid[1]) / scale
+            Je[3, k] = 1.0
+            Je[4, k] = X
+            Je[5, k] = Y
+            Je[6, k] = X * X + Y * Y
+        start += counts[e]
+
+
+def _board_columns_numpy(x, counts, centroid, scale, buf):
+    """_board_columns with numpy."""
+    start = 0
+    for e in range(3):
+        Je = _edge_jacobian(buf, start, counts[e])
+        xe = x[start : start + counts[e]]
+        Je[3] = 1.0
+        Je[4] = (xe[:, 0] - centroid[0]) / scale
+        Je[5] = (xe[:, 1] - centroid[1]) / scale
+        Je[6] = Je[4] * Je[4] + Je[5] * Je[5]
+        start += counts[e]
+
+
+def _step_columns(x, counts, n, c, w, buf, u, perp, slope, table, rng, inv_step):
+    """Each pixel against its edge's line (across_edge: u (M,) in blur widths, perp
+    (M,) along it, px) and the blurred step there (phi_of: T, and its slope (M,)); the
+    contrast's rows of the Jacobians, T times the board's."""
+    start = 0
+    for e in range(3):
+        Je = _edge_jacobian(buf, start, counts[e])
+        nx, ny, cx, cy, we = n[e, 0], n[e, 1], c[e, 0], c[e, 1], w[e]
+        for k in range(counts[e]):
+            p = start + k
+            u[p], perp[p] = _across_edge(x[p, 0], x[p, 1], cx, cy, nx, ny, we)
+            T, slope[p] = _phi_of(u[p], table, rng, inv_step)
+            for q in range(N_LEVELS):
+                Je[3 + N_LEVELS + q, k] = T * Je[3 + q, k]
+        start += counts[e]
+
+
+def _step_columns_numpy(x, counts, n, c, w, buf, u, perp, slope, table, rng, inv_step):
+    """_step_columns with numpy."""
+    start = 0
+    for e in range(3):
+        Je = _edge_jacobian(buf, start, counts[e])
+        end = start + counts[e]
+        xe = x[start:end]
+        u[start:end], perp[start:end] = across_edge(xe[:, 0], xe[:, 1], c[e, 0], c[e, 1],
+                                                    n[e, 0], n[e, 1], w[e])  # fmt: skip
+        T, slope[start:end] = phi_of(u[start:end], table, rng, inv_step)
+        Je[3 + N_LEVELS :] = Je[3 : 3 + N_LEVELS] * T
+        start = end
+
+
+def _residual_columns(y, counts, buf, u, perp, slope, level, w, r, g):
+    """Each pixel's residual r (M,) and slope across its line g (M,) under the levels
+    (pixel_residual), and the line's rows of the Jacobians from them (its turn g perp,
+    its offset -g, its width -g u). Returns the residual sum of squares."""
+    rss = 0.0
+    start = 0
+    for e in range(3):
+        Je = _edge_jacobian(buf, start, counts[e])
+        we = w[e]
+        for k in range(counts[e]):
+            p = start + k
+            r[p], g[p] = _pixel_residual(y[p], Je[4, k], Je[5, k], Je[6, k],
+                                         Je[3 + N_LEVELS, k], slope[p], level, we)  # fmt: skip
+            rss += r[p] * r[p]
+            Je[0, k] = g[p] * perp[p]
+            Je[1, k] = -g[p]
+            Je[2, k] = -g[p] * u[p]
+        start += counts[e]
+    return rss
+
+
+def _residual_columns_numpy(y, counts, buf, u, perp, slope, level, w, r, g):
+    """_residual_columns with numpy (the sum of squares edge by edge)."""
+    rss = 0.0
+    start = 0
+    for e in range(3):
+        Je = _edge_jacobian(buf, start, counts[e])
+        end = start + counts[e]
+        r[start:end], g[start:end] = pixel_residual(y[start:end], Je[4], Je[5], Je[6],
+                                                    Je[3 + N_LEVELS], slope[start:end],
+                                                    level, w[e])  # fmt: skip
+        rss += float(r[start:end] @ r[start:end])
+        Je[0] = g[start:end] * perp[start:end]
+        Je[1] = -g[start:end]
+        Je[2] = -g[start:end] * u[start:end]
+        start = end
+    return rss
+
+
+# --------------------------------------------- the Gauss-Newton steps and the solve
+def _add_edge(H, b, He, be, e):
+    """Edge e's normal equations (He = Je Je^T, be = Je r) into the fit's (H, b): its
+    rows are the fit's parameters 2e and 2e + 1 (its line's turn and offset), 6 + e
+    (its width) and 9 on (the levels, shared)."""
+    a, wd = 2 * e, 6 + e
+    b[a : a + 2] += be[0:2]
+    b[wd] += be[2]
+    b[9:] += be[3:]
+    H[a : a + 2, a : a + 2] += He[0:2, 0:2]
+    H[a : a + 2, wd] += He[0:2, 2]
+    H[a : a + 2, 9:] += He[0:2, 3:]
+    H[wd, a : a + 2] += He[2, 0:2]
+    H[wd, wd] += He[2, 2]
+    H[wd, 9:] += He[2, 3:]
+    H[9:, a : a + 2] += He[3:, 0:2]
+    H[9:, wd] += He[3:, 2]
+    H[9:, 9:] += He[3:, 3:]
+
+
 def _pixel_gn(x, y, counts, n, c, w, centroid, scale, steps, table, rng, inv_step):
-    """photometric._gauss_newton compiled: the same model, parameters and steps; each
-    edge's Jacobian (N_EDGE, m_e) filled pixel by pixel, its normal equations by BLAS.
-    The three edges' Jacobians lie one after another in one buffer, each C-contiguous,
-    so that BLAS takes them in place (a copy of each edge's columns of one (N_EDGE, m)
-    array cost a tenth of a step)."""
+    """``steps`` Gauss-Newton steps of the model's N_PARAMS parameters from the lines
+    (n, c) and widths w on the bands' pixels (x (M, 2) ideal px, y (M,) grey levels,
+    counts (3,) per edge), the levels first fitted to the starting lines by linear least
+    squares (X, Y about ``centroid``, over ``scale``; the step from ``table``, phi_of).
+    A GaussNewtonSteps: the lines, widths and levels after the steps; the last step's
+    normal equations H, b; the residual sum of squares after it, as Gauss-Newton
+    predicts it (the last step is a small one: no pass of its own is needed to measure
+    it); the last pass's residuals and offset derivatives dI / d(distance) (M,) each;
+    and False where a system was singular.
+
+    One function for both paths: compiled, or run as Python with the per-pixel parts'
+    numpy twins (visvec._kernels.jit.kernel)."""
     m = len(y)
     n = n.copy()
     c = c.copy()
@@ -432,85 +626,42 @@ def _pixel_gn(x, y, counts, n, c, w, centroid, scale, steps, table, rng, inv_ste
     H = np.zeros((N_PARAMS, N_PARAMS))
     b = np.zeros(N_PARAMS)
     level = np.zeros(2 * N_LEVELS)
-    r_all = np.empty(m)
-    g_all = np.empty(m)
-    u_all = np.empty(m)
-    perp_all = np.empty(m)
-    slope_all = np.empty(m)
-    bounds = np.zeros(4, np.int64)
-    for e in range(3):
-        bounds[e + 1] = bounds[e] + counts[e]
+    r = np.empty(m)
+    g = np.empty(m)
+    u = np.empty(m)
+    perp = np.empty(m)
+    slope = np.empty(m)
     buf = np.empty(N_EDGE * m)
-    # the board's level columns (1, X, Y, X^2 + Y^2 about the centroid, scaled), then T
-    # times them
-    for e in range(3):
-        Je = buf[N_EDGE * bounds[e] : N_EDGE * bounds[e + 1]].reshape((N_EDGE, counts[e]))
-        for k in range(counts[e]):
-            p = bounds[e] + k
-            X = (x[p, 0] - centroid[0]) / scale
-            Y = (x[p, 1] - centroid[1]) / scale
-            Je[3, k] = 1.0
-            Je[4, k] = X
-            Je[5, k] = Y
-            Je[6, k] = X * X + Y * Y
-    # each edge's parameters: its line's rotation and offset, its width, the levels
-    idx = np.empty(N_EDGE, np.int64)
-    for q in range(2 * N_LEVELS):
-        idx[3 + q] = 9 + q
+    _board_columns(x, counts, centroid, scale, buf)
     rss = 0.0
     for it in range(steps):
-        for e in range(3):
-            Je = buf[N_EDGE * bounds[e] : N_EDGE * bounds[e + 1]].reshape((N_EDGE, counts[e]))
-            nx, ny, cx, cy, we = n[e, 0], n[e, 1], c[e, 0], c[e, 1], w[e]
-            for k in range(counts[e]):
-                p = bounds[e] + k
-                u, perp = _across_edge(x[p, 0], x[p, 1], cx, cy, nx, ny, we)
-                T, slope = _phi_of(u, table, rng, inv_step)
-                u_all[p] = u
-                perp_all[p] = perp
-                slope_all[p] = slope
-                for q in range(N_LEVELS):
-                    Je[3 + N_LEVELS + q, k] = T * Je[3 + q, k]
+        _step_columns(x, counts, n, c, w, buf, u, perp, slope, table, rng, inv_step)
         if it == 0:
             # the levels from the starting lines, by linear least squares
             AtA = np.zeros((2 * N_LEVELS, 2 * N_LEVELS))
             Aty = np.zeros(2 * N_LEVELS)
+            start = 0
             for e in range(3):
-                Je = buf[N_EDGE * bounds[e] : N_EDGE * bounds[e + 1]].reshape((N_EDGE, counts[e]))
-                A = Je[3:]
+                A = _edge_jacobian(buf, start, counts[e])[3:]
                 AtA += A @ A.T
-                Aty += A @ y[bounds[e] : bounds[e + 1]]
+                Aty += A @ y[start : start + counts[e]]
+                start += counts[e]
             try:
                 level = np.linalg.solve(AtA, Aty)
             except Exception:  # noqa: BLE001 - Numba catches no narrower class
-                return GaussNewtonSteps(n, c, w, level, H, b, rss, r_all, g_all, False)
+                return GaussNewtonSteps(n, c, w, level, H, b, rss, r, g, False)
+        rss = _residual_columns(y, counts, buf, u, perp, slope, level, w, r, g)
         H[:, :] = 0.0
         b[:] = 0.0
-        rss = 0.0
+        start = 0
         for e in range(3):
-            Je = buf[N_EDGE * bounds[e] : N_EDGE * bounds[e + 1]].reshape((N_EDGE, counts[e]))
-            we = w[e]
-            for k in range(counts[e]):
-                p = bounds[e] + k
-                r, g = _pixel_residual(y[p], Je[4, k], Je[5, k], Je[6, k], Je[3 + N_LEVELS, k],
-                                       slope_all[p], level, we)  # fmt: skip
-                rss += r * r
-                r_all[p] = r
-                g_all[p] = g
-                Je[0, k] = g * perp_all[p]
-                Je[1, k] = -g
-                Je[2, k] = -g * u_all[p]
-            He = Je @ Je.T
-            be = Je @ r_all[bounds[e] : bounds[e + 1]]
-            idx[0], idx[1], idx[2] = 2 * e, 2 * e + 1, 6 + e
-            for q in range(N_EDGE):
-                b[idx[q]] += be[q]
-                for s in range(N_EDGE):
-                    H[idx[q], idx[s]] += He[q, s]
+            Je = _edge_jacobian(buf, start, counts[e])
+            _add_edge(H, b, Je @ Je.T, Je @ r[start : start + counts[e]], e)
+            start += counts[e]
         try:
             step = np.linalg.solve(H, b)
         except Exception:  # noqa: BLE001
-            return GaussNewtonSteps(n, c, w, level, H, b, rss, r_all, g_all, False)
+            return GaussNewtonSteps(n, c, w, level, H, b, rss, r, g, False)
         for e in range(3):
             th, oo = step[2 * e], step[2 * e + 1]
             cs, sn = math.cos(th), math.sin(th)
@@ -520,14 +671,13 @@ def _pixel_gn(x, y, counts, n, c, w, centroid, scale, steps, table, rng, inv_ste
             c[e, 0] += oo * n0
             c[e, 1] += oo * n1
             w[e] = max(w[e] + step[6 + e], 0.2)
-        for q in range(2 * N_LEVELS):
-            level[q] += step[9 + q]
+        level += step[9:]
         rss -= step @ b
-    return GaussNewtonSteps(n, c, w, level, H, b, rss, r_all, g_all, True)
+    return GaussNewtonSteps(n, c, w, level, H, b, rss, r, g, True)
 
 
 def _strided(x, y, counts, stride):
-    """photometric._strided: every ``stride``-th pixel of each band."""
+    """Every ``stride``-th pixel of each band (x, y and the bands' counts)."""
     cs = (counts + stride - 1) // stride
     m = cs[0] + cs[1] + cs[2]
     xs = np.empty((m, 2))
@@ -543,9 +693,61 @@ def _strided(x, y, counts, stride):
     return xs, ys, cs
 
 
+def _strided_numpy(x, y, counts, stride):
+    """_strided with numpy."""
+    bounds = np.concatenate([[0], np.cumsum(counts)])
+    pick = np.concatenate([np.arange(bounds[e], bounds[e + 1], stride) for e in range(3)])
+    return x[pick], y[pick], (counts + stride - 1) // stride
+
+
+def _vertices_and_gain(n, c):
+    """The vertices V (3, 2) of the lines n_i . (x - c_i) = 0 (vertex i on lines i + 1
+    and i + 2, by Cramer's rule, as edge_fit.vertices) and how the lines move them, G
+    (6, 6) = d(vertices) / d(lines): line i turned by a small angle about c_i, or moved
+    by an offset along n_i, moves vertex v on it (v on lines j, k) by A_v^-1 times the
+    change of those lines' equations n . x = n . c at v: the offset adds 1 to its row's
+    right side; the turn d(theta) (n -> n + d(theta) n_perp) takes n_perp . (v - c_i)
+    d(theta) from it. Returns False, and NaN, where two lines are parallel."""
+    V = np.empty((3, 2))
+    invs = np.empty((3, 2, 2))
+    G = np.zeros((6, 6))
+    for i in range(3):
+        j, k = (i + 1) % 3, (i + 2) % 3
+        a, b, cc, d = n[j, 0], n[j, 1], n[k, 0], n[k, 1]
+        det = a * d - b * cc
+        if det == 0.0:
+            return False, np.full((3, 2), np.nan), G
+        invs[i, 0, 0], invs[i, 0, 1] = d / det, -b / det
+        invs[i, 1, 0], invs[i, 1, 1] = -cc / det, a / det
+        oj = n[j, 0] * c[j, 0] + n[j, 1] * c[j, 1]
+        ok = n[k, 0] * c[k, 0] + n[k, 1] * c[k, 1]
+        V[i, 0] = invs[i, 0, 0] * oj + invs[i, 0, 1] * ok
+        V[i, 1] = invs[i, 1, 0] * oj + invs[i, 1, 1] * ok
+    for v in range(3):
+        for row in range(2):
+            ln = (v + 1 + row) % 3
+            nx, ny = n[ln, 0], n[ln, 1]
+            sv = (V[v, 0] - c[ln, 0]) * -ny + (V[v, 1] - c[ln, 1]) * nx
+            for q in range(2):
+                G[2 * v + q, 2 * ln] -= invs[v, q, row] * sv
+                G[2 * v + q, 2 * ln + 1] += invs[v, q, row]
+    return True, V, G
+
+
 def _pixel_solve(x, y, uv, counts, n, c, w, V, centroid, scale, warm, st):
-    """photometric._solve compiled: the same steps, checks, inflation and covariance;
-    ``st`` the fit's constants (PixelFitSettings). A PixelSolve."""
+    """The pixel fit from the starting lines (n, c), widths w and vertices V on the
+    bands' pixels (x, y, their places in the frame uv, counts: a BandPixels'), ``st``
+    its constants (PixelFitSettings): st.steps Gauss-Newton steps (those before the last
+    on every st.stride-th pixel), or with ``warm`` (w the run's blur) one on every
+    pixel, another while the last moved a width by more than st.settled (st.warm_steps
+    at most); the bands' residuals checked against each other (st.rms_ratio), the
+    covariance inflated for the noise's correlation (noise_inflation) and taken to the
+    vertices. A PixelSolve: whether it is to be taken, the vertices (3, 2) (the starting
+    ones when it is not), their covariance (6, 6) (NaN when not), the widths, the
+    residuals' variance, the inflation and the steps on every pixel.
+
+    One function for both paths (visvec.detect.photometric.refine calls it): compiled,
+    or run as Python with the per-pixel parts' numpy twins."""
     table, rng, inv_step = st.table, st.rng, st.inv_step
     steps, stride = st.steps, st.stride
     fail = np.full((6, 6), np.nan)
@@ -577,15 +779,16 @@ def _pixel_solve(x, y, uv, counts, n, c, w, V, centroid, scale, warm, st):
     n, c, w, _, H, _, rss, r, g, ok = out
     if not ok:
         return PixelSolve(False, V, fail, w, math.nan, 1.0, steps)
-    m = len(y)
-    s2 = max(rss, 0.0) / max(m - N_PARAMS, 1)
+    s2 = max(rss, 0.0) / max(len(y) - N_PARAMS, 1)
+    # the residuals of a band the model fits are the pixels' noise, alike in the three
+    # bands (the same board and triangle): one band's twice the others' has something
+    # else in it (a head just off an edge, which the lines' robust fit may carry as a
+    # wider scatter without an outlier), and the fit, not robust, is not taken
     rms = np.empty(3)
     start = 0
     for e in range(3):
-        ss = 0.0
-        for p in range(start, start + counts[e]):
-            ss += r[p] * r[p]
-        rms[e] = math.sqrt(ss / counts[e])
+        re = r[start : start + counts[e]]
+        rms[e] = math.sqrt(np.dot(re, re) / counts[e])
         start += counts[e]
     rms.sort()
     if rms[2] > st.rms_ratio * rms[1]:
@@ -596,36 +799,15 @@ def _pixel_solve(x, y, uv, counts, n, c, w, V, centroid, scale, warm, st):
     except Exception:  # noqa: BLE001 - Numba catches no narrower class
         return PixelSolve(False, V, fail, w, s2, inflation, steps)
     cov_p = inflation * s2 * np.ascontiguousarray(Hi[:6, :6])
-    # the vertices (edges._vertices: vertex i on lines i + 1, i + 2, Cramer's rule) and
-    # how the lines move them (photometric._vertex_gain)
-    V2 = np.empty((3, 2))
-    invs = np.empty((3, 2, 2))
-    for i in range(3):
-        j, k = (i + 1) % 3, (i + 2) % 3
-        a, b, cc, d = n[j, 0], n[j, 1], n[k, 0], n[k, 1]
-        det = a * d - b * cc
-        if det == 0.0:
-            return PixelSolve(False, V, fail, w, s2, inflation, steps)
-        invs[i, 0, 0], invs[i, 0, 1] = d / det, -b / det
-        invs[i, 1, 0], invs[i, 1, 1] = -cc / det, a / det
-        oj = n[j, 0] * c[j, 0] + n[j, 1] * c[j, 1]
-        ok_ = n[k, 0] * c[k, 0] + n[k, 1] * c[k, 1]
-        V2[i, 0] = invs[i, 0, 0] * oj + invs[i, 0, 1] * ok_
-        V2[i, 1] = invs[i, 1, 0] * oj + invs[i, 1, 1] * ok_
-    G = np.zeros((6, 6))
-    for v in range(3):
-        for row in range(2):
-            ln = (v + 1 + row) % 3
-            nx, ny = n[ln, 0], n[ln, 1]
-            sv = (V2[v, 0] - c[ln, 0]) * -ny + (V2[v, 1] - c[ln, 1]) * nx
-            for q in range(2):
-                G[2 * v + q, 2 * ln] -= invs[v, q, row] * sv
-                G[2 * v + q, 2 * ln + 1] += invs[v, q, row]
+    found, V2, G = _vertices_and_gain(n, c)
+    if not found:
+        return PixelSolve(False, V, fail, w, s2, inflation, steps)
     return PixelSolve(True, V2, G @ cov_p @ G.T, w, s2, inflation, steps)
 
 
 _lag_sums = kernel(globals(), "_lag_sums", _lag_sums)
-noise_inflation = kernel(globals(), "noise_inflation", _noise_inflation)
+noise_inflation = kernel(globals(), "noise_inflation", _noise_inflation,
+                         numpy=_noise_inflation_numpy)  # fmt: skip
 band_pixels = kernel(globals(), "band_pixels", _band_pixels)
 cover = kernel(globals(), "cover", _cover)
 _cover = kernel(globals(), "_cover", _cover)
@@ -635,6 +817,13 @@ band_lines = kernel(globals(), "band_lines", _band_lines)
 _phi_of = kernel(globals(), "_phi_of", phi_of)
 _across_edge = kernel(globals(), "_across_edge", across_edge)
 _pixel_residual = kernel(globals(), "_pixel_residual", pixel_residual)
+_edge_jacobian = kernel(globals(), "_edge_jacobian", _edge_jacobian)
+_board_columns = kernel(globals(), "_board_columns", _board_columns, numpy=_board_columns_numpy)
+_step_columns = kernel(globals(), "_step_columns", _step_columns, numpy=_step_columns_numpy)
+_residual_columns = kernel(globals(), "_residual_columns", _residual_columns,
+                           numpy=_residual_columns_numpy)  # fmt: skip
+_add_edge = kernel(globals(), "_add_edge", _add_edge)
 _pixel_gn = kernel(globals(), "_pixel_gn", _pixel_gn)
-_strided = kernel(globals(), "_strided", _strided)
+_strided = kernel(globals(), "_strided", _strided, numpy=_strided_numpy)
+_vertices_and_gain = kernel(globals(), "_vertices_and_gain", _vertices_and_gain)
 pixel_solve = kernel(globals(), "pixel_solve", _pixel_solve)

@@ -32,17 +32,18 @@ its own (the detector's average of its fits' widths, ``blur``), from that width,
 one step on every pixel (see WIDTH_SETTLED).
 
 Phi and its derivative phi are read from a table of their values and slopes by cubic
-Hermite interpolation (_phi_of, to 1e-7 of the contrast). With the fast extra the pixels'
-selection and the whole solve from the bands' pixels (_solve: the Gauss-Newton steps,
-the bands' check, the noise correlation, the vertices' covariance) run compiled
-(visvec._kernels.pixel_fit, tested equal to the numpy functions here).
+Hermite interpolation (_phi_of, to 1e-7 of the contrast). The solve from the bands'
+pixels (the Gauss-Newton steps, the bands' check, the noise correlation, the vertices'
+covariance) is one function, visvec._kernels.pixel_fit.pixel_solve: compiled with the
+fast extra, else run as Python with numpy twins of its loops over the pixels. With the
+extra the pixels' selection (_band) runs compiled too (tested equal to its numpy
+function here).
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from itertools import pairwise
 
 import numpy as np
 
@@ -50,15 +51,10 @@ from visvec._kernels import jit
 from visvec._kernels import pixel_fit as kernels
 from visvec._kernels.edge_fit import vertices
 from visvec._kernels.pixel_fit import (
-    N_LEVELS,
     N_PARAMS,
     BandPixels,
-    GaussNewtonSteps,
     PixelFitSettings,
-    PixelSolve,
-    across_edge,
     phi_of,
-    pixel_residual,
 )
 from visvec.camera import CameraModel
 from visvec.shutter import RollingShutter, unroll
@@ -118,7 +114,8 @@ _SQRT_2 = math.sqrt(2.0)
 class PhotometricFit:
     """Vertices (3, 2) ideal px (vertex i opposite line i), their covariance (6, 6), the
     edges' blur widths (3,), the residual RMS (grey levels), the pixels used, the
-    covariance's inflation for the noise's correlation (_noise_inflation) and the
+    covariance's inflation for the noise's correlation
+    (visvec._kernels.pixel_fit.noise_inflation) and the
     Gauss-Newton steps on every pixel the fit took."""
 
     xy: np.ndarray
@@ -189,24 +186,6 @@ def _intersections(n: np.ndarray, c: np.ndarray) -> tuple[np.ndarray, list | Non
     and per vertex the inverse of its lines' 2x2 normal matrix
     (visvec._kernels.edge_fit.vertices)."""
     return vertices(n, np.add.reduce(n * c, axis=1))
-
-
-def _vertex_gain(n: np.ndarray, c: np.ndarray, V: np.ndarray, invs: list) -> np.ndarray:
-    """(6, 6) d(vertices)/d(lines): line i turned by a small angle about c_i, or moved
-    by an offset along n_i, moves vertex v on it (v on lines j, k) by A_v^-1 times the
-    change of those lines' equations n . x = n . c at v: the offset adds 1 to its
-    row's right side; the turn d(theta) (n -> n + d(theta) n_perp) takes
-    n_perp . (v - c_i) d(theta) from it."""
-    G = np.zeros((6, 6))
-    for v in range(3):
-        inv = invs[v]
-        for row, ln in enumerate(((v + 1) % 3, (v + 2) % 3)):
-            nx, ny = n[ln]
-            s = (V[v, 0] - c[ln, 0]) * -ny + (V[v, 1] - c[ln, 1]) * nx
-            for q in range(2):
-                G[2 * v + q, 2 * ln] -= inv[q][row] * s
-                G[2 * v + q, 2 * ln + 1] += inv[q][row]
-    return G
 
 
 def _meet(n1, o1, n2, o2) -> tuple[float, float]:
@@ -353,7 +332,7 @@ def _phi_nodes() -> np.ndarray:
 
 
 _PHI = _phi_nodes()
-# the constants as the compiled solve takes them (visvec._kernels.pixel_fit.pixel_solve)
+# the constants as the solve takes them (visvec._kernels.pixel_fit.pixel_solve)
 SETTINGS = PixelFitSettings(GN_STEPS, FIRST_STRIDE, _LAGS, NOISE_LAG_PX, NOISE_MIN_PAIRS,
                             EDGE_RMS_RATIO, WIDTH_SETTLED, WARM_STEPS, _PHI, PHI_RANGE,
                             1.0 / PHI_STEP)  # fmt: skip
@@ -363,126 +342,6 @@ def _phi_of(u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Phi(u) and phi(u) from the table _PHI (visvec._kernels.pixel_fit.phi_of, which
     the compiled fit evaluates too)."""
     return phi_of(u, _PHI, PHI_RANGE, 1.0 / PHI_STEP)
-
-
-def _gauss_newton(x, y, counts, n, c, w, centroid, scale, steps):
-    """``steps`` Gauss-Newton steps of the model's N_PARAMS parameters from the lines (n, c)
-    and widths w, the levels first fitted to the starting lines by linear least squares.
-    Returns the lines, widths and levels after the steps; the last step's normal
-    equations H, b; the residual sum of squares after it, as Gauss-Newton predicts it
-    (the last step is a small one: no pass of its own is needed to measure it); the last
-    pass's residuals and offset derivatives dI / d(distance) (M,) each; and False where
-    a system was singular: a GaussNewtonSteps."""
-    n, c, w = n.copy(), c.copy(), w.copy()
-    bounds = np.concatenate([[0], np.cumsum(counts)])
-    xs = [x[bounds[i] : bounds[i + 1]] for i in range(3)]
-    # per edge, its pixels' Jacobian (m_e, 3 + 2 N_LEVELS): rotation about c (d(d)/d(theta)
-    # = n_perp . (x - c)), offset, width, then the level coefficients, whose first
-    # N_LEVELS (the board's: 1, X, Y, X^2 + Y^2) never change
-    jac = []
-    for xe in xs:
-        Je = np.empty((len(xe), 3 + 2 * N_LEVELS), order="F")
-        Je[:, 3] = 1.0
-        Je[:, 4:6] = (xe - centroid) / scale
-        Je[:, 6] = Je[:, 4] * Je[:, 4] + Je[:, 5] * Je[:, 5]
-        jac.append(Je)
-    idx = [[2 * i, 2 * i + 1, 6 + i, *range(9, N_PARAMS)] for i in range(3)]
-    level = np.zeros(2 * N_LEVELS)
-    H, b, rss = np.zeros((N_PARAMS, N_PARAMS)), np.zeros(N_PARAMS), 0.0
-    r_all, g_all = np.empty(len(y)), np.empty(len(y))
-    for it in range(steps):
-        H = np.zeros((N_PARAMS, N_PARAMS))
-        b = np.zeros(N_PARAMS)
-        rss = 0.0
-        steps_ = []
-        for i, (xe, Je) in enumerate(zip(xs, jac, strict=True)):
-            u, perp = across_edge(xe[:, 0], xe[:, 1], c[i, 0], c[i, 1], n[i, 0], n[i, 1], w[i])
-            T, slope = _phi_of(u)
-            Je[:, 3 + N_LEVELS :] = Je[:, 3 : 3 + N_LEVELS] * T[:, None]
-            steps_.append((u, perp, slope))
-        if it == 0:
-            A = np.concatenate([Je[:, 3:] for Je in jac])
-            try:
-                level = np.linalg.solve(A.T @ A, A.T @ y)
-            except np.linalg.LinAlgError:
-                return GaussNewtonSteps(n, c, w, level, H, b, rss, r_all, g_all, False)
-        for i, Je in enumerate(jac):
-            u, perp, slope = steps_[i]
-            ye = y[bounds[i] : bounds[i + 1]]
-            r, g = pixel_residual(ye, Je[:, 4], Je[:, 5], Je[:, 6], Je[:, 3 + N_LEVELS], slope,
-                                  level, w[i])  # fmt: skip
-            rss += float(r @ r)
-            Je[:, 0] = g * perp
-            Je[:, 1] = -g
-            Je[:, 2] = -g * u
-            H[np.ix_(idx[i], idx[i])] += Je.T @ Je
-            b[idx[i]] += Je.T @ r
-            r_all[bounds[i] : bounds[i + 1]] = r
-            g_all[bounds[i] : bounds[i + 1]] = g
-        try:
-            step = np.linalg.solve(H, b)
-        except np.linalg.LinAlgError:
-            return GaussNewtonSteps(n, c, w, level, H, b, rss, r_all, g_all, False)
-        for i in range(3):
-            th, oo = step[2 * i], step[2 * i + 1]
-            cs, sn = math.cos(th), math.sin(th)
-            n[i] = [cs * n[i, 0] - sn * n[i, 1], sn * n[i, 0] + cs * n[i, 1]]
-            c[i] = c[i] + oo * n[i]
-        w = np.maximum(w + step[6:9], 0.2)
-        level = level + step[9:N_PARAMS]
-        rss -= float(step @ b)
-    return GaussNewtonSteps(n, c, w, level, H, b, rss, r_all, g_all, True)
-
-
-def _noise_inflation(uv: np.ndarray, r: np.ndarray, w: np.ndarray) -> float:
-    """How much wider the lines' errors are than white noise of the residuals' variance
-    makes them, from the correlation of the residuals between neighbouring pixels.
-
-    A video codec's errors are not white: JPEG's and MPEG's come in 8 x 8 blocks, and
-    neighbouring pixels share them. A line's offset is estimated by sum_k w_k r_k with
-    w the pixels' derivatives g (the fit's Jacobian column); its variance is
-    sum_jk w_j w_k C(j - k), which for white noise is s^2 sum_k w_k^2. With C(lag) =
-    s^2 rho(lag) the correlation of the residuals at that lag (estimated from the band's
-    pixel pairs), the ratio of the two is
-
-        1 + 2 sum_(lags in a half-plane) rho(lag) sum_k w_k w_(k + lag) / sum_k w_k^2,
-
-    the 2-D form of a HAC (heteroskedasticity- and autocorrelation-consistent)
-    covariance's long-run variance (Newey & West, Econometrica 55 (1987), Eq. 2, the
-    lags truncated at NOISE_LAG_PX without their taper). It multiplies the fit's
-    covariance. Only the part of the sum beyond twice its own sampling scatter counts,
-    and never below 1: sensor noise gives 1 (1.00-1.01 on average), Motion-JPEG at
-    quality 75 about 2.5."""
-    if jit.ON:  # the same, compiled (the fast extra)
-        return kernels.noise_inflation(uv, r, w, _LAGS, NOISE_LAG_PX, NOISE_MIN_PAIRS)
-    var = float(r @ r) / len(r)
-    den = float(w @ w)
-    if not (var > 0 and den > 0):
-        return 1.0
-    L, n = NOISE_LAG_PX, len(uv)
-    # each pixel's index in the band on a raster of the bands' bounding box padded by
-    # L, n (a zero appended to r and w) where no band pixel is; a pixel in two bands:
-    # its last place
-    uv = uv.astype(np.int64) - uv.min(axis=0)
-    width = int(uv[:, 0].max()) + 2 * L + 1
-    flat = (uv[:, 1] + L) * width + (uv[:, 0] + L)
-    index = np.full(int(flat.max()) + L * width + L + 1, n, np.int32)
-    index[flat] = np.arange(n, dtype=np.int32)
-    # the lags of a half-plane, all in one gather: (n, lags) neighbours' indices; per
-    # lag the pixel pairs, and the sums of r r' and w w' over them
-    offsets = _LAGS[:, 1] * width + _LAGS[:, 0]
-    j = np.take(index, flat[:, None] + offsets)
-    pairs = np.count_nonzero(j < n, axis=0).astype(float)
-    rr = r @ np.take(np.append(r, 0.0), j)
-    ww = w @ np.take(np.append(w, 0.0), j)
-    use = pairs >= NOISE_MIN_PAIRS
-    rho = np.where(use, rr / np.maximum(pairs, 1.0) / var, 0.0)
-    share = ww / den  # the weights' overlap at each lag
-    excess = 2.0 * float(rho @ share)
-    # rho's estimates scatter by 1 / sqrt(pairs) each: only an excess beyond twice its
-    # own scatter is taken (white noise would otherwise read as 1.04-1.08 on average)
-    scatter = 2.0 * math.sqrt(float(np.sum(np.where(use, share**2 / np.maximum(pairs, 1.0), 0.0))))
-    return 1.0 + max(excess - 2.0 * scatter, 0.0)
 
 
 def _lines_and_bands(image, normals, offsets, width, camera, roll=None):
@@ -537,75 +396,9 @@ def refine(image: np.ndarray, normals: np.ndarray, offsets: np.ndarray, width: n
     warm = blur is not None and math.isfinite(blur)
     if warm:
         w = np.full(3, max(float(blur), 0.3))
-    if jit.ON:  # the same, compiled
-        fit = kernels.pixel_solve(x, y, uv, counts, n, c, w, V, centroid, scale, warm,
-                                    SETTINGS)  # fmt: skip
-    else:
-        fit = _solve(x, y, uv, counts, n, c, w, V, centroid, scale, warm)
+    # compiled with the fast extra, else its Python source on numpy (one function)
+    fit = kernels.pixel_solve(x, y, uv, counts, n, c, w, V, centroid, scale, warm, SETTINGS)
     if not fit.ok:
         return _refused(fit.V, fit.w, m)
     return PhotometricFit(fit.V, fit.cov, fit.w, math.sqrt(fit.s2), m, inflation=fit.inflation,
                           steps=int(fit.steps))  # fmt: skip
-
-
-def _strided(x: np.ndarray, y: np.ndarray, counts: np.ndarray, stride: int):
-    """Every ``stride``-th pixel of each band (x, y and the bands' counts)."""
-    bounds = np.concatenate([[0], np.cumsum(counts)])
-    pick = np.concatenate([np.arange(a, b, stride) for a, b in pairwise(bounds)])
-    return x[pick], y[pick], (counts + stride - 1) // stride
-
-
-def _solve(x, y, uv, counts, n, c, w, V, centroid, scale, warm=False):
-    """The fit from the starting lines (n, c), widths w and vertices V on the bands'
-    pixels: GN_STEPS Gauss-Newton steps (those before the last on every FIRST_STRIDE-th
-    pixel), or with ``warm`` (w the run's blur) one on every pixel, another while the
-    last moved a width by more than WIDTH_SETTLED (WARM_STEPS at most); the bands'
-    residuals checked against each other (EDGE_RMS_RATIO), the covariance inflated for
-    the noise's correlation and taken to the vertices. A PixelSolve: whether it is to
-    be taken, the vertices (3, 2) (the starting ones when it is not), their covariance
-    (6, 6), the widths, the residuals' variance, the inflation and the steps on every
-    pixel."""
-    steps = GN_STEPS
-    if warm:
-        for k in range(WARM_STEPS):  # noqa: B007 - k + 1 steps taken
-            w0 = w
-            n, c, w, _, H, _, rss, r, g, ok = _gauss_newton(x, y, counts, n, c, w, centroid,
-                                                             scale, 1)  # fmt: skip
-            if not ok or np.abs(w / w0 - 1.0).max() <= WIDTH_SETTLED:
-                break
-        return _finish(V, uv, counts, n, c, w, H, rss, r, g, ok, len(y), k + 1)
-    if steps > 1 and FIRST_STRIDE > 1:
-        xs, ys, cs = _strided(x, y, counts, FIRST_STRIDE)
-        n, c, w, *_, ok = _gauss_newton(xs, ys, cs, n, c, w, centroid, scale, steps - 1)
-        if not ok:
-            return PixelSolve(False, V, None, w, math.nan, 1.0, 0)
-        steps = 1
-    n, c, w, _, H, _, rss, r, g, ok = _gauss_newton(x, y, counts, n, c, w, centroid, scale, steps)
-    return _finish(V, uv, counts, n, c, w, H, rss, r, g, ok, len(y), steps)
-
-
-def _finish(V, uv, counts, n, c, w, H, rss, r, g, ok, m, steps):
-    """_solve's ending, after the last of ``steps`` steps on every pixel (``ok`` False:
-    a singular system): the bands' check, the noise inflation, the vertices and their
-    covariance."""
-    if not ok:
-        return PixelSolve(False, V, None, w, math.nan, 1.0, steps)
-    s2 = max(rss, 0.0) / max(m - N_PARAMS, 1)
-    # the residuals of a band the model fits are the pixels' noise, alike in the three
-    # bands (the same board and triangle): one band's twice the others' has something
-    # else in it (a head just off an edge, which the lines' robust fit may carry as a
-    # wider scatter without an outlier), and the fit, not robust, is not taken
-    bounds = np.concatenate([[0], np.cumsum(counts)])
-    rms = sorted(math.sqrt(float(r[a:b] @ r[a:b]) / (b - a)) for a, b in pairwise(bounds))
-    if rms[2] > EDGE_RMS_RATIO * rms[1]:
-        return PixelSolve(False, V, None, w, s2, 1.0, steps)
-    inflation = _noise_inflation(uv, r, g)
-    try:
-        cov_p = inflation * s2 * np.linalg.inv(H)[:6, :6]
-    except np.linalg.LinAlgError:
-        return PixelSolve(False, V, None, w, s2, inflation, steps)
-    V2, invs = _intersections(n, c)
-    if invs is None:
-        return PixelSolve(False, V, None, w, s2, inflation, steps)
-    G = _vertex_gain(n, c, V2, invs)
-    return PixelSolve(True, V2, G @ cov_p @ G.T, w, s2, inflation, steps)
