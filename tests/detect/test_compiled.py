@@ -32,17 +32,25 @@ from conftest import CONFIGS, attitudes
 
 pytestmark = pytest.mark.skipif(not jit.AVAILABLE, reason="Numba (the fast extra)")
 
+# the edge fit's functions whose path the kernels choose: edges' own, and the
+# kernels' functions written once that the numpy path calls by name
 KERNELS = (
     "_sample",
     "_positions",
     "_widths",
-    "_robust_lines",
+    "robust_lines",
     "_group_median",
     "_edge_fit",
     "_level_gain",
     "_lines",
     "lag_sums",
 )
+IN_KERNELS = ("robust_lines", "_group_median")
+
+
+def _owner(name):
+    """The module whose name ``name`` the pipeline calls."""
+    return KE if name in IN_KERNELS else E
 
 
 def _frames():
@@ -76,29 +84,27 @@ def _frames():
 
 @pytest.fixture(scope="module")
 def calls():
-    """Every call the pipeline makes to the kernels' numpy functions on _frames()."""
+    """Every call the pipeline makes on _frames() to the functions whose path the
+    kernels choose (on the numpy path, where the kernels' functions written once call
+    the others by name): each name, a function that calls it on the path it is on, and
+    the calls."""
     got = {n: [] for n in KERNELS}
-    saved = {n: getattr(E, n) for n in KERNELS}
 
-    def spy(n):
-        def f(*a, **k):
+    def spy(n, f):
+        def g(*a, **k):
             got[n].append((a, k))
-            return saved[n](*a, **k)
+            return f(*a, **k)
 
-        return f
+        return g
 
-    mp = pytest.MonkeyPatch()
-    try:
-        mp.setattr(jit, "ON", False)
+    with jit.numpy_path(), pytest.MonkeyPatch.context() as mp:
         for n in KERNELS:
-            mp.setattr(E, n, spy(n))
+            mp.setattr(_owner(n), n, spy(n, getattr(_owner(n), n)))
         for rig, img in _frames():
             pipe = TrianglePipeline(rig)
             pipe.process(Frame(0, 0.0, img))
             pipe.process(Frame(1, 1 / 30, img))  # tracked from the first
-    finally:
-        mp.undo()
-    return {n: (saved[n], got[n]) for n in KERNELS}
+    return {n: ((lambda *a, n=n, **k: getattr(_owner(n), n)(*a, **k)), got[n]) for n in KERNELS}
 
 
 def _diff(a, b) -> float:
@@ -129,9 +135,8 @@ def test_each_kernel_gives_what_numpy_gives(calls, name, monkeypatch):
     assert len(args) >= 10, len(args)
     worst = 0.0
     for a, k in args:
-        monkeypatch.setattr(jit, "ON", False)
-        pure = f(*a, **k)
-        monkeypatch.setattr(jit, "ON", True)
+        with jit.numpy_path():
+            pure = f(*a, **k)
         fast = f(*a, **k)
         worst = max(worst, _diff(pure, fast))
     assert worst < 1e-9, worst
@@ -143,7 +148,7 @@ def test_the_frames_reach_the_kernels_robust_branches(calls):
     branches that leave them out."""
     f, args = calls["_positions"]
     assert sum(not f(*a, **k)[4].all() for a, k in args) >= 3
-    f, args = calls["_robust_lines"]
+    f, args = calls["robust_lines"]
     assert sum(not f(*a, **k)[5][a[4]].all() for a, k in args) >= 3
 
 
@@ -161,7 +166,7 @@ def test_the_fits_name_their_results_alike_compiled_or_not(calls, monkeypatch):
     rng = np.random.default_rng(3)
     x, y = rng.normal(0.0, 50.0, 90), rng.normal(0.0, 50.0, 90)
     gid, keep = np.repeat(np.arange(3), 30), rng.random(90) > 0.2
-    numpy_, compiled = E._group_tls(x, y, gid, keep), KE._group_tls(x, y, gid, keep)
+    numpy_, compiled = KE._group_tls_numpy(x, y, gid, keep), KE._group_tls(x, y, gid, keep)
     assert type(numpy_) is type(compiled) is KE.LineScatter
     assert np.abs(numpy_.normal - compiled.normal).max() < 1e-12
     X = np.array([[0.0, 0.0, 0.0], [100.0, 0.0, 0.0], [0.0, 100.0, 0.0]])
@@ -179,12 +184,9 @@ def test_the_kernels_run_as_python_give_what_compiled_gives(calls):
     kernels = {
         "_positions": (KE.positions, lambda a, k: _positions_args(*a, **k)),
         "_widths": (KE.widths, lambda a, k: _widths_args(*a, **k)),
-        "_robust_lines": (KE.robust_lines, lambda a, k: _lines_args(*a, **k)),
+        "robust_lines": (KE.robust_lines, lambda a, k: a),
         "_sample": (KE.sample_geometry, lambda a, k: _sample_args(*a, **k)),
-        "_group_median": (
-            KE.group_median,
-            lambda a, k: (np.asarray(a[0], float), a[1], a[3]),
-        ),
+        "_group_median": (KE.group_median, lambda a, k: a),
         "_edge_fit": (KE.edge_stats, lambda a, k: (a[4], a[5], a[6], *a[9:14])),
         "_level_gain": (KE.level_gain, lambda a, k: (np.asarray(a[0], float), *a[1:])),
         "_lines": (KE.inward_lines, lambda a, k: _inward_args(*a)),
@@ -224,7 +226,9 @@ def _as_python(kernel):
                                                  "_band_pixels", "_edge_jacobian",
                                                  "_board_columns", "_step_columns",
                                                  "_residual_columns", "_add_edge",
-                                                 "_vertices_and_gain")}  # fmt: skip
+                                                 "_vertices_and_gain", "_distances",
+                                                 "_inliers", "_kept_where", "_line_sums",
+                                                 "_usable", "robust_lines")}  # fmt: skip
 
     def run(*args):
         mp = pytest.MonkeyPatch()
@@ -250,14 +254,10 @@ def _widths_args(vals, e, clear, gid, half, step):
     return vals, 0, e, clear, gid, float(half), float(step), E.WIDTH_REACH_MIN_PX
 
 
-def _lines_args(x, y, gid, index, use, floor, rounds):
-    return x, y, gid, use, float(floor), int(rounds), E.EDGE_VARIANCE_INFLATION
-
-
 def _inward_args(raw, pts_px, pr, camera, shutter, rate_c, sigma_floor, rounds):
     ideal = raw * camera.fx  # (the test frames' rigs have no rolling shutter)
-    return (ideal[:, 0], ideal[:, 1], pr.gid, pr.clear, float(sigma_floor), int(rounds),
-            E.EDGE_VARIANCE_INFLATION)  # fmt: skip
+    return (ideal[:, 0], ideal[:, 1], pr.gid, pr.index, pr.clear, float(sigma_floor),
+            int(rounds), E.EDGE_VARIANCE_INFLATION)  # fmt: skip
 
 
 def _sample_args(roi, corners, off, half, step, trims, spacing):
@@ -350,7 +350,7 @@ def test_numba_is_loaded_by_the_first_kernel_called():
         if sys.argv[1] == "broken":
             sys.modules["numba"] = None  # an import that fails
         x = np.array([3.0, 1.0, 2.0, 5.0])
-        out = held(x, np.array([0, 0, 1, 1]), np.ones(4, np.bool_))
+        out = held(x, np.array([0, 0, 1, 1]), np.array([0, 1, 0, 1]), np.ones(4, np.bool_))
         print(out.tolist(), type(C.positions).__name__, jit.ON, C.group_median is C._group_median,
               held.dispatcher is (C.group_median if jit.ON else None))
     """
@@ -482,7 +482,7 @@ def test_the_pixel_fits_kernels_load_with_a_rig_that_uses_it(unloadable, capsys)
 def test_the_numpy_path_for_a_while():
     """jit.numpy_path: the kernels off and every name its plain function (a loop's
     numpy twin where it has one) while it lasts; the compiled kernels back after."""
-    KE.group_median(np.array([1.0]), np.array([0]), np.ones(1, np.bool_))  # all loaded
+    KE.group_median(np.array([1.0]), np.array([0]), np.array([0]), np.ones(1, np.bool_))  # loaded
     compiled = (KP.pixel_solve, KP._residual_columns, KE.positions)
     with jit.numpy_path():
         assert jit.ON is False

@@ -275,25 +275,41 @@ def test_regression_edge_fit_diverging_on_occluded_frame(rig640):
 @settings(max_examples=60, deadline=None)
 @given(st.lists(st.integers(1, 40), min_size=3, max_size=3), st.integers(0, 2**31 - 1))
 def test_group_median_equals_numpys_per_edge(sizes, seed):
-    """The edges' medians in one sort: each equals np.median of that edge's kept values."""
-    from visvec.detect.edges import _group_median
+    """The edges' medians, in one sort (numpy) or loops (compiled): each equals
+    np.median of that edge's kept values."""
+    from visvec._kernels import edge_fit as KE
 
     r = np.random.default_rng(seed)
     gid = np.repeat(np.arange(3), sizes)
     index = np.concatenate([np.arange(m) for m in sizes])
     a = r.standard_normal(len(gid))
     keep = r.random(len(gid)) < 0.7
-    med = _group_median(a, gid, index, keep)
-    for i in range(3):
-        sel = a[(gid == i) & keep]
-        assert med[i] == (np.median(sel) if sel.size else 0.0)
+    for group_median in (KE._group_median_numpy, KE.group_median):
+        med = group_median(a, gid, index, keep)
+        for i in range(3):
+            sel = a[(gid == i) & keep]
+            assert med[i] == (np.median(sel) if sel.size else 0.0)
 
 
 def test_robust_lines_reject_outliers_and_measure_the_noise():
     """Three noisy lines with gross outliers, fitted at once: each line within its noise,
     the outliers out, sigma the residuals' (inflated) RMS; an edge with fewer than 5
-    usable points keeps them all."""
-    from visvec.detect.edges import EDGE_VARIANCE_INFLATION, _robust_lines
+    usable points keeps them all. Compiled and on the numpy path alike (one function,
+    visvec._kernels.edge_fit.robust_lines)."""
+    import contextlib
+
+    from visvec._kernels import edge_fit as KE
+    from visvec._kernels import jit
+    from visvec.detect.edges import EDGE_VARIANCE_INFLATION
+
+    for path in (contextlib.nullcontext(), jit.numpy_path()):
+        with path:
+            _robust_lines_once(KE, EDGE_VARIANCE_INFLATION)
+
+
+def _robust_lines_once(KE, EDGE_VARIANCE_INFLATION):
+    def _robust_lines(*a):
+        return KE.robust_lines(*a, EDGE_VARIANCE_INFLATION)
 
     r = np.random.default_rng(11)
     m = [300, 200, 250]

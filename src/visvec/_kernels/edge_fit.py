@@ -483,9 +483,10 @@ def _widths(vals, n_ext, e, clear, gid, half, step, reach_min):
     return w
 
 
-def _group_median(a, gid, keep):
-    """edges._group_median: (3,) the median of ``a`` over each edge's kept points, 0
-    where an edge keeps none."""
+def _group_median(a, gid, index, keep):
+    """(3,) the median of ``a`` over each edge's kept points, 0 where an edge keeps
+    none (``index``: each point's place along its edge, which the numpy twin's table
+    takes; the loops need none)."""
     out = np.zeros(3)
     for g in range(3):
         cnt = 0
@@ -503,9 +504,27 @@ def _group_median(a, gid, keep):
     return out
 
 
+def sorted_medians(table: np.ndarray, k: np.ndarray) -> np.ndarray:
+    """Median of each row's first k values of a row-sorted table (padded with inf)."""
+    rows = np.arange(len(k))
+    return 0.5 * (table[rows, (k - 1) // 2] + table[rows, k // 2])
+
+
+def _group_median_numpy(a, gid, index, keep):
+    """_group_median with numpy, the same value as np.median: one sort of a (3,
+    longest edge) table padded with inf."""
+    table = np.full((3, int(index.max()) + 1), np.inf)
+    table[gid[keep], index[keep]] = a[keep]
+    table.sort(axis=1)
+    k = np.bincount(gid[keep], minlength=3)
+    return np.where(k > 0, sorted_medians(table, np.maximum(k, 1)), 0.0)
+
+
 # ------------------------------------------------------------------- robust lines
 def _group_tls(x, y, gid, keep):
-    """edges._group_tls."""
+    """The total-least-squares line through each edge's kept points (x, y), all three
+    at once: a LineScatter (each edge's count, centre, unit direction and normal, and
+    every point's coordinates about its edge's centre)."""
     k = np.zeros(3)
     sx = np.zeros(3)
     sy = np.zeros(3)
@@ -536,6 +555,7 @@ def _group_tls(x, y, gid, keep):
     d = np.empty((3, 2))
     n = np.empty((3, 2))
     for g in range(3):
+        # the principal axis of each 2x2 scatter matrix: 0.5 atan2(2 sxy, sxx - syy)
         a = 0.5 * math.atan2(2.0 * sxy[g], sxx[g] - syy[g])
         d[g, 0] = math.cos(a)
         d[g, 1] = math.sin(a)
@@ -544,71 +564,153 @@ def _group_tls(x, y, gid, keep):
     return LineScatter(k, c, d, n, dx, dy)
 
 
-def _robust_lines(x, y, gid, use, floor, rounds, inflation):
-    """edges._robust_lines: normals, offsets, centres, spreads, sigmas and the inliers."""
-    m_all = len(x)
-    keep = use.copy()
-    k, c, d, n, dx, dy = _group_tls(x, y, gid, keep)
-    active = np.ones(3, np.bool_)
-    a = np.empty(m_all)
-    new = np.empty(m_all, np.bool_)
-    for _ in range(rounds):
-        sigma = np.empty(3)
-        for p in range(m_all):
-            g = gid[p]
-            a[p] = abs(dx[p] * n[g, 0] + dy[p] * n[g, 1])
-        med = _group_median(a, gid, keep)
-        for g in range(3):
-            sigma[g] = max(1.4826 * med[g], floor)
-        changed = np.zeros(3, np.bool_)
-        n_new = np.zeros(3)
-        for p in range(m_all):
-            g = gid[p]
-            new[p] = use[p] and a[p] <= max(3.5 * sigma[g], 0.25)
-            if new[p] != keep[p]:
-                changed[g] = True
-            if new[p]:
-                n_new[g] += 1.0
-        any_active = False
-        for g in range(3):
-            active[g] = active[g] and changed[g] and n_new[g] >= 5
-            any_active = any_active or active[g]
-        if not any_active:
-            break
-        for p in range(m_all):
-            if active[gid[p]]:
-                keep[p] = new[p]
-        k, c, d, n, dx, dy = _group_tls(x, y, gid, keep)
+def _group_tls_numpy(x, y, gid, keep):
+    """_group_tls with numpy."""
+    w = keep.astype(float)
+    k = np.bincount(gid, w, 3)
+    kk = np.maximum(k, 1.0)
+    c = np.empty((3, 2))
+    c[:, 0] = np.bincount(gid, w * x, 3) / kk
+    c[:, 1] = np.bincount(gid, w * y, 3) / kk
+    dx, dy = x - c[gid, 0], y - c[gid, 1]
+    wdx = w * dx
+    sxx = np.bincount(gid, wdx * dx, 3)
+    syy = np.bincount(gid, w * dy * dy, 3)
+    sxy = np.bincount(gid, wdx * dy, 3)
+    a = 0.5 * np.arctan2(2.0 * sxy, sxx - syy)
+    d = np.empty((3, 2))
+    d[:, 0], d[:, 1] = np.cos(a), np.sin(a)
+    n = np.empty((3, 2))
+    n[:, 0], n[:, 1] = -d[:, 1], d[:, 0]
+    return LineScatter(k, c, d, n, dx, dy)
+
+
+def _distances(dx, dy, n, gid):
+    """(M,) each point's distance from its edge's line (dx, dy about the edge's centre)."""
+    a = np.empty(len(dx))
+    for p in range(len(dx)):
+        g = gid[p]
+        a[p] = abs(dx[p] * n[g, 0] + dy[p] * n[g, 1])
+    return a
+
+
+def _distances_numpy(dx, dy, n, gid):
+    """_distances with numpy."""
+    return np.abs(dx * n[gid, 0] + dy * n[gid, 1])
+
+
+def _inliers(a, use, keep, limit, gid):
+    """The points (of those ``use`` takes) within ``limit`` (3,) of their edge's line
+    (distances ``a``), whether each edge's differ from ``keep``, and each edge's count."""
+    new = np.empty(len(a), np.bool_)
+    changed = np.zeros(3, np.bool_)
+    count = np.zeros(3)
+    for p in range(len(a)):
+        g = gid[p]
+        new[p] = use[p] and a[p] <= limit[g]
+        if new[p] != keep[p]:
+            changed[g] = True
+        if new[p]:
+            count[g] += 1.0
+    return new, changed, count
+
+
+def _inliers_numpy(a, use, keep, limit, gid):
+    """_inliers with numpy."""
+    new = use & (a <= limit[gid])
+    return new, np.bincount(gid, new != keep, 3) > 0, np.bincount(gid, new, 3)
+
+
+def _kept_where(active, new, keep, gid):
+    """``new`` on the edges still ``active``, ``keep`` on the others."""
+    out = keep.copy()
+    for p in range(len(keep)):
+        if active[gid[p]]:
+            out[p] = new[p]
+    return out
+
+
+def _kept_where_numpy(active, new, keep, gid):
+    """_kept_where with numpy."""
+    return np.where(active[gid], new, keep)
+
+
+def _line_sums(dx, dy, n, d, gid, keep):
+    """Per edge, the kept points' sums of squares across the line and along it."""
     rss = np.zeros(3)
     spread = np.zeros(3)
-    for p in range(m_all):
+    for p in range(len(dx)):
         if keep[p]:
             g = gid[p]
             r = dx[p] * n[g, 0] + dy[p] * n[g, 1]
             t = dx[p] * d[g, 0] + dy[p] * d[g, 1]
             rss[g] += r * r
             spread[g] += t * t
-    sigmas = np.empty(3)
-    offset = np.empty(3)
-    for g in range(3):
-        sigmas[g] = max(math.sqrt(rss[g] / max(k[g] - 2.0, 1.0) * inflation), floor)
-        offset[g] = n[g, 0] * c[g, 0] + n[g, 1] * c[g, 1]
+    return rss, spread
+
+
+def _line_sums_numpy(dx, dy, n, d, gid, keep):
+    """_line_sums with numpy."""
+    w = keep.astype(float)
+    r = dx * n[gid, 0] + dy * n[gid, 1]
+    t = dx * d[gid, 0] + dy * d[gid, 1]
+    return np.bincount(gid, w * r * r, 3), np.bincount(gid, w * t * t, 3)
+
+
+def _robust_lines(x, y, gid, index, use, floor, rounds, inflation):
+    """Total-least-squares lines through each edge's points (those with ``use``), with
+    iterative outlier rejection (3.5 robust sigmas, sigma from the median absolute
+    residual, at least ``floor``), all three edges at once. An edge stops iterating when
+    its inliers no longer change or would fall under 5. The sigmas are the residuals'
+    times ``inflation`` (edges.EDGE_VARIANCE_INFLATION: neighbouring profiles share
+    pixels through the bilinear sampling, so the points are not independent). Normals
+    not yet turned into the triangle: an EdgeLines.
+
+    One function for both paths: compiled, or run as Python with the per-point parts'
+    numpy twins (visvec._kernels.jit.kernel)."""
+    keep = use.copy()
+    k, c, d, n, dx, dy = _group_tls(x, y, gid, keep)
+    active = np.ones(3, np.bool_)
+    for _ in range(rounds):
+        a = _distances(dx, dy, n, gid)
+        sigma = np.maximum(1.4826 * _group_median(a, gid, index, keep), floor)
+        new, changed, count = _inliers(a, use, keep, np.maximum(3.5 * sigma, 0.25), gid)
+        active &= changed & (count >= 5)
+        if not active.any():
+            break
+        keep = _kept_where(active, new, keep, gid)
+        k, c, d, n, dx, dy = _group_tls(x, y, gid, keep)
+    rss, spread = _line_sums(dx, dy, n, d, gid, keep)
+    sigmas = np.maximum(np.sqrt(rss / np.maximum(k - 2.0, 1.0) * inflation), floor)
+    offset = n[:, 0] * c[:, 0] + n[:, 1] * c[:, 1]
     return EdgeLines(n, offset, c, spread, sigmas, keep)
 
 
-def _inward_lines(x, y, gid, clear, floor, rounds, inflation):
-    """edges._lines after its points: each edge's points with a clear step (all of them
-    where fewer than 5 are clear) through _robust_lines, the normals turned into the
-    triangle (towards the mean of the edges' centres)."""
-    m_all = len(x)
+def _usable(clear, gid):
+    """The points a line is fitted through: an edge's with a clear step, all of them
+    where fewer than 5 are clear."""
     n_clear = np.zeros(3)
-    for p in range(m_all):
+    for p in range(len(clear)):
         if clear[p]:
             n_clear[gid[p]] += 1.0
-    use = np.empty(m_all, np.bool_)
-    for p in range(m_all):
+    use = np.empty(len(clear), np.bool_)
+    for p in range(len(clear)):
         use[p] = clear[p] or n_clear[gid[p]] < 5
-    n, offset, c, spread, sigmas, keep = robust_lines(x, y, gid, use, floor, rounds, inflation)
+    return use
+
+
+def _usable_numpy(clear, gid):
+    """_usable with numpy."""
+    return clear | (np.bincount(gid, clear, 3) < 5)[gid]
+
+
+def _inward_lines(x, y, gid, index, clear, floor, rounds, inflation):
+    """The three edge lines through the points (x, y) (edges._lines): _robust_lines
+    through the usable ones (_usable), the normals turned into the triangle (towards
+    the mean of the edges' centres: a point on each side is inside; compared as sums,
+    n . sum < 3 offset). One function for both paths."""
+    n, offset, c, spread, sigmas, keep = robust_lines(x, y, gid, index, _usable(clear, gid),
+                                                      floor, rounds, inflation)  # fmt: skip
     sx = c[0, 0] + c[1, 0] + c[2, 0]
     sy = c[0, 1] + c[1, 1] + c[2, 1]
     for g in range(3):
@@ -691,9 +793,14 @@ _levels_suspect = kernel(globals(), "_levels_suspect", _levels_suspect)
 _level_lines = kernel(globals(), "_level_lines", _level_lines)
 positions = kernel(globals(), "positions", _positions)
 widths = kernel(globals(), "widths", _widths)
-_group_tls = kernel(globals(), "_group_tls", _group_tls)
-group_median = kernel(globals(), "group_median", _group_median)
-_group_median = kernel(globals(), "_group_median", _group_median)
+_group_tls = kernel(globals(), "_group_tls", _group_tls, numpy=_group_tls_numpy)
+group_median = kernel(globals(), "group_median", _group_median, numpy=_group_median_numpy)
+_group_median = kernel(globals(), "_group_median", _group_median, numpy=_group_median_numpy)
+_distances = kernel(globals(), "_distances", _distances, numpy=_distances_numpy)
+_inliers = kernel(globals(), "_inliers", _inliers, numpy=_inliers_numpy)
+_kept_where = kernel(globals(), "_kept_where", _kept_where, numpy=_kept_where_numpy)
+_line_sums = kernel(globals(), "_line_sums", _line_sums, numpy=_line_sums_numpy)
+_usable = kernel(globals(), "_usable", _usable, numpy=_usable_numpy)
 robust_lines = kernel(globals(), "robust_lines", _robust_lines)
 inward_lines = kernel(globals(), "inward_lines", _inward_lines)
 level_gain = kernel(globals(), "level_gain", _level_gain)

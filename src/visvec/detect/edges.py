@@ -20,8 +20,8 @@ from visvec._kernels import edge_fit as kernels
 from visvec._kernels import jit
 from visvec._kernels.edge_fit import (
     EdgeLines,
-    LineScatter,
     StepPositions,
+    sorted_medians,
     step_residual,
     vertices,
 )
@@ -198,91 +198,6 @@ def _group_linear(
     return out
 
 
-def _group_tls(x: np.ndarray, y: np.ndarray, gid: np.ndarray, keep: np.ndarray) -> LineScatter:
-    """Total-least-squares line through each edge's kept points (x, y), all three at once.
-
-    Returns the count (3,), centre (3, 2), unit direction (3, 2), unit normal (3, 2) and
-    the centred coordinates dx, dy (M,) of every point about its edge's centre.
-    """
-    w = keep.astype(float)
-    k = np.bincount(gid, w, 3)
-    kk = np.maximum(k, 1.0)
-    c = np.empty((3, 2))
-    c[:, 0] = np.bincount(gid, w * x, 3) / kk
-    c[:, 1] = np.bincount(gid, w * y, 3) / kk
-    dx, dy = x - c[gid, 0], y - c[gid, 1]
-    wdx = w * dx
-    sxx = np.bincount(gid, wdx * dx, 3)
-    syy = np.bincount(gid, w * dy * dy, 3)
-    sxy = np.bincount(gid, wdx * dy, 3)
-    # direction: principal axis of each 2x2 scatter matrix, angle 0.5 atan2(2 sxy, sxx - syy)
-    a = 0.5 * np.arctan2(2.0 * sxy, sxx - syy)
-    d = np.empty((3, 2))
-    d[:, 0], d[:, 1] = np.cos(a), np.sin(a)
-    n = np.empty((3, 2))
-    n[:, 0], n[:, 1] = -d[:, 1], d[:, 0]
-    return LineScatter(k, c, d, n, dx, dy)
-
-
-def _sorted_medians(table: np.ndarray, k: np.ndarray) -> np.ndarray:
-    """Median of each row's first k values of a row-sorted table (padded with inf)."""
-    rows = np.arange(len(k))
-    return 0.5 * (table[rows, (k - 1) // 2] + table[rows, k // 2])
-
-
-def _group_median(a: np.ndarray, gid: np.ndarray, index: np.ndarray, keep: np.ndarray):
-    """(3,) median of ``a`` over each edge's kept points (index: position along the edge),
-    the same value as np.median: one sort of a (3, longest edge) table padded with inf."""
-    if jit.ON:
-        return kernels.group_median(np.asarray(a, float), gid, keep)
-    table = np.full((3, int(index.max()) + 1), np.inf)
-    table[gid[keep], index[keep]] = a[keep]
-    table.sort(axis=1)
-    k = np.bincount(gid[keep], minlength=3)
-    return np.where(k > 0, _sorted_medians(table, np.maximum(k, 1)), 0.0)
-
-
-def _robust_lines(
-    x: np.ndarray,
-    y: np.ndarray,
-    gid: np.ndarray,
-    index: np.ndarray,
-    use: np.ndarray,
-    floor: float,
-    rounds: int,
-) -> EdgeLines:
-    """Total-least-squares lines through each edge's points (those with ``use``), with
-    iterative outlier rejection (3.5 robust sigmas, sigma from the median absolute
-    residual), all three edges at once. An edge stops iterating when its inliers no
-    longer change or would fall under 5. Normals not yet turned into the triangle."""
-    if jit.ON:
-        return kernels.robust_lines(x, y, gid, use, float(floor), int(rounds),
-                                      EDGE_VARIANCE_INFLATION)  # fmt: skip
-    keep = use.copy()
-    k, c, d, n, dx, dy = _group_tls(x, y, gid, keep)
-    active = np.ones(3, dtype=bool)
-    for _ in range(rounds):
-        a = np.abs(dx * n[gid, 0] + dy * n[gid, 1])
-        sigma = np.maximum(1.4826 * _group_median(a, gid, index, keep), floor)
-        new = use & (a <= np.maximum(3.5 * sigma, 0.25)[gid])
-        changed = np.bincount(gid, new != keep, 3) > 0
-        active &= changed & (np.bincount(gid, new, 3) >= 5)
-        if not active.any():
-            break
-        keep = np.where(active[gid], new, keep)
-        k, c, d, n, dx, dy = _group_tls(x, y, gid, keep)
-    w = keep.astype(float)
-    r = dx * n[gid, 0] + dy * n[gid, 1]
-    t = dx * d[gid, 0] + dy * d[gid, 1]
-    # EDGE_VARIANCE_INFLATION: neighbouring profiles share pixels through the bilinear
-    # sampling, so the points are not independent.
-    rss = np.bincount(gid, w * r * r, 3)
-    sigma = np.maximum(np.sqrt(rss / np.maximum(k - 2, 1) * EDGE_VARIANCE_INFLATION), floor)
-    spread = np.bincount(gid, w * t * t, 3)
-    offset = np.einsum("ij,ij->i", n, c)
-    return EdgeLines(n, offset, c, spread, sigma, keep)
-
-
 def _levels_suspect(
     r_lo: np.ndarray,
     r_hi: np.ndarray,
@@ -349,7 +264,7 @@ def _level_lines(
     table[row + 2, col] = hi_raw
     table.sort(axis=1)
     k = np.array([[a, c - a, a, c - a] for a, c in zip(n0, nc, strict=True)]).ravel()
-    med = _sorted_medians(table, k).reshape(3, 2, 2)  # edge, lo/hi, half
+    med = sorted_medians(table, k).reshape(3, 2, 2)  # edge, lo/hi, half
     # t ascends along the edge: the median of a half is its middle profile's t
     t0, t1 = [], []
     for s0, a, c in zip(starts, n0, nc, strict=True):
@@ -364,7 +279,7 @@ def _level_lines(
     table[gid, index] = res_lo
     table[gid + 3, index] = res_hi
     table.sort(axis=1)
-    scale = _sorted_medians(table, np.concatenate([counts, counts]))
+    scale = sorted_medians(table, np.concatenate([counts, counts]))
     lim = np.maximum(LEVEL_OUTLIER_SIGMAS * 1.4826 * scale, LEVEL_OUTLIER_MIN)
     lim_lo, lim_hi = lim[gid], lim[gid + 3]
     ok = None
@@ -656,7 +571,7 @@ def _profiles(roi, corners, off, half, ext, step, trims, spacing, width) -> _Pro
     e, h, mid, level_sd, level_ok = _positions(vals, t, gid, half, step, width, ext)
     # per edge, the median step height; a profile has a clear step if its position is
     # inside the window and its height at least 0.4x that median
-    h_mid = _group_median(h, gid, index, np.ones(len(h), dtype=bool))
+    h_mid = kernels.group_median(np.asarray(h, float), gid, index, np.ones(len(h), np.bool_))
     clear = (np.abs(e) < half - 1.0) & (h > 0.4 * np.maximum(h_mid, 1e-6)[gid]) & level_ok
     return _Profiles(bases, normals, gid, index, along, lengths, vals, e, mid, level_sd, h_mid,
                      clear)  # fmt: skip
@@ -671,21 +586,11 @@ def _lines(raw, pts_px, pr: _Profiles, camera, shutter, rate_c, sigma_floor,
     ideal = raw * f
     if shutter is not None and rate_c is not None:
         ideal = unroll(raw, pts_px[:, 1], camera, rate_c, shutter.readout_ms, shutter.lever) * f
-    gid, clear = pr.gid, pr.clear
-    if jit.ON:  # the same, compiled (the fast extra)
-        out = kernels.inward_lines(ideal[:, 0], ideal[:, 1], gid, clear, float(sigma_floor),
-                                     int(rounds), EDGE_VARIANCE_INFLATION)  # fmt: skip
-        return out, ideal
-    # an edge's points with a clear step; all of them if fewer than 5 are clear
-    use = clear | (np.bincount(gid, clear, 3) < 5)[gid]
-    normals_l, offsets, centres, spreads, sigmas, keep = _robust_lines(
-        ideal[:, 0], ideal[:, 1], gid, pr.index, use, sigma_floor, rounds
-    )
-    # normals into the triangle: towards the mean of the three edges' centres (a point
-    # on each side: inside; compared as sums, n . sum < 3 offset)
-    flip = np.where(normals_l @ centres.sum(axis=0) < 3.0 * offsets, -1.0, 1.0)
-    return EdgeLines(normals_l * flip[:, None], offsets * flip, centres, spreads, sigmas,
-                     keep), ideal  # fmt: skip
+    # one function for both paths (compiled, or its Python source on numpy twins)
+    floor, inflation = float(sigma_floor), EDGE_VARIANCE_INFLATION
+    out = kernels.inward_lines(ideal[:, 0], ideal[:, 1], pr.gid, pr.index, pr.clear, floor,
+                               int(rounds), inflation)  # fmt: skip
+    return out, ideal
 
 
 def lag_sums(ideal, gid, keep, normals, offsets, sigmas) -> np.ndarray:
@@ -865,7 +770,7 @@ def _shutter_gain(
         w = np.array(omega_c, float)
         w[k - 1] += SHUTTER_GAIN_STEP
         p = unroll(xy, rows, camera, w, shutter.readout_ms, shutter.lever)
-        _, c, _, n, _, _ = _group_tls(p[:, 0], p[:, 1], gid, keep)
+        _, c, _, n, _, _ = kernels._group_tls_numpy(p[:, 0], p[:, 1], gid, keep)
         n = n * np.where(np.sum(n * normals, axis=1) < 0.0, -1.0, 1.0)[:, None]
         V.append(vertices(n, np.sum(n * c, axis=1))[0].ravel())
     return np.column_stack([(V[k] - V[0]) / SHUTTER_GAIN_STEP for k in (1, 2, 3)])
