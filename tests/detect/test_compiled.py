@@ -219,7 +219,7 @@ def _as_python(kernel):
     inner = {n: getattr(_home(n), n) for n in ("_group_linear", "_levels_suspect",
                                                  "_level_lines", "_group_tls",
                                                  "_group_median", "_lag_sums", "_erf_with_bell",
-                                                 "_step_residual",
+                                                 "_step_residual", "_position_step",
                                                  "_phi_of", "_across_edge", "_pixel_residual",
                                                  "_pixel_gn", "_strided",
                                                  "noise_inflation", "_cover",

@@ -140,6 +140,14 @@ def step_residual(f, x, e, s2):
     return f - 0.5 * (1.0 + _erf_with_bell(u, bell)), bell / (_SQRT_PI * s2)
 
 
+def position_step(num, den):
+    """The Gauss-Newton step of a profile's step position (px, subtracted from it):
+    sum(r g) / sum(g^2) over its samples (``num``, ``den``; step_residual's r and g),
+    at most half a pixel each way. Written once for both paths: arrays (every profile
+    at once) or floats (the compiled one, profile by profile)."""
+    return np.minimum(np.maximum(num / np.maximum(den, 1e-12), -0.5), 0.5)
+
+
 def vertices(normals: np.ndarray, offsets: np.ndarray) -> tuple[np.ndarray, list | None]:
     """The triangle's vertices (3, 2) in ideal pixels from its three lines n . x = offset
     (line i opposite vertex i; the edge fit's and the pixel fit's) and, per vertex i,
@@ -405,7 +413,7 @@ def _positions(vals, t, gid, half, step, width, n_ext, ends, gn_steps,
                     r, g = _step_residual(f[j], -half + j * step, ep, s2)
                     num += r * g
                     den += g * g
-                ep = ep - min(max(num / max(den, 1e-12), -0.5), 0.5)
+                ep = ep - _position_step(num, den)
         e[p] = ep
     cnt = np.zeros(3)
     s_lo = np.zeros(3)
@@ -787,6 +795,7 @@ def _edge_lag_sums(ideal, gid, keep, normals, offsets, sigmas, lags):
 
 _erf_with_bell = kernel(globals(), "_erf_with_bell", erf_with_bell)
 _step_residual = kernel(globals(), "_step_residual", step_residual)
+_position_step = kernel(globals(), "_position_step", position_step)
 sample_geometry = kernel(globals(), "sample_geometry", _sample_geometry)
 _group_linear = kernel(globals(), "_group_linear", _group_linear)
 _levels_suspect = kernel(globals(), "_levels_suspect", _levels_suspect)

@@ -21,6 +21,7 @@ from visvec._kernels import jit
 from visvec._kernels.edge_fit import (
     EdgeLines,
     StepPositions,
+    position_step,
     sorted_medians,
     step_residual,
     vertices,
@@ -398,7 +399,7 @@ def _positions(
         s2 = (np.sqrt(2.0) * width[gid])[:, None]
         for _ in range(GN_STEPS):
             r, g = step_residual(f, x, e[:, None], s2)
-            e = e - np.clip((r * g).sum(axis=1) / np.maximum((g * g).sum(axis=1), 1e-12), -0.5, 0.5)
+            e = e - position_step((r * g).sum(axis=1), (g * g).sum(axis=1))
     w = level_ok.astype(float)
     cnt = np.maximum(np.bincount(gid, w, 3), 1)
     mid = (np.bincount(gid, w * lo, 3) + np.bincount(gid, w * hi, 3)) / (2 * cnt)
