@@ -217,6 +217,9 @@ def _path(compiled):
 def _as_python(kernel):
     """The kernel and the kernels it calls as plain Python."""
     inner = {n: getattr(_home(n), n) for n in ("_group_linear", "_levels_suspect",
+                                                 "_resistant_residuals", "_level_inliers",
+                                                 "_edge_starts", "_end_levels", "_area_positions",
+                                                 "_position_sums", "_level_stats",
                                                  "_level_lines", "_group_tls",
                                                  "_group_median", "_lag_sums", "_erf_with_bell",
                                                  "_step_residual", "_position_step",

@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from visvec.data import Status
-from visvec.detect import TriangleDetector
+from visvec.detect import TriangleDetector, edges
 from visvec.geometry import project_target
 from visvec.rotations import euler_to_matrix
 from visvec.sim.render import render_frame
@@ -216,8 +216,12 @@ def test_level_lines_ignore_profiles_with_something_else_in_their_window():
     """Board levels along an edge with a lighting gradient; a dark head lies in the
     windows of 12 of 48 profiles. The level lines follow the board and the triangle, not
     the head; every profile of the head is flagged, and of the others only the odd one
-    whose noise draw lies beyond the 3.5-sigma limit."""
-    from visvec.detect.edges import _level_lines
+    whose noise draw lies beyond the 3.5-sigma limit. Compiled and on the numpy path
+    alike (one function, visvec._kernels.edge_fit._level_lines)."""
+    import contextlib
+
+    from visvec._kernels import edge_fit as KE
+    from visvec._kernels import jit
 
     rng = np.random.default_rng(3)
     m = 48
@@ -227,28 +231,43 @@ def test_level_lines_ignore_profiles_with_something_else_in_their_window():
     hi_raw = hi_true + rng.normal(0, 1.0, 3 * m)
     head = (gid == 0) & (np.abs(t - 0.1) < 0.25)
     lo_raw[head] -= rng.uniform(8.0, 35.0, head.sum())
-    lo, hi, ok = _level_lines(t, lo_raw, hi_raw, gid)
-    assert np.all(~ok[head])
-    assert np.count_nonzero(~ok & ~head) <= 2
-    assert np.abs(lo - lo_true).max() < 1.0
-    assert np.abs(hi - hi_true).max() < 1.0
+    starts = np.array([0, m, 2 * m, 3 * m])
+    limits = (edges.LEVEL_OUTLIER_SIGMAS, edges.LEVEL_OUTLIER_MIN, edges.LEVEL_SUSPECT_RMS,
+              edges.LEVEL_SUSPECT_MAX)  # fmt: skip
+    for path in (contextlib.nullcontext(), jit.numpy_path()):
+        with path:
+            lo, hi, ok = KE._level_lines(t, lo_raw, hi_raw, gid, starts, *limits)
+        assert np.all(~ok[head])
+        assert np.count_nonzero(~ok & ~head) <= 2
+        assert np.abs(lo - lo_true).max() < 1.0
+        assert np.abs(hi - hi_true).max() < 1.0
 
 
 def test_level_lines_take_the_fast_path_only_when_nothing_else_is_in_the_windows():
     """Least-squares level lines are kept as they are when their residuals are the
     profiles' noise (a lighting gradient along the edge included); a dark head over a
     stretch of one edge, or one light in one profile, sends the edge to the robust
-    fit."""
-    from visvec.detect.edges import _group_linear, _levels_suspect
+    fit. The numpy twins and the loops alike."""
+    from visvec._kernels import edge_fit as KE
 
     rng = np.random.default_rng(5)
     m = 60
     gid, t = np.repeat(np.arange(3), m), np.tile(np.linspace(-1, 1, m), 3)
-    counts = np.bincount(gid, minlength=3)
+    starts = np.array([0, m, 2 * m, 3 * m])
+    none = np.zeros(0, bool)
+
+    limits = (edges.LEVEL_SUSPECT_RMS, edges.LEVEL_SUSPECT_MAX)
 
     def suspect(lo_raw, hi_raw):
-        lo, hi = _group_linear(t, (lo_raw, hi_raw), gid, 3)
-        return _levels_suspect(lo_raw - lo, hi_raw - hi, lo_raw, hi_raw, counts)
+        got = set()
+        for group_linear, levels_suspect in ((KE._group_linear_numpy, KE._levels_suspect_numpy),
+                                             (KE._group_linear, KE._levels_suspect)):  # fmt: skip
+            lo = group_linear(t, lo_raw, gid, none, False)
+            hi = group_linear(t, hi_raw, gid, none, False)
+            got.add(bool(levels_suspect(lo_raw - lo, hi_raw - hi, lo_raw, hi_raw, starts,
+                                        *limits)))  # fmt: skip
+        assert len(got) == 1
+        return got.pop()
 
     clean = [
         (70.0 + 4.0 * t + rng.normal(0, 1.5, 3 * m), 98.0 + 5.0 * t + rng.normal(0, 1.5, 3 * m))

@@ -6,9 +6,11 @@ most of its time there starting its array operations, not doing them. Each kerne
 is one of edges' functions written as loops over the profiles, the same arithmetic in
 the same order where the order matters, so that the results agree with the numpy
 functions to rounding (tests/detect/test_compiled.py checks them against each other on
-frames of every kind the tests render). Compiled by Numba with the ``fast`` extra
-(visvec._kernels.jit); the results are NamedTuples, which Numba builds and reads as it
-does plain tuples, so that the numpy and the compiled fit return the same names."""
+frames of every kind the tests render). The robust lines' rounds (robust_lines,
+inward_lines) are one function for both paths, their per-point parts loops with numpy
+twins. Compiled by Numba with the ``fast`` extra (visvec._kernels.jit); the results
+are NamedTuples, which Numba builds and reads as it does plain tuples, so that the
+numpy and the compiled fit return the same names."""
 
 from __future__ import annotations
 
@@ -34,7 +36,7 @@ _SQRT_2PI = math.sqrt(2.0 * math.pi)
 
 
 class EdgeLines(NamedTuple):
-    """The three edges' total-least-squares lines (edges._robust_lines, _lines).
+    """The three edges' total-least-squares lines (robust_lines, inward_lines).
 
     Attributes
     ----------
@@ -101,8 +103,8 @@ class StepPositions(NamedTuple):
 
 
 class LineScatter(NamedTuple):
-    """The total-least-squares line through each edge's kept points (edges._group_tls
-    and its kernel).
+    """The total-least-squares line through each edge's kept points (_group_tls and
+    its numpy twin).
 
     Attributes
     ----------
@@ -236,8 +238,8 @@ def _sample_geometry(corners, off, offs, trims, spacing, max_per_edge):
 
 # ------------------------------------------------------- levels (_level_lines and co)
 def _group_linear(t, y, gid, keep, use_keep):
-    """edges._group_linear for one y: each edge's least-squares line of y against t
-    (over ``keep`` when use_keep), evaluated at every t."""
+    """Each edge's least-squares line of y against t (over ``keep`` when use_keep),
+    evaluated at every t."""
     w = np.zeros(3)
     st = np.zeros(3)
     stt = np.zeros(3)
@@ -265,8 +267,31 @@ def _group_linear(t, y, gid, keep, use_keep):
     return out
 
 
+def _group_linear_numpy(t, y, gid, keep, use_keep):
+    """_group_linear with numpy."""
+    if use_keep:
+        wt, sel, yk = t[keep], gid[keep], y[keep]
+    else:
+        wt, sel, yk = t, gid, y
+    w = np.bincount(sel, minlength=3)
+    st = np.bincount(sel, wt, 3)
+    stt = np.bincount(sel, wt * wt, 3)
+    den = w * stt - st * st
+    ok = np.abs(den) > 1e-12
+    den = np.where(ok, den, 1.0)
+    sy = np.bincount(sel, yk, 3)
+    slope = np.where(ok, (w * np.bincount(sel, wt * yk, 3) - st * sy) / den, 0.0)
+    icpt = (sy - slope * st) / np.maximum(w, 1)
+    return icpt[gid] + slope[gid] * t
+
+
 def _levels_suspect(r_lo, r_hi, lo_raw, hi_raw, starts, suspect_rms, suspect_max):
-    """edges._levels_suspect (the edges' profiles from ``starts`` (4,) on)."""
+    """Whether any edge's level residuals (r_lo, r_hi about least-squares lines; the
+    edges' profiles one after the other, edge g's from starts[g] to starts[g + 1]) are
+    more than the profiles' noise explains (an RMS above ``suspect_rms`` times, or one
+    residual above ``suspect_max`` times, the noise; edges.LEVEL_SUSPECT_RMS, _MAX); the
+    noise variance of each level from the differences of neighbouring profiles, half
+    their mean square."""
     for row in range(2):
         raw = lo_raw if row == 0 else hi_raw
         r = r_lo if row == 0 else r_hi
@@ -293,18 +318,32 @@ def _levels_suspect(r_lo, r_hi, lo_raw, hi_raw, starts, suspect_rms, suspect_max
     return False
 
 
-def _level_lines(t, lo_raw, hi_raw, gid, starts, outlier_sigmas, outlier_min,
-                 suspect_rms, suspect_max):  # fmt: skip
-    """edges._level_lines: lo, hi on the final lines and the profiles whose levels
-    passed."""
+def _levels_suspect_numpy(r_lo, r_hi, lo_raw, hi_raw, starts, suspect_rms, suspect_max):
+    """_levels_suspect with numpy (each edge's sums in one reduceat)."""
+    counts = np.diff(starts)
+    first = starts[:3]
+    d = np.diff(np.stack((lo_raw, hi_raw)), axis=1)
+    d[:, starts[1] - 1] = 0.0  # the steps from one edge to the next
+    d[:, starts[2] - 1] = 0.0
+    d *= d
+    noise2 = np.add.reduceat(d, first, axis=1) / (2.0 * np.maximum(counts - 1, 1))
+    noise2 = np.maximum(noise2, 1e-6)
+    r = np.stack((r_lo, r_hi))
+    r *= r
+    if np.any(
+        np.add.reduceat(r, first, axis=1) > suspect_rms**2 * np.maximum(counts - 2, 1) * noise2
+    ):
+        return True
+    return bool(np.any(np.maximum.reduceat(r, first, axis=1) > suspect_max**2 * noise2))
+
+
+def _resistant_residuals(t, lo_raw, hi_raw, gid, starts, outlier_sigmas, outlier_min):
+    """Each profile's levels' distances (res_lo, res_hi (M,)) from resistant lines: per
+    edge through the medians (of t and of the level) of each half of the edge (t
+    ascends along it), and each edge's limits on them (lim_lo, lim_hi (3,)):
+    ``outlier_sigmas`` robust sigmas (1.4826 x the median distance), at least
+    ``outlier_min``."""
     m_all = len(t)
-    none = np.zeros(0, np.bool_)
-    lo = _group_linear(t, lo_raw, gid, none, False)
-    hi = _group_linear(t, hi_raw, gid, none, False)
-    ok = np.ones(m_all, np.bool_)
-    if not _levels_suspect(lo_raw - lo, hi_raw - hi, lo_raw, hi_raw, starts, suspect_rms,
-                           suspect_max):  # fmt: skip
-        return lo, hi, ok
     res_lo = np.empty(m_all)
     res_hi = np.empty(m_all)
     lim_lo = np.empty(3)
@@ -312,8 +351,6 @@ def _level_lines(t, lo_raw, hi_raw, gid, starts, outlier_sigmas, outlier_min,
     for g in range(3):
         a, c = starts[g], starts[g + 1] - starts[g]
         n0 = c // 2
-        # resistant lines through the medians of each half's levels, at the halves'
-        # middle t (t ascends along the edge)
         m_lo0 = np.median(lo_raw[a : a + n0].astype(np.float64))
         m_lo1 = np.median(lo_raw[a + n0 : a + c].astype(np.float64))
         m_hi0 = np.median(hi_raw[a : a + n0].astype(np.float64))
@@ -329,56 +366,129 @@ def _level_lines(t, lo_raw, hi_raw, gid, starts, outlier_sigmas, outlier_min,
             res_hi[p] = abs(hi_raw[p] - m_hi0 - s_hi * u)
         lim_lo[g] = max(outlier_sigmas * 1.4826 * np.median(res_lo[a : a + c]), outlier_min)
         lim_hi[g] = max(outlier_sigmas * 1.4826 * np.median(res_hi[a : a + c]), outlier_min)
-    have = False
+    return res_lo, res_hi, lim_lo, lim_hi
+
+
+def _resistant_residuals_numpy(t, lo_raw, hi_raw, gid, starts, outlier_sigmas, outlier_min):
+    """_resistant_residuals with numpy: the halves' medians from one sort of a table of
+    them, the distances' medians from another."""
+    m = len(gid)
+    nc = np.diff(starts)
+    index = np.arange(m) - starts[gid]
+    n0 = nc // 2  # profiles in each edge's first half
+    h0 = n0[gid]
+    second = index >= h0
+    col = index - h0 * second
+    # the medians of the halves: rows 4 g + 2 (hi) + (second half)
+    row = 4 * gid + second
+    table = np.full((12, int(nc.max() - n0.min()) + 1), np.inf)
+    table[row, col] = lo_raw
+    table[row + 2, col] = hi_raw
+    table.sort(axis=1)
+    k = np.column_stack([n0, nc - n0, n0, nc - n0]).ravel()
+    med = sorted_medians(table, k).reshape(3, 2, 2)  # edge, lo/hi, half
+    # t ascends along the edge: the median of a half is its middle profile's t
+    s0 = starts[:3]
+    t0 = 0.5 * (t[s0 + (n0 - 1) // 2] + t[s0 + n0 // 2])
+    t1 = 0.5 * (t[s0 + n0 + (nc - n0 - 1) // 2] + t[s0 + n0 + (nc - n0) // 2])
+    dt = np.where(np.abs(t1 - t0) > 1e-9, t1 - t0, 1.0)
+    slope = (med[:, :, 1] - med[:, :, 0]) / dt[:, None]  # (3, 2)
+    u = t - t0[gid]
+    res_lo = np.abs(lo_raw - med[gid, 0, 0] - slope[gid, 0] * u)
+    res_hi = np.abs(hi_raw - med[gid, 1, 0] - slope[gid, 1] * u)
+    table = np.full((6, int(nc.max())), np.inf)
+    table[gid, index] = res_lo
+    table[gid + 3, index] = res_hi
+    table.sort(axis=1)
+    scale = sorted_medians(table, np.concatenate([nc, nc]))
+    lim = np.maximum(outlier_sigmas * 1.4826 * scale, outlier_min)
+    return res_lo, res_hi, lim[:3], lim[3:]
+
+
+def _level_inliers(res_lo, res_hi, lim_lo, lim_hi, gid):
+    """The profiles whose two levels lie within their edge's limits; an edge that would
+    keep fewer than 5 (too few for a line) keeps them all."""
+    m_all = len(res_lo)
     new = np.empty(m_all, np.bool_)
-    for _ in range(2):
-        cnt = np.zeros(3)
-        for p in range(m_all):
-            g = gid[p]
-            new[p] = res_lo[p] <= lim_lo[g] and res_hi[p] <= lim_hi[g]
-            if new[p]:
-                cnt[g] += 1.0
-        for p in range(m_all):
-            if cnt[gid[p]] < 5:
-                new[p] = True
-        if have:
-            same = True
-            for p in range(m_all):
-                if new[p] != ok[p]:
-                    same = False
-                    break
-            if same:
-                break
-        ok = new.copy()
-        have = True
-        every = True
-        for p in range(m_all):
-            if not ok[p]:
-                every = False
-                break
+    cnt = np.zeros(3)
+    for p in range(m_all):
+        g = gid[p]
+        new[p] = res_lo[p] <= lim_lo[g] and res_hi[p] <= lim_hi[g]
+        if new[p]:
+            cnt[g] += 1.0
+    for p in range(m_all):
+        if cnt[gid[p]] < 5:
+            new[p] = True
+    return new
+
+
+def _level_inliers_numpy(res_lo, res_hi, lim_lo, lim_hi, gid):
+    """_level_inliers with numpy."""
+    new = (res_lo <= lim_lo[gid]) & (res_hi <= lim_hi[gid])
+    return new | (np.bincount(gid, new, 3) < 5)[gid]
+
+
+def _level_lines(t, lo_raw, hi_raw, gid, starts, outlier_sigmas, outlier_min,
+                 suspect_rms, suspect_max):  # fmt: skip
+    """Board (lo) and triangle (hi) level lines along each edge, robust to profiles
+    whose window holds something else (edges.LEVEL_OUTLIER_SIGMAS). The profiles are in
+    order along each edge (t ascending), the edges one after the other (edge g's from
+    starts[g]).
+
+    Least-squares lines through every profile are kept when their residuals are what
+    the profiles' noise explains (_levels_suspect). Otherwise the first lines are
+    resistant ones (_resistant_residuals), which follow a lighting gradient and are not
+    moved by outliers in under half of either half of an edge; the profiles whose two
+    levels lie within ``outlier_sigmas`` robust sigmas of them are kept
+    (_level_inliers) and least-squares lines fitted to them; once more if the kept set
+    changes against those lines. Returns lo, hi (M,) on the final lines and the mask of
+    profiles whose levels passed (M,).
+
+    One function for both paths: compiled, or run as Python with the per-profile
+    parts' numpy twins (visvec._kernels.jit.kernel)."""
+    none = np.zeros(0, np.bool_)
+    lo = _group_linear(t, lo_raw, gid, none, False)
+    hi = _group_linear(t, hi_raw, gid, none, False)
+    ok = np.ones(len(t), np.bool_)
+    if not _levels_suspect(lo_raw - lo, hi_raw - hi, lo_raw, hi_raw, starts, suspect_rms,
+                           suspect_max):  # fmt: skip
+        return lo, hi, ok
+    res_lo, res_hi, lim_lo, lim_hi = _resistant_residuals(t, lo_raw, hi_raw, gid, starts,
+                                                          outlier_sigmas, outlier_min)  # fmt: skip
+    for it in range(2):
+        new = _level_inliers(res_lo, res_hi, lim_lo, lim_hi, gid)
+        if it > 0 and np.array_equal(new, ok):
+            break
+        ok = new
+        every = ok.all()
         lo = _group_linear(t, lo_raw, gid, ok, not every)
         hi = _group_linear(t, hi_raw, gid, ok, not every)
-        for p in range(m_all):
-            res_lo[p] = abs(lo_raw[p] - lo[p])
-            res_hi[p] = abs(hi_raw[p] - hi[p])
+        res_lo = np.abs(lo_raw - lo)
+        res_hi = np.abs(hi_raw - hi)
     return lo, hi, ok
 
 
 # ------------------------------------------------------------------ step positions
-def _positions(vals, t, gid, half, step, width, n_ext, ends, gn_steps,
-               outlier_sigmas, outlier_min, suspect_rms, suspect_max):  # fmt: skip
-    """edges._positions: each profile's step position, its step height, per edge the
-    mid level and the levels' scatter, and the profiles whose levels agree (the edges'
-    profiles one after the other, as _sample gives them)."""
-    m_all = vals.shape[0]
+def _edge_starts(gid):
+    """(4,) where each edge's profiles start (the edges one after the other), and the
+    end."""
     starts = np.zeros(4, np.int64)
-    for p in range(m_all):
+    for p in range(len(gid)):
         starts[gid[p] + 1] += 1
     for g in range(3):
         starts[g + 1] += starts[g]
-    n_tot = vals.shape[1]
-    # the means of the first and last ``ends`` samples, in float32 as numpy takes the
-    # mean of float32 samples
+    return starts
+
+
+def _edge_starts_numpy(gid):
+    """_edge_starts with numpy."""
+    return np.concatenate((np.zeros(1, np.int64), np.cumsum(np.bincount(gid, minlength=3))))
+
+
+def _end_levels(vals, ends):
+    """Each profile's levels at its ends (M,) each: the means of its first and last
+    ``ends`` samples, in float32 as numpy takes the mean of float32 samples."""
+    m_all, n_tot = vals.shape
     lo_raw = np.empty(m_all, np.float32)
     hi_raw = np.empty(m_all, np.float32)
     n_ends = np.float32(ends)
@@ -390,36 +500,79 @@ def _positions(vals, t, gid, half, step, width, n_ext, ends, gn_steps,
             b += vals[p, n_tot - ends + j]
         lo_raw[p] = a / n_ends
         hi_raw[p] = b / n_ends
-    lo, hi, level_ok = _level_lines(t, lo_raw, hi_raw, gid, starts, outlier_sigmas,
-                                    outlier_min, suspect_rms, suspect_max)  # fmt: skip
-    s_in = n_tot - 2 * n_ext
+    return lo_raw, hi_raw
+
+
+def _end_levels_numpy(vals, ends):
+    """_end_levels with numpy (np.add.reduce: a mean without its wrapper's overhead)."""
+    return np.add.reduce(vals[:, :ends], axis=1) / ends, np.add.reduce(
+        vals[:, -ends:], axis=1
+    ) / ends
+
+
+def _area_positions(vals, lo, hi, n_ext, half, step):
+    """Each profile's samples inside the window (vals[:, n_ext : -n_ext]) normalised
+    between its levels, f (M, S), and its step position by the area estimator: for a
+    step from lo to hi blurred by any symmetric kernel narrower than the window, the
+    integral of f from -half to +half (trapezoids, ``step`` apart) is half - e."""
+    m_all = vals.shape[0]
+    s_in = vals.shape[1] - 2 * n_ext
+    f = np.empty((m_all, s_in))
     e = np.empty(m_all)
-    f = np.empty(s_in)
-    fit = len(width) == 3
     for p in range(m_all):
         h = hi[p] - lo[p]
         safe = h if abs(h) > 1e-6 else 1e-6
         total = 0.0
         for j in range(s_in):
-            f[j] = (vals[p, n_ext + j] - lo[p]) / safe
-            total += f[j]
-        ep = half - step * (total - 0.5 * (f[0] + f[s_in - 1]))
-        if fit:
-            s2 = _SQRT_2 * width[gid[p]]
-            for _ in range(gn_steps):
-                num = 0.0
-                den = 0.0
-                for j in range(s_in):
-                    r, g = _step_residual(f[j], -half + j * step, ep, s2)
-                    num += r * g
-                    den += g * g
-                ep = ep - _position_step(num, den)
-        e[p] = ep
+            f[p, j] = (vals[p, n_ext + j] - lo[p]) / safe
+            total += f[p, j]
+        e[p] = half - step * (total - 0.5 * (f[p, 0] + f[p, s_in - 1]))
+    return f, e
+
+
+def _area_positions_numpy(vals, lo, hi, n_ext, half, step):
+    """_area_positions with numpy."""
+    if n_ext:
+        vals = vals[:, n_ext:-n_ext]
+    step_h = hi - lo
+    safe = np.where(np.abs(step_h) > 1e-6, step_h, 1e-6)
+    f = (vals - lo[:, None]) / safe[:, None]
+    return f, half - step * (f.sum(axis=1) - 0.5 * (f[:, 0] + f[:, -1]))
+
+
+def _position_sums(f, e, s2, half, step):
+    """Each profile's Gauss-Newton sums for its step position: sum(r g) and sum(g^2)
+    over its samples (step_residual at the samples -half + j step, the step at e, s2
+    = sqrt(2) w)."""
+    m_all, s_in = f.shape
+    num = np.empty(m_all)
+    den = np.empty(m_all)
+    for p in range(m_all):
+        a = 0.0
+        b = 0.0
+        for j in range(s_in):
+            r, g = _step_residual(f[p, j], -half + j * step, e[p], s2[p])
+            a += r * g
+            b += g * g
+        num[p], den[p] = a, b
+    return num, den
+
+
+def _position_sums_numpy(f, e, s2, half, step):
+    """_position_sums with numpy (every profile at once)."""
+    x = np.arange(-half, half + 1e-9, step)[None, :]
+    r, g = step_residual(f, x, e[:, None], s2[:, None])
+    return (r * g).sum(axis=1), (g * g).sum(axis=1)
+
+
+def _level_stats(lo, hi, lo_raw, hi_raw, gid, level_ok):
+    """Per edge (3,), over the profiles whose levels passed: the mid level (lo + hi) /
+    2, and the scatter of the profiles' mid levels about the edge's mid-level line."""
     cnt = np.zeros(3)
     s_lo = np.zeros(3)
     s_hi = np.zeros(3)
     s_res = np.zeros(3)
-    for p in range(m_all):
+    for p in range(len(lo)):
         if level_ok[p]:
             g = gid[p]
             cnt[g] += 1.0
@@ -433,6 +586,41 @@ def _positions(vals, t, gid, half, step, width, n_ext, ends, gn_steps,
         c = max(cnt[g], 1.0)
         mid[g] = (s_lo[g] + s_hi[g]) / (2.0 * c)
         level_sd[g] = math.sqrt(s_res[g] / max(c - 2.0, 1.0))
+    return mid, level_sd
+
+
+def _level_stats_numpy(lo, hi, lo_raw, hi_raw, gid, level_ok):
+    """_level_stats with numpy."""
+    w = level_ok.astype(float)
+    cnt = np.maximum(np.bincount(gid, w, 3), 1)
+    mid = (np.bincount(gid, w * lo, 3) + np.bincount(gid, w * hi, 3)) / (2 * cnt)
+    res = 0.5 * (lo_raw + hi_raw - lo - hi)
+    return mid, np.sqrt(np.bincount(gid, w * res * res, 3) / np.maximum(cnt - 2, 1))
+
+
+def _positions(vals, t, gid, half, step, width, n_ext, ends, gn_steps,
+               outlier_sigmas, outlier_min, suspect_rms, suspect_max):  # fmt: skip
+    """Each profile's step position (px along its inward normal), its step height, per
+    edge the mid level and the levels' scatter, and the profiles whose levels agree
+    (edges._positions says how; the edges' profiles one after the other, as _sample
+    gives them): the end levels (_end_levels, over ``ends`` samples), their lines
+    (_level_lines), the area estimate (_area_positions) and, with the edges' blur
+    ``width`` (3,), ``gn_steps`` Gauss-Newton steps of the erf step model
+    (_position_sums, position_step). A StepPositions.
+
+    One function for both paths: compiled, or run as Python with the per-profile
+    parts' numpy twins (visvec._kernels.jit.kernel)."""
+    starts = _edge_starts(gid)
+    lo_raw, hi_raw = _end_levels(vals, ends)
+    lo, hi, level_ok = _level_lines(t, lo_raw, hi_raw, gid, starts, outlier_sigmas,
+                                    outlier_min, suspect_rms, suspect_max)  # fmt: skip
+    f, e = _area_positions(vals, lo, hi, n_ext, half, step)
+    if len(width) == 3:
+        s2 = _SQRT_2 * width[gid]
+        for _ in range(gn_steps):
+            num, den = _position_sums(f, e, s2, half, step)
+            e = e - _position_step(num, den)
+    mid, level_sd = _level_stats(lo, hi, lo_raw, hi_raw, gid, level_ok)
     return StepPositions(e, hi_raw - lo_raw, mid, level_sd, level_ok)
 
 
@@ -797,9 +985,19 @@ _erf_with_bell = kernel(globals(), "_erf_with_bell", erf_with_bell)
 _step_residual = kernel(globals(), "_step_residual", step_residual)
 _position_step = kernel(globals(), "_position_step", position_step)
 sample_geometry = kernel(globals(), "sample_geometry", _sample_geometry)
-_group_linear = kernel(globals(), "_group_linear", _group_linear)
-_levels_suspect = kernel(globals(), "_levels_suspect", _levels_suspect)
+_group_linear = kernel(globals(), "_group_linear", _group_linear, numpy=_group_linear_numpy)
+_levels_suspect = kernel(globals(), "_levels_suspect", _levels_suspect,
+                         numpy=_levels_suspect_numpy)  # fmt: skip
+_resistant_residuals = kernel(globals(), "_resistant_residuals", _resistant_residuals,
+                              numpy=_resistant_residuals_numpy)  # fmt: skip
+_level_inliers = kernel(globals(), "_level_inliers", _level_inliers, numpy=_level_inliers_numpy)
 _level_lines = kernel(globals(), "_level_lines", _level_lines)
+_edge_starts = kernel(globals(), "_edge_starts", _edge_starts, numpy=_edge_starts_numpy)
+_end_levels = kernel(globals(), "_end_levels", _end_levels, numpy=_end_levels_numpy)
+_area_positions = kernel(globals(), "_area_positions", _area_positions,
+                         numpy=_area_positions_numpy)  # fmt: skip
+_position_sums = kernel(globals(), "_position_sums", _position_sums, numpy=_position_sums_numpy)
+_level_stats = kernel(globals(), "_level_stats", _level_stats, numpy=_level_stats_numpy)
 positions = kernel(globals(), "positions", _positions)
 widths = kernel(globals(), "widths", _widths)
 _group_tls = kernel(globals(), "_group_tls", _group_tls, numpy=_group_tls_numpy)

@@ -1,11 +1,13 @@
 """The pixel fit's kernels (visvec.detect.photometric: its bands' pixels, Gauss-Newton
-steps and noise correlation) and its named results and settings.
+steps, solve and noise correlation) and its named results and settings.
 
-Each kernel is one of photometric's functions written as loops over the pixels, the
-same arithmetic in the same order where the order matters (tests/detect/test_compiled.py
-checks them against each other); compiled by Numba with the ``fast`` extra
-(visvec._kernels.jit). The results are NamedTuples, which Numba builds and reads as it
-does plain tuples, so that the numpy and the compiled fit return the same names."""
+The Gauss-Newton steps (_pixel_gn) and the solve (pixel_solve) are each one function,
+compiled by Numba with the ``fast`` extra (visvec._kernels.jit) and run as Python
+without it. The parts that visit every pixel are loops with a numpy twin each (the
+name's function where the kernels are off); the bands' selection (band_lines,
+band_pixels, cover) is photometric._band's loops. tests/detect/test_compiled.py checks
+each against the other. The results are NamedTuples, which Numba builds and reads as
+it does plain tuples, so that both paths return the same names."""
 
 from __future__ import annotations
 
@@ -51,7 +53,7 @@ class BandPixels(NamedTuple):
 
 
 class GaussNewtonSteps(NamedTuple):
-    """After the pixel fit's Gauss-Newton steps (photometric._gauss_newton).
+    """After the pixel fit's Gauss-Newton steps (_pixel_gn).
 
     Attributes
     ----------
@@ -92,7 +94,7 @@ class GaussNewtonSteps(NamedTuple):
 
 
 class PixelSolve(NamedTuple):
-    """The pixel fit's answer on a frame's bands (photometric._solve).
+    """The pixel fit's answer on a frame's bands (pixel_solve).
 
     Attributes
     ----------
@@ -432,8 +434,8 @@ def _band_lines(image, n, c, reach, clear, fx, fy, cx, cy, dist, last_col, last_
 def phi_of(u, table, rng, inv_step):
     """Phi(u) and phi(u), the blurred step and its slope, by cubic Hermite interpolation
     in ``table`` (photometric._PHI: values and slopes at nodes 1 / ``inv_step`` apart
-    from -``rng``). Written once for both paths: ``u`` an array (photometric's numpy
-    fit) or one float (the compiled fit, pixel by pixel, as _phi_of)."""
+    from -``rng``). Written once for both paths: ``u`` an array (the numpy twins, a
+    band at once) or one float (the compiled loops, pixel by pixel, as _phi_of)."""
     t = (np.minimum(np.maximum(u, -rng), rng) + rng) * inv_step
     # (unsigned: Numba indexes the table without checking for a negative index)
     i = np.minimum(np.uint64(t), np.uint64(table.shape[0] - 2))

@@ -21,9 +21,6 @@ from visvec._kernels import jit
 from visvec._kernels.edge_fit import (
     EdgeLines,
     StepPositions,
-    position_step,
-    sorted_medians,
-    step_residual,
     vertices,
 )
 from visvec.camera import CameraModel
@@ -167,135 +164,6 @@ def corner_angles(p: np.ndarray, sides: np.ndarray | None = None) -> np.ndarray:
     return np.array([a0, a1, math.pi - a0 - a1])
 
 
-def _group_linear(
-    t: np.ndarray,
-    ys: tuple[np.ndarray, ...],
-    gid: np.ndarray,
-    n: int,
-    keep: np.ndarray | None = None,
-) -> list[np.ndarray]:
-    """Per-group straight-line least-squares fits of each y in ``ys`` against t, over
-    the points ``keep`` selects (all without it), evaluated at every t (the sums over t
-    shared)."""
-    if keep is None:
-        w = np.bincount(gid, minlength=n)
-        wt, sel = t, gid
-    else:
-        w = np.bincount(gid[keep], minlength=n)
-        wt, sel = t[keep], gid[keep]
-    st = np.bincount(sel, wt, n)
-    stt = np.bincount(sel, wt * wt, n)
-    den = w * stt - st * st
-    ok = np.abs(den) > 1e-12
-    den = np.where(ok, den, 1.0)
-    w1 = np.maximum(w, 1)
-    out = []
-    for y in ys:
-        yk = y if keep is None else y[keep]
-        sy = np.bincount(sel, yk, n)
-        slope = np.where(ok, (w * np.bincount(sel, wt * yk, n) - st * sy) / den, 0.0)
-        icpt = (sy - slope * st) / w1
-        out.append(icpt[gid] + slope[gid] * t)
-    return out
-
-
-def _levels_suspect(
-    r_lo: np.ndarray,
-    r_hi: np.ndarray,
-    lo_raw: np.ndarray,
-    hi_raw: np.ndarray,
-    counts: np.ndarray,
-) -> bool:
-    """Whether any edge's level residuals (r_lo, r_hi about least-squares lines; the
-    edges' profiles one after the other, ``counts`` of them) are more than the profiles'
-    noise explains (LEVEL_SUSPECT_RMS, LEVEL_SUSPECT_MAX); the noise variance of each
-    level from the differences of neighbouring profiles, half their mean square."""
-    c0, c1, c2 = counts.tolist()
-    starts = [0, c0, c0 + c1]
-    d = np.diff(np.stack((lo_raw, hi_raw)), axis=1)
-    d[:, c0 - 1] = 0.0  # the steps from one edge to the next
-    d[:, c0 + c1 - 1] = 0.0
-    d *= d
-    noise2 = np.add.reduceat(d, starts, axis=1) / (2.0 * np.maximum(counts - 1, 1))
-    noise2 = np.maximum(noise2, 1e-6)
-    r = np.stack((r_lo, r_hi))
-    r *= r
-    if np.any(
-        np.add.reduceat(r, starts, axis=1)
-        > LEVEL_SUSPECT_RMS**2 * np.maximum(counts - 2, 1) * noise2
-    ):
-        return True
-    return bool(np.any(np.maximum.reduceat(r, starts, axis=1) > LEVEL_SUSPECT_MAX**2 * noise2))
-
-
-def _level_lines(
-    t: np.ndarray, lo_raw: np.ndarray, hi_raw: np.ndarray, gid: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Board (lo) and triangle (hi) level lines along each edge, robust to profiles
-    whose window holds something else (see LEVEL_OUTLIER_SIGMAS). The profiles are in
-    order along each edge (t ascending), the edges one after the other.
-
-    Least-squares lines through every profile are kept when their residuals are what
-    the profiles' noise explains (:func:`_levels_suspect`). Otherwise the first lines
-    are resistant ones: through the medians (of t and of the level) of
-    each half of the edge, which follow a lighting gradient and are not moved by
-    outliers in under half of either half. The profiles whose two levels lie within
-    LEVEL_OUTLIER_SIGMAS robust sigmas of these lines (1.4826 x the median absolute
-    residual of the edge's level) are kept and least-squares lines fitted to them; once
-    more if the kept set changes against those lines. Returns lo, hi (M,) on the final
-    lines and the mask of profiles whose levels passed (M,).
-    """
-    lo, hi = _group_linear(t, (lo_raw, hi_raw), gid, 3)
-    m = len(gid)
-    everyone = np.ones(m, dtype=bool)
-    counts = np.bincount(gid, minlength=3)
-    if not _levels_suspect(lo_raw - lo, hi_raw - hi, lo_raw, hi_raw, counts):
-        return lo, hi, everyone
-    nc = counts.tolist()
-    starts = [0, nc[0], nc[0] + nc[1]]
-    index = np.arange(m) - np.array(starts)[gid]
-    n0 = [c // 2 for c in nc]  # profiles in each edge's first half
-    h0 = np.array(n0)[gid]
-    second = index >= h0
-    col = index - h0 * second
-    # the medians of the halves: rows 4 g + 2 (hi) + (second half)
-    row = 4 * gid + second
-    table = np.full((12, max(nc) - min(n0) + 1), np.inf)
-    table[row, col] = lo_raw
-    table[row + 2, col] = hi_raw
-    table.sort(axis=1)
-    k = np.array([[a, c - a, a, c - a] for a, c in zip(n0, nc, strict=True)]).ravel()
-    med = sorted_medians(table, k).reshape(3, 2, 2)  # edge, lo/hi, half
-    # t ascends along the edge: the median of a half is its middle profile's t
-    t0, t1 = [], []
-    for s0, a, c in zip(starts, n0, nc, strict=True):
-        t0.append(0.5 * (t[s0 + (a - 1) // 2] + t[s0 + a // 2]))
-        t1.append(0.5 * (t[s0 + a + (c - a - 1) // 2] + t[s0 + a + (c - a) // 2]))
-    dt = np.array([b - a if abs(b - a) > 1e-9 else 1.0 for a, b in zip(t0, t1, strict=True)])
-    slope = (med[:, :, 1] - med[:, :, 0]) / dt[:, None]  # (3, 2)
-    u = t - np.array(t0)[gid]
-    res_lo = np.abs(lo_raw - med[gid, 0, 0] - slope[gid, 0] * u)
-    res_hi = np.abs(hi_raw - med[gid, 1, 0] - slope[gid, 1] * u)
-    table = np.full((6, max(nc)), np.inf)
-    table[gid, index] = res_lo
-    table[gid + 3, index] = res_hi
-    table.sort(axis=1)
-    scale = sorted_medians(table, np.concatenate([counts, counts]))
-    lim = np.maximum(LEVEL_OUTLIER_SIGMAS * 1.4826 * scale, LEVEL_OUTLIER_MIN)
-    lim_lo, lim_hi = lim[gid], lim[gid + 3]
-    ok = None
-    for _ in range(2):
-        new = (res_lo <= lim_lo) & (res_hi <= lim_hi)
-        # an edge that would keep too few profiles for a line keeps them all
-        new |= (np.bincount(gid, new, 3) < 5)[gid]
-        if ok is not None and np.array_equal(new, ok):
-            break
-        ok = new
-        lo, hi = _group_linear(t, (lo_raw, hi_raw), gid, 3, None if ok.all() else ok)
-        res_lo, res_hi = np.abs(lo_raw - lo), np.abs(hi_raw - hi)
-    return lo, hi, ok
-
-
 def _sample(
     roi: np.ndarray,
     corners: np.ndarray,
@@ -362,13 +230,14 @@ def _positions(
     """Sub-pixel step position of each profile (offset along the inward normal), the
     local step height, the per-edge mid level, the per-edge scatter of the profiles'
     mid levels about it, and the mask of profiles whose levels agree with their edge's
-    (:func:`_level_lines`; the others have something else in their window).
+    (visvec._kernels.edge_fit._level_lines; the others have something else in their
+    window).
 
     Area (first-moment) estimator: for a step from level lo to hi, blurred by any
     symmetric kernel narrower than the profile, the integral of the normalised profile
     (I - lo) / (hi - lo) from -half to +half equals half - e. Levels lo and hi are fitted
     as straight lines along each edge to follow the lighting gradient, robustly
-    (:func:`_level_lines`). With ``width``
+    (visvec._kernels.edge_fit._level_lines). With ``width``
     (per edge blur, px), the position is then refined by fitting an erf step of that
     width (GN_STEPS Gauss-Newton steps): this weights the samples by the edge slope
     instead of uniformly and cuts the noise by about 1.5x for a sharp edge.
@@ -378,35 +247,11 @@ def _positions(
     """
     n_ext = int(round(ext / step))
     ends = max(2, int(1.0 / step)) + n_ext
-    if jit.ON:
-        w = _NO_WIDTH if width is None else np.asarray(width, float)
-        return kernels.positions(vals, t, gid, float(half), float(step), w, n_ext, ends,
-                                   GN_STEPS, LEVEL_OUTLIER_SIGMAS, LEVEL_OUTLIER_MIN,
-                                   LEVEL_SUSPECT_RMS, LEVEL_SUSPECT_MAX)  # fmt: skip
-    # the means of the first and last ``ends`` samples (np.add.reduce: mean without
-    # its wrapper's overhead, the same value)
-    lo_raw = np.add.reduce(vals[:, :ends], axis=1) / ends
-    hi_raw = np.add.reduce(vals[:, -ends:], axis=1) / ends
-    if n_ext:
-        vals = vals[:, n_ext:-n_ext]
-    lo, hi, level_ok = _level_lines(t, lo_raw, hi_raw, gid)
-    step_h = hi - lo
-    safe = np.where(np.abs(step_h) > 1e-6, step_h, 1e-6)
-    f = (vals - lo[:, None]) / safe[:, None]
-    e = half - step * (f.sum(axis=1) - 0.5 * (f[:, 0] + f[:, -1]))
-    if width is not None:
-        x = np.arange(-half, half + 1e-9, step)[None, :]
-        s2 = (np.sqrt(2.0) * width[gid])[:, None]
-        for _ in range(GN_STEPS):
-            r, g = step_residual(f, x, e[:, None], s2)
-            e = e - position_step((r * g).sum(axis=1), (g * g).sum(axis=1))
-    w = level_ok.astype(float)
-    cnt = np.maximum(np.bincount(gid, w, 3), 1)
-    mid = (np.bincount(gid, w * lo, 3) + np.bincount(gid, w * hi, 3)) / (2 * cnt)
-    # scatter of each profile's mid level about the edge's fitted mid-level line
-    res = 0.5 * (lo_raw + hi_raw - lo - hi)
-    level_sd = np.sqrt(np.bincount(gid, w * res * res, 3) / np.maximum(cnt - 2, 1))
-    return StepPositions(e, hi_raw - lo_raw, mid, level_sd, level_ok)
+    w = _NO_WIDTH if width is None else np.asarray(width, float)
+    # one function for both paths (compiled, or its Python source on numpy twins)
+    return kernels.positions(vals, t, gid, float(half), float(step), w, n_ext, ends, GN_STEPS,
+                             LEVEL_OUTLIER_SIGMAS, LEVEL_OUTLIER_MIN, LEVEL_SUSPECT_RMS,
+                             LEVEL_SUSPECT_MAX)  # fmt: skip
 
 
 def _level_gain(width: np.ndarray, half: float, step: float) -> np.ndarray:

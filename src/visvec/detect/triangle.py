@@ -208,8 +208,8 @@ def _pixel_fit(image, fit, xy, cov, camera, shutter=None, rate_c=None, blur=None
     if not chi2_ < chi2_ppf(1.0 - PIXEL_FIT_GATE_P, 6):
         return xy, cov, False
     # and when it is the more precise: residuals with a structure of their own (a head
-    # in a band) widen its covariance through their correlation (photometric's
-    # _noise_inflation) beyond the lines'
+    # in a band) widen its covariance through their correlation
+    # (visvec._kernels.pixel_fit.noise_inflation) beyond the lines'
     if not pf.cov.trace() < cov.trace():
         return xy, cov, False
     return pf.xy, pf.cov, pf
