@@ -220,6 +220,7 @@ def _as_python(kernel):
                                                  "_resistant_residuals", "_level_inliers",
                                                  "_edge_starts", "_end_levels", "_area_positions",
                                                  "_position_sums", "_level_stats",
+                                                 "_aligned_slopes", "_moment_widths",
                                                  "_level_lines", "_group_tls",
                                                  "_group_median", "_lag_sums", "_erf_with_bell",
                                                  "_step_residual", "_position_step",

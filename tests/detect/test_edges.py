@@ -378,3 +378,36 @@ def test_fast_erf_is_within_abramowitz_stegun_bound():
     assert np.max(np.abs(got - erf(u))) < 1.5e-7
     np.testing.assert_allclose(erf_with_bell(-u, np.exp(-u * u)), -got, atol=0)
     assert abs(got[-4]) < 1e-9 and got[-2] == 1.0 and got[-1] == -1.0
+
+
+def test_a_wide_window_measures_the_width_again_near_the_edge():
+    """A window wider than WIDTH_REACH_MIN_PX (a large image's first pass): the width is
+    measured again within 4 widths of the edge, where its far bins' noise no longer
+    moves it; compiled and on the numpy path alike (one function, edge_fit.widths)."""
+    import contextlib
+
+    from scipy.special import erf
+
+    from visvec._kernels import edge_fit as KE
+    from visvec._kernels import jit
+
+    rng = np.random.default_rng(8)
+    half, step, w_true = 8.0, 0.5, 0.8
+    offs = np.arange(-half, half + 1e-9, step)
+    gid = np.repeat(np.arange(3), 40)
+    e = rng.uniform(-1.0, 1.0, len(gid))
+    edge = 0.5 * (1.0 + erf((offs[None, :] - e[:, None]) / (np.sqrt(2.0) * w_true)))
+    vals = (60.0 + 40.0 * edge + rng.normal(0.0, 2.0, edge.shape)).astype(np.float32)
+    clear = np.ones(len(gid), bool)
+    got = []
+    for path in (contextlib.nullcontext(), jit.numpy_path()):
+        with path:
+            again = KE.widths(vals, 0, e, clear, gid, half, step, edges.WIDTH_REACH_MIN_PX)
+            once = KE.widths(vals, 0, e, clear, gid, half, step, 2.0 * half)  # one round
+        got.append((again, once))
+    assert np.abs(got[0][0] - got[1][0]).max() < 1e-12
+    assert np.abs(got[0][1] - got[1][1]).max() < 1e-12
+    again, once = got[0]
+    # (the sampling and the steps' alignment to the nearest sample widen it a little)
+    assert np.abs(again - w_true).max() < 0.25
+    assert np.abs(once - w_true).max() > 0.3

@@ -625,8 +625,13 @@ def _positions(vals, t, gid, half, step, width, n_ext, ends, gn_steps,
 
 
 # ---------------------------------------------------------------------- blur widths
-def _widths(vals, n_ext, e, clear, gid, half, step, reach_min):
-    """edges._widths on the profiles vals[:, n_ext : -n_ext]."""
+def _aligned_slopes(vals, n_ext, e, clear, gid, half, step):
+    """Each edge's mean profile derivative (3, 3 S') over bins aligned on each profile's
+    step (its derivative shifted by its step position e to the nearest sample), over
+    the profiles with a clear step, in the bins that at least half the edge's profiles
+    cover within one window of the edge (0 elsewhere); and the bins' centres x (3 S',)
+    (px, the edge at 0). The profiles are vals[:, n_ext : -n_ext] (S' + 1 samples
+    ``step`` apart from -half)."""
     m_all = vals.shape[0]
     n_bins = vals.shape[1] - 2 * n_ext - 1
     nb3 = 3 * n_bins
@@ -652,30 +657,72 @@ def _widths(vals, n_ext, e, clear, gid, half, step, reach_min):
         for b in range(nb3):
             if cnt[g, b] > 0 and cnt[g, b] >= 0.5 * top and abs(x[b]) <= half:
                 g_all[g, b] = sums[g, b] / max(cnt[g, b], 1.0)
+    return g_all, x
+
+
+def _aligned_slopes_numpy(vals, n_ext, e, clear, gid, half, step):
+    """_aligned_slopes with numpy."""
+    d = np.diff(vals[:, n_ext : vals.shape[1] - n_ext], axis=1)
+    n_bins = d.shape[1]
+    k = np.rint(e[clear] / step).astype(np.int64)
+    j = np.arange(n_bins)[None, :] - k[:, None] + n_bins  # aligned bin, in [0, 3 n_bins)
+    flat = (gid[clear][:, None] * (3 * n_bins) + j).ravel()
+    sums = np.bincount(flat, d[clear].ravel(), 9 * n_bins).reshape(3, 3 * n_bins)
+    cnt = np.bincount(flat, minlength=9 * n_bins).reshape(3, 3 * n_bins)
+    x = -half + (np.arange(3 * n_bins) - n_bins + 0.5) * step  # bin centres, edge at 0
+    use = (cnt > 0) & (cnt >= 0.5 * cnt.max(axis=1, keepdims=True)) & (np.abs(x) <= half)
+    return np.where(use, sums / np.maximum(cnt, 1), 0.0), x
+
+
+def _moment_widths(g_all, x, reach, half):
+    """Each edge's RMS width (3,) (px): the second moment of its mean derivative g_all
+    about its centroid over the bins within ``reach`` (3,) of the edge, at most half /
+    2; half / 3 where it has no positive mass."""
     w = np.empty(3)
+    for g in range(3):
+        tot = 0.0
+        gx = 0.0
+        for b in range(len(x)):
+            if abs(x[b]) <= reach[g]:
+                tot += g_all[g, b]
+                gx += g_all[g, b] * x[b]
+        safe = tot if tot > 0 else 1.0
+        c = gx / safe
+        w2 = 0.0
+        for b in range(len(x)):
+            if abs(x[b]) <= reach[g]:
+                w2 += g_all[g, b] * (x[b] - c) ** 2
+        w2 = w2 / safe
+        if tot > 0 and w2 > 0:
+            w[g] = min(math.sqrt(w2), half / 2.0)
+        else:
+            w[g] = half / 3.0
+    return w
+
+
+def _moment_widths_numpy(g_all, x, reach, half):
+    """_moment_widths with numpy."""
+    g = np.where(np.abs(x)[None, :] <= reach[:, None], g_all, 0.0)
+    tot = g.sum(axis=1)
+    safe = np.where(tot > 0, tot, 1.0)
+    c = (g @ x) / safe
+    w2 = (g * (x[None, :] - c[:, None]) ** 2).sum(axis=1) / safe
+    ok = (tot > 0) & (w2 > 0)
+    return np.where(ok, np.sqrt(np.where(ok, w2, 1.0)).clip(max=half / 2.0), half / 3.0)
+
+
+def _widths(vals, n_ext, e, clear, gid, half, step, reach_min):
+    """(3,) each edge's RMS blur width (px; edges._widths says how): the second moment
+    of its mean profile derivative, aligned on each profile's step (_aligned_slopes,
+    _moment_widths); a window wider than ``reach_min`` measured again within 4 widths of
+    the edge (its far bins add only noise to the second moment). One function for both
+    paths: compiled, or run as Python with the numpy twins."""
+    g_all, x = _aligned_slopes(vals, n_ext, e, clear, gid, half, step)
     reach = np.full(3, np.inf)
-    rounds = 2 if half > reach_min else 1
-    for _ in range(rounds):
-        for g in range(3):
-            tot = 0.0
-            gx = 0.0
-            for b in range(nb3):
-                if abs(x[b]) <= reach[g]:
-                    tot += g_all[g, b]
-                    gx += g_all[g, b] * x[b]
-            safe = tot if tot > 0 else 1.0
-            c = gx / safe
-            w2 = 0.0
-            for b in range(nb3):
-                if abs(x[b]) <= reach[g]:
-                    w2 += g_all[g, b] * (x[b] - c) ** 2
-            w2 = w2 / safe
-            if tot > 0 and w2 > 0:
-                w[g] = min(math.sqrt(w2), half / 2.0)
-            else:
-                w[g] = half / 3.0
-        for g in range(3):
-            reach[g] = max(4.0 * w[g], reach_min)
+    w = _moment_widths(g_all, x, reach, half)
+    if half > reach_min:
+        reach = np.maximum(4.0 * w, reach_min)
+        w = _moment_widths(g_all, x, reach, half)
     return w
 
 
@@ -999,6 +1046,9 @@ _area_positions = kernel(globals(), "_area_positions", _area_positions,
 _position_sums = kernel(globals(), "_position_sums", _position_sums, numpy=_position_sums_numpy)
 _level_stats = kernel(globals(), "_level_stats", _level_stats, numpy=_level_stats_numpy)
 positions = kernel(globals(), "positions", _positions)
+_aligned_slopes = kernel(globals(), "_aligned_slopes", _aligned_slopes,
+                         numpy=_aligned_slopes_numpy)  # fmt: skip
+_moment_widths = kernel(globals(), "_moment_widths", _moment_widths, numpy=_moment_widths_numpy)
 widths = kernel(globals(), "widths", _widths)
 _group_tls = kernel(globals(), "_group_tls", _group_tls, numpy=_group_tls_numpy)
 group_median = kernel(globals(), "group_median", _group_median, numpy=_group_median_numpy)

@@ -289,34 +289,8 @@ def _widths(
     second moment (10-90 % of a 1920x1080 webcam's cold widths 0.54-1.06 px over 8 px,
     0.77-0.89 within 4 widths).
     """
-    if jit.ON:
-        return kernels.widths(vals, 0, e, clear, gid, float(half), float(step),
-                                WIDTH_REACH_MIN_PX)  # fmt: skip
-    d = np.diff(vals, axis=1)
-    n_bins = d.shape[1]
-    good = clear
-    k = np.rint(e[good] / step).astype(int)
-    j = np.arange(n_bins)[None, :] - k[:, None] + n_bins  # aligned bin, in [0, 3 n_bins)
-    flat = (gid[good][:, None] * (3 * n_bins) + j).ravel()
-    sums = np.bincount(flat, d[good].ravel(), 9 * n_bins).reshape(3, 3 * n_bins)
-    cnt = np.bincount(flat, minlength=9 * n_bins).reshape(3, 3 * n_bins)
-    x = -half + (np.arange(3 * n_bins) - n_bins + 0.5) * step  # bin centres, edge at 0
-    # bins that at least half the edge's profiles cover, within one window of the edge
-    use = (cnt > 0) & (cnt >= 0.5 * cnt.max(axis=1, keepdims=True)) & (np.abs(x) <= half)
-    g_all = np.where(use, sums / np.maximum(cnt, 1), 0.0)
-    g = g_all
-    for _ in range(2 if half > WIDTH_REACH_MIN_PX else 1):
-        tot = g.sum(axis=1)
-        safe = np.where(tot > 0, tot, 1.0)
-        c = (g @ x) / safe
-        w2 = (g * (x[None, :] - c[:, None]) ** 2).sum(axis=1) / safe
-        ok = (tot > 0) & (w2 > 0)
-        w = np.where(ok, np.sqrt(np.where(ok, w2, 1.0)).clip(max=half / 2.0), half / 3.0)
-        # a window wider than the blur needs (a coarse search's corners far off) adds
-        # only noise to the second moment: measure again within 4 widths of the edge
-        reach = np.maximum(4.0 * w, WIDTH_REACH_MIN_PX)
-        g = np.where(np.abs(x)[None, :] <= reach[:, None], g_all, 0.0)
-    return w
+    # one function for both paths (compiled, or its Python source on numpy twins)
+    return kernels.widths(vals, 0, e, clear, gid, float(half), float(step), WIDTH_REACH_MIN_PX)
 
 
 def _crop(image: np.ndarray, corners_px: np.ndarray,
