@@ -159,8 +159,8 @@ def test_the_fits_name_their_results_alike_compiled_or_not(calls, monkeypatch):
     a, k = args[0]
     got = []
     for flag in (False, True):
-        monkeypatch.setattr(jit, "ON", flag)
-        got.append(f(*a, **k))
+        with _path(flag):
+            got.append(f(*a, **k))
     assert type(got[0]) is type(got[1]) is KE.StepPositions
     assert np.abs(got[0].e - got[1].e).max() < 1e-9
     rng = np.random.default_rng(3)
@@ -275,13 +275,13 @@ def test_a_cold_frame_gives_the_same_vertices_compiled_or_not(monkeypatch):
     agree to the estimator's own 1e-5 px)."""
     got = {}
     for flag in (False, True):
-        monkeypatch.setattr(jit, "ON", flag)
         out = []
-        for rig, img in _frames():
-            pipe = TrianglePipeline(rig)
-            pipe.process(Frame(0, 0.0, img))
-            d = pipe.last_detection
-            out.append((d.status, d.points_px, d.cov_n))
+        with _path(flag):
+            for rig, img in _frames():
+                pipe = TrianglePipeline(rig)
+                pipe.process(Frame(0, 0.0, img))
+                d = pipe.last_detection
+                out.append((d.status, d.points_px, d.cov_n))
         got[flag] = out
     for (s0, p0, c0), (s1, p1, c1) in zip(got[False], got[True], strict=True):
         assert s0 is s1
@@ -314,8 +314,8 @@ def test_the_attitude_fit_compiled_or_not(monkeypatch):
     for args in calls:
         fits = []
         for flag in (False, True):
-            monkeypatch.setattr(jit, "ON", flag)
-            fits.append(rotation._fit_with_shift(*args))
+            with _path(flag):
+                fits.append(rotation._fit_with_shift(*args))
         a, b = fits
         assert a.iterations == b.iterations and a.converged == b.converged
         np.testing.assert_allclose(b.R, a.R, rtol=0, atol=1e-12)
@@ -688,11 +688,10 @@ def test_the_pixel_fit_compiled_or_not(pixel_fits, monkeypatch):
 
 
 def test_the_bands_cover_compiled_or_not():
-    """The pixels the pixel fit's quadrilaterals cover (photometric._cover), compiled
-    and from numpy: the same, in raster order, each once; quadrilaterals that overlap,
+    """The pixels the pixel fit's quadrilaterals cover (visvec._kernels.pixel_fit.cover),
+    compiled and its numpy twin: the same, in raster order, each once; quadrilaterals that overlap,
     a side along a row, one outside the box (none of it covered); and every pixel whose
     centre a quadrilateral holds is among them."""
-    from visvec.detect import photometric as P
 
     rng = np.random.default_rng(5)
     shapes = 0
@@ -710,7 +709,7 @@ def test_the_bands_cover_compiled_or_not():
         q = q.reshape(12, 2)
         box = (0, 0, 99, 89)
         fast = KP.cover(q, *box)
-        assert np.array_equal(fast, P._cover(q, *box))
+        assert np.array_equal(fast, KP._cover_numpy(q, *box))
         assert np.array_equal(fast, KP.cover.py_func(q, *box))
         assert len(np.unique(fast, axis=0)) == len(fast)
         assert np.array_equal(fast, fast[np.lexsort((fast[:, 0], fast[:, 1]))])

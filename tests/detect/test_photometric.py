@@ -2,6 +2,7 @@
 more precise than the edge lines, an honest covariance, and refused where it disagrees
 with them."""
 
+import contextlib
 from dataclasses import replace
 
 import cv2
@@ -333,9 +334,9 @@ def test_the_bands_are_every_pixel_the_rule_takes(rig320, monkeypatch):
         image = np.arange(cam.width * cam.height, dtype=np.uint32).reshape(cam.height, -1)
         image = (image % 251).astype(np.uint8)
         want, counts = _band_by_rule(image, n, c, reach, clear, cam)
-        for flag in (False, True):
-            monkeypatch.setattr(jit, "ON", flag)
-            x, grey, uv, got_counts = P._band(image, n, c, reach, clear, cam)
+        for path in (jit.numpy_path(), contextlib.nullcontext()):
+            with path:
+                x, grey, uv, got_counts = P._band(image, n, c, reach, clear, cam)
             assert got_counts.tolist() == counts and sum(counts) > 300
             assert np.array_equal(uv, want)
             assert np.array_equal(grey, image[uv[:, 1], uv[:, 0]].astype(float))

@@ -229,7 +229,7 @@ def test_the_residuals_measure_a_shear_no_attitude_explains(rig640):
 
 
 @pytest.mark.parametrize("compiled", [False, True])
-def test_readout_evidence_update_is_the_free_fits_explain(rig640, compiled, monkeypatch):
+def test_readout_evidence_update_is_the_free_fits_explain(rig640, compiled, monkeypatch, request):
     """ReadoutEvidence.add, written for speed (and compiled with the fast extra),
     accumulates what the frame's residual freed of its prior (VertexResidual.
     unconstrained) explains of the design [-A omega of a 1 s readout,
@@ -242,7 +242,10 @@ def test_readout_evidence_update_is_the_free_fits_explain(rig640, compiled, monk
 
     if compiled and not jit.AVAILABLE:
         pytest.skip("Numba (the fast extra)")
-    monkeypatch.setattr(jit, "ON", compiled)
+    if not compiled:  # the numpy path, where the kernels are on too
+        path = jit.numpy_path()
+        path.__enter__()
+        request.addfinalizer(lambda: path.__exit__(None, None, None))
     if compiled:  # its Python source (py_func, which coverage follows), checked below
         kernel = KO.readout_frame
         monkeypatch.setattr(KO, "readout_frame", kernel.py_func)
@@ -283,11 +286,12 @@ def test_readout_evidence_update_is_the_free_fits_explain(rig640, compiled, monk
         assert again.chi2 == pytest.approx(ev.chi2, rel=1e-12)
         # the posterior (ReadoutEvidence._posterior): compiled, its source, numpy
         got = []
-        for on, solve in ((True, KO.readout_solve),
-                          (True, KO.readout_solve.py_func), (False, None)):  # fmt: skip
-            monkeypatch.setattr(jit, "ON", on)
-            if solve is not None:
-                monkeypatch.setattr(KO, "readout_solve", solve)
+        for solve in (KO.readout_solve, KO.readout_solve.py_func):
+            with monkeypatch.context() as mp:
+                mp.setattr(KO, "readout_solve", solve)
+                ev._cached = None
+                got.append(ev._posterior())
+        with jit.numpy_path():
             ev._cached = None
             got.append(ev._posterior())
         for cov, theta, fit in got[1:]:

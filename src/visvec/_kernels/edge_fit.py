@@ -173,8 +173,11 @@ def vertices(normals: np.ndarray, offsets: np.ndarray) -> tuple[np.ndarray, list
 # ---------------------------------------------------------------- profiles (_sample)
 def _sample_geometry(corners, off, offs, trims, spacing, max_per_edge):
     """edges._sample but for its cv2.remap: the profiles' bases, normals, edge, index
-    along the edge, t in [-1, 1], distance along, the edges' lengths and the sample
-    maps (float32, x and y)."""
+    along the edge, t in [-1, 1], distance along, the sample maps (float32, x and y)
+    and the edges' lengths: edge i runs from vertex i + 1 to vertex i + 2, its profiles
+    (at least 4, at most ``max_per_edge``) about ``spacing`` apart between its trims
+    (``trims`` (3,) px from each vertex, at most 0.4 of the edge), each at ``offs``
+    along the inward normal, in the frame less ``off``."""
     A = np.empty((3, 2))
     D = np.empty((3, 2))
     length = np.empty(3)
@@ -233,6 +236,37 @@ def _sample_geometry(corners, off, offs, trims, spacing, max_per_edge):
                 map_x[p, q] = bx0 + offs[q] * N[i, 0]
                 map_y[p, q] = by0 + offs[q] * N[i, 1]
             p += 1
+    return bases, normals, gid, k, tt, along, map_x, map_y, length
+
+
+def _sample_geometry_numpy(corners, off, offs, trims, spacing, max_per_edge):
+    """_sample_geometry with numpy (also for corners that are not finite)."""
+    A = corners[[1, 2, 0]]  # edge i runs from vertex i+1 to vertex i+2
+    D = corners[[2, 0, 1]] - A
+    length = np.sqrt(np.einsum("ij,ij->i", D, D))
+    D = D / np.maximum(length, 1e-9)[:, None]
+    # normals point into the triangle: the left normal (-Dy, Dx) of edges run v1 -> v2
+    # -> v0 -> v1 does when (v1 - v0) x (v2 - v0) > 0
+    (ax, ay), (bx, by) = (corners[1] - corners[0]).tolist(), (corners[2] - corners[0]).tolist()
+    inward = 1.0 if ax * by - ay * bx > 0 else -1.0
+    N = np.empty((3, 2))
+    N[:, 0] = -inward * D[:, 1]
+    N[:, 1] = inward * D[:, 0]
+    s0 = np.minimum(trims[[1, 2, 0]], 0.4 * length)
+    s1 = length - np.minimum(trims[[2, 0, 1]], 0.4 * length)
+    m = np.clip((s1 - s0) / spacing, 4, max_per_edge).astype(int)
+    gid = np.repeat(np.arange(3), m)
+    k = np.arange(len(gid)) - np.repeat(np.cumsum(m) - m, m)  # index along the edge
+    frac = k / np.repeat(m - 1, m)
+    along = s0[gid] + frac * (s1 - s0)[gid]
+    tt = 2.0 * frac - 1.0
+    bases = A[gid] + along[:, None] * D[gid]
+    normals = N[gid]
+    # the sample points as two (M, S) float32 maps, x and y: built as 2-D broadcasts
+    # (an interleaved (M, S, 2) map took 3x longer to build than cv2.remap takes to run)
+    b = bases - off
+    map_x = (b[:, 0:1] + offs * normals[:, 0:1]).astype(np.float32)
+    map_y = (b[:, 1:2] + offs * normals[:, 1:2]).astype(np.float32)
     return bases, normals, gid, k, tt, along, map_x, map_y, length
 
 
@@ -977,8 +1011,11 @@ def _level_gain(width, half, step):
 
 def _edge_stats(sigmas, level_px, h_mid, gid, keep, along, trims, lengths):
     """edges._edge_fit's statistics: each edge's per-point sigma with the levels' error
-    added, inlier count (float), outlier share, and how far its inliers stop short of
-    its two ends beyond the trims ((3, 2); the whole length without inliers)."""
+    added (level_px / |h_mid|, common to the edge's profiles (edges._level_gain): added
+    per point, so that over the count it is the variance of the line's shift from the
+    fitted level line), inlier count (float), outlier share, and how far its inliers
+    stop short of its two ends beyond the trims ((3, 2); the whole length without
+    inliers)."""
     counts = np.zeros(3)
     n_profiles = np.zeros(3)
     s_min = np.full(3, np.inf)
@@ -1001,6 +1038,23 @@ def _edge_stats(sigmas, level_px, h_mid, gid, keep, along, trims, lengths):
             gaps[e, 1] = lengths[e] - trims[(e + 2) % 3] - s_max[e]
         else:
             gaps[e, 0] = gaps[e, 1] = lengths[e]
+    return sig, counts, outl, gaps
+
+
+def _edge_stats_numpy(sigmas, level_px, h_mid, gid, keep, along, trims, lengths):
+    """_edge_stats with numpy."""
+    sig = np.hypot(sigmas, level_px / np.maximum(np.abs(h_mid), 1e-6))
+    counts = np.bincount(gid, keep, 3)
+    n_profiles = np.bincount(gid, minlength=3)
+    outl = 1.0 - counts / n_profiles
+    starts = np.cumsum(n_profiles) - n_profiles
+    s_min = np.minimum.reduceat(np.where(keep, along, np.inf), starts)
+    s_max = np.maximum.reduceat(np.where(keep, along, -np.inf), starts)
+    gaps = np.where(
+        (counts > 0)[:, None],
+        np.column_stack([s_min - trims[[1, 2, 0]], lengths - trims[[2, 0, 1]] - s_max]),
+        lengths[:, None],
+    )
     return sig, counts, outl, gaps
 
 
@@ -1028,10 +1082,24 @@ def _edge_lag_sums(ideal, gid, keep, normals, offsets, sigmas, lags):
     return out
 
 
+def _edge_lag_sums_numpy(ideal, gid, keep, normals, offsets, sigmas, lags):
+    """_edge_lag_sums with numpy."""
+    r = ideal[:, 0] * normals[gid, 0] + ideal[:, 1] * normals[gid, 1] - offsets[gid]
+    z = np.where(keep, r / sigmas[gid], 0.0)
+    out = np.zeros((2, lags + 1))
+    out[0, 0], out[1, 0] = z @ z, np.count_nonzero(keep)
+    for j in range(1, lags + 1):
+        same = (gid[:-j] == gid[j:]) & keep[:-j] & keep[j:]
+        out[0, j] = float(np.sum(z[:-j] * z[j:] * same))
+        out[1, j] = np.count_nonzero(same)
+    return out
+
+
 _erf_with_bell = kernel(globals(), "_erf_with_bell", erf_with_bell)
 _step_residual = kernel(globals(), "_step_residual", step_residual)
 _position_step = kernel(globals(), "_position_step", position_step)
-sample_geometry = kernel(globals(), "sample_geometry", _sample_geometry)
+sample_geometry = kernel(globals(), "sample_geometry", _sample_geometry,
+                         numpy=_sample_geometry_numpy)  # fmt: skip
 _group_linear = kernel(globals(), "_group_linear", _group_linear, numpy=_group_linear_numpy)
 _levels_suspect = kernel(globals(), "_levels_suspect", _levels_suspect,
                          numpy=_levels_suspect_numpy)  # fmt: skip
@@ -1061,5 +1129,5 @@ _usable = kernel(globals(), "_usable", _usable, numpy=_usable_numpy)
 robust_lines = kernel(globals(), "robust_lines", _robust_lines)
 inward_lines = kernel(globals(), "inward_lines", _inward_lines)
 level_gain = kernel(globals(), "level_gain", _level_gain)
-edge_stats = kernel(globals(), "edge_stats", _edge_stats)
-edge_lag_sums = kernel(globals(), "edge_lag_sums", _edge_lag_sums)
+edge_stats = kernel(globals(), "edge_stats", _edge_stats, numpy=_edge_stats_numpy)
+edge_lag_sums = kernel(globals(), "edge_lag_sums", _edge_lag_sums, numpy=_edge_lag_sums_numpy)

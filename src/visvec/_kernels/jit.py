@@ -91,14 +91,15 @@ def _load():
 
 def off() -> None:
     """Turn the kernels off (kernels that did not load: warm_up) and put every plain
-    function back in its place, so that a kernel's Python source run as the numpy path
-    calls the plain functions it calls, never a dispatcher that cannot compile."""
+    function (a loop's numpy twin where it has one) in its name, whatever the name held
+    (its stand-in, its dispatcher, one that failed), so that the detectors, which call
+    the kernels by name, and a kernel's Python source run as the numpy path call the
+    plain functions, never a dispatcher that cannot compile."""
     global ON
     with _LOADING:
         ON = False
         for names, name, k in _KERNELS:
-            if names[name] is k or names[name] is k.dispatcher:
-                names[name] = k.plain
+            names[name] = k.plain
 
 
 @contextmanager

@@ -4,9 +4,9 @@ steps, solve and noise correlation) and its named results and settings.
 The Gauss-Newton steps (_pixel_gn) and the solve (pixel_solve) are each one function,
 compiled by Numba with the ``fast`` extra (visvec._kernels.jit) and run as Python
 without it. The parts that visit every pixel are loops with a numpy twin each (the
-name's function where the kernels are off); the bands' selection (band_lines,
-band_pixels, cover) is photometric._band's loops. tests/detect/test_compiled.py checks
-each against the other. The results are NamedTuples, which Numba builds and reads as
+name's function where the kernels are off), as are the bands' selection (band_lines,
+band_pixels, cover: photometric._band). tests/detect/test_compiled.py checks each
+against the other. The results are NamedTuples, which Numba builds and reads as
 it does plain tuples, so that both paths return the same names."""
 
 from __future__ import annotations
@@ -288,11 +288,12 @@ def _noise_inflation_numpy(uv, r, w, lags, L, min_pairs):
 # ------------------------------------------------------------------- the pixel fit
 def _band_pixels(pts, given, grid, cx, cy, aspect, lens, image, n, o, reach, clear):
     """photometric._band's pixels: of the pixels its drawn bands cover (``pts``, (P, 2)
-    column and row, in raster order) those each edge's exact rule takes, edge after
-    edge: their ideal coordinates (M, 2) (``given`` (P, 2), or when that is empty
-    photometric._IdealGrid's: the pinhole's, plus with ``lens`` the correction in
-    ``grid``), grey levels (M,), places in the frame (M, 2) and each edge's count
-    (3,)."""
+    column and row, in raster order) those each edge's exact rule takes (within
+    ``reach`` (3,) of its line n . x = o, more than ``clear`` (3,) inside the other
+    two), edge after edge: a BandPixels of their ideal coordinates (M, 2) (``given``
+    (P, 2), or when that is empty ideal_coordinates': the pinhole's, plus with ``lens``
+    the correction in ``grid``), grey levels (M,), places in the frame (M, 2) and each
+    edge's count (3,)."""
     total = len(pts)
     # each edge's pixels (their places in pts, in raster order), found in one pass
     picked = np.empty((3, total), np.int64)
@@ -340,11 +341,11 @@ def _band_pixels(pts, given, grid, cx, cy, aspect, lens, image, n, o, reach, cle
 
 
 def _cover(q, lo0, lo1, hi0, hi1):
-    """photometric._cover compiled: the pixels (column, row) (P, 2) in raster order
-    that the three convex quadrilaterals ``q`` (12, 2) (px, four corners each) cover
-    with a pixel's margin, within columns lo0..hi0 and rows lo1..hi1: per row the
-    columns from each quadrilateral's least x, less one, to its greatest plus one, over
-    the strip of rows within one of the row; their union."""
+    """The pixels (column, row) (P, 2) in raster order that the three convex
+    quadrilaterals ``q`` (12, 2) (px, four corners each) cover with a pixel's margin,
+    within columns lo0..hi0 and rows lo1..hi1: per row the columns from each
+    quadrilateral's least x, less one, to its greatest plus one, over the strip of rows
+    within one of the row; their union (_cover_numpy says why so)."""
     rows = hi1 - lo1 + 1
     c0 = np.full((rows, 3), 1, np.int64)
     c1 = np.zeros((rows, 3), np.int64)
@@ -394,11 +395,11 @@ def _cover(q, lo0, lo1, hi0, hi1):
 
 def _band_lines(image, n, c, reach, clear, fx, fy, cx, cy, dist, last_col, last_row, grid,
                 gcx, gcy, aspect, lens):  # fmt: skip
-    """photometric._band compiled, without a rolling shutter: the three bands'
-    quadrilaterals from the lines n_i . (x - c_i) = 0 (photometric._meet), their corners
-    through the lens (camera.distort's polynomial), the box they span in the frame, the
-    pixels they cover (_cover) and those each edge's rule takes (_band_pixels). Returns
-    whether there were any, then _band_pixels' arrays."""
+    """photometric._band without a rolling shutter: the three bands' quadrilaterals
+    from the lines n_i . (x - c_i) = 0 (band_quads), their corners through the lens
+    (camera.distort's polynomial), the box they span in the frame, the pixels they cover
+    (_cover) and those each edge's rule takes (_band_pixels). Returns whether there were
+    any, then _band_pixels' BandPixels."""
     o = np.empty(3)
     for i in range(3):
         o[i] = n[i, 0] * c[i, 0] + n[i, 1] * c[i, 1]
@@ -429,6 +430,136 @@ def _band_lines(image, n, c, reach, clear, fx, fy, cx, cy, dist, last_col, last_
         return False, BandPixels(*empty)
     return True, _band_pixels(pts, np.empty((0, 2)), grid, gcx, gcy, aspect, lens, image, n, o,
                               reach, clear)  # fmt: skip
+
+
+def pinhole(uv, cx, cy, aspect):
+    """(M, 2) the ideal coordinates of pixels (column, row) (M, 2) through a pinhole."""
+    out = np.empty((len(uv), 2))
+    out[:, 0] = uv[:, 0] - cx
+    out[:, 1] = (uv[:, 1] - cy) * aspect
+    return out
+
+
+def ideal_coordinates(pts, grid, cx, cy, aspect, lens):
+    """(M, 2) the ideal coordinates of pixels (column, row) ``pts`` (M, 2): the
+    pinhole's, plus with ``lens`` the distortion's correction ``grid`` (H, W, 2) there
+    (photometric._IdealGrid)."""
+    x = pinhole(pts, cx, cy, aspect)
+    if lens:
+        x += np.take(grid.reshape(-1, 2), pts[:, 1] * grid.shape[1] + pts[:, 0], axis=0)
+    return x
+
+
+def band_quads(n, o, reach, clear):
+    """(12, 2) the corners (ideal px) of the three bands' quadrilaterals, four per
+    edge: edge i's band is within reach[i] + 1.5 px of its line n_i . x = o_i, between
+    its neighbours' lines moved clear[j] px inward (each corner where two lines meet,
+    by Cramer's rule)."""
+    nn, ol = n.tolist(), o.tolist()
+    quads = []
+    for i in range(3):
+        j, k = (i + 1) % 3, (i + 2) % 3
+        for sgn, other in ((-1.0, j), (-1.0, k), (1.0, k), (1.0, j)):
+            oi = ol[i] + sgn * (reach[i] + 1.5)
+            o2 = ol[other] + clear[other]
+            (a, b), (c, d) = nn[i], nn[other]
+            det = a * d - b * c
+            quads.append(((oi * d - o2 * b) / det, (a * o2 - c * oi) / det))
+    return np.array(quads)
+
+
+def band_box(q_px, last_col, last_row):
+    """The frame's columns and rows (lo0, lo1, hi0, hi1) the quadrilaterals' corners
+    ``q_px`` (12, 2) (px) span, a pixel wider; None where a corner is not finite or the
+    box is empty."""
+    if not np.all(np.isfinite(q_px)):
+        return None
+    lo = np.maximum(np.floor(q_px.min(axis=0)).astype(int) - 1, 0)
+    hi = np.minimum(np.ceil(q_px.max(axis=0)).astype(int) + 1, [last_col, last_row])
+    if np.any(hi <= lo):
+        return None
+    return int(lo[0]), int(lo[1]), int(hi[0]), int(hi[1])
+
+
+def _cover_numpy(q, lo0, lo1, hi0, hi1):
+    """The pixels (column, row) (P, 2) in raster order that the three convex
+    quadrilaterals ``q`` (12, 2) (px, four corners each) cover with a pixel's margin,
+    within columns lo0..hi0 and rows lo1..hi1: per row the columns from each
+    quadrilateral's least x, less one, to its greatest plus one, over the strip of rows
+    within one of the row; their union. (A superset of the pixels whose centres the
+    quadrilaterals hold, for the exact check of band_pixels; cheaper than drawing
+    them.) With numpy: every row's strip at once."""
+    v = np.arange(lo1, hi1 + 1, dtype=float)
+    a, b = v - 1.0, v + 1.0
+    # the twelve sides (a quadrilateral's k-th from its corner k to corner k + 1), each
+    # clipped to each row's strip: the part between t0 and t1 of it
+    x0, y0 = q[:, :1], q[:, 1:]
+    nxt = q.reshape(3, 4, 2)[:, [1, 2, 3, 0]].reshape(12, 2)
+    x1, y1 = nxt[:, :1], nxt[:, 1:]
+    flat = (y1 == y0)[:, 0]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ta, tb = (a - y0) / (y1 - y0), (b - y0) / (y1 - y0)
+    t0, t1 = np.maximum(np.minimum(ta, tb), 0.0), np.minimum(np.maximum(ta, tb), 1.0)
+    # a side along a row: all of it or none
+    inside = (a <= y0[flat]) & (y0[flat] <= b)
+    t0[flat], t1[flat] = np.where(inside, 0.0, 1.0), np.where(inside, 1.0, 0.0)
+    meets = t0 <= t1
+    xa, xb = x0 + t0 * (x1 - x0), x0 + t1 * (x1 - x0)
+    xmin = np.where(meets, np.minimum(xa, xb), np.inf).reshape(3, 4, -1).min(axis=1)
+    xmax = np.where(meets, np.maximum(xa, xb), -np.inf).reshape(3, 4, -1).max(axis=1)
+    seen = xmin <= xmax
+    c0 = np.maximum(np.ceil(np.where(seen, xmin, 0.0) - 1.0).astype(np.int64), lo0).T.copy()
+    c1 = np.minimum(np.floor(np.where(seen, xmax, 0.0) + 1.0).astype(np.int64), hi0).T.copy()
+    # per row (R, 3) the three ranges by their first column (an empty one's past hi0)
+    empty = ~seen.T | (c1 < c0)
+    c0[empty], c1[empty] = hi0 + 1, hi0
+    order = (np.argsort(c0, axis=1, kind="stable") + np.arange(0, c0.size, 3)[:, None]).ravel()
+    c0, c1 = c0.ravel()[order].reshape(-1, 3), c1.ravel()[order].reshape(-1, 3)
+    # their union, each column once: a range starts past the ends of those before it
+    start = c0.copy()
+    start[:, 1:] = np.maximum(c0[:, 1:], np.maximum.accumulate(c1, axis=1)[:, :-1] + 1)
+    count = np.maximum(c1 - start + 1, 0).ravel()
+    first = np.cumsum(count) - count
+    u = np.repeat(start.ravel() - first, count) + np.arange(int(count.sum()))
+    rows = np.repeat(np.arange(lo1, hi1 + 1), count.reshape(-1, 3).sum(axis=1))
+    return np.column_stack([u, rows])
+
+
+def _band_pixels_numpy(pts, given, grid, cx, cy, aspect, lens, image, n, o, reach, clear):
+    """_band_pixels with numpy."""
+    x = given if len(given) else ideal_coordinates(pts, grid, cx, cy, aspect, lens)
+    grey = np.take(image.reshape(-1), pts[:, 1] * image.shape[1] + pts[:, 0])
+    d = x @ n.T - o  # (P, 3)
+    keeps = []
+    for i in range(3):
+        j, k = (i + 1) % 3, (i + 2) % 3
+        # a pixel is the nearest edge's: within its reach and clear of the other two
+        keeps.append((np.abs(d[:, i]) < reach[i]) & (d[:, j] > clear[j]) & (d[:, k] > clear[k]))
+    counts = np.array([np.count_nonzero(k) for k in keeps], np.int64)
+    return BandPixels(np.concatenate([x[k] for k in keeps]),
+                      np.concatenate([grey[k] for k in keeps]).astype(float),
+                      np.concatenate([pts[k] for k in keeps]), counts)  # fmt: skip
+
+
+def _band_lines_numpy(image, n, c, reach, clear, fx, fy, cx, cy, dist, last_col, last_row, grid,
+                      gcx, gcy, aspect, lens):  # fmt: skip
+    """_band_lines with numpy: the quadrilaterals (band_quads) through the lens, their
+    box (band_box), the pixels they cover (_cover_numpy) and those each edge's rule
+    takes (_band_pixels_numpy)."""
+    empty = BandPixels(np.empty((0, 2)), np.empty(0), np.empty((0, 2), np.int64),
+                       np.zeros(3, np.int64))  # fmt: skip
+    o = np.einsum("ij,ij->i", n, c)
+    q = band_quads(n, o, reach, clear) / fx
+    xd, yd = _distorted(q[:, 0], q[:, 1], *dist)
+    q_px = np.column_stack([fx * xd + cx, fy * yd + cy])
+    box = band_box(q_px, last_col, last_row)
+    if box is None:
+        return False, empty
+    pts = _cover_numpy(q_px, *box)
+    if not len(pts):
+        return False, empty
+    return True, _band_pixels_numpy(pts, np.empty((0, 2)), grid, gcx, gcy, aspect, lens, image,
+                                    n, o, reach, clear)  # fmt: skip
 
 
 def phi_of(u, table, rng, inv_step):
@@ -810,12 +941,12 @@ def _pixel_solve(x, y, uv, counts, n, c, w, V, centroid, scale, warm, st):
 _lag_sums = kernel(globals(), "_lag_sums", _lag_sums)
 noise_inflation = kernel(globals(), "noise_inflation", _noise_inflation,
                          numpy=_noise_inflation_numpy)  # fmt: skip
-band_pixels = kernel(globals(), "band_pixels", _band_pixels)
-cover = kernel(globals(), "cover", _cover)
-_cover = kernel(globals(), "_cover", _cover)
-_band_pixels = kernel(globals(), "_band_pixels", _band_pixels)
+band_pixels = kernel(globals(), "band_pixels", _band_pixels, numpy=_band_pixels_numpy)
+cover = kernel(globals(), "cover", _cover, numpy=_cover_numpy)
+_cover = kernel(globals(), "_cover", _cover, numpy=_cover_numpy)
+_band_pixels = kernel(globals(), "_band_pixels", _band_pixels, numpy=_band_pixels_numpy)
 distorted = kernel(globals(), "distorted", _distorted)
-band_lines = kernel(globals(), "band_lines", _band_lines)
+band_lines = kernel(globals(), "band_lines", _band_lines, numpy=_band_lines_numpy)
 _phi_of = kernel(globals(), "_phi_of", phi_of)
 _across_edge = kernel(globals(), "_across_edge", across_edge)
 _pixel_residual = kernel(globals(), "_pixel_residual", pixel_residual)

@@ -17,7 +17,6 @@ import cv2
 import numpy as np
 
 from visvec._kernels import edge_fit as kernels
-from visvec._kernels import jit
 from visvec._kernels.edge_fit import (
     EdgeLines,
     StepPositions,
@@ -180,40 +179,14 @@ def _sample(
     edge t in [-1, 1] (M,), distance from the edge's first end (M,), values (M, S), and
     each edge's length (3,).
     """
-    if jit.ON and np.isfinite(corners).all() and np.isfinite(trims).all():
-        offs = np.arange(-half, half + 1e-9, step)
-        bases, normals, gid, k, tt, along, map_x, map_y, length = kernels.sample_geometry(
-            corners, off, offs, trims, float(spacing), MAX_PROFILES_PER_EDGE
-        )
-        vals = cv2.remap(roi, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        return bases, normals, gid, k, tt, along, vals, length
-    A = corners[[1, 2, 0]]  # edge i runs from vertex i+1 to vertex i+2
-    D = corners[[2, 0, 1]] - A
-    length = np.sqrt(np.einsum("ij,ij->i", D, D))
-    D = D / np.maximum(length, 1e-9)[:, None]
-    # normals point into the triangle: the left normal (-Dy, Dx) of edges run v1 -> v2
-    # -> v0 -> v1 does when (v1 - v0) x (v2 - v0) > 0
-    (ax, ay), (bx, by) = (corners[1] - corners[0]).tolist(), (corners[2] - corners[0]).tolist()
-    inward = 1.0 if ax * by - ay * bx > 0 else -1.0
-    N = np.empty((3, 2))
-    N[:, 0] = -inward * D[:, 1]
-    N[:, 1] = inward * D[:, 0]
-    s0 = np.minimum(trims[[1, 2, 0]], 0.4 * length)
-    s1 = length - np.minimum(trims[[2, 0, 1]], 0.4 * length)
-    m = np.clip((s1 - s0) / spacing, 4, MAX_PROFILES_PER_EDGE).astype(int)
-    gid = np.repeat(np.arange(3), m)
-    k = np.arange(len(gid)) - np.repeat(np.cumsum(m) - m, m)  # index along the edge
-    frac = k / np.repeat(m - 1, m)
-    along = s0[gid] + frac * (s1 - s0)[gid]
-    tt = 2.0 * frac - 1.0
-    bases = A[gid] + along[:, None] * D[gid]
-    normals = N[gid]
     offs = np.arange(-half, half + 1e-9, step)
-    # the sample points as two (M, S) float32 maps, x and y: built as 2-D broadcasts
-    # (an interleaved (M, S, 2) map took 3x longer to build than cv2.remap takes to run)
-    b = bases - off
-    map_x = (b[:, 0:1] + offs * normals[:, 0:1]).astype(np.float32)
-    map_y = (b[:, 1:2] + offs * normals[:, 1:2]).astype(np.float32)
+    # (compiled where the kernels are on and the corners finite)
+    geometry = kernels.sample_geometry
+    if not (np.isfinite(corners).all() and np.isfinite(trims).all()):
+        geometry = kernels._sample_geometry_numpy
+    bases, normals, gid, k, tt, along, map_x, map_y, length = geometry(
+        corners, off, offs, trims, float(spacing), MAX_PROFILES_PER_EDGE
+    )
     vals = cv2.remap(roi, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     return bases, normals, gid, k, tt, along, vals, length
 
@@ -266,8 +239,7 @@ def _level_gain(width: np.ndarray, half: float, step: float) -> np.ndarray:
     error with opposite signs on the two sides shifts nothing (symmetric slope).
     """
     # one implementation (visvec._kernels.edge_fit), compiled with the fast extra
-    gain = kernels.level_gain if jit.ON else kernels._level_gain
-    return gain(np.asarray(width, float), float(half), float(step))
+    return kernels.level_gain(np.asarray(width, float), float(half), float(step))
 
 
 def _widths(
@@ -313,28 +285,9 @@ def _edge_fit(normals, offsets, centres, spreads, sigmas, level_px, h_mid, mid, 
               keep, along, trims, lengths, lags=None) -> EdgeFit:  # fmt: skip
     """A fine pass's EdgeFit: its lines with their statistics (per edge: inliers,
     outlier share, contrast, and how far the inliers stop short of the ends)."""
-    if jit.ON:  # the same statistics, compiled (the fast extra)
-        sigmas, counts, outl, gaps = kernels.edge_stats(
-            sigmas, level_px, h_mid, gid, keep, along, trims, lengths
-        )
-        return EdgeFit(normals, offsets, centres, spreads, counts, sigmas, outl, h_mid, mid,
-                       gaps, width.copy(), lag_sums=lags)  # fmt: skip
-    # the levels' error, common to the edge's profiles (see _level_gain): added per
-    # point, so that over the count it is the variance of the line's shift from the
-    # fitted level line
-    sigmas = np.hypot(sigmas, level_px / np.maximum(np.abs(h_mid), 1e-6))
-    counts = np.bincount(gid, keep, 3)
-    n_profiles = np.bincount(gid, minlength=3)
-    outl = 1.0 - counts / n_profiles
-    # how far the inlier edge points stop short of the two ends of the edge
-    starts = np.cumsum(n_profiles) - n_profiles
-    s_min = np.minimum.reduceat(np.where(keep, along, np.inf), starts)
-    s_max = np.maximum.reduceat(np.where(keep, along, -np.inf), starts)
-    gaps = np.where(
-        (counts > 0)[:, None],
-        np.column_stack([s_min - trims[[1, 2, 0]], lengths - trims[[2, 0, 1]] - s_max]),
-        lengths[:, None],
-    )
+    # compiled where the kernels are on, else its numpy twin
+    sigmas, counts, outl, gaps = kernels.edge_stats(sigmas, level_px, h_mid, gid, keep, along,
+                                                    trims, lengths)  # fmt: skip
     return EdgeFit(normals, offsets, centres, spreads, counts, sigmas, outl, h_mid, mid, gaps,
                    width.copy(), lag_sums=lags)  # fmt: skip
 
@@ -417,17 +370,8 @@ def lag_sums(ideal, gid, keep, normals, offsets, sigmas) -> np.ndarray:
     """(2, CORRELATION_LAGS + 1): the edge points' residuals from their lines over the
     edge's sigma (outliers 0), sum_k z_k z_(k + j) and the pairs of inliers j profiles
     apart on one edge, j = 0..CORRELATION_LAGS (see visvec.noise.LearnedCorrelation)."""
-    if jit.ON:  # the same, compiled (the fast extra)
-        return kernels.edge_lag_sums(ideal, gid, keep, normals, offsets, sigmas, CORRELATION_LAGS)
-    r = ideal[:, 0] * normals[gid, 0] + ideal[:, 1] * normals[gid, 1] - offsets[gid]
-    z = np.where(keep, r / sigmas[gid], 0.0)
-    out = np.zeros((2, CORRELATION_LAGS + 1))
-    out[0, 0], out[1, 0] = z @ z, np.count_nonzero(keep)
-    for j in range(1, CORRELATION_LAGS + 1):
-        same = (gid[:-j] == gid[j:]) & keep[:-j] & keep[j:]
-        out[0, j] = float(np.sum(z[:-j] * z[j:] * same))
-        out[1, j] = np.count_nonzero(same)
-    return out
+    # compiled where the kernels are on, else its numpy twin
+    return kernels.edge_lag_sums(ideal, gid, keep, normals, offsets, sigmas, CORRELATION_LAGS)
 
 
 def fit_edges(

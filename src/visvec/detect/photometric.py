@@ -47,12 +47,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from visvec._kernels import jit
 from visvec._kernels import pixel_fit as kernels
 from visvec._kernels.edge_fit import vertices
 from visvec._kernels.pixel_fit import (
     N_PARAMS,
-    BandPixels,
     PixelFitSettings,
     phi_of,
 )
@@ -158,7 +156,7 @@ class _IdealGrid:
             u, v = np.meshgrid(np.arange(camera.width, dtype=float),
                                np.arange(camera.height, dtype=float))  # fmt: skip
             xy = camera.undistort(np.column_stack([u.ravel(), v.ravel()])) * camera.fx
-            xy -= _pinhole(np.column_stack([u.ravel(), v.ravel()]), *pinhole)
+            xy -= kernels.pinhole(np.column_stack([u.ravel(), v.ravel()]), *pinhole)
             grid = xy.reshape(camera.height, camera.width, 2).astype(np.float32)
             if len(cls._cache) > 4:
                 cls._cache.clear()
@@ -173,14 +171,6 @@ def _unrolled(xy: np.ndarray, rows: np.ndarray, camera: CameraModel, roll) -> np
     return unroll(xy, rows, camera, rate_c, shutter.readout_ms, shutter.lever)
 
 
-def _pinhole(uv: np.ndarray, cx: float, cy: float, aspect: float) -> np.ndarray:
-    """(M, 2) the ideal coordinates of pixels (column, row) (M, 2) through a pinhole."""
-    out = np.empty((len(uv), 2))
-    out[:, 0] = uv[:, 0] - cx
-    out[:, 1] = (uv[:, 1] - cy) * aspect
-    return out
-
-
 def _intersections(n: np.ndarray, c: np.ndarray) -> tuple[np.ndarray, list | None]:
     """Vertices (3, 2) of the lines n_i . (x - c_i) = 0 (vertex i on lines i+1, i+2),
     and per vertex the inverse of its lines' 2x2 normal matrix
@@ -188,60 +178,11 @@ def _intersections(n: np.ndarray, c: np.ndarray) -> tuple[np.ndarray, list | Non
     return vertices(n, np.add.reduce(n * c, axis=1))
 
 
-def _meet(n1, o1, n2, o2) -> tuple[float, float]:
-    """The point where the lines n1 . x = o1 and n2 . x = o2 meet (Cramer's rule)."""
-    det = n1[0] * n2[1] - n1[1] * n2[0]
-    return ((o1 * n2[1] - o2 * n1[1]) / det, (n1[0] * o2 - n2[0] * o1) / det)
-
-
-def _cover(q: np.ndarray, lo0: int, lo1: int, hi0: int, hi1: int) -> np.ndarray:
-    """The pixels (column, row) (P, 2) in raster order that the three convex
-    quadrilaterals ``q`` (12, 2) (px, four corners each) cover with a pixel's margin,
-    within columns lo0..hi0 and rows lo1..hi1: per row the columns from each
-    quadrilateral's least x, less one, to its greatest plus one, over the strip of rows
-    within one of the row; their union. (A superset of the pixels whose centres the
-    quadrilaterals hold, for the exact check of _band; cheaper than drawing them.)"""
-    v = np.arange(lo1, hi1 + 1, dtype=float)
-    a, b = v - 1.0, v + 1.0
-    # the twelve sides (a quadrilateral's k-th from its corner k to corner k + 1), each
-    # clipped to each row's strip: the part between t0 and t1 of it
-    x0, y0 = q[:, :1], q[:, 1:]
-    nxt = q.reshape(3, 4, 2)[:, [1, 2, 3, 0]].reshape(12, 2)
-    x1, y1 = nxt[:, :1], nxt[:, 1:]
-    flat = (y1 == y0)[:, 0]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        ta, tb = (a - y0) / (y1 - y0), (b - y0) / (y1 - y0)
-    t0, t1 = np.maximum(np.minimum(ta, tb), 0.0), np.minimum(np.maximum(ta, tb), 1.0)
-    # a side along a row: all of it or none
-    inside = (a <= y0[flat]) & (y0[flat] <= b)
-    t0[flat], t1[flat] = np.where(inside, 0.0, 1.0), np.where(inside, 1.0, 0.0)
-    meets = t0 <= t1
-    xa, xb = x0 + t0 * (x1 - x0), x0 + t1 * (x1 - x0)
-    xmin = np.where(meets, np.minimum(xa, xb), np.inf).reshape(3, 4, -1).min(axis=1)
-    xmax = np.where(meets, np.maximum(xa, xb), -np.inf).reshape(3, 4, -1).max(axis=1)
-    seen = xmin <= xmax
-    c0 = np.maximum(np.ceil(np.where(seen, xmin, 0.0) - 1.0).astype(np.int64), lo0).T.copy()
-    c1 = np.minimum(np.floor(np.where(seen, xmax, 0.0) + 1.0).astype(np.int64), hi0).T.copy()
-    # per row (R, 3) the three ranges by their first column (an empty one's past hi0)
-    empty = ~seen.T | (c1 < c0)
-    c0[empty], c1[empty] = hi0 + 1, hi0
-    order = (np.argsort(c0, axis=1, kind="stable") + np.arange(0, c0.size, 3)[:, None]).ravel()
-    c0, c1 = c0.ravel()[order].reshape(-1, 3), c1.ravel()[order].reshape(-1, 3)
-    # their union, each column once: a range starts past the ends of those before it
-    start = c0.copy()
-    start[:, 1:] = np.maximum(c0[:, 1:], np.maximum.accumulate(c1, axis=1)[:, :-1] + 1)
-    count = np.maximum(c1 - start + 1, 0).ravel()
-    first = np.cumsum(count) - count
-    u = np.repeat(start.ravel() - first, count) + np.arange(int(count.sum()))
-    rows = np.repeat(np.arange(lo1, hi1 + 1), count.reshape(-1, 3).sum(axis=1))
-    return np.column_stack([u, rows])
-
-
 def _band(image, n, c, reach, clear, camera, roll=None):
     """The pixels fitted to each edge: within its reach, and clear inside the other two
     edges. The band of each edge is a quadrilateral in the image (its corners taken
     through the lens, 1.5 px wider against the curvature a distortion gives it); the
-    pixels it covers with a pixel's margin (_cover) are checked exactly on their ideal
+    pixels it covers with a pixel's margin (cover) are checked exactly on their ideal
     coordinates. With ``roll`` (a rolling
     shutter and the camera's rate, see :func:`refine`) the lines are the centre row's
     exposure's: each pixel's coordinates are taken there (visvec.shutter.unroll) before
@@ -250,65 +191,31 @@ def _band(image, n, c, reach, clear, camera, roll=None):
     triangle near a vertex), each edge's in raster order: their ideal coordinates
     (M, 2), grey levels (M,), places in the frame (column, row) (M, 2), and each edge's
     count (3,), as a BandPixels (numpy and compiled alike); or None."""
-    if jit.ON and roll is None:  # the same pixels in the same order, all compiled
-        grid, cx, cy, aspect, lens = _IdealGrid.of(camera)
-        found, bands = kernels.band_lines(
-            image, n, c, np.asarray(reach, float), np.asarray(clear, float), camera.fx,
-            camera.fy, camera.cx, camera.cy, camera.dist, camera.width - 1, camera.height - 1,
-            grid, cx, cy, aspect, lens)  # fmt: skip
-        return bands if found else None
-    nn = n.tolist()
-    o = np.einsum("ij,ij->i", n, c)
-    ol = o.tolist()
-    quads = []
-    for i in range(3):
-        j, k = (i + 1) % 3, (i + 2) % 3
-        for sgn, other in ((-1.0, j), (-1.0, k), (1.0, k), (1.0, j)):
-            oi = ol[i] + sgn * (reach[i] + 1.5)
-            quads.append(_meet(nn[i], oi, nn[other], ol[other] + clear[other]))
-    q = np.array(quads) / camera.fx
-    if roll is not None:
-        # where the rows see the corners: the centre row's point less its unroll shift
-        # (to first order; the 1.5 px margin holds the rest)
-        rows = camera.distort(q)[:, 1]
-        q = q - (_unrolled(q, rows, camera, roll) - q)
-    q_px = camera.distort(q)
-    if not np.all(np.isfinite(q_px)):
-        return None
-    lo = np.maximum(np.floor(q_px.min(axis=0)).astype(int) - 1, 0)
-    hi = np.minimum(np.ceil(q_px.max(axis=0)).astype(int) + 1,
-                    [camera.width - 1, camera.height - 1])  # fmt: skip
-    if np.any(hi <= lo):
-        return None
-    # the pixels the three bands cover; the exact check below gives each pixel to each
-    # edge whose rule it meets
     grid, cx, cy, aspect, lens = _IdealGrid.of(camera)
-    cover = kernels.cover if jit.ON else _cover
-    pts = cover(q_px, int(lo[0]), int(lo[1]), int(hi[0]), int(hi[1]))
+    reach, clear = np.asarray(reach, float), np.asarray(clear, float)
+    if roll is None:  # compiled where the kernels are on, else its numpy twin
+        found, bands = kernels.band_lines(
+            image, n, c, reach, clear, camera.fx, camera.fy, camera.cx, camera.cy, camera.dist,
+            camera.width - 1, camera.height - 1, grid, cx, cy, aspect, lens)  # fmt: skip
+        return bands if found else None
+    o = np.einsum("ij,ij->i", n, c)
+    q = kernels.band_quads(n, o, reach, clear) / camera.fx
+    # where the rows see the corners: the centre row's point less its unroll shift (to
+    # first order; the 1.5 px margin holds the rest)
+    rows = camera.distort(q)[:, 1]
+    q = q - (_unrolled(q, rows, camera, roll) - q)
+    q_px = camera.distort(q)
+    box = kernels.band_box(q_px, camera.width - 1, camera.height - 1)
+    if box is None:
+        return None
+    # the pixels the three bands cover; band_pixels' exact check gives each pixel to
+    # each edge whose rule it meets, on its coordinates taken to the centre row
+    pts = kernels.cover(q_px, *box)
     if not len(pts):
         return None
-    # flat indices into the frame (one take is cheaper than a gather by row and column)
-    flat = pts[:, 1] * camera.width + pts[:, 0]
-    x = _pinhole(pts, cx, cy, aspect)
-    if lens:
-        x += np.take(grid.reshape(-1, 2), flat, axis=0)
-    if roll is not None:
-        x = _unrolled(x / camera.fx, pts[:, 1], camera, roll) * camera.fx
-    if jit.ON:  # the unrolled coordinates given, the rest compiled
-        reach, clear = np.asarray(reach, float), np.asarray(clear, float)
-        return kernels.band_pixels(pts, x, grid, cx, cy, aspect, lens, image, n, o, reach,
-                                     clear)  # fmt: skip
-    grey = np.take(image.reshape(-1), flat)
-    d = x @ n.T - o  # (P, 3)
-    keeps = []
-    for i in range(3):
-        j, k = (i + 1) % 3, (i + 2) % 3
-        # a pixel is the nearest edge's: within its reach and clear of the other two
-        keeps.append((np.abs(d[:, i]) < reach[i]) & (d[:, j] > clear[j]) & (d[:, k] > clear[k]))
-    counts = np.array([np.count_nonzero(k) for k in keeps], np.int64)
-    return BandPixels(np.concatenate([x[k] for k in keeps]),
-                      np.concatenate([grey[k] for k in keeps]).astype(float),
-                      np.concatenate([pts[k] for k in keeps]), counts)  # fmt: skip
+    x = kernels.ideal_coordinates(pts, grid, cx, cy, aspect, lens)
+    x = _unrolled(x / camera.fx, pts[:, 1], camera, roll) * camera.fx
+    return kernels.band_pixels(pts, x, grid, cx, cy, aspect, lens, image, n, o, reach, clear)
 
 
 # The blurred step Phi(u) and its slope phi(u) (the standard normal CDF and density) by

@@ -25,7 +25,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from visvec._kernels import jit
 from visvec._kernels import rotation as kernels
 from visvec._kernels.rotation import residuals_and_jacobian_shift
 from visvec.rotations import expmap, expmap_xyz
@@ -110,9 +109,8 @@ def initial_rotation(t_c: np.ndarray, p_n: np.ndarray, xy: np.ndarray) -> np.nda
     Gauss-Newton finishes the job.
     """
     # one implementation (visvec._kernels.rotation), compiled with the fast extra
-    closed_form = kernels.closed_form if jit.ON else kernels._closed_form
     c = np.ascontiguousarray
-    found, R = closed_form(c(t_c, float), c(p_n, float), c(xy, float))
+    found, R = kernels.closed_form(c(t_c, float), c(p_n, float), c(xy, float))
     return R if found else None
 
 
@@ -176,9 +174,8 @@ def _fit_with_shift(
     w_s = 1.0 / prior.sigma**2
     # one implementation (visvec._kernels.rotation), compiled with the fast extra; its
     # arguments C-ordered float64 arrays, the one signature the kernel is compiled for
-    gauss_newton = kernels.gn_shift if jit.ON else kernels._gn_shift
     c = np.ascontiguousarray
-    R, s, r, J, N, it, converged = gauss_newton(
+    R, s, r, J, N, it, converged = kernels.gn_shift(
         c(R, float), c(t_c, float), c(X, float), c(xy, float), c(W, float),
         c(prior.axis, float), float(prior.mean), w_s, MAX_ITERATIONS, STEP_TOL_RAD**2,
         STEP_TOL_SHIFT,

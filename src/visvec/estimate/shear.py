@@ -58,7 +58,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from visvec._kernels import jit
 from visvec._kernels import readout as kernels
 from visvec.camera import CameraModel
 from visvec.estimate.triangle_full import VertexResidual
@@ -196,10 +195,9 @@ class ReadoutEvidence:
         ka = applied_ms / 1000.0
         # one implementation (visvec._kernels.readout), compiled with the fast extra
         # (60 -> 10 us a frame); its arguments C-ordered float64 arrays
-        readout_frame = kernels.readout_frame if jit.ON else kernels._readout_frame
         c = np.ascontiguousarray
         lever_ = np.zeros(3) if lever is None else c(lever, float)
-        ok, term = readout_frame(
+        ok, term = kernels.readout_frame(
             c(J, float), c(W, float), c(r, float), c(xy, float), c(rows, float),
             c(omega_c, float), lever_, float(camera.cy), float(camera.height),
             1.0 / camera.fx, 1.0 / camera.fy, ka, self.info, self.rhs,
@@ -221,8 +219,8 @@ class ReadoutEvidence:
         unseen: info[0, 0] = 0) leave the readout at 0."""
         if self._cached is None:
             # one implementation (visvec._kernels.readout), compiled with the fast extra
-            solve = kernels.readout_solve if jit.ON else kernels._readout_solve
-            self._cached = solve(self.info, self._prior_info, self.rhs, self.chi2, self.dof)
+            self._cached = kernels.readout_solve(self.info, self._prior_info, self.rhs, self.chi2,
+                                                 self.dof)  # fmt: skip
         return self._cached
 
     def _solve(self) -> tuple[float, float, float]:
