@@ -162,6 +162,16 @@ def test_the_fits_name_their_results_alike_compiled_or_not(calls, monkeypatch):
         with _path(flag):
             got.append(f(*a, **k))
     assert type(got[0]) is type(got[1]) is KE.StepPositions
+    # the sampling geometry and the lines' statistics, numpy and compiled alike
+    for name, kernel, to_args, named in (
+        ("_sample", "sample_geometry", _sample_args, KE.SampleGeometry),
+        ("_edge_fit", "edge_stats", lambda *a: (a[4], a[5], a[6], *a[9:14]), KE.EdgeStats),
+    ):
+        a, k = calls[name][1][0]
+        compiled = getattr(KE, kernel)(*to_args(*a, **k))
+        with jit.numpy_path():
+            numpy_ = getattr(KE, kernel)(*to_args(*a, **k))
+        assert type(compiled) is type(numpy_) is named and _diff(compiled, numpy_) < 1e-9
     assert np.abs(got[0].e - got[1].e).max() < 1e-9
     rng = np.random.default_rng(3)
     x, y = rng.normal(0.0, 50.0, 90), rng.normal(0.0, 50.0, 90)

@@ -102,6 +102,63 @@ class StepPositions(NamedTuple):
     level_ok: np.ndarray
 
 
+class SampleGeometry(NamedTuple):
+    """Where a pass's profiles lie (sample_geometry; edges._sample reads them through
+    cv2.remap), the edges' profiles one after the other.
+
+    Attributes
+    ----------
+    bases : ndarray, shape (M, 2)
+        Each profile's point on its edge's chord (full-image px).
+    normals : ndarray, shape (M, 2)
+        Its unit normal into the triangle.
+    gid : ndarray of int, shape (M,)
+        Its edge.
+    index : ndarray of int, shape (M,)
+        Its place along the edge (0, 1, ...).
+    t : ndarray, shape (M,)
+        Its place along the edge in [-1, 1].
+    along : ndarray, shape (M,)
+        Its distance from the edge's first end (px).
+    map_x, map_y : ndarray of float32, shape (M, S)
+        Its samples' places in the region of interest (px), x and y.
+    lengths : ndarray, shape (3,)
+        Each edge's chord's length (px).
+    """
+
+    bases: np.ndarray
+    normals: np.ndarray
+    gid: np.ndarray
+    index: np.ndarray
+    t: np.ndarray
+    along: np.ndarray
+    map_x: np.ndarray
+    map_y: np.ndarray
+    lengths: np.ndarray
+
+
+class EdgeStats(NamedTuple):
+    """A fine pass's statistics of each edge (edge_stats).
+
+    Attributes
+    ----------
+    sigmas : ndarray, shape (3,)
+        A point's 1-sigma across its line with the levels' error added (px).
+    counts : ndarray, shape (3,)
+        The inliers (float).
+    outliers : ndarray, shape (3,)
+        The share of profiles that are not inliers.
+    gaps : ndarray, shape (3, 2)
+        How far the inliers stop short of the edge's two ends beyond the trims (px;
+        the whole length without inliers).
+    """
+
+    sigmas: np.ndarray
+    counts: np.ndarray
+    outliers: np.ndarray
+    gaps: np.ndarray
+
+
 class LineScatter(NamedTuple):
     """The total-least-squares line through each edge's kept points (_group_tls and
     its numpy twin).
@@ -172,11 +229,10 @@ def vertices(normals: np.ndarray, offsets: np.ndarray) -> tuple[np.ndarray, list
 
 # ---------------------------------------------------------------- profiles (_sample)
 def _sample_geometry(corners, off, offs, trims, spacing, max_per_edge):
-    """edges._sample but for its cv2.remap: the profiles' bases, normals, edge, index
-    along the edge, t in [-1, 1], distance along, the sample maps (float32, x and y)
-    and the edges' lengths: edge i runs from vertex i + 1 to vertex i + 2, its profiles
-    (at least 4, at most ``max_per_edge``) about ``spacing`` apart between its trims
-    (``trims`` (3,) px from each vertex, at most 0.4 of the edge), each at ``offs``
+    """edges._sample but for its cv2.remap: a SampleGeometry. Edge i runs from vertex
+    i + 1 to vertex i + 2, its profiles (at least 4, at most ``max_per_edge``) about
+    ``spacing`` apart between its trims (``trims`` (3,) px from each vertex, at most
+    0.4 of the edge), each at ``offs``
     along the inward normal, in the frame less ``off``."""
     A = np.empty((3, 2))
     D = np.empty((3, 2))
@@ -236,7 +292,7 @@ def _sample_geometry(corners, off, offs, trims, spacing, max_per_edge):
                 map_x[p, q] = bx0 + offs[q] * N[i, 0]
                 map_y[p, q] = by0 + offs[q] * N[i, 1]
             p += 1
-    return bases, normals, gid, k, tt, along, map_x, map_y, length
+    return SampleGeometry(bases, normals, gid, k, tt, along, map_x, map_y, length)
 
 
 def _sample_geometry_numpy(corners, off, offs, trims, spacing, max_per_edge):
@@ -267,7 +323,7 @@ def _sample_geometry_numpy(corners, off, offs, trims, spacing, max_per_edge):
     b = bases - off
     map_x = (b[:, 0:1] + offs * normals[:, 0:1]).astype(np.float32)
     map_y = (b[:, 1:2] + offs * normals[:, 1:2]).astype(np.float32)
-    return bases, normals, gid, k, tt, along, map_x, map_y, length
+    return SampleGeometry(bases, normals, gid, k, tt, along, map_x, map_y, length)
 
 
 # ------------------------------------------------------- levels (_level_lines and co)
@@ -1010,10 +1066,11 @@ def _level_gain(width, half, step):
 
 
 def _edge_stats(sigmas, level_px, h_mid, gid, keep, along, trims, lengths):
-    """edges._edge_fit's statistics: each edge's per-point sigma with the levels' error
-    added (level_px / |h_mid|, common to the edge's profiles (edges._level_gain): added
-    per point, so that over the count it is the variance of the line's shift from the
-    fitted level line), inlier count (float), outlier share, and how far its inliers
+    """edges._edge_fit's statistics (an EdgeStats): each edge's per-point sigma with the
+    levels' error added (level_px / |h_mid|, common to the edge's profiles
+    (edges._level_gain): added per point, so that over the count it is the variance of
+    the line's shift from the fitted level line), inlier count (float), outlier share,
+    and how far its inliers
     stop short of its two ends beyond the trims ((3, 2); the whole length without
     inliers)."""
     counts = np.zeros(3)
@@ -1038,7 +1095,7 @@ def _edge_stats(sigmas, level_px, h_mid, gid, keep, along, trims, lengths):
             gaps[e, 1] = lengths[e] - trims[(e + 2) % 3] - s_max[e]
         else:
             gaps[e, 0] = gaps[e, 1] = lengths[e]
-    return sig, counts, outl, gaps
+    return EdgeStats(sig, counts, outl, gaps)
 
 
 def _edge_stats_numpy(sigmas, level_px, h_mid, gid, keep, along, trims, lengths):
@@ -1055,7 +1112,7 @@ def _edge_stats_numpy(sigmas, level_px, h_mid, gid, keep, along, trims, lengths)
         np.column_stack([s_min - trims[[1, 2, 0]], lengths - trims[[2, 0, 1]] - s_max]),
         lengths[:, None],
     )
-    return sig, counts, outl, gaps
+    return EdgeStats(sig, counts, outl, gaps)
 
 
 def _edge_lag_sums(ideal, gid, keep, normals, offsets, sigmas, lags):

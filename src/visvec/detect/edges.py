@@ -184,11 +184,9 @@ def _sample(
     geometry = kernels.sample_geometry
     if not (np.isfinite(corners).all() and np.isfinite(trims).all()):
         geometry = kernels._sample_geometry_numpy
-    bases, normals, gid, k, tt, along, map_x, map_y, length = geometry(
-        corners, off, offs, trims, float(spacing), MAX_PROFILES_PER_EDGE
-    )
-    vals = cv2.remap(roi, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    return bases, normals, gid, k, tt, along, vals, length
+    g = geometry(corners, off, offs, trims, float(spacing), MAX_PROFILES_PER_EDGE)
+    vals = cv2.remap(roi, g.map_x, g.map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    return g.bases, g.normals, g.gid, g.index, g.t, g.along, vals, g.lengths
 
 
 def _positions(
@@ -286,10 +284,9 @@ def _edge_fit(normals, offsets, centres, spreads, sigmas, level_px, h_mid, mid, 
     """A fine pass's EdgeFit: its lines with their statistics (per edge: inliers,
     outlier share, contrast, and how far the inliers stop short of the ends)."""
     # compiled where the kernels are on, else its numpy twin
-    sigmas, counts, outl, gaps = kernels.edge_stats(sigmas, level_px, h_mid, gid, keep, along,
-                                                    trims, lengths)  # fmt: skip
-    return EdgeFit(normals, offsets, centres, spreads, counts, sigmas, outl, h_mid, mid, gaps,
-                   width.copy(), lag_sums=lags)  # fmt: skip
+    st = kernels.edge_stats(sigmas, level_px, h_mid, gid, keep, along, trims, lengths)
+    return EdgeFit(normals, offsets, centres, spreads, st.counts, st.sigmas, st.outliers, h_mid,
+                   mid, st.gaps, width.copy(), lag_sums=lags)  # fmt: skip
 
 
 def _pass_window(npass: int, corners: np.ndarray, w_mid: float, half0: float, step: float,
