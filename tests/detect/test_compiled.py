@@ -1,7 +1,10 @@
-"""The edge fit's compiled kernels (visvec._kernels, the `fast` extra) against
-the numpy functions they replace: the same results to rounding, on the inputs frames
-of every kind give them (sharp and defocused, both resolutions, a lens with distortion,
-a lighting gradient, a light and a head over the triangle, tracked and cold)."""
+"""The compiled kernels (visvec._kernels, the `fast` extra) against the numpy path:
+each algorithm written once, run compiled and as Python on the numpy twins of its
+passes over a frame's pixels or profiles (jit.numpy_path), gives the same results to
+rounding on the inputs frames of every kind give them (sharp and defocused, both
+resolutions, a lens with distortion, a lighting gradient, a light and a head over the
+triangle, tracked and cold); each twin gives its loop's results; the loops run as
+Python give what Numba compiled."""
 
 from __future__ import annotations
 
