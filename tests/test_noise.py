@@ -78,3 +78,35 @@ def test_one_frame_is_too_few_to_widen_anything(rng):
     corr.add(s[0], s[1], 3)
     # 177 pairs at lag 1, under CORRELATION_MIN_PAIRS
     assert corr.factor == 1.0
+
+
+def test_the_pixel_fits_inflation_is_learned_over_the_run():
+    """A run's frames estimate one inflation each, scattering about the camera's: after
+    INFLATION_MIN_FRAMES the run's mean is used for a frame whose own estimate is a
+    draw of it (one far low or high within the band too), not for one far beyond it (a
+    head in a band), which is not learned from either; white sensor noise (every frame
+    1.0) keeps 1.0."""
+    from visvec.noise import INFLATION_BAND_SIGMAS, INFLATION_MIN_FRAMES, LearnedInflation
+
+    rng = np.random.default_rng(4)
+    run = LearnedInflation()
+    draws = rng.normal(3.0, 0.3, 200)
+    for k, own in enumerate(draws):
+        if k < INFLATION_MIN_FRAMES:
+            assert run.value is None and not run.within(own)
+        run.add(float(own))
+    assert run.value == pytest.approx(3.0, abs=0.2)
+    assert run.scatter == pytest.approx(0.3, rel=0.35)
+    low, high = run.value - 2.5 * run.scatter, run.value + 2.5 * run.scatter
+    assert run.within(low) and run.within(high)  # a low and a high draw
+    head = run.value + 1.5 * INFLATION_BAND_SIGMAS * run.scatter
+    assert not run.within(head)
+    before = (run.value, run.scatter)
+    run.add(head)
+    assert (run.value, run.scatter) == before  # not learned from
+    white = LearnedInflation()
+    for _ in range(20):
+        white.add(1.0)
+    assert white.value == 1.0 and white.within(1.0) and not white.within(1.2)
+    white.add(float("nan"))
+    assert white.value == 1.0

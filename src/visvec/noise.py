@@ -11,7 +11,8 @@ least squares, the sum of the squared residuals over their degrees of freedom.
 The correlation of the triangle's edge points along its edges
 (:class:`LearnedCorrelation`): a video codec's errors, or a camera's smoothed noise,
 are shared by neighbouring profiles, and a line through them is less precise than
-their scatter says.
+their scatter says. The same for the pixel fit's pixels (:class:`LearnedInflation`):
+each frame estimates it, the run averages the frames' estimates.
 """
 
 from __future__ import annotations
@@ -126,3 +127,63 @@ class LearnedCorrelation:
                 spread += w * w / p
         # each rho_j scatters by 1 / sqrt(pairs): the excess's scatter is 2 sqrt(spread)
         self.factor = 1.0 + max(excess - 4.0 * math.sqrt(spread), 0.0)
+
+
+# the pixel fit's noise inflation learned over the run: the frames' forgetting (about
+# the last 20), the frames it takes before it is used, and the band (in the frames' own
+# scatter) within which a frame's estimate is taken for a draw of the run's
+INFLATION_FORGET = 0.95
+INFLATION_MIN_FRAMES = 5
+INFLATION_BAND_SIGMAS = 3.0
+
+
+class LearnedInflation:
+    """The pixel fit's covariance inflation for its noise's correlation, learned over a
+    run (visvec._kernels.pixel_fit.noise_inflation estimates it from one frame's
+    residuals). A camera's demosaicing and codec are properties of the camera, not of a
+    frame, and one frame's estimate scatters: through a simulated webcam at 320x240
+    about 3.0 with a standard deviation of 0.3, 10 % of the covariance from frame to
+    frame, which puts frames whose estimate came out low beyond their sigma (a row at
+    5.1 sigma of 2,682). So the frames' estimates are averaged over the run (forgetting
+    INFLATION_FORGET per frame, with their scatter), and a frame whose own estimate lies
+    within INFLATION_BAND_SIGMAS of that scatter about the run's takes the run's: the
+    same quantity, better measured. A frame beyond the band (a head or a light in a
+    band: residuals with a structure of their own) keeps its own and is not learned
+    from. Until INFLATION_MIN_FRAMES frames have come, every frame keeps its own."""
+
+    def __init__(self):
+        self.weight = 0.0  # the forgetting sums of the frames' weights, estimates ...
+        self.total = 0.0
+        self.total2 = 0.0  # ... and squared estimates
+        self.frames = 0
+
+    @property
+    def value(self) -> float | None:
+        """The run's inflation, or None while it is not yet used."""
+        if self.frames < INFLATION_MIN_FRAMES or self.weight <= 0.0:
+            return None
+        return self.total / self.weight
+
+    @property
+    def scatter(self) -> float:
+        """The frames' estimates' standard deviation about the run's."""
+        if self.weight <= 0.0:
+            return math.inf
+        mean = self.total / self.weight
+        return math.sqrt(max(self.total2 / self.weight - mean * mean, 0.0))
+
+    def within(self, own: float) -> bool:
+        """Whether a frame's own estimate is a draw of the run's (within the band)."""
+        run = self.value
+        return run is not None and abs(own - run) <= INFLATION_BAND_SIGMAS * self.scatter
+
+    def add(self, own: float) -> None:
+        """A frame's own estimate, learned from while the run is still starting or when
+        it lies within the band."""
+        if not math.isfinite(own) or (self.value is not None and not self.within(own)):
+            return
+        a = INFLATION_FORGET
+        self.weight = a * self.weight + 1.0
+        self.total = a * self.total + own
+        self.total2 = a * self.total2 + own * own
+        self.frames += 1

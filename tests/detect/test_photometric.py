@@ -211,6 +211,58 @@ def test_pixel_fit_sigma_is_honest_under_correlated_noise(rig320, monkeypatch):
     assert white > 1.3 * honest, (white, honest)
 
 
+def test_a_run_takes_its_learned_noise_inflation(rig320, monkeypatch):
+    """Frames through the same correlated noise: once INFLATION_MIN_FRAMES pixel fits
+    have been taken, a fit whose own inflation is a draw of the run's carries the run's
+    in its covariance (its own scaled by their ratio), learned from the taken fits'
+    own estimates and kept through a reset; a fit whose own estimate lies far beyond
+    the run's (residuals with a structure of their own) keeps its own."""
+    from visvec.noise import INFLATION_MIN_FRAMES
+    from visvec.sim.render import render_clean
+
+    rng = np.random.default_rng(12)
+    det = TriangleDetector(_pixels(rig320))
+    seen = []
+    real = tri.refine
+
+    def spy(*a):
+        pf = real(*a)
+        seen.append(pf)
+        return pf
+
+    monkeypatch.setattr(tri, "refine", spy)
+    for R in attitudes(10, 31):
+        clean = cv2.GaussianBlur(render_clean(rig320, R, Scene()), (0, 0), 0.6)
+        z = _smoothed(rng, clean.shape)
+        det.reset()
+        seen.clear()
+        d = det.detect(np.clip(np.rint(clean + 2.0 * z / z.std()), 0, 255).astype(np.uint8))
+        assert d.status is Status.OK, d.reason
+        own, taken = seen[-1], det._pixel
+        assert taken is not False and taken.inflation == own.inflation
+        if det.inflation.frames <= INFLATION_MIN_FRAMES:  # (this frame's fit learned)
+            assert taken.run_inflation is None
+            np.testing.assert_array_equal(taken.cov, own.cov)
+        else:
+            run = taken.run_inflation
+            assert run is not None and run != own.inflation
+            np.testing.assert_allclose(taken.cov, own.cov * run / own.inflation, rtol=1e-12)
+    assert det.inflation.frames == 10 and 1.5 < det.inflation.value < 5.0
+    # a fit whose own estimate is far beyond the run's keeps its own
+    far = det.inflation.value + 10.0 * det.inflation.scatter + 1.0
+    pf = replace(seen[-1], inflation=far, cov=seen[-1].cov * far / seen[-1].inflation)
+    monkeypatch.setattr(tri, "refine", lambda *a: pf)
+    out = tri._pixel_fit(None, _FitStub(), pf.xy, 100.0 * pf.cov, rig320.camera,
+                         inflation=det.inflation)  # fmt: skip
+    assert out[2] is pf and out[2].run_inflation is None
+
+
+class _FitStub:
+    """The edge fit's fields _pixel_fit hands to refine (stubbed in the test above)."""
+
+    normals = offsets = width = None
+
+
 def test_a_pixel_fit_wider_than_the_lines_is_not_taken(rig320, monkeypatch):
     """A pixel fit that agrees with the lines but whose covariance is the wider (its
     residuals' own structure inflated it): the lines stand."""

@@ -112,9 +112,10 @@ _SQRT_2 = math.sqrt(2.0)
 class PhotometricFit:
     """Vertices (3, 2) ideal px (vertex i opposite line i), their covariance (6, 6), the
     edges' blur widths (3,), the residual RMS (grey levels), the pixels used, the
-    covariance's inflation for the noise's correlation
-    (visvec._kernels.pixel_fit.noise_inflation) and the
-    Gauss-Newton steps on every pixel the fit took."""
+    frame's own estimate of the covariance's inflation for the noise's correlation
+    (visvec._kernels.pixel_fit.noise_inflation), the Gauss-Newton steps on every pixel
+    the fit took, and the run's inflation where the covariance carries it in place of
+    the frame's own (visvec.noise.LearnedInflation; None where it does not)."""
 
     xy: np.ndarray
     cov: np.ndarray
@@ -124,6 +125,7 @@ class PhotometricFit:
     ok: bool = True
     inflation: float = 1.0
     steps: int = 0
+    run_inflation: float | None = None
 
 
 def _refused(V: np.ndarray, w: np.ndarray, m: int) -> PhotometricFit:

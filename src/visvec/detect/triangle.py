@@ -12,7 +12,7 @@ is rejected with a reason.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -32,7 +32,7 @@ from visvec.detect.photometric import PhotometricFit, refine
 from visvec.detect.warm import warm_up
 from visvec.errors import ConfigError
 from visvec.geometry import project_target
-from visvec.noise import LearnedCorrelation
+from visvec.noise import LearnedCorrelation, LearnedInflation
 from visvec.rig import Rig
 from visvec.shutter import RollingShutter, shutter_matrix, shutter_shift
 from visvec.tone import tone_lut
@@ -182,7 +182,7 @@ def _centre(p: np.ndarray) -> np.ndarray:
 
 
 def _pixel_fit(image, fit, xy, cov, camera, shutter=None, rate_c=None, blur=None,
-               tone=None):  # fmt: skip
+               tone=None, inflation=None):  # fmt: skip
     """The vertices of the edge lines refined on the pixels (visvec.detect.photometric,
     started from the run's blur width ``blur`` where there is one), and the fit, when
     the refinement agrees with them: the edge lines are robust (their profiles'
@@ -193,13 +193,18 @@ def _pixel_fit(image, fit, xy, cov, camera, shutter=None, rate_c=None, blur=None
     rolling ``shutter`` the pixels are taken to the centre row's exposure with the rate
     ``rate_c``; without a rate yet (a first frame) the lines stand, their covariance
     widened for the rate they could not take out. The fit is False where it was made and
-    not taken, None where none was made."""
+    not taken, None where none was made. With the run's learned ``inflation``
+    (visvec.noise.LearnedInflation), a fit whose own estimate of its noise's correlation
+    is a draw of the run's takes the run's in its covariance."""
     if shutter is not None and rate_c is None:
         return xy, cov, None
     pf = refine(image, fit.normals, fit.offsets, fit.width, camera, shutter, rate_c, blur,
                 tone)  # fmt: skip
     if not pf.ok or not np.isfinite(pf.cov).all():
         return xy, cov, False
+    if inflation is not None and inflation.within(pf.inflation):
+        run = inflation.value
+        pf = replace(pf, cov=pf.cov * (run / pf.inflation), run_inflation=run)
     dv = (pf.xy - xy).ravel()
     try:
         chi2_ = float(dv @ np.linalg.solve(cov + pf.cov, dv))
@@ -302,6 +307,9 @@ class TriangleDetector:
         # of the lens and its focus, kept through reset
         self._blur: float | None = None
         self._pixel: PhotometricFit | bool | None = None
+        # the pixel fit's noise inflation learned over the run (a property of the
+        # camera's demosaicing and codec), kept through reset
+        self.inflation = LearnedInflation()
         # the last detection came from the previous frame's vertices (small motion)
         self.last_was_tracked = False
         # the edge points' correlation along the edges, learned over the run's frames
@@ -508,7 +516,7 @@ class TriangleDetector:
 
     def _learn(self) -> None:
         """The frame's edge points join the correlation learned over the run; its pixel
-        fit's widths, the run's blur."""
+        fit's widths, the run's blur, and its noise inflation, the run's."""
         if self._lags is not None:
             sums, pairs = self._lags.tolist()
             self.correlation.add(sums, pairs, 3)
@@ -518,6 +526,7 @@ class TriangleDetector:
             # longer holds): the next one starts from the lines' widths and relearns it
             self._blur = None
         elif pf is not None:
+            self.inflation.add(pf.inflation)
             w = sorted(pf.width.tolist())[1]  # the three edges' median
             if self._blur is None or pf.steps > 1:
                 self._blur = w
@@ -655,7 +664,7 @@ class TriangleDetector:
             # codec's correlation, do not; visvec.pipeline.triangle.codec_advice,
             # benchmarks/triangle_compression.py)
             xy, cov, self._pixel = _pixel_fit(image, fit, xy, cov, cam, shutter, rate_c,
-                                              self._blur, self._tone)  # fmt: skip
+                                              self._blur, self._tone, self.inflation)  # fmt: skip
         level_mid = float(np.add.reduce(fit.mid_level)) / 3
         if self._tone is not None:
             # (the image's own level, which the checks compare with its pixels)
