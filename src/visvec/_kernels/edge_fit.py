@@ -1006,7 +1006,7 @@ def _robust_lines(x, y, gid, index, use, floor, rounds, inflation):
     active = np.ones(3, np.bool_)
     for _ in range(rounds):
         a = _distances(dx, dy, n, gid)
-        sigma = np.maximum(1.4826 * _group_median(a, gid, index, keep), floor)
+        sigma = np.maximum(1.4826 * group_median(a, gid, index, keep), floor)
         new, changed, count = _inliers(a, use, keep, np.maximum(3.5 * sigma, 0.25), gid)
         active &= changed & (count >= 5)
         if not active.any():
@@ -1177,7 +1177,6 @@ _moment_widths = kernel(globals(), "_moment_widths", _moment_widths, numpy=_mome
 widths = kernel(globals(), "widths", _widths)
 _group_tls = kernel(globals(), "_group_tls", _group_tls, numpy=_group_tls_numpy)
 group_median = kernel(globals(), "group_median", _group_median, numpy=_group_median_numpy)
-_group_median = kernel(globals(), "_group_median", _group_median, numpy=_group_median_numpy)
 _distances = kernel(globals(), "_distances", _distances, numpy=_distances_numpy)
 _inliers = kernel(globals(), "_inliers", _inliers, numpy=_inliers_numpy)
 _kept_where = kernel(globals(), "_kept_where", _kept_where, numpy=_kept_where_numpy)

@@ -398,8 +398,8 @@ def _band_lines(image, n, c, reach, clear, fx, fy, cx, cy, dist, last_col, last_
     """photometric._band without a rolling shutter: the three bands' quadrilaterals
     from the lines n_i . (x - c_i) = 0 (band_quads), their corners through the lens
     (camera.distort's polynomial), the box they span in the frame, the pixels they cover
-    (_cover) and those each edge's rule takes (_band_pixels). Returns whether there were
-    any, then _band_pixels' BandPixels."""
+    (cover) and those each edge's rule takes (band_pixels). Returns whether there were
+    any, then band_pixels' BandPixels."""
     o = np.empty(3)
     for i in range(3):
         o[i] = n[i, 0] * c[i, 0] + n[i, 1] * c[i, 1]
@@ -425,10 +425,10 @@ def _band_lines(image, n, c, reach, clear, fx, fy, cx, cy, dist, last_col, last_
     hi1 = min(math.ceil(q[:, 1].max()) + 1, last_row)
     if hi0 <= lo0 or hi1 <= lo1:
         return False, BandPixels(*empty)
-    pts = _cover(q, lo0, lo1, hi0, hi1)
+    pts = cover(q, lo0, lo1, hi0, hi1)
     if len(pts) == 0:
         return False, BandPixels(*empty)
-    return True, _band_pixels(pts, np.empty((0, 2)), grid, gcx, gcy, aspect, lens, image, n, o,
+    return True, band_pixels(pts, np.empty((0, 2)), grid, gcx, gcy, aspect, lens, image, n, o,
                               reach, clear)  # fmt: skip
 
 
@@ -943,8 +943,6 @@ noise_inflation = kernel(globals(), "noise_inflation", _noise_inflation,
                          numpy=_noise_inflation_numpy)  # fmt: skip
 band_pixels = kernel(globals(), "band_pixels", _band_pixels, numpy=_band_pixels_numpy)
 cover = kernel(globals(), "cover", _cover, numpy=_cover_numpy)
-_cover = kernel(globals(), "_cover", _cover, numpy=_cover_numpy)
-_band_pixels = kernel(globals(), "_band_pixels", _band_pixels, numpy=_band_pixels_numpy)
 distorted = kernel(globals(), "distorted", _distorted)
 band_lines = kernel(globals(), "band_lines", _band_lines, numpy=_band_lines_numpy)
 _phi_of = kernel(globals(), "_phi_of", phi_of)
