@@ -411,3 +411,37 @@ def test_a_wide_window_measures_the_width_again_near_the_edge():
     # (the sampling and the steps' alignment to the nearest sample widen it a little)
     assert np.abs(again - w_true).max() < 0.25
     assert np.abs(once - w_true).max() > 0.3
+
+
+def test_a_width_is_never_measured_below_a_pixels_box():
+    """Noise in a narrow window's far bins can take most of a width's second moment away
+    (the moment weighs a bin by its squared distance from the edge): here one edge's
+    bright level falls by a grey level a pixel from 2.25 px past its step, and the
+    moment reads under a pixel's box. The width returned is the box's (MIN_WIDTH_PX), on
+    both paths; the other edges keep their measured width."""
+    import contextlib
+
+    from scipy.special import erf
+
+    from visvec._kernels import edge_fit as KE
+    from visvec._kernels import jit
+
+    rng = np.random.default_rng(9)
+    half, step, w_true = 4.0, 0.5, 0.8
+    offs = np.arange(-half, half + 1e-9, step)
+    gid = np.repeat(np.arange(3), 30)
+    e = rng.uniform(-0.5, 0.5, len(gid))
+    edge = 0.5 * (1.0 + erf((offs[None, :] - e[:, None]) / (np.sqrt(2.0) * w_true)))
+    vals = 60.0 + 30.0 * edge + rng.normal(0.0, 0.3, edge.shape)
+    past = np.clip(offs[None, :] - e[:, None] - 2.25, 0.0, None)
+    vals = np.where(gid[:, None] == 2, vals - past, vals).astype(np.float32)
+    clear = np.ones(len(gid), bool)
+    g, x = KE._aligned_slopes_numpy(vals, 0, e, clear, gid, half, step)
+    raw = KE._moment_widths_numpy(g, x, np.full(3, np.inf), half)
+    assert 0.0 < raw[2] < KE.MIN_WIDTH_PX  # the case the floor is for
+    for path in (contextlib.nullcontext(), jit.numpy_path()):
+        with path:
+            w = KE.widths(vals, 0, e, clear, gid, half, step, edges.WIDTH_REACH_MIN_PX)
+        assert w[2] == KE.MIN_WIDTH_PX
+        np.testing.assert_allclose(w[:2], raw[:2], atol=1e-12)
+        assert np.abs(w[:2] - w_true).max() < 0.25

@@ -33,6 +33,15 @@ _AS_A1 = 0.254829592
 _SQRT_PI = math.sqrt(math.pi)
 _SQRT_2 = math.sqrt(2.0)
 _SQRT_2PI = math.sqrt(2.0 * math.pi)
+# the narrowest blur width an edge can show (px): a pixel's box alone (its RMS width,
+# sqrt(1 / 12)), whatever the lens. A width measured below it is noise: the second
+# moment of a mean profile derivative is weighted by the squared distance from the edge,
+# and noise in the window's far bins can take most of it away (a 320x240 frame's
+# 0.80 / 0.68 px edges beside one of 0.15 px, in 1 of 300 cold frames); the step
+# positions then fitted with so sharp a step cannot move between the profiles' samples,
+# stay on the sparse pass's line, and scatter a third as much as they err (a tilt at 5.3
+# sigma)
+MIN_WIDTH_PX = math.sqrt(1.0 / 12.0)
 
 
 class EdgeLines(NamedTuple):
@@ -805,15 +814,16 @@ def _widths(vals, n_ext, e, clear, gid, half, step, reach_min):
     """(3,) each edge's RMS blur width (px; edges._widths says how): the second moment
     of its mean profile derivative, aligned on each profile's step (_aligned_slopes,
     _moment_widths); a window wider than ``reach_min`` measured again within 4 widths of
-    the edge (its far bins add only noise to the second moment). One function for both
-    paths: compiled, or run as Python with the numpy twins."""
+    the edge (its far bins add only noise to the second moment); never below a pixel's
+    box (MIN_WIDTH_PX). One function for both paths: compiled, or run as Python with the
+    numpy twins."""
     g_all, x = _aligned_slopes(vals, n_ext, e, clear, gid, half, step)
     reach = np.full(3, np.inf)
     w = _moment_widths(g_all, x, reach, half)
     if half > reach_min:
         reach = np.maximum(4.0 * w, reach_min)
         w = _moment_widths(g_all, x, reach, half)
-    return w
+    return np.maximum(w, MIN_WIDTH_PX)
 
 
 def _group_median(a, gid, index, keep):
