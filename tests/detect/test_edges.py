@@ -380,23 +380,31 @@ def test_fast_erf_is_within_abramowitz_stegun_bound():
     assert abs(got[-4]) < 1e-9 and got[-2] == 1.0 and got[-1] == -1.0
 
 
+def _blurred_profiles(rng, half, step, w_true, per_edge, e_max):
+    """Profiles (3 edges x ``per_edge``) across a step of RMS width ``w_true`` at
+    positions uniform within +-``e_max``, sampled every ``step`` over +-``half``: the
+    offsets, each profile's edge and step position, and the unit step's values."""
+    from scipy.special import erf
+
+    offs = np.arange(-half, half + 1e-9, step)
+    gid = np.repeat(np.arange(3), per_edge)
+    e = rng.uniform(-e_max, e_max, len(gid))
+    edge = 0.5 * (1.0 + erf((offs[None, :] - e[:, None]) / (np.sqrt(2.0) * w_true)))
+    return offs, gid, e, edge
+
+
 def test_a_wide_window_measures_the_width_again_near_the_edge():
     """A window wider than WIDTH_REACH_MIN_PX (a large image's first pass): the width is
     measured again within 4 widths of the edge, where its far bins' noise no longer
     moves it; compiled and on the numpy path alike (one function, edge_fit.widths)."""
     import contextlib
 
-    from scipy.special import erf
-
     from visvec._kernels import edge_fit as KE
     from visvec._kernels import jit
 
     rng = np.random.default_rng(8)
     half, step, w_true = 8.0, 0.5, 0.8
-    offs = np.arange(-half, half + 1e-9, step)
-    gid = np.repeat(np.arange(3), 40)
-    e = rng.uniform(-1.0, 1.0, len(gid))
-    edge = 0.5 * (1.0 + erf((offs[None, :] - e[:, None]) / (np.sqrt(2.0) * w_true)))
+    _, gid, e, edge = _blurred_profiles(rng, half, step, w_true, 40, 1.0)
     vals = (60.0 + 40.0 * edge + rng.normal(0.0, 2.0, edge.shape)).astype(np.float32)
     clear = np.ones(len(gid), bool)
     got = []
@@ -421,17 +429,12 @@ def test_a_width_is_never_measured_below_a_pixels_box():
     both paths; the other edges keep their measured width."""
     import contextlib
 
-    from scipy.special import erf
-
     from visvec._kernels import edge_fit as KE
     from visvec._kernels import jit
 
     rng = np.random.default_rng(9)
     half, step, w_true = 4.0, 0.5, 0.8
-    offs = np.arange(-half, half + 1e-9, step)
-    gid = np.repeat(np.arange(3), 30)
-    e = rng.uniform(-0.5, 0.5, len(gid))
-    edge = 0.5 * (1.0 + erf((offs[None, :] - e[:, None]) / (np.sqrt(2.0) * w_true)))
+    offs, gid, e, edge = _blurred_profiles(rng, half, step, w_true, 30, 0.5)
     vals = 60.0 + 30.0 * edge + rng.normal(0.0, 0.3, edge.shape)
     past = np.clip(offs[None, :] - e[:, None] - 2.25, 0.0, None)
     vals = np.where(gid[:, None] == 2, vals - past, vals).astype(np.float32)
