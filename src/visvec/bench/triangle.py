@@ -174,12 +174,17 @@ def random_cases(n: int, scene: Scene, seed: int, max_tilt_deg: float = 5.0) -> 
 
 
 def level_calibration(
-    rig: Rig, world: Rig, n_level: int = 12, scene: Scene | None = None, seed: int = 500
+    rig: Rig,
+    world: Rig,
+    n_level: int = 12,
+    scene: Scene | None = None,
+    seed: int = 500,
+    yaw0: float = 0.1,
 ) -> tuple[ZeroTiltResult, int]:
     """`calibrate zero-tilt` on ``n_level`` frames of the lab ``world`` with the platform
-    level at yaws spread over the circle, processed cold with ``rig``: the result and the
-    number of frames whose triangle was found."""
-    yaws = np.linspace(-np.pi, np.pi, n_level, endpoint=False) + 0.1
+    level at yaws spread evenly over the circle from ``yaw0`` (rad), processed cold with
+    ``rig``: the result and the number of frames whose triangle was found."""
+    yaws = np.linspace(-np.pi, np.pi, n_level, endpoint=False) + yaw0
     level = [Case(np.array([y, 0.0, 0.0]), scene or Scene(), seed + k) for k, y in enumerate(yaws)]
     pipe = TrianglePipeline(rig)
     dets = []
