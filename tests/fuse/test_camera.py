@@ -34,6 +34,11 @@ def _track_live(tmp_path, rig, sim_args, n_frames, serve=False, foxglove=None, e
     assert r.exit_code == 0, r.output
     port = _free_udp_port()
     out, cam = tmp_path / "fused.csv", tmp_path / "camera.csv"
+    if foxglove is not None:
+        # imported before the run starts: on a loaded machine the imports alone took the
+        # client past the camera's 45 frames (1.5 s), whose rows nobody watched then
+        import websockets.sync.client  # noqa: F401
+        from foxglove_client import Client
     proc = subprocess.Popen(
         [sys.executable, "-m", "visvec", "track", "--rig", str(rig), "--camera", str(rec),
          "--realtime", "--imu", f"udp://127.0.0.1:{port}", "--out", str(out), "--camera-out",
@@ -52,8 +57,6 @@ def _track_live(tmp_path, rig, sim_args, n_frames, serve=False, foxglove=None, e
                 url = line.split("live view at ")[1].strip()
             if foxglove is not None and "Foxglove live at ws://" in line:
                 # a client that subscribes to every channel as it is advertised
-                from foxglove_client import Client
-
                 fox_port = int(line.split("ws://127.0.0.1:")[1].split()[0])
                 foxglove.append(Client(fox_port, auto=True))
             got |= {w for w in ("listening", "first frame") if w in line}
